@@ -1,0 +1,86 @@
+"""The scan: a 3D point cloud reduced to 360 normalised ranges, as training and flight see it.
+
+Conventions (ARCHITECTURE.md, not optional): points arrive in the sensor frame (FLU: x forward,
+y left, z up, metres); the mount transform takes them to the body frame; returns closer than
+``min_range`` (measured from the sensor) are dropped; only points with ``|z| < slice_height`` in
+the body frame are kept; bin ``i`` covers ``[i, i+1)`` degrees counter-clockwise from straight
+ahead (bin 90 is left, bin 270 right); each bin holds the minimum horizontal range divided by
+``max_range``, clipped to ``[0, 1]``; an empty bin is 1.0.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+N_BINS = 360
+BIN_CONVENTION = "ccw-from-forward-1deg"
+
+
+@dataclass(frozen=True)
+class ScanConfig:
+    """Geometry of the scan.
+
+    :param max_range: range that maps to 1.0, metres
+    :param min_range: returns closer than this to the sensor are ignored (own frame, dust)
+    :param slice_height: keep points with ``|z_body| < slice_height``
+    :param mount_xyz: sensor origin in the body frame, metres
+    :param mount_rpy_deg: sensor orientation in the body frame (roll, pitch, yaw), degrees
+    """
+
+    max_range: float = field(default=10.0, metadata={"min": 0.5, "max": 200.0})
+    min_range: float = field(default=0.1, metadata={"min": 0.0, "max": 5.0})
+    slice_height: float = field(default=0.5, metadata={"min": 0.01, "max": 10.0})
+    mount_xyz: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    mount_rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        if self.min_range >= self.max_range:
+            raise ValueError(f"min_range {self.min_range} must be below max_range {self.max_range}")
+
+    def rotation(self) -> np.ndarray:
+        """Sensor-to-body rotation matrix (z-y-x intrinsic: yaw, then pitch, then roll)."""
+        r, p, y = (math.radians(a) for a in self.mount_rpy_deg)
+        cr, sr, cp, sp, cy, sy = math.cos(r), math.sin(r), math.cos(p), math.sin(p), math.cos(y), math.sin(y)
+        return np.array(
+            [
+                [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+                [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+                [-sp, cp * sr, cp * cr],
+            ],
+            dtype=np.float64,
+        )
+
+
+def scan_from_points(points: np.ndarray, config: ScanConfig) -> np.ndarray:
+    """Reduce an ``(N, 3)`` sensor-frame point cloud to a ``(360,)`` float32 scan in ``[0, 1]``.
+
+    Vectorised throughout; non-finite points are ignored.
+
+    :param points: ``(N, 3)`` array of x, y, z in the sensor frame (FLU), metres
+    :param config: scan geometry
+    :return: normalised minimum range per 1° bin, counter-clockwise from straight ahead
+    """
+    scan = np.ones(N_BINS, dtype=np.float32)
+    pts = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+    if pts.shape[0] == 0:
+        return scan
+    r2_sensor = np.einsum("ij,ij->i", pts, pts)
+    keep = r2_sensor >= np.float32(config.min_range**2)  # NaN compares False: dropped too
+    if config.mount_rpy_deg != (0.0, 0.0, 0.0) or config.mount_xyz != (0.0, 0.0, 0.0):
+        body = pts @ config.rotation().T.astype(np.float32) + np.asarray(config.mount_xyz, np.float32)
+    else:
+        body = pts
+    keep &= np.abs(body[:, 2]) < np.float32(config.slice_height)
+    body = body[keep]
+    if body.shape[0] == 0:
+        return scan
+    x, y = body[:, 0], body[:, 1]
+    rng = np.sqrt(x * x + y * y) / np.float32(config.max_range)
+    angle = np.arctan2(y, x)  # (-pi, pi], counter-clockwise from forward
+    bins = np.floor(angle * np.float32(N_BINS / (2.0 * math.pi))).astype(np.int64) % N_BINS
+    np.minimum.at(scan, bins, rng.astype(np.float32))
+    np.clip(scan, 0.0, 1.0, out=scan)
+    return scan

@@ -1,0 +1,23 @@
+"""``avoid-sim``: command-line front of the flight simulator (subcommands in their own modules)."""
+
+from __future__ import annotations
+
+import sys
+
+from companion.cli import run_cli
+
+# subcommand name -> (module providing configure_parser/command, one-line help)
+SUBCOMMANDS: dict[str, tuple[str, str]] = {}
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_cli(
+        "avoid-sim",
+        "Simulator: JSBSim quadrotor, lidar, worlds, simulated autopilot and SITL flights.",
+        SUBCOMMANDS,
+        argv,
+    )
+
+
+if __name__ == "__main__":
+    sys.exit(main())
