@@ -67,17 +67,19 @@ def scan_from_points(points: np.ndarray, config: ScanConfig) -> np.ndarray:
     pts = np.asarray(points, dtype=np.float32).reshape(-1, 3)
     if pts.shape[0] == 0:
         return scan
-    r2_sensor = np.einsum("ij,ij->i", pts, pts)
-    keep = r2_sensor >= np.float32(config.min_range**2)  # NaN compares False: dropped too
+    sx, sy, sz = pts[:, 0], pts[:, 1], pts[:, 2]
     if config.mount_rpy_deg != (0.0, 0.0, 0.0) or config.mount_xyz != (0.0, 0.0, 0.0):
         body = pts @ config.rotation().T.astype(np.float32) + np.asarray(config.mount_xyz, np.float32)
+        x, y, z = body[:, 0], body[:, 1], body[:, 2]
     else:
-        body = pts
-    keep &= np.abs(body[:, 2]) < np.float32(config.slice_height)
-    body = body[keep]
-    if body.shape[0] == 0:
+        x, y, z = sx, sy, sz
+    # The height slice is the most selective test: apply it first, the rest runs on what is left.
+    idx = np.flatnonzero(np.abs(z) < np.float32(config.slice_height))  # NaN compares False: dropped
+    sx, sy, sz = sx[idx], sy[idx], sz[idx]
+    beyond_min = sx * sx + sy * sy + sz * sz >= np.float32(config.min_range**2)
+    x, y = x[idx][beyond_min], y[idx][beyond_min]
+    if x.shape[0] == 0:
         return scan
-    x, y = body[:, 0], body[:, 1]
     rng = np.sqrt(x * x + y * y) / np.float32(config.max_range)
     angle = np.arctan2(y, x)  # (-pi, pi], counter-clockwise from forward
     bins = np.floor(angle * np.float32(N_BINS / (2.0 * math.pi))).astype(np.int64) % N_BINS
