@@ -1,0 +1,232 @@
+"""Safety shield: every limit on its own, then properties over arbitrary requests and scans."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from companion.errors import UserError
+from companion.shield import (
+    Command,
+    SafetyShield,
+    ShieldConfig,
+    command_from_action,
+    sector_bins,
+    stopping_speed,
+)
+from companion.tomlconfig import from_dict
+
+MAX_RANGE = 10.0
+CLEAR = np.ones(360, dtype=np.float32)
+
+
+def scan_with(bins: dict[int, float] | None = None) -> np.ndarray:
+    """A scan with returns (metres) at the given counter-clockwise bins."""
+    scan = CLEAR.copy()
+    for i, metres in (bins or {}).items():
+        scan[i] = metres / MAX_RANGE
+    return scan
+
+
+def settled(shield: SafetyShield, request: Command, scan: np.ndarray, steps: int = 50) -> Command:
+    """Filter the same request long enough for the acceleration limits to have caught up."""
+    out = Command(0.0, 0.0)
+    for _ in range(steps):
+        out = shield.filter(request, scan, 0.1)
+    return out
+
+
+def test_sectors_cover_the_documented_bins() -> None:
+    assert sector_bins(0.0, 30.0).tolist() == [*range(30), *range(330, 360)]
+    assert sector_bins(180.0, 30.0).tolist() == list(range(150, 210))
+
+
+def test_stopping_speed_formula() -> None:
+    # v·t + v²/(2a) = d
+    v = stopping_speed(3.0, 2.0, 0.3)
+    assert v * 0.3 + v * v / 4.0 == pytest.approx(3.0)
+    assert stopping_speed(0.0, 2.0, 0.3) == 0.0
+    assert stopping_speed(-1.0, 2.0, 0.3) == 0.0
+    assert stopping_speed(1.0, 2.0, 0.0) == pytest.approx(2.0)  # sqrt(2·a·d)
+
+
+def test_clear_scan_passes_request_through() -> None:
+    shield = SafetyShield(ShieldConfig(), MAX_RANGE)
+    assert settled(shield, Command(1.5, -0.7), CLEAR) == Command(1.5, -0.7)
+    assert not shield.interventions["stopping_distance"] and not shield.interventions["estop"]
+
+
+def test_nan_and_inf_requests_become_zero() -> None:
+    shield = SafetyShield(ShieldConfig(), MAX_RANGE)
+    settled(shield, Command(1.0, 0.5), CLEAR)
+    for bad in (Command(float("nan"), 0.0), Command(0.5, float("inf")), Command(-math.inf, math.nan)):
+        assert shield.filter(bad, CLEAR, 0.1) == Command(0.0, 0.0)
+    assert shield.interventions["nan"] == 3
+
+
+def test_nan_scan_bins_count_as_obstacles() -> None:
+    shield = SafetyShield(ShieldConfig(), MAX_RANGE)
+    scan = CLEAR.copy()
+    scan[0] = np.nan
+    assert settled(shield, Command(2.0, 0.0), scan).forward == 0.0
+    assert shield.interventions["scan_nan"] > 0
+
+
+def test_speed_and_yaw_rate_limits() -> None:
+    cfg = ShieldConfig(max_speed=2.0, max_reverse_speed=0.5, max_yaw_rate=1.5)
+    shield = SafetyShield(cfg, MAX_RANGE)
+    assert settled(shield, Command(5.0, 9.0), CLEAR) == Command(2.0, 1.5)
+    assert settled(shield, Command(-5.0, -9.0), CLEAR) == Command(-0.5, -1.5)
+    assert shield.interventions["speed_limit"] > 0 and shield.interventions["yaw_limit"] > 0
+
+
+@pytest.mark.parametrize("distance", [0.8, 1.5, 3.0, 5.0])
+def test_forward_speed_lets_the_vehicle_stop_before_the_return(distance: float) -> None:
+    cfg = ShieldConfig(max_speed=10.0)
+    shield = SafetyShield(cfg, MAX_RANGE)
+    out = settled(shield, Command(10.0, 0.0), scan_with({10: distance}))
+    expected = stopping_speed(distance - cfg.estop_distance, cfg.max_decel, cfg.reaction_time)
+    assert out.forward == pytest.approx(expected)
+    # and that speed indeed stops before estop_distance from the return
+    v, a, t = out.forward, cfg.max_decel, cfg.reaction_time
+    assert v * t + v * v / (2 * a) == pytest.approx(distance - cfg.estop_distance)
+    assert shield.interventions["stopping_distance"] > 0
+
+
+def test_returns_outside_the_forward_sector_do_not_slow_forward_flight() -> None:
+    shield = SafetyShield(ShieldConfig(), MAX_RANGE)
+    # 0.5 m at 31°-left and at 31°-right (bins 31 and 328) are outside ±30°
+    out = settled(shield, Command(2.0, 0.0), scan_with({31: 0.5, 328: 0.5}))
+    assert out.forward == 2.0
+    # at 29° they are inside
+    out = settled(shield, Command(2.0, 0.0), scan_with({29: 0.5}))
+    assert out.forward < 2.0
+
+
+def test_estop_blocks_forward_but_allows_turning_in_place() -> None:
+    shield = SafetyShield(ShieldConfig(), MAX_RANGE)
+    blocked = scan_with({0: 0.2})
+    out = settled(shield, Command(2.0, 1.0), blocked)
+    assert out.forward == 0.0
+    assert out.yaw_rate == pytest.approx(1.0)
+    assert shield.interventions["estop"] > 0
+
+
+def test_estop_allows_backing_up_when_the_rear_is_clear() -> None:
+    shield = SafetyShield(ShieldConfig(), MAX_RANGE)
+    out = settled(shield, Command(-0.5, 0.0), scan_with({0: 0.2}))
+    assert out.forward == pytest.approx(-0.5)
+
+
+def test_estop_blocks_backing_up_when_the_rear_is_close_too() -> None:
+    cfg = ShieldConfig()
+    shield = SafetyShield(cfg, MAX_RANGE)
+    rear = cfg.estop_distance + cfg.rear_clear_margin - 0.05  # inside estop + margin
+    out = settled(shield, Command(-0.5, 0.3), scan_with({0: 0.2, 180: rear}))
+    assert out == Command(0.0, pytest.approx(0.3))
+    assert shield.interventions["reverse_blocked"] > 0
+
+
+def test_backing_up_is_limited_by_rear_clearance() -> None:
+    cfg = ShieldConfig(max_reverse_speed=5.0)
+    shield = SafetyShield(cfg, MAX_RANGE)
+    out = settled(shield, Command(-5.0, 0.0), scan_with({170: 1.0}))
+    cap = stopping_speed(1.0 - cfg.rear_clear_margin - cfg.estop_distance, cfg.max_decel, cfg.reaction_time)
+    assert out.forward == pytest.approx(-cap)
+
+
+def test_acceleration_is_slew_limited() -> None:
+    cfg = ShieldConfig(max_accel=2.0, max_yaw_accel=4.0)
+    shield = SafetyShield(cfg, MAX_RANGE)
+    first = shield.filter(Command(2.0, 1.5), CLEAR, 0.1)
+    assert first == Command(pytest.approx(0.2), pytest.approx(0.4))
+    second = shield.filter(Command(2.0, 1.5), CLEAR, 0.1)
+    assert second == Command(pytest.approx(0.4), pytest.approx(0.8))
+    assert shield.interventions["accel_limit"] == 2 and shield.interventions["yaw_accel_limit"] == 2
+
+
+def test_braking_is_never_slew_limited() -> None:
+    shield = SafetyShield(ShieldConfig(), MAX_RANGE)
+    settled(shield, Command(2.0, 1.5), CLEAR)
+    # policy asks to slow down: at once
+    assert shield.filter(Command(0.3, 0.1), CLEAR, 0.1) == Command(0.3, 0.1)
+    # an obstacle appears: at once, whatever the previous speed
+    settled(shield, Command(2.0, 0.0), CLEAR)
+    assert shield.filter(Command(2.0, 0.0), scan_with({0: 0.25}), 0.1).forward == 0.0
+
+
+def test_reversing_direction_goes_through_zero_then_ramps() -> None:
+    shield = SafetyShield(ShieldConfig(max_yaw_accel=4.0), MAX_RANGE)
+    settled(shield, Command(0.0, 1.5), CLEAR)
+    assert shield.filter(Command(0.0, -1.5), CLEAR, 0.1).yaw_rate == pytest.approx(-0.4)
+
+
+def test_zero_or_bad_dt_allows_no_increase() -> None:
+    shield = SafetyShield(ShieldConfig(), MAX_RANGE)
+    for dt in (0.0, -1.0, float("nan"), float("inf")):
+        assert shield.filter(Command(2.0, 1.0), CLEAR, dt) == Command(0.0, 0.0)
+
+
+def test_reset_forgets_the_previous_command() -> None:
+    shield = SafetyShield(ShieldConfig(), MAX_RANGE)
+    settled(shield, Command(2.0, 0.0), CLEAR)
+    shield.reset()
+    assert shield.filter(Command(2.0, 0.0), CLEAR, 0.1).forward == pytest.approx(0.2)
+
+
+def test_command_from_action_scales() -> None:
+    assert command_from_action(np.array([0.5, -1.0], np.float32), 2.0, 1.5) == Command(1.0, -1.5)
+    with pytest.raises(ValueError, match="2 values"):
+        command_from_action(np.zeros(3), 2.0, 1.5)
+
+
+def test_config_loads_from_toml_dict_with_ranges() -> None:
+    cfg = from_dict(ShieldConfig, {"max_speed": 3, "estop_distance": 0.5})
+    assert cfg.max_speed == 3.0 and cfg.estop_distance == 0.5
+    with pytest.raises(UserError, match=r"shield\.max_speed: -1\.0 is below the minimum"):
+        from_dict(ShieldConfig, {"max_speed": -1.0}, prefix="shield.")
+    with pytest.raises(UserError, match=r"shield\.max_sped: unknown config key"):
+        from_dict(ShieldConfig, {"max_sped": 1.0}, prefix="shield.")
+
+
+finite_or_not = st.floats(allow_nan=True, allow_infinity=True, width=32)
+scans = hnp.arrays(np.float32, 360, elements=st.floats(0.0, 1.0, width=32))
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    requests=st.lists(st.tuples(finite_or_not, finite_or_not), min_size=1, max_size=8),
+    scan=scans,
+    dt=st.floats(0.0, 0.5),
+)
+def test_output_is_always_finite_within_limits_and_never_faster_than_asked(
+    requests: list[tuple[float, float]], scan: np.ndarray, dt: float
+) -> None:
+    cfg = ShieldConfig()
+    shield = SafetyShield(cfg, MAX_RANGE)
+    front = float(scan[sector_bins(0.0, cfg.forward_sector_deg)].min()) * MAX_RANGE
+    rear = float(scan[sector_bins(180.0, cfg.rear_sector_deg)].min()) * MAX_RANGE
+    previous = Command(0.0, 0.0)
+    for forward, yaw in requests:
+        out = shield.filter(Command(forward, yaw), scan, dt)
+        assert math.isfinite(out.forward) and math.isfinite(out.yaw_rate)
+        assert -cfg.max_reverse_speed <= out.forward <= cfg.max_speed
+        assert abs(out.yaw_rate) <= cfg.max_yaw_rate
+        if math.isfinite(forward) and forward > 0:
+            assert out.forward <= forward
+        if front < cfg.estop_distance:
+            assert out.forward <= 0.0
+        if rear < cfg.estop_distance + cfg.rear_clear_margin:
+            assert out.forward >= 0.0
+        # never faster towards the front than the vehicle can stop from
+        cap = stopping_speed(front - cfg.estop_distance, cfg.max_decel, cfg.reaction_time)
+        assert out.forward <= cap + 1e-9
+        # growth away from zero bounded by the acceleration limits
+        assert abs(out.forward) <= abs(previous.forward) + cfg.max_accel * dt + 1e-9
+        assert abs(out.yaw_rate) <= abs(previous.yaw_rate) + cfg.max_yaw_accel * dt + 1e-9
+        previous = out
