@@ -1,0 +1,310 @@
+"""ArduPilot Copter over raw MAVLink 2 (pymavlink): GUIDED velocity setpoints and the vehicle's status.
+
+What goes out: SET_POSITION_TARGET_LOCAL_NED in MAV_FRAME_BODY_OFFSET_NED with only velocity and
+yaw rate enabled (type mask 0x05C7), OBSTACLE_DISTANCE for ArduPilot's own proximity avoidance,
+the companion's HEARTBEAT and STATUSTEXT. What comes in: HEARTBEAT (armed, mode),
+EXTENDED_SYS_STATE (landed state), GLOBAL_POSITION_INT / LOCAL_POSITION_NED (altitude above home)
+and VFR_HUD (climb rate); the link asks for those streams with MAV_CMD_SET_MESSAGE_INTERVAL because
+ArduPilot's default SRx_ rates may be zero on a companion port.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from companion.autopilot.link import LandedState, VehicleStatus
+from companion.autopilot.mavlink_adapter import MavlinkEndpoint, mavlink, mode_name
+
+log = logging.getLogger(__name__)
+
+#: SET_POSITION_TARGET type mask: ignore position (bits 0-2), acceleration (6-8) and yaw (10);
+#: use velocity and yaw rate.
+VELOCITY_YAW_RATE_TYPE_MASK = 0x05C7
+#: ArduCopter custom_mode number of GUIDED.
+COPTER_GUIDED = 4
+#: OBSTACLE_DISTANCE sector width, degrees (72 sectors cover the circle).
+SECTOR_INCREMENT_DEG = 5
+#: Messages the supervisor needs, requested at ``stream_rate_hz``.
+STATUS_STREAMS = ("EXTENDED_SYS_STATE", "GLOBAL_POSITION_INT", "LOCAL_POSITION_NED", "VFR_HUD")
+#: A position source older than this no longer counts as current, seconds.
+POSITION_FRESH_S = 2.0
+#: STATUSTEXT carries 50 bytes per message; longer texts are chunked, up to this many chunks.
+STATUSTEXT_CHUNK = 50
+STATUSTEXT_MAX_CHUNKS = 4
+
+
+def statustext_chunks(text: str) -> list[tuple[bytes, int, int]]:
+    """Split ``text`` into STATUSTEXT ``(text, id_needed, chunk_seq)`` pieces (MAVLink 2 chunking).
+
+    ``id_needed`` is 0 for a text that fits one message (no chunk id), else 1. A last chunk of
+    exactly 50 bytes is followed by an empty one, because receivers only stop at a NUL.
+    """
+    data = text.encode("utf-8")[: STATUSTEXT_CHUNK * STATUSTEXT_MAX_CHUNKS]
+    if len(data) <= STATUSTEXT_CHUNK:
+        return [(data, 0, 0)]
+    pieces = [data[i : i + STATUSTEXT_CHUNK] for i in range(0, len(data), STATUSTEXT_CHUNK)]
+    if len(pieces[-1]) == STATUSTEXT_CHUNK:
+        pieces.append(b"")
+    return [(p, 1, seq) for seq, p in enumerate(pieces)]
+
+
+class ArduPilotLink:
+    """The :class:`~companion.autopilot.link.AutopilotLink` for ArduPilot Copter in GUIDED.
+
+    The link locks onto the first autopilot whose HEARTBEAT it hears and addresses every command
+    to that system and component; heartbeats from other systems are counted and ignored.
+
+    :param connect: pymavlink connection string (``udpin:0.0.0.0:14550``, ``tcp:127.0.0.1:5760``,
+        ``/dev/ttyTHS1``)
+    :param baud: serial baud rate
+    :param clock: monotonic clock, seconds (injected so tests and the supervisor share one)
+    :param source_system: system id the companion sends as (normally the vehicle's own)
+    :param source_component: component id (191 = MAV_COMP_ID_ONBOARD_COMPUTER)
+    :param stream_rate_hz: rate asked for each status stream
+    :param min_distance_cm: OBSTACLE_DISTANCE ``min_distance``
+    :param max_distance_cm: OBSTACLE_DISTANCE ``max_distance`` (a sector with no return holds this + 1)
+    """
+
+    def __init__(
+        self,
+        connect: str,
+        baud: int = 921600,
+        clock: Callable[[], float] = time.monotonic,
+        source_system: int = 1,
+        source_component: int = 191,
+        stream_rate_hz: float = 10.0,
+        min_distance_cm: int = 10,
+        max_distance_cm: int = 1000,
+    ) -> None:
+        self._endpoint = MavlinkEndpoint(connect, baud, source_system, source_component)
+        self._clock = clock
+        self._start = clock()
+        self._stream_interval_us = round(1e6 / stream_rate_hz)
+        self._min_cm = min_distance_cm
+        self._max_cm = max_distance_cm
+        self._target: tuple[int, int] | None = None
+        self._status = VehicleStatus()
+        self._last_seen: dict[str, float] = {}
+        self._last_stream_request = -math.inf
+        self._statustext_id = 0
+        self.counters: dict[str, int] = {
+            "received": 0,
+            "bad_data": 0,
+            "unknown_messages": 0,
+            "read_errors": 0,
+            "foreign_heartbeats": 0,
+            "setpoints_sent": 0,
+            "setpoints_without_target": 0,
+            "obstacle_distance_sent": 0,
+            "heartbeats_sent": 0,
+            "statustext_sent": 0,
+            "stream_requests": 0,
+            "command_nacks": 0,
+            "send_errors": 0,
+        }
+
+    # ---- receiving -------------------------------------------------------------------------
+
+    def fileno(self) -> int | None:
+        """File descriptor of the connection, for ``select()``."""
+        return self._endpoint.fileno()
+
+    @property
+    def target(self) -> tuple[int, int] | None:
+        """(system id, component id) of the autopilot, once its heartbeat has been heard."""
+        return self._target
+
+    def poll(self) -> VehicleStatus:
+        """Read whatever is waiting (never blocks), keep the status streams asked for, return the status."""
+        for msg in self._endpoint.receive():
+            self.counters["received"] += 1
+            self._handle(msg)
+        self.counters["bad_data"] = self._endpoint.bad_data
+        self.counters["unknown_messages"] = self._endpoint.unknown
+        self.counters["read_errors"] = self._endpoint.read_errors
+        self._request_missing_streams()
+        return dataclasses.replace(self._status)
+
+    def _handle(self, msg: Any) -> None:
+        kind = msg.get_type()
+        src = (msg.get_srcSystem(), msg.get_srcComponent())
+        if kind == "HEARTBEAT":
+            self._on_heartbeat(msg, src)
+            return
+        if src != self._target:
+            return
+        now = self._clock()
+        self._last_seen[kind] = now
+        if kind == "EXTENDED_SYS_STATE":
+            try:
+                self._status.landed_state = LandedState(msg.landed_state)
+            except ValueError:
+                self._status.landed_state = None
+        elif kind == "GLOBAL_POSITION_INT":
+            self._status.altitude = msg.relative_alt / 1000.0
+            if not self._fresh("VFR_HUD", now):
+                self._status.climb_rate = -msg.vz / 100.0
+        elif kind == "LOCAL_POSITION_NED":
+            # Without GPS (indoors) GLOBAL_POSITION_INT may be absent; the EKF origin is then home.
+            if not self._fresh("GLOBAL_POSITION_INT", now):
+                self._status.altitude = -float(msg.z)
+            if not self._fresh("VFR_HUD", now):
+                self._status.climb_rate = -float(msg.vz)
+        elif kind == "VFR_HUD":
+            # VFR_HUD.alt may be above sea level depending on firmware; only its climb rate is used.
+            self._status.climb_rate = float(msg.climb)
+        elif kind == "COMMAND_ACK" and msg.result != mavlink.MAV_RESULT_ACCEPTED:
+            self.counters["command_nacks"] += 1
+            log.debug("command %d refused by the autopilot: result %d", msg.command, msg.result)
+
+    def _fresh(self, kind: str, now: float) -> bool:
+        return now - self._last_seen.get(kind, -math.inf) < POSITION_FRESH_S
+
+    def _on_heartbeat(self, msg: Any, src: tuple[int, int]) -> None:
+        if msg.autopilot == mavlink.MAV_AUTOPILOT_INVALID or msg.type in (
+            mavlink.MAV_TYPE_GCS,
+            mavlink.MAV_TYPE_ONBOARD_CONTROLLER,
+            mavlink.MAV_TYPE_GIMBAL,
+            mavlink.MAV_TYPE_ADSB,
+        ):
+            return  # ground stations, other companions, peripherals
+        if self._target is None:
+            self._target = src
+            log.info("autopilot found: system %d component %d (%s)", src[0], src[1], mode_name(msg))
+            self._last_stream_request = -math.inf
+        elif src != self._target:
+            self.counters["foreign_heartbeats"] += 1
+            return
+        status = self._status
+        status.heartbeat_time = self._clock()
+        status.armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+        status.mode = mode_name(msg)
+        status.guided = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED) and (
+            msg.custom_mode == COPTER_GUIDED and status.mode == "GUIDED"
+        )
+
+    def _request_missing_streams(self) -> None:
+        """Ask for each status stream not seen lately (at start, and again after an autopilot reboot)."""
+        if self._target is None:
+            return
+        now = self._clock()
+        if now - self._last_stream_request < 5.0:
+            return
+        self._last_stream_request = now
+        for name in STATUS_STREAMS:
+            if now - self._last_seen.get(name, -math.inf) < 5.0:
+                continue
+            msg_id = getattr(mavlink, f"MAVLINK_MSG_ID_{name}")
+            self._send(
+                "stream_requests",
+                self._endpoint.mav.command_long_send,
+                *self._target,
+                mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
+                0,
+                msg_id,
+                self._stream_interval_us,
+                0, 0, 0, 0, 0,
+            )
+
+    # ---- sending ---------------------------------------------------------------------------
+
+    def _send(self, counter: str, send: Callable[..., None], *args: Any) -> bool:
+        try:
+            send(*args)
+        except (OSError, ValueError) as exc:  # a vanished serial port, an unencodable value
+            self.counters["send_errors"] += 1
+            log.debug("MAVLink send failed: %s", exc)
+            return False
+        self.counters[counter] += 1
+        return True
+
+    def send_velocity(self, forward: float, yaw_rate: float) -> None:
+        """Send one body-frame velocity + yaw-rate setpoint to the autopilot.
+
+        :param forward: body x velocity, m/s
+        :param yaw_rate: rad/s, FLU (counter-clockwise positive); sent negated, as FRD
+        """
+        if self._target is None:
+            self.counters["setpoints_without_target"] += 1
+            return
+        if not (math.isfinite(forward) and math.isfinite(yaw_rate)):
+            forward, yaw_rate = 0.0, 0.0  # the shield should never let this through; never send NaN
+        time_boot_ms = int((self._clock() - self._start) * 1000) & 0xFFFFFFFF
+        self._send(
+            "setpoints_sent",
+            self._endpoint.mav.set_position_target_local_ned_send,
+            time_boot_ms,
+            *self._target,
+            mavlink.MAV_FRAME_BODY_OFFSET_NED,
+            VELOCITY_YAW_RATE_TYPE_MASK,
+            0.0, 0.0, 0.0,
+            float(forward), 0.0, 0.0,
+            0.0, 0.0, 0.0,
+            0.0,
+            -float(yaw_rate),
+        )
+
+    def send_obstacle_distance(self, sectors_cm: np.ndarray) -> None:
+        """Send OBSTACLE_DISTANCE: 72 sectors of 5°, sector j at j × 5° clockwise from forward (FRD).
+
+        :param sectors_cm: ``(72,)`` uint16 centimetres (no return = ``max_distance_cm + 1``)
+        """
+        distances = [int(v) for v in np.asarray(sectors_cm, dtype=np.uint16).reshape(-1)]
+        if len(distances) != 72:
+            raise ValueError(f"OBSTACLE_DISTANCE needs 72 sectors, got {len(distances)}")
+        self._send(
+            "obstacle_distance_sent",
+            self._endpoint.mav.obstacle_distance_send,
+            int(self._clock() * 1e6),
+            mavlink.MAV_DISTANCE_SENSOR_LASER,
+            distances,
+            SECTOR_INCREMENT_DEG,
+            self._min_cm,
+            self._max_cm,
+            0.0,
+            0.0,
+            mavlink.MAV_FRAME_BODY_FRD,
+        )
+
+    def send_heartbeat(self) -> None:
+        """Send the companion's HEARTBEAT (MAV_TYPE_ONBOARD_CONTROLLER, no autopilot)."""
+        self._send(
+            "heartbeats_sent",
+            self._endpoint.mav.heartbeat_send,
+            mavlink.MAV_TYPE_ONBOARD_CONTROLLER,
+            mavlink.MAV_AUTOPILOT_INVALID,
+            0,
+            0,
+            mavlink.MAV_STATE_ACTIVE,
+        )
+
+    def send_statustext(self, text: str, severity: int) -> None:
+        """Send ``text`` as STATUSTEXT (chunked past 50 bytes) so the pilot's GCS shows it.
+
+        :param severity: MAV_SEVERITY (0 emergency … 7 debug)
+        """
+        chunks = statustext_chunks(text)
+        chunk_id = 0
+        if len(chunks) > 1:
+            self._statustext_id = self._statustext_id % 0xFFFF + 1
+            chunk_id = self._statustext_id
+        for data, needs_id, seq in chunks:
+            self._send(
+                "statustext_sent",
+                self._endpoint.mav.statustext_send,
+                severity,
+                data,
+                chunk_id if needs_id else 0,
+                seq,
+            )
+
+    def close(self) -> None:
+        """Close the connection."""
+        self._endpoint.close()
