@@ -7,7 +7,11 @@ import sys
 from companion.cli import run_cli
 
 # subcommand name -> (module providing configure_parser/command, one-line help)
-SUBCOMMANDS: dict[str, tuple[str, str]] = {}
+SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "train": ("training.train", "train a PPO policy from a TOML config (checkpoints, evaluation, resume)"),
+    "evaluate": ("training.evaluate", "fly a policy and the baselines over worlds; success table, JSON, PNG"),
+    "export": ("training.export", "export a checkpoint's deterministic actor to ONNX and check parity"),
+}
 
 
 def main(argv: list[str] | None = None) -> int:

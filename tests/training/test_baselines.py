@@ -1,0 +1,55 @@
+"""The classical baseline's geometry and steering, on hand-made scans."""
+
+import numpy as np
+import pytest
+
+from training.baselines import GapFollower, GapFollowerConfig, RandomController, corridor_clearance
+
+
+def _scan_with(bins: dict[int, float], max_range: float = 10.0) -> np.ndarray:
+    scan = np.ones(360, dtype=np.float32)
+    for i, r in bins.items():
+        scan[i] = r / max_range
+    return scan
+
+
+def test_corridor_clearance_blocks_headings_within_the_body_width():
+    ranges = np.full(360, np.inf)
+    ranges[0] = 3.0  # one return 3 m straight ahead
+    clearance = corridor_clearance(ranges, body_radius=0.5)
+    assert clearance[0] == pytest.approx(3.0 * np.cos(0.0), abs=1e-9)
+    # 5 degrees off: lateral offset 3 sin 5° = 0.26 m < 0.5 m, still blocked
+    assert np.isfinite(clearance[5]) and np.isfinite(clearance[355])
+    # 20 degrees off: 3 sin 20° = 1.03 m > 0.5 m, free; behind the vehicle is never blocked by it
+    assert np.isinf(clearance[20]) and np.isinf(clearance[340]) and np.isinf(clearance[180])
+
+
+def test_gap_follower_goes_straight_and_fast_in_the_open():
+    action = GapFollower().act(np.ones(360, dtype=np.float32))
+    assert action[0] == pytest.approx(GapFollowerConfig().cruise, abs=1e-3)
+    assert abs(action[1]) < 0.05
+
+
+@pytest.mark.parametrize(("blocked", "turn_sign"), [(range(350, 360), +1), (range(0, 10), -1)])
+def test_gap_follower_turns_away_from_an_obstacle_ahead(blocked, turn_sign):
+    # a wall segment 1.5 m ahead, slightly right (bins 350..359) or slightly left (bins 0..9)
+    scan = _scan_with({i: 1.5 for i in blocked})
+    action = GapFollower().act(scan)
+    assert np.sign(action[1]) == turn_sign
+    assert action[0] < GapFollowerConfig().cruise
+
+
+def test_gap_follower_stops_but_turns_when_boxed_in_ahead():
+    scan = _scan_with({i: 0.6 for i in [*range(0, 60), *range(300, 360)]})
+    action = GapFollower().act(scan)
+    assert action[0] == pytest.approx(0.0)
+    assert abs(action[1]) == pytest.approx(1.0)
+
+
+def test_random_controller_is_seeded_and_in_range():
+    a = [RandomController(3).act(np.ones(360)) for _ in range(2)]
+    np.testing.assert_array_equal(a[0], a[1])
+    many = np.array([
+        RandomController(i).act(np.ones(360)) for i in range(200)
+    ])
+    assert many.min() >= -1.0 and many.max() <= 1.0 and many.std() > 0.3

@@ -1,0 +1,172 @@
+"""The one training config: a strict TOML file (``training/configs/*.toml``) plus ``key=value`` overrides.
+
+Everything a run depends on lives here, so a run directory's saved ``config.toml`` reproduces it.
+The ``[env]`` table is the simulator's own :class:`flightsim.env.EnvConfig` (checked by its strict
+loader, keys named ``env.<key>``), which is also where the domain-randomisation switches live.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from companion.errors import UserError
+from companion.tomlconfig import apply_overrides, from_dict, load_toml, to_dict
+
+#: success needs at least this mean speed over a full episode: 40 m in the default 100 s
+SUCCESS_MIN_MEAN_SPEED = 0.4
+#: a clearance below this counts as a near miss in evaluation, metres
+NEAR_MISS_DISTANCE = 0.5
+
+
+@dataclass(frozen=True)
+class PPOConfig:
+    """stable-baselines3 PPO hyperparameters (defaults: the seed tutorial's)."""
+
+    learning_rate: float = field(default=3e-4, metadata={"min": 1e-7, "max": 1.0})
+    n_steps: int = field(default=2048, metadata={"min": 8})
+    batch_size: int = field(default=64, metadata={"min": 2})
+    n_epochs: int = field(default=10, metadata={"min": 1})
+    gamma: float = field(default=0.99, metadata={"min": 0.0, "max": 1.0})
+    gae_lambda: float = field(default=0.95, metadata={"min": 0.0, "max": 1.0})
+    clip_range: float = field(default=0.2, metadata={"min": 0.0, "max": 1.0})
+    ent_coef: float = field(default=0.01, metadata={"min": 0.0})
+    vf_coef: float = field(default=0.5, metadata={"min": 0.0})
+    max_grad_norm: float = field(default=0.5, metadata={"min": 0.0})
+    #: hidden layer sizes of the actor and of the critic (separate networks, SB3's default)
+    net_arch: list[int] = field(default_factory=lambda: [64, 64])
+    #: initial log standard deviation of the Gaussian action noise
+    log_std_init: float = field(default=0.0, metadata={"min": -5.0, "max": 2.0})
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    """Evaluation during training on held-out generated worlds (seeds below the training range)."""
+
+    every_steps: int = field(default=50_000, metadata={"min": 1})
+    n_worlds: int = field(default=10, metadata={"min": 1})
+    #: first world seed of the held-out set; training worlds use seeds >= 1_000_000
+    first_seed: int = field(default=0, metadata={"min": 0, "max": 999_999})
+    difficulty: float = field(default=0.5, metadata={"min": 0.0, "max": 1.0})
+
+
+@dataclass(frozen=True)
+class CurriculumConfig:
+    """Training difficulty rises by ``step`` each time the evaluation success rate reaches ``threshold``."""
+
+    enabled: bool = False
+    start_difficulty: float = field(default=0.2, metadata={"min": 0.0, "max": 1.0})
+    step: float = field(default=0.1, metadata={"min": 0.0, "max": 1.0})
+    threshold: float = field(default=0.8, metadata={"min": 0.0, "max": 1.0})
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """One training run.
+
+    :param name: config name; the run directory is ``<run_root>/<name>-s<seed>``
+    :param seed: seeds PPO, the world sequence and the environments
+    :param total_timesteps: environment steps to train for (all environments together)
+    :param n_envs: parallel simulator processes; 0 = one per CPU core
+    :param n_stack: scans stacked into one observation (the companion's FrameStack depth)
+    :param checkpoint_every: save a checkpoint every this many environment steps
+    :param run_root: parent directory of run directories
+    :param progress_bar: show SB3's progress bar (turn off for background runs with a log file)
+    :param env: the simulator's ``EnvConfig`` table (domain randomisation switches included)
+    """
+
+    name: str = "default"
+    seed: int = field(default=0, metadata={"min": 0})
+    total_timesteps: int = field(default=1_000_000, metadata={"min": 1})
+    n_envs: int = field(default=0, metadata={"min": 0, "max": 256})
+    n_stack: int = field(default=4, metadata={"min": 1, "max": 64})
+    checkpoint_every: int = field(default=50_000, metadata={"min": 1})
+    run_root: str = "runs"
+    progress_bar: bool = True
+    env: dict[str, Any] = field(default_factory=dict)
+    ppo: PPOConfig = field(default_factory=PPOConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    curriculum: CurriculumConfig = field(default_factory=CurriculumConfig)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.env, dict):
+            raise ValueError("env must be a table")
+        if not self.name or any(c in self.name for c in "/\\ "):
+            raise ValueError(f"name {self.name!r} must be non-empty without spaces or slashes")
+
+    @property
+    def resolved_n_envs(self) -> int:
+        """``n_envs``, with 0 meaning one per CPU core."""
+        return self.n_envs or (os.cpu_count() or 1)
+
+    @property
+    def run_dir(self) -> Path:
+        """Where this run's checkpoints, logs and models go."""
+        return Path(self.run_root) / f"{self.name}-s{self.seed}"
+
+    def env_config(self, **changes: Any):
+        """The simulator's :class:`~flightsim.env.EnvConfig` from the ``[env]`` table (+ ``changes``).
+
+        :raises UserError: on an unknown or ill-typed key, named ``env.<key>``
+        """
+        from flightsim.env import EnvConfig  # the simulator is only needed once a run starts
+
+        return from_dict(EnvConfig, {**self.env, **changes}, prefix="env.")
+
+
+def config_from_dict(data: dict[str, Any]) -> TrainConfig:
+    """Build and fully check a :class:`TrainConfig` (the ``[env]`` table included)."""
+    config = from_dict(TrainConfig, data)
+    config.env_config()
+    if config.ppo.batch_size > config.ppo.n_steps * config.resolved_n_envs:
+        raise UserError(
+            f"ppo.batch_size {config.ppo.batch_size} exceeds one rollout "
+            f"(ppo.n_steps {config.ppo.n_steps} x n_envs {config.resolved_n_envs})"
+        )
+    return config
+
+
+def load_train_config(path: str | Path | None, overrides: list[str] | None = None) -> TrainConfig:
+    """Load ``path`` (or the defaults when ``None``), apply ``a.b=value`` overrides, check everything.
+
+    :param path: TOML file; its stem is the default run name
+    :param overrides: command-line ``key=value`` items (values parsed as TOML)
+    """
+    data: dict[str, Any] = load_toml(path) if path is not None else {}
+    if path is not None:
+        data.setdefault("name", Path(path).stem)
+    return config_from_dict(apply_overrides(data, overrides or []))
+
+
+def config_to_toml(config: TrainConfig) -> str:
+    """The config as TOML text (saved into the run directory and the ONNX metadata)."""
+    return _dump_toml(to_dict(config))
+
+
+def _dump_toml(data: dict[str, Any], prefix: str = "") -> str:
+    """Minimal TOML writer for plain config values (scalars, lists, nested tables)."""
+    lines: list[str] = []
+    tables: list[tuple[str, dict[str, Any]]] = []
+    for key, value in data.items():
+        if isinstance(value, dict):
+            tables.append((f"{prefix}{key}", value))
+        else:
+            lines.append(f"{key} = {_toml_value(value)}")
+    out = "\n".join(lines) + ("\n" if lines else "")
+    for name, table in tables:
+        out += f"\n[{name}]\n" + _dump_toml(table, prefix=f"{name}.")
+    return out
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, float)):
+        return repr(value)
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    raise TypeError(f"cannot write {type(value).__name__} to TOML")

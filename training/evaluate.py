@@ -1,0 +1,498 @@
+"""``avoid-train evaluate``: fly a policy and two baselines over the same worlds and compare them.
+
+Success is strict: the whole episode (``max_steps``) without a collision AND a mean speed of at
+least :data:`~training.config.SUCCESS_MIN_MEAN_SPEED` (40 m in the default 100 s), because a
+policy that hovers in place survives every episode. Per controller the report gives, per world and
+overall: success rate, collisions, distance flown, mean speed, minimum clearance and near misses.
+
+Every controller sees one scan per step through the same interface (``reset(scan)`` then
+``act(scan)``). The learned policy goes through the companion's own :class:`FrameStack`; an
+``.onnx`` file runs through the companion's :class:`OnnxPolicy`, so the figures are those of what
+flies, not of the training framework.
+
+Episodes are independent tasks run in a process pool (one process per core by default).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import os
+from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import Executor, ProcessPoolExecutor
+from dataclasses import asdict, dataclass, field
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from companion.errors import UserError
+from companion.framestack import FrameStack
+from companion.scan import N_BINS
+from training.config import NEAR_MISS_DISTANCE, SUCCESS_MIN_MEAN_SPEED
+
+log = logging.getLogger(__name__)
+
+BASELINES = ("gap_follower", "random")
+
+
+class Controller(Protocol):
+    """Anything that turns one scan per step into an action in ``[-1, 1]²``."""
+
+    def reset(self, scan: np.ndarray) -> np.ndarray: ...
+
+    def act(self, scan: np.ndarray) -> np.ndarray: ...
+
+
+class StackedPolicyController:
+    """A stacked-scan policy behind the companion's :class:`FrameStack` (as on the drone).
+
+    :param act_stacked: maps one ``(n_stack * 360,)`` observation to a ``(2,)`` action
+    :param n_stack: stack depth
+    """
+
+    def __init__(self, act_stacked: Callable[[np.ndarray], np.ndarray], n_stack: int) -> None:
+        self._act = act_stacked
+        self._stack = FrameStack(n_stack, N_BINS)
+
+    def reset(self, scan: np.ndarray) -> np.ndarray:
+        return np.asarray(self._act(self._stack.reset(scan)), dtype=np.float32)
+
+    def act(self, scan: np.ndarray) -> np.ndarray:
+        return np.asarray(self._act(self._stack.push(scan)), dtype=np.float32)
+
+
+def sb3_controller(model: Any, n_stack: int) -> StackedPolicyController:
+    """An SB3 model acting deterministically (what ``model.predict(..., deterministic=True)`` gives)."""
+
+    def act(obs: np.ndarray) -> np.ndarray:
+        action, _ = model.predict(obs[None, :], deterministic=True)
+        return action[0]
+
+    return StackedPolicyController(act, n_stack)
+
+
+# --- what is evaluated, as picklable descriptions (tasks cross process boundaries) ------------------
+
+
+@dataclass(frozen=True)
+class ControllerSpec:
+    """What to build in a worker: ``kind`` is ``policy`` (``path``), ``gap_follower`` or ``random``."""
+
+    kind: str
+    path: str = ""
+    name: str = ""
+
+    @property
+    def label(self) -> str:
+        return self.name or self.kind
+
+
+@dataclass(frozen=True)
+class WorldSpec:
+    """A world: a JSON file (``path``) or a generated one (``seed``, ``difficulty``)."""
+
+    name: str
+    path: str = ""
+    seed: int = -1
+    difficulty: float = 0.5
+
+    def reset_options(self) -> dict[str, Any]:
+        if self.path:
+            return {"world": self.path}
+        return {"world_seed": self.seed, "difficulty": self.difficulty}
+
+
+@dataclass(frozen=True)
+class EpisodeTask:
+    controller: ControllerSpec
+    world: WorldSpec
+    episode: int
+    env: dict[str, Any]
+    seed: int
+
+
+@dataclass
+class EpisodeResult:
+    """One episode's figures (distances in metres, speed in m/s)."""
+
+    controller: str
+    world: str
+    episode: int
+    steps: int
+    max_steps: int
+    collision: bool
+    distance: float
+    mean_speed: float
+    min_clearance: float
+    near_misses: int
+    success: bool
+    trajectory: list[tuple[float, float]] = field(default_factory=list, repr=False)
+
+
+def is_success(collision: bool, steps: int, max_steps: int, distance: float, dt: float) -> bool:
+    """The evaluation's definition of success (see the module docstring)."""
+    return (not collision) and steps >= max_steps and distance >= SUCCESS_MIN_MEAN_SPEED * max_steps * dt
+
+
+def run_episode(
+    env: Any, controller: Controller, reset_options: dict[str, Any], seed: int | None = None
+) -> EpisodeResult:
+    """Fly one episode of ``env`` (a ``LidarAvoidEnv``) with ``controller``.
+
+    :param env: the simulator environment (unwrapped observation: one scan)
+    :param controller: turns scans into actions
+    :param reset_options: ``{"world": ...}`` or ``{"world_seed": ..., "difficulty": ...}``
+    :param seed: reset seed (sensor noise, randomisation); ``None`` leaves the env's generator as is
+    """
+    obs, info = env.reset(seed=seed, options=reset_options)
+    action = controller.reset(obs)
+    trajectory = [_xy(info)]
+    clearance = float(info["min_distance"])
+    min_clearance, near_misses, inside = clearance, 0, clearance < NEAR_MISS_DISTANCE
+    steps, collision = 0, False
+    while True:
+        obs, _, terminated, truncated, info = env.step(action)
+        steps += 1
+        trajectory.append(_xy(info))
+        clearance = float(info["min_distance"])
+        min_clearance = min(min_clearance, clearance)
+        if clearance < NEAR_MISS_DISTANCE and not inside:
+            near_misses += 1
+        inside = clearance < NEAR_MISS_DISTANCE
+        collision = collision or bool(info["collision"])
+        if terminated or truncated:
+            break
+        action = controller.act(obs)
+    max_steps = int(env.unwrapped.config.max_steps)
+    dt = float(env.unwrapped.dt)
+    distance = float(info["distance"])
+    return EpisodeResult(
+        controller="",
+        world="",
+        episode=0,
+        steps=steps,
+        max_steps=max_steps,
+        collision=collision,
+        distance=distance,
+        mean_speed=distance / max(steps * dt, 1e-9),
+        min_clearance=max(min_clearance, 0.0),
+        near_misses=near_misses,
+        success=is_success(collision, steps, max_steps, distance, dt),
+        trajectory=trajectory,
+    )
+
+
+def _xy(info: dict[str, Any]) -> tuple[float, float]:
+    p = info["position"]
+    return (round(float(p[0]), 3), round(float(p[1]), 3))
+
+
+# --- workers ---------------------------------------------------------------------------------------
+
+_WORKER_CACHE: dict[Any, Any] = {}
+
+
+def build_controller(spec: ControllerSpec, env_config: Any, seed: int, n_stack: int = 4) -> Controller:
+    """Build the controller ``spec`` describes (policies are loaded once per process)."""
+    from training.baselines import GapFollower, GapFollowerConfig, RandomController
+
+    if spec.kind == "random":
+        return RandomController(seed)
+    if spec.kind == "gap_follower":
+        return GapFollower(GapFollowerConfig(max_range=float(env_config.scan.max_range)))
+    if spec.kind != "policy":
+        raise ValueError(f"unknown controller kind {spec.kind!r}")
+    # keyed by modification time too: training re-saves its evaluation model under one name
+    key = ("policy", spec.path, os.stat(spec.path).st_mtime_ns, env_config.scan.max_range)
+    if key not in _WORKER_CACHE:
+        for old in [k for k in _WORKER_CACHE if k[0] == "policy"]:
+            del _WORKER_CACHE[old]
+        _WORKER_CACHE[key] = load_policy(Path(spec.path), env_config, n_stack)
+    act, stack = _WORKER_CACHE[key]
+    return StackedPolicyController(act, stack)
+
+
+def load_policy(
+    path: Path, env_config: Any, n_stack: int = 4
+) -> tuple[Callable[[np.ndarray], np.ndarray], int]:
+    """``(act_stacked, n_stack)`` for an ``.onnx`` file (companion OnnxPolicy) or an SB3 ``.zip``."""
+    if not path.is_file():
+        raise UserError(f"policy file not found: {path}")
+    if path.suffix == ".onnx":
+        from companion.policy import OnnxPolicy, PolicySpec
+        from companion.scan import BIN_CONVENTION
+
+        spec = PolicySpec(
+            stack=n_stack,
+            n_bins=N_BINS,
+            max_range=float(env_config.scan.max_range),
+            bin_convention=BIN_CONVENTION,
+            max_speed=float(env_config.max_speed),
+            max_yaw_rate=float(env_config.max_yaw_rate),
+        )
+        try:
+            policy = OnnxPolicy(path, spec)
+        except UserError:
+            raise
+        except Exception as exc:
+            raise UserError(f"{path}: cannot load the ONNX policy: {exc}") from None
+        return policy.act, n_stack
+    if path.suffix == ".zip":
+        from training.export import load_model
+
+        model = load_model(path)
+        stack = int(model.observation_space.shape[0]) // N_BINS
+        return sb3_controller(model, stack)._act, stack
+    raise UserError(f"{path}: a policy is an .onnx or a stable-baselines3 .zip file")
+
+
+def _worker_env(env_dict: dict[str, Any]) -> Any:
+    key = ("env", json.dumps(env_dict, sort_keys=True))
+    if key not in _WORKER_CACHE:
+        _WORKER_CACHE[key] = make_eval_env(env_dict)
+    return _WORKER_CACHE[key]
+
+
+def make_eval_env(env_dict: dict[str, Any]) -> Any:
+    """A single simulator environment from an ``[env]`` table (strictly checked)."""
+    from companion.tomlconfig import from_dict
+    from flightsim.env import EnvConfig, LidarAvoidEnv
+
+    return LidarAvoidEnv(from_dict(EnvConfig, env_dict, prefix="env."))
+
+
+def run_task(task: EpisodeTask) -> EpisodeResult:
+    """Run one :class:`EpisodeTask` (in a worker process or in-line)."""
+    env = _worker_env(task.env)
+    controller = build_controller(task.controller, env.unwrapped.config, task.seed)
+    result = run_episode(env, controller, task.world.reset_options(), seed=task.seed)
+    result.controller, result.world, result.episode = task.controller.label, task.world.name, task.episode
+    return result
+
+
+def make_executor(workers: int) -> Executor:
+    """A process pool for episodes (forkserver: safe with torch's threads in the parent)."""
+    return ProcessPoolExecutor(max_workers=workers, mp_context=get_context("forkserver"))
+
+
+def run_tasks(tasks: Sequence[EpisodeTask], executor: Executor | None = None) -> list[EpisodeResult]:
+    """Run ``tasks`` in ``executor`` (or in this process when ``None``), results in task order."""
+    if executor is None:
+        return [run_task(t) for t in tasks]
+    return list(executor.map(run_task, tasks))
+
+
+def make_tasks(
+    controllers: Iterable[ControllerSpec], worlds: Sequence[WorldSpec], episodes: int, env: dict[str, Any]
+) -> list[EpisodeTask]:
+    """Every controller × world × episode; episode ``k`` uses reset seed ``k`` for every controller."""
+    return [
+        EpisodeTask(controller=c, world=w, episode=k, env=env, seed=k)
+        for c in controllers
+        for w in worlds
+        for k in range(episodes)
+    ]
+
+
+# --- summaries -------------------------------------------------------------------------------------
+
+
+def summarise(results: Sequence[EpisodeResult]) -> dict[str, Any]:
+    """Success rate, collisions, mean distance and speed, worst clearance and near misses of ``results``."""
+    n = len(results)
+    if n == 0:
+        return {"episodes": 0}
+    return {
+        "episodes": n,
+        "success_rate": sum(r.success for r in results) / n,
+        "collisions": sum(r.collision for r in results),
+        "mean_distance_m": float(np.mean([r.distance for r in results])),
+        "mean_speed_mps": float(np.mean([r.mean_speed for r in results])),
+        "min_clearance_m": float(min(r.min_clearance for r in results)),
+        "near_misses": sum(r.near_misses for r in results),
+    }
+
+
+def report(results: Sequence[EpisodeResult], worlds: Sequence[WorldSpec]) -> dict[str, Any]:
+    """The evaluation as a JSON-able dict: per controller, overall and per world, plus every episode."""
+    controllers = list(dict.fromkeys(r.controller for r in results))
+    out: dict[str, Any] = {
+        "success_definition": (
+            f"no collision for max_steps and mean speed >= {SUCCESS_MIN_MEAN_SPEED} m/s "
+            f"(40 m over the default 100 s); near miss: clearance < {NEAR_MISS_DISTANCE} m"
+        ),
+        "worlds": [asdict(w) for w in worlds],
+        "controllers": {},
+    }
+    for c in controllers:
+        mine = [r for r in results if r.controller == c]
+        out["controllers"][c] = {
+            "overall": summarise(mine),
+            "per_world": {w.name: summarise([r for r in mine if r.world == w.name]) for w in worlds},
+        }
+    out["episodes"] = [{k: v for k, v in asdict(r).items() if k != "trajectory"} for r in results]
+    return out
+
+
+def format_table(summary: dict[str, Any], per_world: bool) -> str:
+    """A readable text table of :func:`report`'s output."""
+    header = f"{'controller':<14} {'world':<16} {'eps':>4} {'success':>8} {'coll':>5} {'dist m':>8} "
+    header += f"{'speed':>6} {'min clr':>8} {'near':>5}"
+    lines = [header, "-" * len(header)]
+
+    def row(name: str, world: str, s: dict[str, Any]) -> str:
+        return (
+            f"{name:<14} {world:<16} {s['episodes']:>4} {100 * s['success_rate']:>7.1f}% "
+            f"{s['collisions']:>5} {s['mean_distance_m']:>8.1f} {s['mean_speed_mps']:>6.2f} "
+            f"{s['min_clearance_m']:>8.2f} {s['near_misses']:>5}"
+        )
+
+    for name, data in summary["controllers"].items():
+        if per_world:
+            for world, s in data["per_world"].items():
+                lines.append(row(name, world, s))
+        lines.append(row(name, "ALL", data["overall"]))
+    return "\n".join(lines)
+
+
+def plot_trajectories(
+    results: Sequence[EpisodeResult], worlds: Sequence[WorldSpec], out: Path, env_config: Any
+) -> None:
+    """One panel per world: the world drawn top-down, every controller's first episode over it."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from flightsim.render import draw_world
+    from flightsim.world import generate_world, load_world
+
+    colours = {"random": "tab:gray", "gap_follower": "tab:orange"}
+    cols = min(len(worlds), 10 if len(worlds) > 16 else 4)
+    rows = math.ceil(len(worlds) / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 2.6 * rows), squeeze=False)
+    for ax in axes.flat[len(worlds) :]:
+        ax.axis("off")
+    for ax, w in zip(axes.flat, worlds, strict=False):
+        world = (
+            load_world(w.path, vehicle_radius=env_config.vehicle_radius)
+            if w.path
+            else generate_world(w.seed, w.difficulty, env_config.vehicle_radius)
+        )
+        draw_world(ax, world)
+        for r in results:
+            if r.world != w.name or r.episode != 0:
+                continue
+            xy = np.asarray(r.trajectory)
+            colour = colours.get(r.controller, "tab:blue")
+            ax.plot(xy[:, 0], xy[:, 1], lw=0.8, color=colour, label=r.controller)
+            if r.collision:
+                ax.plot(xy[-1, 0], xy[-1, 1], "x", color="red", ms=6, mew=1.5)
+        ax.set_title(w.name, fontsize=8)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    handles, labels = axes.flat[0].get_legend_handles_labels()
+    if handles:
+        fig.legend(handles, labels, loc="lower center", ncol=len(handles), fontsize=9)
+    fig.suptitle("first episode per world (red x: collision)", fontsize=10)
+    fig.tight_layout(rect=(0, 0.04, 1, 0.97))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=80)
+    plt.close(fig)
+
+
+# --- command line ----------------------------------------------------------------------------------
+
+
+def worlds_from_args(args: argparse.Namespace) -> list[WorldSpec]:
+    if args.worlds is not None:
+        directory = Path(args.worlds)
+        if not directory.is_dir():
+            raise UserError(f"--worlds {directory}: not a directory")
+        files = sorted(directory.glob("*.json"))
+        if not files:
+            raise UserError(f"--worlds {directory}: no *.json world files")
+        from flightsim.world import load_world
+
+        for f in files:
+            load_world(f)  # a bad world file is the user's error, before any worker starts
+        return [WorldSpec(name=f.stem, path=str(f.resolve())) for f in files]
+    from flightsim.env import TRAIN_SEED_OFFSET
+
+    if args.seeds < 1 or args.seeds > TRAIN_SEED_OFFSET:
+        raise UserError(f"--seeds must be in 1..{TRAIN_SEED_OFFSET} (held-out world seeds), got {args.seeds}")
+    if not 0.0 <= args.difficulty <= 1.0:
+        raise UserError(f"--difficulty must be in [0, 1], got {args.difficulty}")
+    return [WorldSpec(name=f"seed-{s}", seed=s, difficulty=args.difficulty) for s in range(args.seeds)]
+
+
+def evaluate(
+    policy: Path | None,
+    worlds: Sequence[WorldSpec],
+    episodes: int,
+    env: dict[str, Any],
+    workers: int,
+    baselines: Sequence[str] = BASELINES,
+) -> tuple[dict[str, Any], list[EpisodeResult]]:
+    """Evaluate ``policy`` (optional) and ``baselines`` on ``worlds``: (report dict, episode results)."""
+    controllers = ([ControllerSpec("policy", str(policy), "policy")] if policy else []) + [
+        ControllerSpec(b) for b in baselines
+    ]
+    tasks = make_tasks(controllers, worlds, episodes, env)
+    if workers <= 1:
+        results = run_tasks(tasks)
+    else:
+        with make_executor(workers) as executor:
+            results = run_tasks(tasks, executor)
+    return report(results, worlds), results
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--policy", type=Path, required=True, help="policy to evaluate (.onnx or SB3 .zip)")
+    where = parser.add_mutually_exclusive_group(required=True)
+    where.add_argument("--worlds", type=Path, help="directory of world JSON files")
+    where.add_argument("--seeds", type=int, help="evaluate on generated worlds with seeds 0..N-1 (held out)")
+    parser.add_argument("--difficulty", type=float, default=0.5, help="generator difficulty for --seeds")
+    parser.add_argument("--episodes", type=int, default=1, help="episodes per world (reset seeds 0..N-1)")
+    parser.add_argument(
+        "--config", type=Path, help="training config whose [env] table to fly in (default: env defaults)"
+    )
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override an [env] key of the config, e.g. --set env.max_steps=300",
+    )
+    parser.add_argument("--workers", type=int, default=0, help="worker processes (0 = one per core)")
+    parser.add_argument("--per-world", action="store_true", help="print a row per world, not only the totals")
+    parser.add_argument("--json", type=Path, help="write the full report here")
+    parser.add_argument("--png", type=Path, help="draw the trajectories over each world here")
+
+
+def command(args: argparse.Namespace) -> int:
+    from training.config import load_train_config
+
+    if args.episodes < 1:
+        raise UserError("--episodes must be at least 1")
+    config = load_train_config(args.config, args.overrides)
+    worlds = worlds_from_args(args)
+    env_config = config.env_config()
+    workers = args.workers or (os.cpu_count() or 1)
+    load_policy(args.policy, env_config, config.n_stack)  # fail fast, with a one-line error
+    summary, results = evaluate(args.policy, worlds, args.episodes, config.env, workers)
+    summary["policy"] = str(args.policy)
+    print(format_table(summary, per_world=args.per_world or args.worlds is not None))
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(summary, indent=1) + "\n")
+        print(f"wrote {args.json}")
+    if args.png:
+        plot_trajectories(results, worlds, args.png, env_config)
+        print(f"wrote {args.png}")
+    return 0

@@ -1,0 +1,219 @@
+"""``avoid-train export``: the trained actor as a self-contained ONNX file the companion can fly.
+
+Only the deterministic actor goes in (feature extractor → policy MLP → action mean → clip to
+[-1, 1]); the value head and the Gaussian sampling stay behind. That is exactly what
+``model.predict(obs, deterministic=True)`` computes, and the export proves it: on observations
+from real rollouts the ONNX Runtime output must match SB3's within ``PARITY_TOLERANCE``.
+
+The exporter is torch's TorchScript-based one (``dynamo=False``): for a plain MLP it writes one
+self-contained file in well under a second, with parity; the dynamo exporter took ~10 s and
+wrote the weights to a side file by default.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import warnings
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from companion.errors import UserError
+
+if TYPE_CHECKING:
+    import torch
+    from stable_baselines3 import PPO
+
+    from training.config import TrainConfig
+
+log = logging.getLogger(__name__)
+
+PARITY_TOLERANCE = 1e-5
+PARITY_SAMPLES = 1000
+INPUT_NAME = "observation"
+OUTPUT_NAME = "action"
+OPSET = 17
+
+
+def actor_module(model: PPO) -> torch.nn.Module:
+    """The deterministic actor of an SB3 PPO model as a torch module: ``(B, obs) -> (B, 2)`` in [-1, 1].
+
+    :param model: a PPO model with a Box observation (no image preprocessing) and a Box action space
+    """
+    import torch
+
+    policy = model.policy
+    low = torch.as_tensor(model.action_space.low, dtype=torch.float32)
+    high = torch.as_tensor(model.action_space.high, dtype=torch.float32)
+
+    class DeterministicActor(torch.nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.features = policy.pi_features_extractor
+            self.latent = policy.mlp_extractor.policy_net
+            self.mean = policy.action_net
+            self.register_buffer("low", low)
+            self.register_buffer("high", high)
+
+        def forward(self, obs: torch.Tensor) -> torch.Tensor:
+            return torch.clamp(self.mean(self.latent(self.features(obs))), self.low, self.high)
+
+    return DeterministicActor().eval()
+
+
+def export_onnx(model: PPO, out: Path, metadata: dict[str, str]) -> None:
+    """Write the actor to ``out`` with ``metadata`` as ONNX metadata_props; ``onnx.checker`` must pass.
+
+    :param model: trained PPO model
+    :param out: destination ``.onnx`` file
+    :param metadata: key → value strings the companion checks at load time
+    """
+    import onnx
+    import torch
+
+    actor = actor_module(model)
+    dummy = torch.zeros((1, *model.observation_space.shape), dtype=torch.float32)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with warnings.catch_warnings():
+        # The TorchScript exporter announces its own deprecation; it is still the right tool here.
+        warnings.simplefilter("ignore", category=DeprecationWarning)
+        warnings.simplefilter("ignore", category=FutureWarning)
+        torch.onnx.export(
+            actor,
+            (dummy,),
+            str(out),
+            dynamo=False,
+            input_names=[INPUT_NAME],
+            output_names=[OUTPUT_NAME],
+            dynamic_axes={INPUT_NAME: {0: "batch"}, OUTPUT_NAME: {0: "batch"}},
+            opset_version=OPSET,
+        )
+    proto = onnx.load(str(out))
+    del proto.metadata_props[:]
+    for key, value in metadata.items():
+        entry = proto.metadata_props.add()
+        entry.key, entry.value = key, value
+    proto.doc_string = "lidar-avoid deterministic PPO actor (stacked 360-bin scans -> [forward, yaw rate])"
+    onnx.checker.check_model(proto, full_check=True)
+    onnx.save(proto, str(out))
+    log.info("wrote %s (%d bytes)", out, out.stat().st_size)
+
+
+def policy_spec_for(config: TrainConfig):
+    """The companion's :class:`~companion.policy.PolicySpec` for what this training run fed the policy."""
+    from companion.policy import PolicySpec
+    from companion.scan import BIN_CONVENTION, N_BINS
+
+    env_config = config.env_config()
+    return PolicySpec(
+        stack=config.n_stack,
+        n_bins=N_BINS,
+        max_range=float(env_config.scan.max_range),
+        bin_convention=BIN_CONVENTION,
+        max_speed=float(env_config.max_speed),
+        max_yaw_rate=float(env_config.max_yaw_rate),
+    )
+
+
+def rollout_observations(model: PPO, config: TrainConfig, n: int, seed: int = 0) -> np.ndarray:
+    """``n`` stacked observations the policy met while flying (VecFrameStack over the real simulator).
+
+    Actions are sampled (not deterministic) so the set covers more than one line of flight.
+    """
+    from training.train import make_vec_env
+
+    venv = make_vec_env(config, n_envs=1, seed=seed, subprocess=False)
+    try:
+        obs = venv.reset()
+        out = np.empty((n, *obs.shape[1:]), dtype=np.float32)
+        for i in range(n):
+            out[i] = obs[0]
+            action, _ = model.predict(obs, deterministic=False)
+            obs, _, _, _ = venv.step(action)
+    finally:
+        venv.close()
+    return out
+
+
+def parity_max_abs_diff(model: PPO, onnx_path: Path, observations: np.ndarray) -> float:
+    """Max |ONNX Runtime − ``model.predict(obs, deterministic=True)``| over ``observations``."""
+    import onnxruntime as ort
+
+    session = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
+    got = session.run(None, {INPUT_NAME: observations.astype(np.float32)})[0]
+    want, _ = model.predict(observations, deterministic=True)
+    return float(np.max(np.abs(got - want)))
+
+
+def find_run_config(checkpoint: Path) -> Path:
+    """The ``config.toml`` a checkpoint was trained with: in its run directory (or one level above)."""
+    for directory in (checkpoint.parent, checkpoint.parent.parent):
+        candidate = directory / "config.toml"
+        if candidate.is_file():
+            return candidate
+    raise UserError(f"no config.toml beside {checkpoint} or in its run directory; pass --config")
+
+
+def load_model(path: Path) -> PPO:
+    """Load an SB3 PPO checkpoint; a missing or foreign file is a :class:`UserError`."""
+    from stable_baselines3 import PPO
+
+    if not path.is_file():
+        raise UserError(f"model file not found: {path}")
+    try:
+        return PPO.load(str(path), device="cpu")
+    except Exception as exc:  # SB3 raises many types for a file that is not one of its zips
+        raise UserError(f"{path} is not a stable-baselines3 PPO checkpoint: {exc}") from None
+
+
+def export_policy(
+    model_path: Path, out: Path, config_path: Path | None, samples: int = PARITY_SAMPLES
+) -> float:
+    """Export ``model_path`` to ``out`` and return the parity max abs difference (raise if too large).
+
+    :param model_path: SB3 ``.zip`` checkpoint
+    :param out: ``.onnx`` destination
+    :param config_path: the run's training config (default: found in the run directory)
+    :param samples: rollout observations for the parity check
+    """
+    from companion.policy import policy_metadata
+    from training.config import config_to_toml, load_train_config
+
+    model = load_model(model_path)
+    config = load_train_config(config_path or find_run_config(model_path))
+    expected = (config.n_stack * 360,)
+    if model.observation_space.shape != expected:
+        raise UserError(
+            f"{model_path}: observation shape {model.observation_space.shape} does not match the config's "
+            f"{config.n_stack} stacked scans {expected}"
+        )
+    config_json = json.dumps({"config_toml": config_to_toml(config)})
+    export_onnx(model, out, policy_metadata(policy_spec_for(config), config_json))
+    observations = rollout_observations(model, config, samples, seed=config.seed + 12345)
+    diff = parity_max_abs_diff(model, out, observations)
+    if diff > PARITY_TOLERANCE:
+        raise RuntimeError(f"ONNX parity failed: max abs diff {diff:.3g} > {PARITY_TOLERANCE:g}")
+    return diff
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--model", type=Path, required=True, help="SB3 PPO checkpoint (.zip)")
+    parser.add_argument("--out", type=Path, required=True, help="ONNX file to write")
+    parser.add_argument("--config", type=Path, default=None, help="training config (default: the run's)")
+    parser.add_argument(
+        "--parity-samples", type=int, default=PARITY_SAMPLES, help="rollout observations for the parity check"
+    )
+
+
+def command(args: argparse.Namespace) -> int:
+    if args.parity_samples < 1:
+        raise UserError("--parity-samples must be at least 1")
+    diff = export_policy(args.model, args.out, args.config, args.parity_samples)
+    print(
+        f"exported {args.out}: max abs diff vs model.predict over {args.parity_samples} "
+        f"rollout observations {diff:.3g}"
+    )
+    return 0

@@ -1,0 +1,288 @@
+"""``avoid-train train``: PPO on the simulator with stacked scans, held-out evaluation and checkpoints.
+
+Read top to bottom: the environments (one simulator per process, monitored, 4 scans stacked —
+the same stacking the companion's FrameStack does in flight), the callbacks (checkpoints, the
+held-out evaluation that logs success rate and drives the curriculum), the model, ``learn``.
+
+A run lives in ``<run_root>/<config name>-s<seed>/``::
+
+    config.toml            the resolved config (export and evaluate read it)
+    checkpoints/ppo_<steps>_steps.zip
+    tb/                    TensorBoard logs (``tensorboard --logdir runs``)
+    eval.csv               one row per evaluation: steps, wall-clock seconds, difficulty, success rate...
+    best_model.zip         best evaluation at the target difficulty
+    final_model.zip
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from companion.errors import UserError
+from training.config import TrainConfig, config_to_toml, load_train_config
+from training.evaluate import ControllerSpec, WorldSpec, make_executor, make_tasks, run_tasks, summarise
+
+log = logging.getLogger(__name__)
+
+EVAL_FIELDS = (
+    "timesteps",
+    "wall_s",
+    "difficulty",
+    "success_rate",
+    "mean_distance_m",
+    "collisions",
+    "episodes",
+)
+
+
+class TrainingWorlds(gym.Wrapper):
+    """A fresh generated training world every episode, at a difficulty the curriculum can raise.
+
+    World seeds are drawn at or above ``flightsim.env.TRAIN_SEED_OFFSET``, so evaluation's
+    held-out worlds (lower seeds) are never trained on.
+    """
+
+    def __init__(self, env: gym.Env, difficulty: float) -> None:
+        super().__init__(env)
+        self.difficulty = difficulty
+        self._rng = np.random.default_rng()
+
+    def set_difficulty(self, difficulty: float) -> None:
+        """Used by the curriculum through ``VecEnv.env_method``."""
+        self.difficulty = float(difficulty)
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        from flightsim.env import TRAIN_SEED_OFFSET
+
+        if seed is not None:
+            self._rng = np.random.default_rng(seed)
+        if options is None:
+            world_seed = TRAIN_SEED_OFFSET + int(self._rng.integers(0, 2**31 - 1 - TRAIN_SEED_OFFSET))
+            options = {"world_seed": world_seed, "difficulty": self.difficulty}
+        return self.env.reset(seed=seed, options=options)
+
+
+def make_env(config: TrainConfig, difficulty: float):
+    """A thunk building one training environment (called inside each subprocess)."""
+    env_config = config.env_config()
+
+    def thunk() -> gym.Env:
+        from flightsim.env import LidarAvoidEnv
+
+        return TrainingWorlds(LidarAvoidEnv(env_config), difficulty)
+
+    return thunk
+
+
+def make_vec_env(
+    config: TrainConfig, n_envs: int, seed: int, subprocess: bool = True, difficulty: float | None = None
+):
+    """``n_envs`` simulators → VecMonitor → VecFrameStack(``config.n_stack``), seeded with ``seed``."""
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecFrameStack, VecMonitor
+
+    d = config.env_config().difficulty if difficulty is None else difficulty
+    thunks = [make_env(config, d) for _ in range(n_envs)]
+    venv = (
+        SubprocVecEnv(thunks, start_method="forkserver") if subprocess and n_envs > 1 else DummyVecEnv(thunks)
+    )
+    venv.seed(seed)
+    return VecFrameStack(VecMonitor(venv), n_stack=config.n_stack)
+
+
+def read_eval_log(path: Path) -> list[dict[str, float]]:
+    """The rows of a run's ``eval.csv`` (empty when there is none yet)."""
+    if not path.is_file():
+        return []
+    with path.open() as f:
+        return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(f)]
+
+
+def make_callbacks(config: TrainConfig, run_dir: Path, n_envs: int, executor: Any, start_difficulty: float):
+    """Checkpoints every ``checkpoint_every`` steps and the held-out evaluation (+ curriculum)."""
+    from stable_baselines3.common.callbacks import BaseCallback, CheckpointCallback
+
+    class HeldOutEvaluation(BaseCallback):
+        """Every ``eval.every_steps``: fly ``eval.n_worlds`` held-out worlds, log success, set difficulty."""
+
+        def __init__(self) -> None:
+            super().__init__()
+            self.difficulty = start_difficulty
+            self.log_path = run_dir / "eval.csv"
+            previous = read_eval_log(self.log_path)
+            self.wall_offset = previous[-1]["wall_s"] if previous else 0.0
+            self.best = max(
+                (r["success_rate"] for r in previous if self._at_target(r["difficulty"])), default=-1.0
+            )
+            self.started = time.monotonic()
+            self.last_eval = 0
+
+        def _at_target(self, difficulty: float) -> bool:
+            return difficulty >= config.eval.difficulty - 1e-9
+
+        def _on_training_start(self) -> None:
+            self.last_eval = self.num_timesteps
+
+        def _on_step(self) -> bool:
+            if self.num_timesteps - self.last_eval >= config.eval.every_steps:
+                self.last_eval = self.num_timesteps
+                self.evaluate()
+            return True
+
+        def _on_training_end(self) -> None:
+            if self.num_timesteps > self.last_eval:
+                self.evaluate()
+
+        def evaluate(self) -> None:
+            model_path = run_dir / "eval_model.zip"
+            self.model.save(model_path)
+            difficulty = self.difficulty if config.curriculum.enabled else config.eval.difficulty
+            seeds = range(config.eval.first_seed, config.eval.first_seed + config.eval.n_worlds)
+            worlds = [WorldSpec(f"seed-{s}", seed=s, difficulty=difficulty) for s in seeds]
+            tasks = make_tasks([ControllerSpec("policy", str(model_path))], worlds, 1, config.env)
+            s = summarise(run_tasks(tasks, executor))
+            row = {
+                "timesteps": self.num_timesteps,
+                "wall_s": round(self.wall_offset + time.monotonic() - self.started, 1),
+                "difficulty": difficulty,
+                **{k: s[k] for k in ("success_rate", "mean_distance_m", "collisions", "episodes")},
+            }
+            for key in ("success_rate", "mean_distance_m", "collisions", "difficulty"):
+                self.logger.record(f"eval/{key}", row[key])
+            new_file = not self.log_path.is_file()
+            with self.log_path.open("a", newline="") as f:
+                writer = csv.DictWriter(f, fieldnames=EVAL_FIELDS)
+                if new_file:
+                    writer.writeheader()
+                writer.writerow(row)
+            log.info(
+                "eval at %d steps (%.0f s): difficulty %.2f success %.0f%% distance %.1f m collisions %d/%d",
+                row["timesteps"],
+                row["wall_s"],
+                difficulty,
+                100 * row["success_rate"],
+                row["mean_distance_m"],
+                row["collisions"],
+                row["episodes"],
+            )
+            if self._at_target(difficulty) and row["success_rate"] >= self.best:
+                self.best = row["success_rate"]
+                self.model.save(run_dir / "best_model.zip")
+            self.advance_curriculum(row["success_rate"])
+
+        def advance_curriculum(self, success_rate: float) -> None:
+            c = config.curriculum
+            target = config.eval.difficulty
+            if not c.enabled or success_rate < c.threshold or self.difficulty >= target:
+                return
+            self.difficulty = min(target, self.difficulty + c.step)
+            self.training_env.env_method("set_difficulty", self.difficulty)
+            log.info("curriculum: training difficulty now %.2f", self.difficulty)
+
+    checkpoints = CheckpointCallback(
+        save_freq=max(config.checkpoint_every // n_envs, 1),
+        save_path=str(run_dir / "checkpoints"),
+        name_prefix="ppo",
+    )
+    return [checkpoints, HeldOutEvaluation()]
+
+
+def build_model(config: TrainConfig, venv: Any, run_dir: Path, resume: Path | None):
+    """A fresh PPO model from the config, or the checkpoint ``resume`` attached to ``venv``."""
+    from stable_baselines3 import PPO
+
+    if resume is not None:
+        from training.export import load_model
+
+        load_model(resume)  # a bad file is the user's error, reported in one line
+        return PPO.load(str(resume), env=venv, device="cpu", tensorboard_log=str(run_dir / "tb"))
+    p = config.ppo
+    return PPO(
+        "MlpPolicy",
+        venv,
+        learning_rate=p.learning_rate,
+        n_steps=p.n_steps,
+        batch_size=p.batch_size,
+        n_epochs=p.n_epochs,
+        gamma=p.gamma,
+        gae_lambda=p.gae_lambda,
+        clip_range=p.clip_range,
+        ent_coef=p.ent_coef,
+        vf_coef=p.vf_coef,
+        max_grad_norm=p.max_grad_norm,
+        policy_kwargs={
+            "net_arch": {"pi": list(p.net_arch), "vf": list(p.net_arch)},
+            "log_std_init": p.log_std_init,
+        },
+        tensorboard_log=str(run_dir / "tb"),
+        seed=config.seed,
+        device="cpu",
+        verbose=1,
+    )
+
+
+def train(config: TrainConfig, resume: Path | None = None) -> Path:
+    """Run (or resume) training; returns the final model's path.
+
+    :param config: the checked training config
+    :param resume: an SB3 checkpoint of this run to continue from (timesteps continue its count)
+    """
+    import torch
+
+    torch.set_num_threads(1)  # the cores belong to the simulators; a 1440-64-64 MLP needs no more
+    run_dir = config.run_dir
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "config.toml").write_text(config_to_toml(config))
+    n_envs = config.resolved_n_envs
+    previous = read_eval_log(run_dir / "eval.csv") if resume else []
+    difficulty = config.env_config().difficulty
+    if config.curriculum.enabled:
+        difficulty = previous[-1]["difficulty"] if previous else config.curriculum.start_difficulty
+    venv = make_vec_env(config, n_envs, config.seed, difficulty=difficulty)
+    executor = make_executor(n_envs)
+    try:
+        model = build_model(config, venv, run_dir, resume)
+        remaining = config.total_timesteps - (model.num_timesteps if resume else 0)
+        if remaining <= 0:
+            raise UserError(f"{resume} already has {model.num_timesteps} steps >= total_timesteps")
+        log.info(
+            "training %s: %d steps on %d envs, run directory %s", config.name, remaining, n_envs, run_dir
+        )
+        model.learn(
+            total_timesteps=remaining,
+            callback=make_callbacks(config, run_dir, n_envs, executor, difficulty),
+            progress_bar=config.progress_bar,
+            reset_num_timesteps=resume is None,
+            tb_log_name="ppo",
+        )
+        final = run_dir / "final_model.zip"
+        model.save(final)
+        log.info("saved %s after %d steps", final, model.num_timesteps)
+        return final
+    finally:
+        executor.shutdown(cancel_futures=True)
+        venv.close()
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", type=Path, required=True, help="training config (TOML)")
+    parser.add_argument("--resume", type=Path, help="continue from this checkpoint (.zip)")
+    parser.add_argument(
+        "overrides", nargs="*", metavar="KEY=VALUE", help="config overrides, e.g. ppo.n_steps=256"
+    )
+
+
+def command(args: argparse.Namespace) -> int:
+    config = load_train_config(args.config, args.overrides)
+    if args.resume is not None and not args.resume.is_file():
+        raise UserError(f"--resume {args.resume}: file not found")
+    final = train(config, args.resume)
+    print(f"final model: {final}")
+    return 0
