@@ -1,0 +1,223 @@
+"""The companion's one configuration object, loaded from TOML (``avoid-companion run --config``).
+
+Each table of the file is one dataclass below (``[scan]``, ``[shield]`` and ``[supervisor]`` are
+the pure modules' own config classes). Loading is strict (:mod:`companion.tomlconfig`): an unknown
+key, a wrong type or a value out of range stops start-up with a message naming the dotted key.
+Relative file paths (the model, the parameter file) are taken relative to the config file, so a
+deployment directory can be moved as a whole. ``config/companion.example.toml`` documents every key.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+from companion.errors import UserError
+from companion.scan import ScanConfig
+from companion.shield import ShieldConfig
+from companion.supervisor import SupervisorConfig
+from companion.tomlconfig import apply_overrides, from_dict, load_toml
+
+#: Default connection per autopilot: pymavlink strings for ArduPilot, MAVSDK URLs for PX4.
+DEFAULT_CONNECT = {"ardupilot": "udpin:0.0.0.0:14550", "px4": "udpin://0.0.0.0:14540"}
+
+
+@dataclass(frozen=True)
+class VelodyneConfig:
+    """VLP-16 data packets over UDP.
+
+    :param host: address to listen on (``0.0.0.0``: every interface)
+    :param port: UDP data port (the sensor's default is 2368)
+    """
+
+    host: str = "0.0.0.0"
+    port: int = field(default=2368, metadata={"min": 1, "max": 65535})
+
+
+@dataclass(frozen=True)
+class CanSensorConfig:
+    """One rangefinder of the CAN ring.
+
+    :param can_id: arbitration id its distance frames arrive with
+    :param yaw_deg: direction it points, degrees counter-clockwise from forward (body FLU)
+    """
+
+    can_id: int = field(default=0, metadata={"min": 0, "max": 0x1FFFFFFF})
+    yaw_deg: float = field(default=0.0, metadata={"min": -360.0, "max": 360.0})
+
+
+@dataclass(frozen=True)
+class CanConfig:
+    """A ring of CAN rangefinders read through python-can.
+
+    :param interface: python-can interface (``socketcan`` on the Jetson, ``virtual`` for tests)
+    :param channel: python-can channel (``can0``)
+    :param bitrate: bus bit rate (ignored by interfaces that do not set it, e.g. socketcan)
+    :param max_range: readings beyond this are "no return", metres
+    :param stale_after: a sensor silent for longer than this no longer contributes, s
+    :param sensors: one entry per rangefinder
+    """
+
+    interface: str = "socketcan"
+    channel: str = "can0"
+    bitrate: int = field(default=1_000_000, metadata={"min": 10_000, "max": 8_000_000})
+    max_range: float = field(default=12.0, metadata={"min": 0.5, "max": 200.0})
+    stale_after: float = field(default=0.3, metadata={"min": 0.01, "max": 10.0})
+    sensors: tuple[CanSensorConfig, ...] = ()
+
+    def __post_init__(self) -> None:
+        ids = [s.can_id for s in self.sensors]
+        duplicates = sorted({i for i in ids if ids.count(i) > 1})
+        if duplicates:
+            raise ValueError(f"sensors: CAN id {duplicates[0]:#x} is used more than once")
+
+
+@dataclass(frozen=True)
+class LidarConfig:
+    """Where the point clouds come from.
+
+    :param source: ``velodyne`` (VLP-16 UDP) or ``can`` (rangefinder ring)
+    """
+
+    source: Literal["velodyne", "can"] = "velodyne"
+    velodyne: VelodyneConfig = field(default_factory=VelodyneConfig)
+    can: CanConfig = field(default_factory=CanConfig)
+
+    def __post_init__(self) -> None:
+        if self.source == "can" and not self.can.sensors:
+            raise ValueError("source is 'can' but can.sensors lists no rangefinder")
+
+
+@dataclass(frozen=True)
+class PolicyConfig:
+    """The ONNX policy and what it was trained with (checked against the model's metadata).
+
+    :param model: path of the ``.onnx`` file (relative: to the config file)
+    :param providers: ONNX Runtime providers to try in order; empty = TensorRT, CUDA, CPU,
+        whichever are available
+    :param stack: scans per observation (the training frame stack)
+    :param max_speed: forward speed that action 1.0 stands for, m/s (as in training)
+    :param max_yaw_rate: yaw rate that action 1.0 stands for, rad/s (as in training)
+    """
+
+    model: str = ""
+    providers: tuple[str, ...] = ()
+    stack: int = field(default=4, metadata={"min": 1, "max": 64})
+    max_speed: float = field(default=2.0, metadata={"min": 0.01, "max": 20.0})
+    max_yaw_rate: float = field(default=1.5, metadata={"min": 0.01, "max": 6.0})
+
+
+@dataclass(frozen=True)
+class AutopilotConfig:
+    """The autopilot connection.
+
+    :param type: ``ardupilot`` (pymavlink, GUIDED) or ``px4`` (MAVSDK, OFFBOARD)
+    :param connect: ArduPilot: pymavlink string (``udpin:0.0.0.0:14550``, ``tcp:127.0.0.1:5760``,
+        ``/dev/ttyTHS1``); PX4: MAVSDK URL (``udpin://0.0.0.0:14540``, ``serial:///dev/ttyTHS1:921600``);
+        empty = the type's default
+    :param baud: serial baud rate for ArduPilot device paths (PX4 puts it in the URL)
+    :param source_system: MAVLink system id the companion sends as (the vehicle's own, normally 1)
+    :param source_component: MAVLink component id (191 = MAV_COMP_ID_ONBOARD_COMPUTER)
+    :param stream_rate_hz: rate asked for the status messages the supervisor needs
+    :param obstacle_distance: send OBSTACLE_DISTANCE every scan (the autopilot's own avoidance layer)
+    """
+
+    type: Literal["ardupilot", "px4"] = "ardupilot"
+    connect: str = ""
+    baud: int = field(default=921600, metadata={"min": 1200, "max": 12_000_000})
+    source_system: int = field(default=1, metadata={"min": 1, "max": 255})
+    source_component: int = field(default=191, metadata={"min": 1, "max": 255})
+    stream_rate_hz: float = field(default=10.0, metadata={"min": 0.5, "max": 50.0})
+    obstacle_distance: bool = True
+
+    def __post_init__(self) -> None:
+        if self.connect and self.type == "px4" and "://" not in self.connect:
+            raise ValueError(
+                f"connect: {self.connect!r} is not a MAVSDK URL; PX4 links look like "
+                "udpin://0.0.0.0:14540 or serial:///dev/ttyTHS1:921600"
+            )
+        if self.connect and self.type == "ardupilot" and "://" in self.connect:
+            raise ValueError(
+                f"connect: {self.connect!r} is a MAVSDK URL; ArduPilot links are pymavlink strings "
+                "like udpin:0.0.0.0:14550, tcp:127.0.0.1:5760 or /dev/ttyTHS1"
+            )
+
+    @property
+    def connection(self) -> str:
+        """``connect``, or the type's default when empty."""
+        return self.connect or DEFAULT_CONNECT[self.type]
+
+
+@dataclass(frozen=True)
+class ParamsCheckConfig:
+    """Compare the autopilot's parameters with a reference file at start-up.
+
+    :param mode: ``off``; ``warn`` (log + STATUSTEXT each mismatch, carry on); ``refuse`` (exit)
+    :param file: ``.parm`` (ArduPilot) or ``.params`` (PX4) file (relative: to the config file)
+    :param timeout: how long to wait for the autopilot's parameters, s
+    """
+
+    mode: Literal["off", "warn", "refuse"] = "off"
+    file: str = ""
+    timeout: float = field(default=30.0, metadata={"min": 1.0, "max": 600.0})
+
+    def __post_init__(self) -> None:
+        if self.mode != "off" and not self.file:
+            raise ValueError(f"mode is {self.mode!r} but no file is given")
+
+
+@dataclass(frozen=True)
+class RuntimeConfig:
+    """The main loop.
+
+    :param poll_interval: longest wait for lidar data before servicing the autopilot link, s
+    :param log_interval: period of the counters log line, s
+    :param heartbeat_interval: period of the companion's HEARTBEAT, s
+    """
+
+    poll_interval: float = field(default=0.02, metadata={"min": 0.001, "max": 0.1})
+    log_interval: float = field(default=30.0, metadata={"min": 1.0, "max": 3600.0})
+    heartbeat_interval: float = field(default=1.0, metadata={"min": 0.1, "max": 5.0})
+
+
+@dataclass(frozen=True)
+class CompanionConfig:
+    """Everything ``avoid-companion run`` needs; one table per field."""
+
+    lidar: LidarConfig = field(default_factory=LidarConfig)
+    scan: ScanConfig = field(default_factory=ScanConfig)
+    policy: PolicyConfig = field(default_factory=PolicyConfig)
+    shield: ShieldConfig = field(default_factory=ShieldConfig)
+    supervisor: SupervisorConfig = field(default_factory=SupervisorConfig)
+    autopilot: AutopilotConfig = field(default_factory=AutopilotConfig)
+    params_check: ParamsCheckConfig = field(default_factory=ParamsCheckConfig)
+    runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
+
+
+def load_config(path: str | Path, overrides: list[str] | None = None) -> CompanionConfig:
+    """Read, override (``key.sub=value``), check and complete the companion config.
+
+    :param path: the TOML file
+    :param overrides: command-line ``dotted.key=value`` items (value parsed as TOML)
+    :raises UserError: naming the key that is unknown, ill-typed, out of range or missing
+    """
+    path = Path(path)
+    data = apply_overrides(load_toml(path), list(overrides or []))
+    config = from_dict(CompanionConfig, data)
+    if not config.policy.model:
+        raise UserError("policy.model: required (path of the ONNX policy)")
+    base = path.resolve().parent
+
+    def resolve(p: str) -> str:
+        if not p:
+            return p
+        expanded = Path(p).expanduser()
+        return str(expanded if expanded.is_absolute() else base / expanded)
+
+    return dataclasses.replace(
+        config,
+        policy=dataclasses.replace(config.policy, model=resolve(config.policy.model)),
+        params_check=dataclasses.replace(config.params_check, file=resolve(config.params_check.file)),
+    )

@@ -1,0 +1,127 @@
+"""The companion config: the documented example loads, every key is documented, mistakes name the key."""
+
+from __future__ import annotations
+
+import dataclasses
+import typing
+from pathlib import Path
+
+import pytest
+
+from companion.config import CompanionConfig, load_config
+from companion.errors import UserError
+from companion.tomlconfig import load_toml
+
+EXAMPLE = Path(__file__).resolve().parents[2] / "config" / "companion.example.toml"
+
+
+def _write(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "companion.toml"
+    path.write_text('[policy]\nmodel = "policy.onnx"\n' + text)
+    return path
+
+
+def test_example_config_loads():
+    config = load_config(EXAMPLE)
+    assert config.lidar.source == "velodyne"
+    assert config.lidar.velodyne.port == 2368
+    assert [s.can_id for s in config.lidar.can.sensors] == list(range(0x10, 0x18))
+    assert config.lidar.can.sensors[2].yaw_deg == 90.0
+    assert config.policy.model == str(EXAMPLE.parent / "policy.onnx")  # relative to the file
+    assert config.autopilot.connection == "udpin:0.0.0.0:14550"
+    assert config.autopilot.source_component == 191
+    assert config.scan.mount_xyz == (0.0, 0.0, 0.1)
+    assert config.supervisor.recover_scans == 5
+
+
+def _keys(cls: type, prefix: str = "") -> set[str]:
+    out = set()
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        tp = hints[f.name]
+        if dataclasses.is_dataclass(tp):
+            out |= _keys(tp, f"{prefix}{f.name}.")
+        elif typing.get_origin(tp) is tuple and dataclasses.is_dataclass(typing.get_args(tp)[0]):
+            out |= _keys(typing.get_args(tp)[0], f"{prefix}{f.name}[].")
+        else:
+            out.add(prefix + f.name)
+    return out
+
+
+def _toml_keys(data: dict, prefix: str = "") -> set[str]:
+    out = set()
+    for k, v in data.items():
+        if isinstance(v, dict):
+            out |= _toml_keys(v, f"{prefix}{k}.")
+        elif isinstance(v, list) and v and isinstance(v[0], dict):
+            for item in v:
+                out |= _toml_keys(item, f"{prefix}{k}[].")
+        else:
+            out.add(prefix + k)
+    return out
+
+
+def test_example_documents_every_key():
+    documented = _toml_keys(load_toml(EXAMPLE))
+    assert documented == _keys(CompanionConfig)
+
+
+def test_defaults_and_overrides(tmp_path):
+    path = _write(tmp_path, "")
+    config = load_config(path, ["shield.max_speed=1.0", "autopilot.connect=tcp:127.0.0.1:5760"])
+    assert config.shield.max_speed == 1.0
+    assert config.autopilot.connection == "tcp:127.0.0.1:5760"
+    assert config.lidar.source == "velodyne" and config.params_check.mode == "off"
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("[shield]\nmax_sped = 1.0\n", r"shield\.max_sped: unknown config key"),
+        ("[supervisor]\nrecover_scans = 2.5\n", r"supervisor\.recover_scans: expected an integer"),
+        ("[lidar.velodyne]\nport = 70000\n", r"lidar\.velodyne\.port: 70000 is above the maximum 65535"),
+        ("[autopilot]\ntype = \"betaflight\"\n", r"autopilot\.type: must be one of 'ardupilot', 'px4'"),
+        ("[scan]\nmin_range = 3.0\nmax_range = 2.0\n", r"scan: min_range 3\.0 must be below max_range 2\.0"),
+        ("[lidar]\nsource = \"can\"\n", r"lidar: source is 'can' but can\.sensors lists no rangefinder"),
+        ("[[lidar.can.sensors]]\ncan_id = 3\n[[lidar.can.sensors]]\ncan_id = 3\n",
+         r"lidar\.can: sensors: CAN id 0x3 is used more than once"),
+        ("[[lidar.can.sensors]]\ncan_id = 3\nyaw = 4.0\n",
+         r"lidar\.can\.sensors\[0\]\.yaw: unknown config key"),
+        ("[autopilot]\ntype = \"px4\"\nconnect = \"udpin:0.0.0.0:14540\"\n",
+         r"autopilot: connect: 'udpin:0\.0\.0\.0:14540' is not a MAVSDK URL"),
+        ("[autopilot]\nconnect = \"udpin://0.0.0.0:14550\"\n", r"autopilot: connect: .* is a MAVSDK URL"),
+        ("[params_check]\nmode = \"refuse\"\n", r"params_check: mode is 'refuse' but no file is given"),
+    ],
+)
+def test_mistakes_name_the_key(tmp_path, text, message):
+    with pytest.raises(UserError, match=message):
+        load_config(_write(tmp_path, text))
+
+
+def test_model_is_required(tmp_path):
+    path = tmp_path / "c.toml"
+    path.write_text("[shield]\nmax_speed = 1.0\n")
+    with pytest.raises(UserError, match=r"^policy\.model: required"):
+        load_config(path)
+
+
+def test_bad_override_names_the_key(tmp_path):
+    with pytest.raises(UserError, match=r"shield\.max_speed: expected a number"):
+        load_config(_write(tmp_path, ""), ["shield.max_speed=fast"])
+    with pytest.raises(UserError, match=r"policy\.stack: 0 is below the minimum 1"):
+        load_config(_write(tmp_path, ""), ["policy.stack=0"])
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(UserError, match="config file not found"):
+        load_config(tmp_path / "nope.toml")
+
+
+def test_absolute_and_home_paths_are_kept(tmp_path):
+    path = tmp_path / "c.toml"
+    path.write_text('[policy]\nmodel = "/opt/avoid/policy.onnx"\n[params_check]\nmode = "warn"\n'
+                    'file = "~/copter.parm"\n')
+    config = load_config(path)
+    assert config.policy.model == "/opt/avoid/policy.onnx"
+    assert config.params_check.file == str(Path.home() / "copter.parm")
+    assert config.params_check.mode == "warn"
