@@ -1,0 +1,232 @@
+"""The simulated autopilot's MAVLink sockets: framing, parsing, counting; no flight logic.
+
+Each link is one socket, described like a pymavlink/MAVProxy connection string:
+
+- ``udpin:HOST:PORT``: bind HOST:PORT, answer every peer that has sent something (a GCS or a
+  companion that connects with ``udpout:``), as ArduPilot SITL's UDP ports do;
+- ``udpout:HOST:PORT``: send to HOST:PORT from an ephemeral port, as PX4 SITL does towards
+  MAVSDK's ``udpin://`` (14540);
+- ``tcpin:HOST:PORT``: listen; every accepted client shares the link (ArduPilot SITL's 5760).
+
+Malformed input (garbage, bad CRC, truncated frames, unknown message ids) is counted per link and
+dropped; it never raises.
+"""
+
+from __future__ import annotations
+
+import logging
+import select
+import socket
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from companion.errors import UserError
+
+log = logging.getLogger(__name__)
+
+#: peers of a ``udpin`` link that stay silent this long are forgotten, seconds
+PEER_TIMEOUT = 10.0
+
+
+@dataclass
+class LinkSpec:
+    kind: str  # udpin | udpout | tcpin
+    host: str
+    port: int
+
+    @classmethod
+    def parse(cls, text: str) -> LinkSpec:
+        """Parse ``udpin:HOST:PORT`` / ``udpout:HOST:PORT`` / ``tcpin:HOST:PORT`` (UserError if bad)."""
+        parts = text.split(":")
+        if len(parts) != 3 or parts[0] not in ("udpin", "udpout", "tcpin"):
+            raise UserError(
+                f"autopilot link {text!r}: expected udpin:HOST:PORT, udpout:HOST:PORT or tcpin:HOST:PORT"
+            )
+        try:
+            port = int(parts[2])
+        except ValueError:
+            raise UserError(f"autopilot link {text!r}: port {parts[2]!r} is not a number") from None
+        if not 0 <= port <= 65535:
+            raise UserError(f"autopilot link {text!r}: port {port} out of range")
+        return cls(parts[0], parts[1] or "127.0.0.1", port)
+
+
+@dataclass
+class _Link:
+    spec: LinkSpec
+    sock: socket.socket
+    parser: Any
+    encoder: Any
+    peers: dict[Any, float] = field(default_factory=dict)  # udpin: addr -> last heard; tcpin: sock -> 0
+    parsers: dict[Any, Any] = field(default_factory=dict)  # tcpin: one stream parser per client
+
+
+class MavlinkEndpoint:
+    """Open sockets for ``links`` and move MAVLink frames through them.
+
+    :param links: connection strings (see module doc); the index in this list is the link number
+    :param system_id: source system id of everything sent
+    :param component_id: source component id of everything sent
+    """
+
+    def __init__(self, links: list[str], system_id: int = 1, component_id: int = 1) -> None:
+        self.system_id = system_id
+        self.component_id = component_id
+        self.counters: dict[str, int] = {}
+        self._links: list[_Link] = []
+        try:
+            for text in links:
+                self._links.append(self._open(LinkSpec.parse(text)))
+        except OSError as exc:
+            self.close()
+            raise UserError(f"autopilot link: cannot open {text!r}: {exc.strerror or exc}") from None
+
+    def _new_parser(self) -> Any:
+        parser = mavlink.MAVLink(None, self.system_id, self.component_id)
+        parser.robust_parsing = True
+        return parser
+
+    def _open(self, spec: LinkSpec) -> _Link:
+        if spec.kind == "tcpin":
+            sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            sock.bind((spec.host, spec.port))
+            sock.listen(4)
+        else:
+            sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            if spec.kind == "udpin":
+                sock.bind((spec.host, spec.port))
+            else:
+                sock.bind(("127.0.0.1" if spec.host in ("127.0.0.1", "localhost") else "", 0))
+        sock.setblocking(False)
+        link = _Link(spec, sock, self._new_parser(), self._new_parser())
+        if spec.kind == "udpout":
+            link.peers[(spec.host, spec.port)] = float("inf")
+        log.info("autopilot link %d: %s:%s:%d", len(self._links), spec.kind, spec.host, spec.port)
+        return link
+
+    @property
+    def link_count(self) -> int:
+        return len(self._links)
+
+    def address(self, link: int) -> tuple[str, int]:
+        """The local (host, port) of ``link`` (useful with port 0)."""
+        return self._links[link].sock.getsockname()[:2]
+
+    def count(self, name: str, n: int = 1) -> None:
+        self.counters[name] = self.counters.get(name, 0) + n
+
+    # ----------------------------------------------------------------- receive
+    def poll(self, timeout: float) -> list[tuple[int, Any, float]]:
+        """Wait up to ``timeout`` s for input; return (link, message, receive time) of every good frame."""
+        fds: list[Any] = []
+        for link in self._links:
+            fds.append(link.sock)
+            if link.spec.kind == "tcpin":
+                fds.extend(link.peers)
+        try:
+            readable, _, _ = select.select(fds, [], [], max(0.0, timeout))
+        except (OSError, ValueError):
+            return []
+        out: list[tuple[int, Any, float]] = []
+        for sock in readable:
+            for index, link in enumerate(self._links):
+                if sock is link.sock:
+                    out.extend(self._read_link(index, link))
+                elif sock in link.peers:
+                    out.extend(self._read_tcp_client(index, link, sock))
+        return out
+
+    def _read_link(self, index: int, link: _Link) -> list[tuple[int, Any, float]]:
+        if link.spec.kind == "tcpin":
+            try:
+                client, addr = link.sock.accept()
+            except OSError:
+                return []
+            client.setblocking(False)
+            link.peers[client] = 0.0
+            link.parsers[client] = self._new_parser()
+            log.info("autopilot link %d: TCP client %s:%d", index, *addr[:2])
+            return []
+        out = []
+        while True:
+            try:
+                data, addr = link.sock.recvfrom(65535)
+            except (BlockingIOError, InterruptedError):
+                break
+            except OSError:  # e.g. ICMP port unreachable reported on a udpout socket
+                self.count("socket_errors")
+                break
+            now = time.monotonic()
+            if link.spec.kind == "udpin":
+                link.peers[addr] = now
+            out.extend((index, msg, now) for msg in self._parse(link.parser, data, index))
+        return out
+
+    def _read_tcp_client(
+        self, index: int, link: _Link, client: socket.socket
+    ) -> list[tuple[int, Any, float]]:
+        try:
+            data = client.recv(65535)
+        except OSError:
+            data = b""
+        if not data:
+            link.peers.pop(client, None)
+            link.parsers.pop(client, None)
+            client.close()
+            return []
+        now = time.monotonic()
+        return [(index, msg, now) for msg in self._parse(link.parsers[client], data, index)]
+
+    def _parse(self, parser: Any, data: bytes, index: int) -> list[Any]:
+        self.count("bytes_in", len(data))
+        try:
+            msgs = parser.parse_buffer(data) or []
+        except Exception as exc:  # pymavlink raises a variety of errors on hostile input
+            self.count("malformed")
+            log.debug("link %d: unparseable input dropped: %s", index, exc)
+            return []
+        good = []
+        for msg in msgs:
+            kind = msg.get_type()
+            if kind == "BAD_DATA":
+                self.count("malformed")
+            elif kind.startswith("UNKNOWN"):
+                self.count("unknown_message")
+            else:
+                self.count("frames_in")
+                good.append(msg)
+        return good
+
+    # ----------------------------------------------------------------- send
+    def send(self, link: int | None, message: Any) -> None:
+        """Send ``message`` on ``link`` (None: every link) to every known peer of that link."""
+        targets = range(len(self._links)) if link is None else (link,)
+        now = time.monotonic()
+        for index in targets:
+            lk = self._links[index]
+            enc = lk.encoder
+            buf = message.pack(enc)
+            enc.seq = (enc.seq + 1) % 256
+            for peer, heard in list(lk.peers.items()):
+                try:
+                    if lk.spec.kind == "tcpin":
+                        peer.sendall(buf)
+                    elif now - heard > PEER_TIMEOUT:
+                        del lk.peers[peer]
+                    else:
+                        lk.sock.sendto(buf, peer)
+                    self.count("frames_out")
+                except OSError:
+                    self.count("socket_errors")
+
+    def close(self) -> None:
+        for link in self._links:
+            if link.spec.kind == "tcpin":
+                for client in link.peers:
+                    client.close()
+            link.sock.close()
+        self._links = []

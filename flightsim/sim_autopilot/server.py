@@ -1,0 +1,154 @@
+"""Run a simulated autopilot in real time: MAVLink sockets + personality + the JSBSim vehicle.
+
+One thread owns the vehicle and the sockets: it waits on the sockets until the next physics
+chunk is due (so a message is handled as soon as it arrives, and its arrival time is exact),
+then flies the chunk with the personality's setpoint and sends whatever the personality emits.
+Other threads (the lidar co-simulation, a test) read :attr:`SimAutopilotServer.state` and use the
+small control surface (:meth:`set_heartbeat_enabled`, :meth:`call`).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from flightsim.sim_autopilot.ardupilot import ArduCopterAutopilot
+from flightsim.sim_autopilot.common import SimAutopilot
+from flightsim.sim_autopilot.endpoint import MavlinkEndpoint
+from flightsim.sim_autopilot.params import default_table
+from flightsim.sim_autopilot.px4 import PX4Autopilot
+from flightsim.vehicle import Vehicle, VehicleConfig, VehicleState
+
+log = logging.getLogger(__name__)
+
+#: physics chunk flown per loop iteration: 3 steps of 1/120 s
+CHUNK_S = 3 / 120
+
+PERSONALITIES = {"ardupilot": ArduCopterAutopilot, "px4": PX4Autopilot}
+
+MessageHook = Callable[[int, Any, float], None]
+StepHook = Callable[[VehicleState], None]
+
+
+def make_autopilot(personality: str, boot_time: float) -> SimAutopilot:
+    """A personality (``"ardupilot"`` or ``"px4"``) with its firmware's default parameter table."""
+    return PERSONALITIES[personality](default_table(personality), boot_time=boot_time)
+
+
+class SimAutopilotServer:
+    """A simulated flight controller flying a :class:`~flightsim.vehicle.Vehicle` in real time.
+
+    :param personality: ``"ardupilot"`` or ``"px4"``
+    :param links: endpoint connection strings (see :mod:`flightsim.sim_autopilot.endpoint`)
+    :param start_position: (3,) world ENU where the vehicle rests on the floor
+    :param start_yaw: rad, counter-clockwise from East
+    :param params: parameter overrides applied before the first message (name -> value)
+    :param vehicle: an existing vehicle to reuse (JSBSim load is the slow part); reset here
+    """
+
+    def __init__(
+        self,
+        personality: str,
+        links: list[str],
+        start_position: np.ndarray | tuple[float, float, float] = (0.0, 0.0, 0.0),
+        start_yaw: float = 0.0,
+        params: dict[str, float] | None = None,
+        vehicle: Vehicle | None = None,
+    ) -> None:
+        self.endpoint = MavlinkEndpoint(links)
+        self.t0 = time.monotonic()
+        self.autopilot = make_autopilot(personality, boot_time=0.0)
+        for name, value in (params or {}).items():
+            self.autopilot.params.set(name, value)
+        self.vehicle = vehicle or Vehicle(VehicleConfig())
+        self.state: VehicleState = self.vehicle.reset(start_position, start_yaw, on_ground=True)
+        self.autopilot.observe(self.state)
+        for link in range(self.endpoint.link_count):
+            self.autopilot.add_link(link)
+        self.message_hooks: list[MessageHook] = []
+        self.step_hooks: list[StepHook] = []
+        self._lock = threading.RLock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.error: BaseException | None = None
+
+    def now(self) -> float:
+        """The autopilot's clock: seconds since this server was created."""
+        return time.monotonic() - self.t0
+
+    # ----------------------------------------------------------------- control surface
+    def call(self, fn: Callable[[SimAutopilot], Any]) -> Any:
+        """Run ``fn(autopilot)`` under the loop's lock and send what it returns (a list of Outgoing)."""
+        with self._lock:
+            result = fn(self.autopilot)
+            if isinstance(result, list):
+                self._send(result)
+            return result
+
+    def set_heartbeat_enabled(self, enabled: bool) -> None:
+        """Stop (or resume) this autopilot's HEARTBEATs, as if its link to the companion died."""
+        with self._lock:
+            self.autopilot.heartbeat_enabled = enabled
+
+    # ----------------------------------------------------------------- loop
+    def start(self) -> SimAutopilotServer:
+        self._thread = threading.Thread(target=self._run, name="sim-autopilot", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+        self.endpoint.close()
+
+    def __enter__(self) -> SimAutopilotServer:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def _send(self, outgoing: list[Any]) -> None:
+        for out in outgoing:
+            self.endpoint.send(out.link, out.message)
+
+    def _run(self) -> None:
+        try:
+            self._loop()
+        except BaseException as exc:  # surfaced to the harness, which reports it
+            log.exception("simulated autopilot stopped")
+            self.error = exc
+
+    def _loop(self) -> None:
+        next_step = self.now()
+        with self._lock:
+            self._send(self.autopilot.tick(next_step))
+        while not self._stop.is_set():
+            for link, msg, rx in self.endpoint.poll(next_step - self.now()):
+                t = rx - self.t0
+                for hook in self.message_hooks:
+                    hook(link, msg, t)
+                with self._lock:
+                    self._send(self.autopilot.handle(msg, link, t))
+            now = self.now()
+            if now < next_step:
+                continue
+            with self._lock:
+                armed, setpoint = self.autopilot.flight_command(now)
+                if armed != self.state.armed:
+                    self.vehicle.set_armed(armed)
+                self.state = self.vehicle.step(setpoint, CHUNK_S)
+                self.autopilot.observe(self.state)
+                self._send(self.autopilot.tick(now))
+            for hook in self.step_hooks:
+                hook(self.state)
+            next_step += CHUNK_S
+            if now - next_step > 0.5:  # fell far behind (a stalled machine): do not sprint to catch up
+                log.warning("simulated autopilot fell %.2f s behind real time", now - next_step)
+                self.autopilot.count("overruns")
+                next_step = now
