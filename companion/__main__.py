@@ -7,7 +7,9 @@ import sys
 from companion.cli import run_cli
 
 # subcommand name -> (module providing configure_parser/command, one-line help)
-SUBCOMMANDS: dict[str, tuple[str, str]] = {}
+SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "params": ("companion.params", "check or apply the autopilot parameters the companion relies on"),
+}
 
 
 def main(argv: list[str] | None = None) -> int:
