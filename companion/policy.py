@@ -1,0 +1,238 @@
+"""The learned policy, run with ONNX Runtime, refusing any model that was not trained for this setup.
+
+The training export writes :data:`METADATA_KEYS` into the ONNX file's ``metadata_props`` (through
+:func:`policy_metadata`, so both sides agree by construction). At load time the companion checks
+every one against its own configuration: a model trained on another range, stack depth, bin
+order or speed scaling would fly the vehicle wrongly without any error, so it must not start.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+
+from companion.errors import UserError
+from companion.scan import BIN_CONVENTION
+
+log = logging.getLogger(__name__)
+
+FORMAT_VERSION = "1"
+PREFIX = "lidar_avoid."
+METADATA_KEYS: dict[str, str] = {
+    PREFIX + "format": "metadata format version, " + FORMAT_VERSION,
+    PREFIX + "obs_size": "input length: stack × n_bins",
+    PREFIX + "stack": "scans per observation, oldest first",
+    PREFIX + "n_bins": "bins per scan",
+    PREFIX + "max_range": "metres a scan value of 1.0 stands for",
+    PREFIX + "bin_convention": "bin order, companion.scan.BIN_CONVENTION",
+    PREFIX + "max_speed": "m/s that action a0 = 1 stands for",
+    PREFIX + "max_yaw_rate": "rad/s that action a1 = 1 stands for (counter-clockwise positive)",
+    PREFIX + "config": "the training configuration, JSON (informational)",
+}
+
+# Execution providers in order of preference; whichever of them this onnxruntime build has is used.
+PREFERRED_PROVIDERS = ("TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider")
+
+# The companion config key each spec field comes from, for error messages.
+_CONFIG_KEYS = {
+    "stack": "policy.stack",
+    "n_bins": "scan bins",
+    "max_range": "scan.max_range",
+    "bin_convention": "scan bin convention",
+    "max_speed": "policy.max_speed",
+    "max_yaw_rate": "policy.max_yaw_rate",
+}
+
+
+@dataclass(frozen=True)
+class PolicySpec:
+    """What the companion feeds the policy and how it reads the action; the model must agree.
+
+    :param stack: scans per observation
+    :param n_bins: bins per scan
+    :param max_range: metres that a scan value of 1.0 stands for
+    :param bin_convention: bin order (:data:`companion.scan.BIN_CONVENTION`)
+    :param max_speed: m/s that a0 = 1 stands for
+    :param max_yaw_rate: rad/s that a1 = 1 stands for
+    """
+
+    stack: int = 4
+    n_bins: int = 360
+    max_range: float = 10.0
+    bin_convention: str = BIN_CONVENTION
+    max_speed: float = 2.0
+    max_yaw_rate: float = 1.5
+
+    @property
+    def obs_size(self) -> int:
+        return self.stack * self.n_bins
+
+
+class InferenceFault(Exception):
+    """Inference raised or produced a non-finite action; the supervisor holds, the process carries on."""
+
+
+def policy_metadata(spec: PolicySpec, config_json: str) -> dict[str, str]:
+    """The ONNX ``metadata_props`` the training export writes for a model trained under ``spec``.
+
+    :param spec: what the policy was trained on
+    :param config_json: the training configuration as JSON
+    """
+    json.loads(config_json)  # must be valid JSON: raises ValueError otherwise
+    return {
+        PREFIX + "format": FORMAT_VERSION,
+        PREFIX + "obs_size": str(spec.obs_size),
+        PREFIX + "stack": str(spec.stack),
+        PREFIX + "n_bins": str(spec.n_bins),
+        PREFIX + "max_range": repr(float(spec.max_range)),
+        PREFIX + "bin_convention": spec.bin_convention,
+        PREFIX + "max_speed": repr(float(spec.max_speed)),
+        PREFIX + "max_yaw_rate": repr(float(spec.max_yaw_rate)),
+        PREFIX + "config": config_json,
+    }
+
+
+def select_providers(requested: Sequence[str] | None = None) -> list[str]:
+    """The execution providers to ask for, in preference order, limited to those available.
+
+    :param requested: providers to try instead of :data:`PREFERRED_PROVIDERS`
+    """
+    available = set(ort.get_available_providers())
+    wanted = list(requested) if requested is not None else list(PREFERRED_PROVIDERS)
+    chosen = [p for p in wanted if p in available]
+    if not chosen:
+        raise UserError(
+            f"none of the ONNX Runtime providers {', '.join(wanted)} is available "
+            f"(available: {', '.join(sorted(available))})"
+        )
+    return chosen
+
+
+class OnnxPolicy:
+    """A policy network loaded from an ``.onnx`` file and checked against ``spec``.
+
+    :param path: the model file (from ``avoid-train export``)
+    :param spec: what the companion will feed it; the model's metadata must match
+    :param providers: execution providers to try (default TensorRT → CUDA → CPU, as available)
+    :raises UserError: unreadable or not ONNX, wrong input/output shape, metadata missing or not
+        matching ``spec``; the message names both values
+    """
+
+    def __init__(self, path: str | Path, spec: PolicySpec, providers: Sequence[str] | None = None) -> None:
+        self.path = Path(path)
+        self.spec = spec
+        if not self.path.is_file():
+            raise UserError(f"policy model not found: {self.path}")
+        options = ort.SessionOptions()
+        # One small MLP per scan: a single thread has the lowest, steadiest latency and leaves the
+        # other cores to the lidar and MAVLink.
+        options.intra_op_num_threads = 1
+        options.inter_op_num_threads = 1
+        options.log_severity_level = 3
+        try:
+            self._session = ort.InferenceSession(
+                str(self.path), sess_options=options, providers=select_providers(providers)
+            )
+        except UserError:
+            raise
+        except Exception as exc:
+            detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            raise UserError(f"policy model {self.path} is not a loadable ONNX model: {detail}") from None
+        self.providers: list[str] = list(self._session.get_providers())
+        self._check_io()
+        self._check_metadata()
+        self._input_name = self._session.get_inputs()[0].name
+        self._output_names = [self._session.get_outputs()[0].name]
+        self._run_options = ort.RunOptions()
+        self._run_options.log_severity_level = 4  # a failed run is reported once, as InferenceFault
+        log.info("policy %s loaded, ONNX Runtime providers in use: %s", self.path, ", ".join(self.providers))
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        """One action for one stacked observation.
+
+        :param obs: ``(stack × n_bins,)`` float32, oldest scan first
+        :return: ``(2,)`` float32 in ``[-1, 1]``: a0 forward, a1 yaw rate (counter-clockwise positive)
+        :raises InferenceFault: inference raised, or its output was not 2 finite numbers
+        """
+        x = np.asarray(obs, dtype=np.float32).reshape(1, -1)
+        if x.shape[1] != self.spec.obs_size:
+            raise ValueError(f"observation has {x.shape[1]} values, the policy takes {self.spec.obs_size}")
+        try:
+            out = self._session.run(self._output_names, {self._input_name: x}, self._run_options)[0]
+        except Exception as exc:
+            raise InferenceFault(f"inference raised {type(exc).__name__}: {exc}") from exc
+        action = np.asarray(out, dtype=np.float32).reshape(-1)
+        if action.shape[0] != 2:
+            raise InferenceFault(f"inference returned {action.shape[0]} values, expected 2")
+        if not np.isfinite(action).all():
+            raise InferenceFault(f"inference returned a non-finite action {action.tolist()}")
+        return np.clip(action, -1.0, 1.0)
+
+    def _check_io(self) -> None:
+        inputs, outputs = self._session.get_inputs(), self._session.get_outputs()
+        if len(inputs) != 1:
+            raise UserError(f"policy model {self.path} has {len(inputs)} inputs, expected 1")
+        inp = inputs[0]
+        want = f"(1, {self.spec.obs_size}) float32"
+        if inp.type != "tensor(float)":
+            raise UserError(f"policy model input is {inp.type}, expected {want}")
+        if len(inp.shape) != 2 or not _batch_dim_ok(inp.shape[0]) or inp.shape[1] != self.spec.obs_size:
+            raise UserError(
+                f"model input shape {_shape(inp.shape)} does not match config {want} "
+                f"(stack {self.spec.stack} × {self.spec.n_bins} bins)"
+            )
+        out = outputs[0]
+        if out.type != "tensor(float)" or len(out.shape) != 2 or out.shape[-1] != 2:
+            raise UserError(f"model output {_shape(out.shape)} {out.type} is not (1, 2) float32")
+        if not _batch_dim_ok(out.shape[0]):
+            raise UserError(f"model output shape {_shape(out.shape)} is not (1, 2)")
+
+    def _check_metadata(self) -> None:
+        meta = dict(self._session.get_modelmeta().custom_metadata_map)
+        missing = [key for key in METADATA_KEYS if key not in meta]
+        if missing:
+            raise UserError(
+                f"policy model {self.path} lacks metadata {', '.join(missing)} "
+                "(export it with `avoid-train export`)"
+            )
+        if meta[PREFIX + "format"] != FORMAT_VERSION:
+            raise UserError(
+                f"model metadata format {meta[PREFIX + 'format']!r} is not the supported {FORMAT_VERSION!r}"
+            )
+        try:
+            json.loads(meta[PREFIX + "config"])
+        except ValueError:
+            raise UserError(f"model metadata {PREFIX}config is not valid JSON") from None
+        spec = self.spec
+        self._compare("obs_size", meta, spec.obs_size, "observation size")
+        for name in ("stack", "n_bins", "max_range", "bin_convention", "max_speed", "max_yaw_rate"):
+            self._compare(name, meta, getattr(spec, name), _CONFIG_KEYS[name])
+
+    def _compare(self, name: str, meta: dict[str, str], expected: object, config_key: str) -> None:
+        raw = meta[PREFIX + name]
+        if isinstance(expected, str):
+            same = raw == expected
+        else:
+            try:
+                value = float(raw)
+            except ValueError:
+                raise UserError(f"model metadata {PREFIX}{name} = {raw!r} is not a number") from None
+            same = math.isclose(value, float(expected), rel_tol=1e-6, abs_tol=1e-9)
+        if not same:
+            raise UserError(f"model {name} {raw} does not match config {config_key} {expected}")
+
+
+def _batch_dim_ok(dim: object) -> bool:
+    """A batch dimension of 1 or symbolic (``None``/a name) accepts a single observation."""
+    return dim == 1 or dim is None or isinstance(dim, str)
+
+
+def _shape(shape: Sequence[object]) -> str:
+    return "(" + ", ".join("N" if not isinstance(d, int) else str(d) for d in shape) + ")"

@@ -1,0 +1,208 @@
+"""OnnxPolicy on real ONNX Runtime: loading checks, actions, inference faults."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+import onnx
+import pytest
+from onnx import TensorProto, helper, numpy_helper
+
+from companion.errors import UserError
+from companion.policy import (
+    METADATA_KEYS,
+    InferenceFault,
+    OnnxPolicy,
+    PolicySpec,
+    policy_metadata,
+    select_providers,
+)
+from companion.scan import BIN_CONVENTION
+from tests.onnx_models import write_policy
+
+SPEC = PolicySpec()
+
+
+def stacked(newest: np.ndarray, older: float = 0.0) -> np.ndarray:
+    """An observation whose three older scans are ``older`` and whose newest scan is ``newest``."""
+    return np.concatenate([np.full(3 * 360, older, np.float32), newest.astype(np.float32)])
+
+
+def test_metadata_helper_writes_exactly_the_checked_keys() -> None:
+    meta = policy_metadata(SPEC, json.dumps({"lr": 3e-4}))
+    assert set(meta) == set(METADATA_KEYS)
+    assert meta == {
+        "lidar_avoid.format": "1",
+        "lidar_avoid.obs_size": "1440",
+        "lidar_avoid.stack": "4",
+        "lidar_avoid.n_bins": "360",
+        "lidar_avoid.max_range": "10.0",
+        "lidar_avoid.bin_convention": BIN_CONVENTION,
+        "lidar_avoid.max_speed": "2.0",
+        "lidar_avoid.max_yaw_rate": "1.5",
+        "lidar_avoid.config": '{"lr": 0.0003}',
+    }
+    with pytest.raises(ValueError):
+        policy_metadata(SPEC, "{not json")
+
+
+def test_loads_and_logs_the_providers_in_use(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.INFO, logger="companion.policy")
+    policy = OnnxPolicy(write_policy(tmp_path / "p.onnx"), SPEC)
+    assert policy.providers == ["CPUExecutionProvider"]  # this machine: no TensorRT/CUDA; Azure never asked
+    assert "providers in use: CPUExecutionProvider" in caplog.text
+
+
+def test_provider_preference_is_filtered_by_availability() -> None:
+    assert select_providers() == ["CPUExecutionProvider"]
+    with pytest.raises(UserError, match="providers CUDAExecutionProvider is available"):
+        select_providers(["CUDAExecutionProvider"])
+
+
+@pytest.mark.parametrize(
+    ("kind", "action"),
+    [("forward", (1.0, 0.0)), ("stop", (0.0, 0.0)), ("turn_left", (0.0, 1.0)), ("turn_right", (0.0, -1.0))],
+)
+def test_constant_policies(tmp_path: Path, kind: str, action: tuple[float, float]) -> None:
+    out = OnnxPolicy(write_policy(tmp_path / "p.onnx", kind=kind), SPEC).act(np.ones(1440, np.float32))
+    assert out.dtype == np.float32 and out.shape == (2,)
+    assert out.tolist() == list(action)
+
+
+def test_the_newest_scan_is_the_last_block(tmp_path: Path) -> None:
+    policy = OnnxPolicy(write_policy(tmp_path / "p.onnx", kind="echo"), SPEC)
+    newest = np.ones(360, np.float32)
+    newest[0], newest[90] = 0.25, 0.75
+    assert policy.act(stacked(newest, older=0.5)).tolist() == [0.25, 0.75]
+
+
+def test_steer_policy_slows_for_obstacles_and_turns_to_open_side(tmp_path: Path) -> None:
+    policy = OnnxPolicy(write_policy(tmp_path / "p.onnx", kind="steer"), SPEC)
+    assert policy.act(stacked(np.ones(360))).tolist() == pytest.approx([1.0, 0.0])
+    blocked = np.ones(360, np.float32)
+    blocked[[*range(0, 15), *range(345, 360)]] = 0.1  # 1 m ahead
+    blocked[270:330] = 0.2  # right side close: turn left (counter-clockwise, positive)
+    a = policy.act(stacked(blocked))
+    assert a[0] < 0.0 and a[1] > 0.5
+
+
+def test_actions_are_clipped(tmp_path: Path) -> None:
+    out = OnnxPolicy(write_policy(tmp_path / "p.onnx", kind="big"), SPEC).act(np.zeros(1440, np.float32))
+    assert out.tolist() == [1.0, -1.0]
+
+
+@pytest.mark.parametrize(
+    ("kind", "match"), [("nan", "non-finite"), ("inf", "non-finite"), ("error", "raised Fail")]
+)
+def test_inference_faults(tmp_path: Path, kind: str, match: str) -> None:
+    policy = OnnxPolicy(write_policy(tmp_path / "p.onnx", kind=kind), SPEC)
+    with pytest.raises(InferenceFault, match=match):
+        policy.act(np.zeros(1440, np.float32))
+    # a fault is not fatal: the same policy object can be asked again
+    with pytest.raises(InferenceFault):
+        policy.act(np.zeros(1440, np.float32))
+
+
+def test_wrong_observation_length_is_a_programming_error(tmp_path: Path) -> None:
+    policy = OnnxPolicy(write_policy(tmp_path / "p.onnx"), SPEC)
+    with pytest.raises(ValueError, match="360 values, the policy takes 1440"):
+        policy.act(np.zeros(360, np.float32))
+
+
+def test_missing_file(tmp_path: Path) -> None:
+    with pytest.raises(UserError, match=r"policy model not found: .*nope\.onnx"):
+        OnnxPolicy(tmp_path / "nope.onnx", SPEC)
+
+
+@pytest.mark.parametrize("content", [b"", b"this is not a model\n", bytes(range(256)) * 10])
+def test_not_onnx(tmp_path: Path, content: bytes) -> None:
+    path = tmp_path / "bad.onnx"
+    path.write_bytes(content)
+    with pytest.raises(UserError, match=r"bad\.onnx is not a loadable ONNX model: \S"):
+        OnnxPolicy(path, SPEC)
+
+
+def test_input_size_mismatch_names_both(tmp_path: Path) -> None:
+    path = write_policy(tmp_path / "p.onnx", input_size=720)
+    with pytest.raises(UserError, match=r"input shape \(N, 720\) does not match config \(1, 1440\) float32"):
+        OnnxPolicy(path, SPEC)
+
+
+def test_output_size_mismatch(tmp_path: Path) -> None:
+    with pytest.raises(UserError, match=r"model output \(N, 3\) tensor\(float\) is not \(1, 2\) float32"):
+        OnnxPolicy(write_policy(tmp_path / "p.onnx", output_size=3), SPEC)
+
+
+def test_input_type_mismatch(tmp_path: Path) -> None:
+    graph = helper.make_graph(
+        [
+            helper.make_node("Cast", ["obs"], ["obs_f"], to=TensorProto.FLOAT),
+            helper.make_node("Gemm", ["obs_f", "W", "B"], ["action"]),
+        ],
+        "double-input",
+        [helper.make_tensor_value_info("obs", TensorProto.DOUBLE, ["N", 1440])],
+        [helper.make_tensor_value_info("action", TensorProto.FLOAT, ["N", 2])],
+        initializer=[
+            numpy_helper.from_array(np.zeros((1440, 2), np.float32), "W"),
+            numpy_helper.from_array(np.zeros(2, np.float32), "B"),
+        ],
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    helper.set_model_props(model, policy_metadata(SPEC, "{}"))
+    onnx.save(model, str(tmp_path / "d.onnx"))
+    with pytest.raises(UserError, match=r"input is tensor\(double\), expected \(1, 1440\) float32"):
+        OnnxPolicy(tmp_path / "d.onnx", SPEC)
+
+
+def test_a_model_for_another_stack_depth_loads_with_the_matching_spec(tmp_path: Path) -> None:
+    spec = PolicySpec(stack=2)
+    policy = OnnxPolicy(write_policy(tmp_path / "p.onnx", kind="echo", spec=spec), spec)
+    newest = np.ones(360, np.float32)
+    newest[0] = 0.5
+    assert policy.act(np.concatenate([np.zeros(360, np.float32), newest])).tolist() == [0.5, 1.0]
+    with pytest.raises(UserError, match=r"input shape \(N, 720\) does not match config \(1, 1440\)"):
+        OnnxPolicy(tmp_path / "p.onnx", SPEC)
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "message"),
+    [
+        ("max_range", "8.0", "model max_range 8.0 does not match config scan.max_range 10.0"),
+        ("stack", "3", "model stack 3 does not match config policy.stack 4"),
+        ("n_bins", "720", "model n_bins 720 does not match config scan bins 360"),
+        ("obs_size", "1441", "model obs_size 1441 does not match config observation size 1440"),
+        (
+            "bin_convention",
+            "cw-1deg",
+            f"model bin_convention cw-1deg does not match config scan bin convention {BIN_CONVENTION}",
+        ),
+        ("max_speed", "3.0", "model max_speed 3.0 does not match config policy.max_speed 2.0"),
+        ("max_yaw_rate", "1.0", "model max_yaw_rate 1.0 does not match config policy.max_yaw_rate 1.5"),
+        ("format", "2", "model metadata format '2' is not the supported '1'"),
+        ("config", "{oops", "model metadata lidar_avoid.config is not valid JSON"),
+        ("max_range", "ten", "model metadata lidar_avoid.max_range = 'ten' is not a number"),
+    ],
+)
+def test_metadata_contradicting_the_config_refuses_to_start(
+    tmp_path: Path, key: str, value: str, message: str
+) -> None:
+    path = write_policy(tmp_path / "p.onnx", metadata_overrides={f"lidar_avoid.{key}": value})
+    with pytest.raises(UserError) as err:
+        OnnxPolicy(path, SPEC)
+    assert message in str(err.value)
+
+
+def test_metadata_equal_within_float_tolerance_is_accepted(tmp_path: Path) -> None:
+    path = write_policy(tmp_path / "p.onnx", metadata_overrides={"lidar_avoid.max_range": "10"})
+    OnnxPolicy(path, SPEC)
+
+
+@pytest.mark.parametrize("key", sorted(METADATA_KEYS))
+def test_missing_metadata_is_named(tmp_path: Path, key: str) -> None:
+    path = write_policy(tmp_path / "p.onnx", metadata_overrides={key: None})
+    with pytest.raises(UserError, match=f"lacks metadata {key} "):
+        OnnxPolicy(path, SPEC)

@@ -1,0 +1,118 @@
+"""Small real ONNX policies for tests (companion, app, SITL) until a trained one exists.
+
+Each model is ``Gemm(obs, W, b)`` (optionally followed by ``Clip`` to [-1, 1]) built with
+``onnx.helper``, carrying the same metadata the training export writes. Kinds:
+
+- ``forward``: a = (1, 0)                 - ``stop``: a = (0, 0)
+- ``turn_left``: a = (0, 1) (CCW)         - ``turn_right``: a = (0, -1)
+- ``steer``: a0 = 2·mean(newest scan, forward ±15°) − 1, a1 = 2·(mean left 30–90° − mean right
+  30–90°): slows for what is ahead and turns towards the more open side (a usable toy pilot)
+- ``echo``: a = (newest scan bin 0, newest scan bin 90), to prove which values reach the model
+- ``big``: a = (5, −5) without the Clip node (the companion must clip)
+- ``nan`` / ``inf``: non-finite output (an inference fault)
+- ``error``: raises inside ONNX Runtime at inference (a Reshape that cannot fit)
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import onnx
+from onnx import TensorProto, helper, numpy_helper
+
+from companion.policy import PolicySpec, policy_metadata
+
+KINDS = ("forward", "stop", "turn_left", "turn_right", "steer", "echo", "big", "nan", "inf", "error")
+OPSET = 17
+IR_VERSION = 8  # accepted by every onnxruntime the project supports
+
+
+def _weights(kind: str, spec: PolicySpec, input_size: int, output_size: int) -> tuple[np.ndarray, np.ndarray]:
+    w = np.zeros((input_size, output_size), dtype=np.float32)
+    b = np.zeros(output_size, dtype=np.float32)
+    newest = input_size - spec.n_bins  # first index of the newest scan (the last one in the stack)
+    constant = {
+        "forward": (1.0, 0.0),
+        "stop": (0.0, 0.0),
+        "turn_left": (0.0, 1.0),
+        "turn_right": (0.0, -1.0),
+        "big": (5.0, -5.0),
+        "nan": (np.nan, np.nan),
+        "inf": (np.inf, -np.inf),
+        "error": (0.0, 0.0),
+    }
+    if kind in constant:
+        b[:2] = constant[kind]
+    elif kind == "steer":
+        ahead = [*range(0, 15), *range(345, 360)]
+        w[[newest + i for i in ahead], 0] = 2.0 / len(ahead)
+        b[0] = -1.0
+        w[[newest + i for i in range(30, 90)], 1] = 2.0 / 60
+        w[[newest + i for i in range(270, 330)], 1] = -2.0 / 60
+    elif kind == "echo":
+        w[newest + 0, 0] = 1.0
+        w[newest + 90, 1] = 1.0
+    else:
+        raise ValueError(f"unknown policy kind {kind!r}; choose from {', '.join(KINDS)}")
+    return w, b
+
+
+def write_policy(
+    path: str | Path,
+    *,
+    kind: str = "forward",
+    spec: PolicySpec = PolicySpec(),  # noqa: B008 - frozen dataclass, safe as a default
+    metadata_overrides: dict[str, str | None] | None = None,
+    input_size: int | None = None,
+    output_size: int = 2,
+) -> Path:
+    """Write a small ONNX policy and return its path.
+
+    :param path: destination file
+    :param kind: behaviour, one of :data:`KINDS`
+    :param spec: written into the metadata (and sets the default input size)
+    :param metadata_overrides: full metadata keys to change; ``None`` as a value removes the key
+    :param input_size: observation length (default ``spec.stack × spec.n_bins``, 1440)
+    :param output_size: action length (2 for a valid policy)
+    """
+    path = Path(path)
+    n_in = spec.obs_size if input_size is None else input_size
+    w, b = _weights(kind, spec, n_in, output_size)
+    clipped = kind not in ("big", "inf")
+    nodes = [helper.make_node("Gemm", ["obs", "W", "B"], ["raw" if clipped else "action"])]
+    inits = [numpy_helper.from_array(w, "W"), numpy_helper.from_array(b, "B")]
+    if clipped:
+        clip_out = "clipped" if kind == "error" else "action"
+        nodes.append(helper.make_node("Clip", ["raw", "lo", "hi"], [clip_out]))
+        inits += [numpy_helper.from_array(np.float32(v), name) for v, name in ((-1.0, "lo"), (1.0, "hi"))]
+    if kind == "error":
+        # Reshape (N, 2) to (N + 2, -1), computed from the input's shape so that no load-time shape
+        # inference can see it: ONNX Runtime raises at run time.
+        nodes += [
+            helper.make_node("Shape", ["obs"], ["obs_shape"]),
+            helper.make_node("Add", ["obs_shape", "shape_delta"], ["bad_shape"]),
+            helper.make_node("Reshape", ["clipped", "bad_shape"], ["action"]),
+        ]
+        inits.append(numpy_helper.from_array(np.array([2, -1 - n_in], dtype=np.int64), "shape_delta"))
+    graph = helper.make_graph(
+        nodes,
+        f"test-policy-{kind}",
+        [helper.make_tensor_value_info("obs", TensorProto.FLOAT, ["N", n_in])],
+        [helper.make_tensor_value_info("action", TensorProto.FLOAT, ["N", output_size])],
+        initializer=inits,
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)], producer_name="tests")
+    model.ir_version = IR_VERSION
+    meta = policy_metadata(spec, json.dumps({"test_policy": kind}))
+    for key, value in (metadata_overrides or {}).items():
+        if value is None:
+            meta.pop(key, None)
+        else:
+            meta[key] = value
+    helper.set_model_props(model, meta)
+    onnx.checker.check_model(model, full_check=True)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    onnx.save(model, str(path))
+    return path
