@@ -93,10 +93,12 @@ def test_takeoff_from_the_ground_and_disarmed_stays_down(vehicle):
     # Disarmed: a climb demand does nothing.
     s = fly(vehicle, 2.0, lambda s: Setpoint(vz=1.0))[-1]
     assert s.on_ground and s.position[2] < GEAR_HEIGHT_M
-    # Armed without a climb demand: idles on the floor.
+    # Armed without a climb demand: idles on the floor, even asked to move sideways.
     vehicle.set_armed(True)
-    s = fly(vehicle, 1.0, lambda s: Setpoint())[-1]
+    s = fly(vehicle, 1.0, lambda s: Setpoint(vx=1.0))[-1]
     assert s.on_ground and s.armed
+    np.testing.assert_allclose(s.position[:2], [1.0, 1.0], atol=1e-3)
+    assert abs(s.roll) < 0.01 and abs(s.pitch) < 0.01
     # Climb at 1 m/s.
     states = fly(vehicle, 3.0, lambda s: Setpoint(vz=1.0))
     assert not states[-1].on_ground
