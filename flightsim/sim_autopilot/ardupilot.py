@@ -139,17 +139,30 @@ class ArduCopterAutopilot(SimAutopilot):
             self.start_takeoff(altitude)
             return [self.ack(link, cmd, mavlink.MAV_RESULT_ACCEPTED)]
         if cmd.command == mavlink.MAV_CMD_NAV_LAND:
-            return [self.ack(link, cmd, mavlink.MAV_RESULT_ACCEPTED if self.set_mode(CopterMode.LAND)
-                             else mavlink.MAV_RESULT_FAILED)]
+            return [
+                self.ack(
+                    link,
+                    cmd,
+                    mavlink.MAV_RESULT_ACCEPTED
+                    if self.set_mode(CopterMode.LAND)
+                    else mavlink.MAV_RESULT_FAILED,
+                )
+            ]
         if cmd.command == mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH:
-            return [self.ack(link, cmd, mavlink.MAV_RESULT_ACCEPTED if self.set_mode(CopterMode.RTL)
-                             else mavlink.MAV_RESULT_FAILED)]
+            return [
+                self.ack(
+                    link,
+                    cmd,
+                    mavlink.MAV_RESULT_ACCEPTED
+                    if self.set_mode(CopterMode.RTL)
+                    else mavlink.MAV_RESULT_FAILED,
+                )
+            ]
         return super().handle_command(cmd, link)
 
     def handle_request_data_stream(self, msg: Any, link: int) -> list[Outgoing]:
         groups = (
-            list(STREAM_GROUPS) if msg.req_stream_id == mavlink.MAV_DATA_STREAM_ALL
-            else [msg.req_stream_id]
+            list(STREAM_GROUPS) if msg.req_stream_id == mavlink.MAV_DATA_STREAM_ALL else [msg.req_stream_id]
         )
         for group in groups:
             for name in STREAM_GROUPS.get(group, ()):

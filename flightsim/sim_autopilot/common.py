@@ -146,6 +146,13 @@ class VehicleSnapshot:
         )
 
 
+def _setpoint(**kw: Any) -> Setpoint:
+    """A Setpoint where a given ``yaw`` is held (Setpoint's yaw_rate defaults to 0, which wins)."""
+    if "yaw" in kw:
+        kw.setdefault("yaw_rate", None)
+    return Setpoint(**kw)
+
+
 def wrap_pi(angle: float) -> float:
     """Angle wrapped to [-π, π)."""
     return (angle + math.pi) % (2.0 * math.pi) - math.pi
@@ -252,6 +259,8 @@ class SimAutopilot:
         "AUTOPILOT_VERSION",
         "VFR_HUD",
     )
+    #: COMMAND_ACK result of a refused DO_SET_MODE
+    MODE_REFUSED: int = mavlink.MAV_RESULT_FAILED
     #: MAV_PROTOCOL_CAPABILITY bits of AUTOPILOT_VERSION (plus the parameter table's encoding bit)
     CAPABILITIES = (
         mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT
@@ -458,7 +467,7 @@ class SimAutopilot:
             ]
         if cmd.command == mavlink.MAV_CMD_DO_SET_MODE:
             ok = self.handle_set_mode(int(p[0]), int(p[1]), int(p[2]))
-            return [self.ack(link, cmd, mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_DENIED)]
+            return [self.ack(link, cmd, mavlink.MAV_RESULT_ACCEPTED if ok else self.MODE_REFUSED)]
         if cmd.command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
             return self.handle_arm(cmd, link)
         return self.handle_command(cmd, link)
@@ -501,14 +510,18 @@ class SimAutopilot:
                 return [self.ack(link, cmd, mavlink.MAV_RESULT_ACCEPTED)]
             reason = None if force else self.arm_allowed()
             if reason is not None:
-                return [self.ack(link, cmd, mavlink.MAV_RESULT_FAILED), *self.statustext(
-                    f"Arm: {reason}", mavlink.MAV_SEVERITY_CRITICAL)]
+                return [
+                    self.ack(link, cmd, mavlink.MAV_RESULT_FAILED),
+                    *self.statustext(f"Arm: {reason}", mavlink.MAV_SEVERITY_CRITICAL),
+                ]
             return [self.ack(link, cmd, mavlink.MAV_RESULT_ACCEPTED), *self.arm()]
         if not self.armed:
             return [self.ack(link, cmd, mavlink.MAV_RESULT_ACCEPTED)]
         if not self.snap.on_ground and not force:
-            return [self.ack(link, cmd, mavlink.MAV_RESULT_FAILED), *self.statustext(
-                "Disarm: vehicle is flying", mavlink.MAV_SEVERITY_CRITICAL)]
+            return [
+                self.ack(link, cmd, mavlink.MAV_RESULT_FAILED),
+                *self.statustext("Disarm: vehicle is flying", mavlink.MAV_SEVERITY_CRITICAL),
+            ]
         return [self.ack(link, cmd, mavlink.MAV_RESULT_ACCEPTED), *self.disarm("command")]
 
     def arm(self) -> list[Outgoing]:
@@ -566,8 +579,10 @@ class SimAutopilot:
                 self.target_altitude = float(self.snap.position[2])
         else:
             self.target_altitude = None
-        if target.yaw_rate is None and target.yaw is None and self.guidance not in (
-            Guidance.VELOCITY, Guidance.POSITION
+        if (
+            target.yaw_rate is None
+            and target.yaw is None
+            and self.guidance not in (Guidance.VELOCITY, Guidance.POSITION)
         ):
             self.hold_yaw = self.snap.yaw
         self.target = target
@@ -587,8 +602,11 @@ class SimAutopilot:
             self.takeoff_altitude - TAKEOFF_DONE_MARGIN
         ):
             out += self.takeoff_complete()
-        if self.armed and self.guidance in (Guidance.LAND, Guidance.RTL) and self.snap.on_ground and (
-            self.guidance == Guidance.LAND or self._rtl_landing()
+        if (
+            self.armed
+            and self.guidance in (Guidance.LAND, Guidance.RTL)
+            and self.snap.on_ground
+            and (self.guidance == Guidance.LAND or self._rtl_landing())
         ):
             out += self.on_landed()
         if self.armed and self.guidance == Guidance.IDLE and self.snap.on_ground:
@@ -638,20 +656,20 @@ class SimAutopilot:
             return self.armed, Setpoint(vx=0.0, vy=0.0, vz=0.0, yaw_rate=0.0)
         if self.guidance == Guidance.TAKEOFF:
             vx, vy = self._toward(self.hold_position)
-            return True, Setpoint(vx=vx, vy=vy, altitude=self.takeoff_altitude, yaw=self.hold_yaw)
+            return True, _setpoint(vx=vx, vy=vy, altitude=self.takeoff_altitude, yaw=self.hold_yaw)
         if self.guidance == Guidance.HOLD:
             vx, vy = self._toward(self.hold_position)
-            return True, Setpoint(vx=vx, vy=vy, altitude=float(self.hold_position[2]), yaw=self.hold_yaw)
+            return True, _setpoint(vx=vx, vy=vy, altitude=float(self.hold_position[2]), yaw=self.hold_yaw)
         if self.guidance == Guidance.LAND:
             vx, vy = self._toward(self.hold_position)
             speed = self.param("LAND_SPEED", 50.0) / 100.0
-            return True, Setpoint(vx=vx, vy=vy, vz=-abs(speed), yaw=self.hold_yaw)
+            return True, _setpoint(vx=vx, vy=vy, vz=-abs(speed), yaw=self.hold_yaw)
         if self.guidance == Guidance.RTL:
             if self._rtl_landing():
                 vx, vy = self._toward(self.home)
-                return True, Setpoint(vx=vx, vy=vy, vz=-0.5, yaw=self.hold_yaw)
+                return True, _setpoint(vx=vx, vy=vy, vz=-0.5, yaw=self.hold_yaw)
             vx, vy = self._toward(self.home, gain=HOLD_GAIN, vmax=RTL_SPEED)
-            return True, Setpoint(vx=vx, vy=vy, altitude=float(self.hold_position[2]), yaw=self.hold_yaw)
+            return True, _setpoint(vx=vx, vy=vy, altitude=float(self.hold_position[2]), yaw=self.hold_yaw)
         target = self.target
         assert target is not None
         yaw_kw: dict[str, float]
@@ -667,22 +685,22 @@ class SimAutopilot:
             vx, vy = self._toward(target.position, vmax=2.0)
             if target.velocity is not None:
                 vx, vy = vx + target.velocity[0], vy + target.velocity[1]
-            return True, Setpoint(vx=vx, vy=vy, altitude=float(target.position[2]), **yaw_kw)
+            return True, _setpoint(vx=vx, vy=vy, altitude=float(target.position[2]), **yaw_kw)
         assert target.velocity is not None
         vx, vy = self.limit_velocity(float(target.velocity[0]), float(target.velocity[1]))
         if self.target_altitude is not None:
-            return True, Setpoint(vx=vx, vy=vy, altitude=self.target_altitude, **yaw_kw)
+            return True, _setpoint(vx=vx, vy=vy, altitude=self.target_altitude, **yaw_kw)
         if target.vz_used:
-            return True, Setpoint(vx=vx, vy=vy, vz=float(target.velocity[2]), **yaw_kw)
-        return True, Setpoint(vx=vx, vy=vy, altitude=float(self.hold_position[2]), **yaw_kw)
+            return True, _setpoint(vx=vx, vy=vy, vz=float(target.velocity[2]), **yaw_kw)
+        return True, _setpoint(vx=vx, vy=vy, altitude=float(self.hold_position[2]), **yaw_kw)
 
     def limit_velocity(self, vx: float, vy: float) -> tuple[float, float]:
         """Hook for the firmware's own obstacle avoidance (ENU horizontal velocity in and out)."""
         return vx, vy
 
-    def _toward(self, point: np.ndarray, gain: float = HOLD_GAIN, vmax: float = HOLD_SPEED_MAX) -> tuple[
-        float, float
-    ]:
+    def _toward(
+        self, point: np.ndarray, gain: float = HOLD_GAIN, vmax: float = HOLD_SPEED_MAX
+    ) -> tuple[float, float]:
         err = (point[:2] - self.snap.position[:2]) * gain
         norm = float(np.linalg.norm(err))
         if norm > vmax:
@@ -742,12 +760,30 @@ class SimAutopilot:
         if name == "HOME_POSITION":
             lat, lon = self.lat_lon(np.zeros(3))
             return mavlink.MAVLink_home_position_message(
-                lat, lon, int(HOME_ALT_AMSL_M * 1000), 0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0,
+                lat,
+                lon,
+                int(HOME_ALT_AMSL_M * 1000),
+                0.0,
+                0.0,
+                0.0,
+                [1.0, 0.0, 0.0, 0.0],
+                0.0,
+                0.0,
+                0.0,
                 int((self.now - self.boot_time) * 1e6),
             )
         if name == "AUTOPILOT_VERSION":
             return mavlink.MAVLink_autopilot_version_message(
-                self.CAPABILITIES | getattr(self.params, "protocol_capabilities", 0), self.flight_sw_version(), 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0,
+                self.CAPABILITIES | getattr(self.params, "protocol_capabilities", 0),
+                self.flight_sw_version(),
+                0,
+                0,
+                0,
+                [0] * 8,
+                [0] * 8,
+                [0] * 8,
+                0,
+                0,
                 0x5349_4D00 + self.system_id,
             )
         if name == "VFR_HUD":

@@ -164,6 +164,11 @@ class MavlinkEndpoint:
             if link.spec.kind == "udpin":
                 link.peers[addr] = now
             out.extend((index, msg, now) for msg in self._parse(link.parser, data, index))
+            if link.parser.buf_len() > 0:
+                # a datagram carries whole frames: a leftover is a truncated frame, not the start of
+                # the next datagram's (resynchronising across datagrams would eat a good frame)
+                self.count("malformed")
+                link.parser = self._new_parser()
         return out
 
     def _read_tcp_client(

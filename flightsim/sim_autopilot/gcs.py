@@ -18,11 +18,26 @@ from companion.errors import UserError
 
 log = logging.getLogger(__name__)
 
-ARDUCOPTER_MODES = {"STABILIZE": 0, "ALT_HOLD": 2, "AUTO": 3, "GUIDED": 4, "LOITER": 5, "RTL": 6, "LAND": 9,
-                    "BRAKE": 17}
+ARDUCOPTER_MODES = {
+    "STABILIZE": 0,
+    "ALT_HOLD": 2,
+    "AUTO": 3,
+    "GUIDED": 4,
+    "LOITER": 5,
+    "RTL": 6,
+    "LAND": 9,
+    "BRAKE": 17,
+}
 #: PX4 mode name -> (main, sub)
-PX4_MODES = {"POSCTL": (3, 0), "OFFBOARD": (6, 0), "TAKEOFF": (4, 2), "LOITER": (4, 3), "HOLD": (4, 3),
-             "RTL": (4, 5), "LAND": (4, 6)}
+PX4_MODES = {
+    "POSCTL": (3, 0),
+    "OFFBOARD": (6, 0),
+    "TAKEOFF": (4, 2),
+    "LOITER": (4, 3),
+    "HOLD": (4, 3),
+    "RTL": (4, 5),
+    "LAND": (4, 6),
+}
 
 
 class GroundStation:
@@ -35,8 +50,11 @@ class GroundStation:
     def __init__(self, connect: str, system_id: int = 255) -> None:
         try:
             self.mav = mavutil.mavlink_connection(
-                connect, source_system=system_id, source_component=mavutil.mavlink.MAV_COMP_ID_MISSIONPLANNER,
-                dialect="ardupilotmega", autoreconnect=True,
+                connect,
+                source_system=system_id,
+                source_component=mavutil.mavlink.MAV_COMP_ID_MISSIONPLANNER,
+                dialect="ardupilotmega",
+                autoreconnect=True,
             )
         except Exception as exc:
             raise UserError(f"ground station: cannot open {connect!r}: {exc}") from None

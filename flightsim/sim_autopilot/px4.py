@@ -70,8 +70,13 @@ MODE_NAMES = {
     (MainMode.AUTO, AutoSubMode.RTL): "AUTO.RTL",
     (MainMode.AUTO, AutoSubMode.LAND): "AUTO.LAND",
 }
-ARMABLE = {(MainMode.POSCTL, 0), (MainMode.ALTCTL, 0), (MainMode.OFFBOARD, 0),
-           (MainMode.AUTO, AutoSubMode.LOITER), (MainMode.AUTO, AutoSubMode.TAKEOFF)}
+ARMABLE = {
+    (MainMode.POSCTL, 0),
+    (MainMode.ALTCTL, 0),
+    (MainMode.OFFBOARD, 0),
+    (MainMode.AUTO, AutoSubMode.LOITER),
+    (MainMode.AUTO, AutoSubMode.TAKEOFF),
+}
 #: COM_OBL_RC_ACT value → (main, sub) of the failsafe mode; None: disarm
 OFFBOARD_LOSS_ACTIONS: dict[int, tuple[int, int] | None] = {
     0: (MainMode.AUTO, AutoSubMode.RTL),  # Position mode needs RC: without RC, Return
@@ -89,6 +94,7 @@ class PX4Autopilot(SimAutopilot):
     """A simulated PX4 multicopter (custom modes, OFFBOARD, offboard-loss failsafe)."""
 
     AUTOPILOT = mavlink.MAV_AUTOPILOT_PX4
+    MODE_REFUSED = mavlink.MAV_RESULT_TEMPORARILY_REJECTED  # commander: transition denied
     DEFAULT_INTERVALS: ClassVar[dict[str, float]] = {
         "HEARTBEAT": 1.0,
         "SYS_STATUS": 0.2,
@@ -156,8 +162,9 @@ class PX4Autopilot(SimAutopilot):
         if (main, sub) not in MODE_NAMES:
             return False
         if main == MainMode.OFFBOARD and not self.offboard_stream_ok():
-            self.pending += self.statustext("Switching to Offboard is currently not available",
-                                                mavlink.MAV_SEVERITY_CRITICAL)
+            self.pending += self.statustext(
+                "Switching to Offboard is currently not available", mavlink.MAV_SEVERITY_CRITICAL
+            )
             return False
         if (main, sub) == (self.main, self.sub):
             return True
@@ -220,8 +227,10 @@ class PX4Autopilot(SimAutopilot):
     # ----------------------------------------------------------------- offboard
     def handle_position_target(self, msg: Any, link: int) -> list[Outgoing]:
         if msg.coordinate_frame not in (
-            mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_BODY_NED,
-            mavlink.MAV_FRAME_LOCAL_OFFSET_NED, mavlink.MAV_FRAME_BODY_OFFSET_NED,
+            mavlink.MAV_FRAME_LOCAL_NED,
+            mavlink.MAV_FRAME_BODY_NED,
+            mavlink.MAV_FRAME_LOCAL_OFFSET_NED,
+            mavlink.MAV_FRAME_BODY_OFFSET_NED,
         ):
             self.count("setpoint_invalid")
             return []
