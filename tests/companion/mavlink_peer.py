@@ -106,3 +106,98 @@ class AutopilotPeer:
 
     def close(self) -> None:
         self.conn.close()
+
+
+PX4_MAIN_POSCTL = 3
+PX4_MAIN_OFFBOARD = 6
+
+
+def px4_custom_mode(main: int, sub: int = 0) -> int:
+    """PX4 packs its mode as main_mode << 16 | sub_mode << 24 in HEARTBEAT.custom_mode."""
+    return (main << 16) | (sub << 24)
+
+
+class SimulatedAutopilot:
+    """A threaded :class:`AutopilotPeer`: heartbeat and status streams at ``rate_hz``, commands ACKed.
+
+    Tests change ``armed``, ``custom_mode``, ``altitude``, ``climb``, ``landed`` at any time and
+    read what the companion sent from :meth:`messages`. Posing as ArduPilot Copter (default) or
+    PX4 (``autopilot=MAV_AUTOPILOT_PX4``; answers AUTOPILOT_VERSION requests as PX4 does).
+    """
+
+    def __init__(self, connect: str, autopilot: int = mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                 rate_hz: float = 10.0, sysid: int = 1) -> None:
+        import threading
+
+        self.peer = AutopilotPeer(connect, sysid=sysid, compid=1, autopilot=autopilot)
+        self.armed = True
+        px4 = autopilot == mavlink.MAV_AUTOPILOT_PX4
+        self.custom_mode = px4_custom_mode(PX4_MAIN_OFFBOARD) if px4 else COPTER_GUIDED
+        self.altitude = 1.5
+        self.climb = 0.0
+        self.landed = mavlink.MAV_LANDED_STATE_IN_AIR
+        self.sending = True  # False: go silent (heartbeat loss)
+        self._period = 1.0 / rate_hz
+        self._lock = threading.Lock()
+        self._received: list[tuple[float, Any]] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        next_send = 0.0
+        while not self._stop.is_set():
+            now = time.monotonic()
+            if now >= next_send:
+                next_send = now + self._period
+                if self.sending:
+                    self.peer.heartbeat(armed=self.armed, custom_mode=self.custom_mode)
+                    self.peer.flying(self.altitude, self.climb, self.landed)
+            got = False
+            while True:
+                msg = self.peer.conn.recv_msg()
+                if msg is None:
+                    break
+                got = True
+                if msg.get_type() == "BAD_DATA":
+                    continue
+                with self._lock:
+                    self._received.append((time.monotonic(), msg))
+                if msg.get_type() == "COMMAND_LONG":
+                    self._answer(msg)
+            if not got:
+                time.sleep(0.001)
+
+    def _answer(self, msg: Any) -> None:
+        mav = self.peer.mav
+        wanted = int(msg.param1) if msg.command == mavlink.MAV_CMD_REQUEST_MESSAGE else -1
+        if wanted == mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
+            capabilities = (mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+                            | mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED)
+            mav.autopilot_version_send(
+                capabilities,
+                0x010E0000, 0, 0, 0, b"\0" * 8, b"\0" * 8, b"\0" * 8, 0, 0, 1)
+        mav.command_ack_send(msg.command, mavlink.MAV_RESULT_ACCEPTED)
+
+    def messages(self, kind: str | None = None, since: float = 0.0) -> list[Any]:
+        """Messages received (of ``kind``) at or after monotonic time ``since``, oldest first."""
+        with self._lock:
+            return [m for t, m in self._received if t >= since and (kind is None or m.get_type() == kind)]
+
+    def times(self, kind: str, since: float = 0.0) -> list[float]:
+        with self._lock:
+            return [t for t, m in self._received if t >= since and m.get_type() == kind]
+
+    def wait_for(self, kind: str, timeout: float = 5.0, since: float = 0.0, condition=None) -> Any:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            for msg in self.messages(kind, since):
+                if condition is None or condition(msg):
+                    return msg
+            time.sleep(0.01)
+        return None
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2)
+        self.peer.close()
