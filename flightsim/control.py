@@ -9,9 +9,9 @@ Rotor order and spin (seen from above), shared with the JSBSim model ``lidar_qua
 0 front-right CCW, 1 back-left CCW, 2 front-left CW, 3 back-right CW. A rotor spinning CCW
 pushes the body clockwise, so yawing left (CCW) means speeding up the CW pair 2 and 3.
 
-The hot path (:meth:`CascadedController.update`) takes plain floats: it runs 120+ times per
-simulated second in every training environment, and small numpy arrays would cost more than
-the arithmetic itself.
+The cascade itself (:func:`control_step`) is one numba-compiled function of plain floats, the
+gains and the integrator memory: it runs 120 times per simulated second in every training
+environment, where interpreted arithmetic cost more than JSBSim's own integration step.
 """
 
 from __future__ import annotations
@@ -19,10 +19,14 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import numpy as np
+from numba import njit
+
 GRAVITY = 9.80665
 """Standard gravity (m/s^2); the controller's integrators absorb the simulator's local value."""
 
 
+@njit(cache=True)
 def wrap_angle(angle: float) -> float:
     """Wrap an angle to [-pi, pi).
 
@@ -31,6 +35,7 @@ def wrap_angle(angle: float) -> float:
     return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
+@njit(cache=True)
 def _clip(value: float, low: float, high: float) -> float:
     return low if value < low else high if value > high else value
 
@@ -85,7 +90,9 @@ class ControllerConfig:
     yaw_moment_per_thrust_m: float = field(default=0.016, metadata={"min": 1e-4})
     max_rotor_thrust_n: float = field(default=8.0, metadata={"min": 0.1})
     idle_rotor_thrust_n: float = field(default=0.15, metadata={"min": 0.0})
-    inertia_kg_m2: tuple[float, float, float] = (0.015, 0.015, 0.027)
+    ixx_kg_m2: float = field(default=0.015, metadata={"min": 1e-5})
+    iyy_kg_m2: float = field(default=0.015, metadata={"min": 1e-5})
+    izz_kg_m2: float = field(default=0.027, metadata={"min": 1e-5})
 
     max_tilt_deg: float = field(default=30.0, metadata={"min": 1.0, "max": 60.0})
     max_climb_rate: float = field(default=2.5, metadata={"min": 0.1})
@@ -107,6 +114,52 @@ class ControllerConfig:
     yaw_rate_i: float = 4.0
 
 
+# Layout of the gain vector that control_step reads (built from a ControllerConfig by
+# CascadedController) and of the controller's memory (integrators and latched holds).
+_G_MASS, _G_IDLE, _G_TAN_TILT, _G_MAX_CLIMB, _G_MAX_DESCENT, _G_MAX_YAW_RATE, _G_MAX_RP_RATE = range(7)
+_G_ALT_P, _G_CLIMB_P, _G_CLIMB_I, _G_VEL_P, _G_VEL_I, _G_VEL_I_LIMIT, _G_ATT_P, _G_YAW_P = range(7, 15)
+_G_RATE_P, _G_RATE_I, _G_YAW_RATE_P, _G_YAW_RATE_I, _G_IXX, _G_IYY, _G_IZZ = range(15, 22)
+_G_MIX_RP, _G_MIX_YAW, _G_T_MAX = range(22, 25)
+_N_GAINS = 25
+_M_ALT_HOLD, _M_YAW_HOLD, _M_VEL_I_X, _M_VEL_I_Y, _M_CLIMB_I, _M_RATE_I_X, _M_RATE_I_Y, _M_RATE_I_Z = range(8)
+_N_MEMORY = 8
+
+
+def gain_vector(config: ControllerConfig) -> np.ndarray:
+    """The gains and limits of ``config`` as the float64 vector :func:`control_step` reads.
+
+    :param config: controller configuration.
+    """
+    g = np.empty(_N_GAINS)
+    g[_G_MASS] = config.mass_kg
+    g[_G_IDLE] = config.idle_rotor_thrust_n
+    g[_G_TAN_TILT] = math.tan(math.radians(config.max_tilt_deg))
+    g[_G_MAX_CLIMB] = config.max_climb_rate
+    g[_G_MAX_DESCENT] = config.max_descent_rate
+    g[_G_MAX_YAW_RATE] = config.max_yaw_rate
+    g[_G_MAX_RP_RATE] = config.max_roll_pitch_rate
+    g[_G_ALT_P] = config.altitude_p
+    g[_G_CLIMB_P] = config.climb_rate_p
+    g[_G_CLIMB_I] = config.climb_rate_i
+    g[_G_VEL_P] = config.velocity_p
+    g[_G_VEL_I] = config.velocity_i
+    g[_G_VEL_I_LIMIT] = config.velocity_i_limit
+    g[_G_ATT_P] = config.attitude_p
+    g[_G_YAW_P] = config.yaw_p
+    g[_G_RATE_P] = config.rate_p
+    g[_G_RATE_I] = config.rate_i
+    g[_G_YAW_RATE_P] = config.yaw_rate_p
+    g[_G_YAW_RATE_I] = config.yaw_rate_i
+    g[_G_IXX] = config.ixx_kg_m2
+    g[_G_IYY] = config.iyy_kg_m2
+    g[_G_IZZ] = config.izz_kg_m2
+    # Per-rotor thrust (N) per N m of roll/pitch torque on an X quad, and per N m of yaw torque.
+    g[_G_MIX_RP] = 1.0 / (4.0 * config.arm_length_m * math.sqrt(0.5))
+    g[_G_MIX_YAW] = 1.0 / (4.0 * config.yaw_moment_per_thrust_m)
+    g[_G_T_MAX] = config.max_rotor_thrust_n
+    return g
+
+
 def mix(
     collective: float, torque_x: float, torque_y: float, torque_z: float, config: ControllerConfig
 ) -> tuple[float, float, float, float]:
@@ -121,52 +174,204 @@ def mix(
     :param torque_z: yaw torque about body z (up), N m; > 0 turns left (CCW).
     :param config: airframe geometry and rotor limits.
     """
-    t_max = config.max_rotor_thrust_n
-    arm = 4.0 * config.arm_length_m * math.sqrt(0.5)
-    rx = torque_x / arm
-    ry = torque_y / arm
-    yaw = torque_z / (4.0 * config.yaw_moment_per_thrust_m)
-    # Roll/pitch parts of rotors 0..3 (front-right, back-left, front-left, back-right).
-    a0, a1, a2, a3 = -rx - ry, rx + ry, rx - ry, -rx + ry
-    span = max(a0, a1, a2, a3) - min(a0, a1, a2, a3)
-    if span > t_max:
-        k = t_max / span
-        a0, a1, a2, a3 = a0 * k, a1 * k, a2 * k, a3 * k
-    base = _clip(collective, 0.0, 4.0 * t_max) * 0.25
-    hi = base + max(a0, a1, a2, a3)
-    lo = base + min(a0, a1, a2, a3)
-    if hi > t_max:
-        base -= hi - t_max
-    elif lo < 0.0:
-        base -= lo
-    u0, u1, u2, u3 = base + a0, base + a1, base + a2, base + a3
-    # Yaw: rotors 2, 3 (CW) get +yaw, rotors 0, 1 (CCW) get -yaw; use what headroom allows
-    # (every u is inside [0, t_max] here, so the headroom is never negative).
+    g = gain_vector(config)
+    return _mix(collective, torque_x, torque_y, torque_z, g[_G_MIX_RP], g[_G_MIX_YAW], g[_G_T_MAX])
+
+
+@njit(cache=True)
+def _mix(
+    collective: float, tx: float, ty: float, tz: float, k_rp: float, k_yaw: float, t_max: float
+) -> tuple[float, float, float, float]:
+    base = 0.25 * collective
+    rx = tx * k_rp
+    ry = ty * k_rp
+    yaw = tz * k_yaw
+    # Roll/pitch parts of rotors 0..3 (front-right, back-left, front-left, back-right) are
+    # (a0, -a0, a2, -a2); yaw adds -yaw to the CCW pair 0, 1 and +yaw to the CW pair 2, 3.
+    a0 = -rx - ry
+    a2 = rx - ry
+    u0 = base + a0 - yaw
+    u1 = base - a0 - yaw
+    u2 = base + a2 + yaw
+    u3 = base - a2 + yaw
+    if 0.0 <= u0 <= t_max and 0.0 <= u1 <= t_max and 0.0 <= u2 <= t_max and 0.0 <= u3 <= t_max:
+        return u0, u1, u2, u3
+    # Saturated: scale roll/pitch into the range, shift the collective to fit them, then give
+    # yaw what headroom is left (never negative: every base +- a is inside [0, t_max] by then).
+    half_span = max(abs(a0), abs(a2))
+    if 2.0 * half_span > t_max:
+        k = 0.5 * t_max / half_span
+        a0 *= k
+        a2 *= k
+        half_span = 0.5 * t_max
+    base = min(max(base, half_span), t_max - half_span)
     if yaw > 0.0:
-        yaw = min(yaw, u0, u1, t_max - u2, t_max - u3)
-    elif yaw < 0.0:
-        yaw = max(yaw, -u2, -u3, u0 - t_max, u1 - t_max)
+        yaw = min(yaw, base - abs(a0), t_max - base - abs(a2))
+    else:
+        yaw = max(yaw, abs(a2) - base, base + abs(a0) - t_max)
     return (
-        _clip(u0 - yaw, 0.0, t_max),
-        _clip(u1 - yaw, 0.0, t_max),
-        _clip(u2 + yaw, 0.0, t_max),
-        _clip(u3 + yaw, 0.0, t_max),
+        _clip(base + a0 - yaw, 0.0, t_max),  # the clips only remove rounding error
+        _clip(base - a0 - yaw, 0.0, t_max),
+        _clip(base + a2 + yaw, 0.0, t_max),
+        _clip(base - a2 + yaw, 0.0, t_max),
     )
+
+
+def setpoint_values(setpoint: Setpoint) -> tuple[float, float, float, float, float, float]:
+    """(vx, vy, vz, altitude, yaw_rate, yaw) of a setpoint as floats, NaN for None.
+
+    :param setpoint: the setpoint to flatten for :func:`control_step`.
+    """
+    nan = math.nan
+    return (
+        float(setpoint.vx),
+        float(setpoint.vy),
+        nan if setpoint.vz is None else float(setpoint.vz),
+        nan if setpoint.altitude is None else float(setpoint.altitude),
+        nan if setpoint.yaw_rate is None else float(setpoint.yaw_rate),
+        nan if setpoint.yaw is None else float(setpoint.yaw),
+    )
+
+
+@njit(cache=True)
+def control_step(
+    memory: np.ndarray,
+    gains: np.ndarray,
+    vx_sp: float,
+    vy_sp: float,
+    vz_sp: float,
+    altitude_sp: float,
+    yaw_rate_sp: float,
+    yaw_sp: float,
+    dt: float,
+    z: float,
+    vx: float,
+    vy: float,
+    vz: float,
+    roll: float,
+    pitch: float,
+    yaw: float,
+    p: float,
+    q: float,
+    r: float,
+    on_ground: bool,
+) -> tuple[float, float, float, float]:
+    """One step of the cascade: per-rotor thrust commands (N, rotor order of :func:`mix`).
+
+    The setpoint comes flattened by :func:`setpoint_values` (NaN = None); the state in the
+    frames of :meth:`CascadedController.update`. Updates ``memory`` (integrators, holds) in place.
+
+    :param memory: the controller's integrators and latched holds (see :class:`CascadedController`).
+    :param gains: :func:`gain_vector` of the configuration.
+    """
+    g = gains
+    m = memory
+    # --- vertical: altitude -> climb rate demand
+    if not math.isnan(vz_sp):
+        climb_sp = _clip(vz_sp, -g[_G_MAX_DESCENT], g[_G_MAX_CLIMB])
+        m[_M_ALT_HOLD] = z
+    else:
+        if not math.isnan(altitude_sp):
+            target = altitude_sp
+            m[_M_ALT_HOLD] = z
+        else:
+            target = m[_M_ALT_HOLD]
+        climb_sp = _clip(g[_G_ALT_P] * (target - z), -g[_G_MAX_DESCENT], g[_G_MAX_CLIMB])
+
+    # --- heading: yaw (Euler) rate demand
+    if not math.isnan(yaw_rate_sp):
+        yaw_dot = yaw_rate_sp
+        m[_M_YAW_HOLD] = yaw
+    else:
+        if not math.isnan(yaw_sp):
+            target_yaw = yaw_sp
+            m[_M_YAW_HOLD] = yaw
+        else:
+            target_yaw = m[_M_YAW_HOLD]
+        yaw_dot = g[_G_YAW_P] * wrap_angle(target_yaw - yaw)
+    yaw_dot = _clip(yaw_dot, -g[_G_MAX_YAW_RATE], g[_G_MAX_YAW_RATE])
+
+    # --- landed: motors idle, integrators cleared, until something asks to climb
+    if on_ground and climb_sp <= 0.1:
+        m[_M_VEL_I_X] = m[_M_VEL_I_Y] = m[_M_CLIMB_I] = 0.0
+        m[_M_RATE_I_X] = m[_M_RATE_I_Y] = m[_M_RATE_I_Z] = 0.0
+        idle = g[_G_IDLE]
+        return idle, idle, idle, idle
+    integrate = not on_ground  # ground contact fights the controller: integrators would wind up
+
+    # --- climb rate -> vertical acceleration (the integrator is the hover-thrust estimate)
+    err_vz = climb_sp - vz
+    az = _clip(g[_G_CLIMB_P] * err_vz + m[_M_CLIMB_I], -0.7 * GRAVITY, GRAVITY)
+    if integrate:
+        m[_M_CLIMB_I] = _clip(m[_M_CLIMB_I] + g[_G_CLIMB_I] * err_vz * dt, -4.0, 4.0)
+    fz = GRAVITY + az
+
+    # --- horizontal velocity -> acceleration, tilt-limited, integrating only when unsaturated
+    ex = vx_sp - vx
+    ey = vy_sp - vy
+    ax = g[_G_VEL_P] * ex + m[_M_VEL_I_X]
+    ay = g[_G_VEL_P] * ey + m[_M_VEL_I_Y]
+    a_max = fz * g[_G_TAN_TILT]
+    a_norm = math.sqrt(ax * ax + ay * ay)
+    if a_norm > a_max:
+        ax *= a_max / a_norm
+        ay *= a_max / a_norm
+    elif integrate:
+        lim = g[_G_VEL_I_LIMIT]
+        m[_M_VEL_I_X] = _clip(m[_M_VEL_I_X] + g[_G_VEL_I] * ex * dt, -lim, lim)
+        m[_M_VEL_I_Y] = _clip(m[_M_VEL_I_Y] + g[_G_VEL_I] * ey * dt, -lim, lim)
+
+    # --- attitude from the thrust direction, in the heading frame
+    cy = math.cos(yaw)
+    sy = math.sin(yaw)
+    f_fwd = cy * ax + sy * ay
+    f_left = -sy * ax + cy * ay
+    pitch_sp = math.atan2(f_fwd, fz)
+    roll_sp = math.atan2(-f_left, math.sqrt(f_fwd * f_fwd + fz * fz))
+
+    # --- attitude error -> Euler rates -> body rates (Z-Y-X kinematics)
+    roll_dot = g[_G_ATT_P] * (roll_sp - roll)
+    pitch_dot = g[_G_ATT_P] * (pitch_sp - pitch)
+    sr = math.sin(roll)
+    cr = math.cos(roll)
+    sp = math.sin(pitch)
+    cp = math.cos(pitch)
+    lim = g[_G_MAX_RP_RATE]
+    p_sp = _clip(roll_dot - yaw_dot * sp, -lim, lim)
+    q_sp = _clip(pitch_dot * cr + yaw_dot * sr * cp, -lim, lim)
+    r_sp = -pitch_dot * sr + yaw_dot * cr * cp
+
+    # --- body rates -> torques: P + I on angular acceleration, times inertia
+    ep = p_sp - p
+    eq = q_sp - q
+    er = r_sp - r
+    if integrate:
+        m[_M_RATE_I_X] = _clip(m[_M_RATE_I_X] + g[_G_RATE_I] * ep * dt, -5.0, 5.0)
+        m[_M_RATE_I_Y] = _clip(m[_M_RATE_I_Y] + g[_G_RATE_I] * eq * dt, -5.0, 5.0)
+        m[_M_RATE_I_Z] = _clip(m[_M_RATE_I_Z] + g[_G_YAW_RATE_I] * er * dt, -3.0, 3.0)
+    tx = g[_G_IXX] * (g[_G_RATE_P] * ep + m[_M_RATE_I_X])
+    ty = g[_G_IYY] * (g[_G_RATE_P] * eq + m[_M_RATE_I_Y])
+    tz = g[_G_IZZ] * (g[_G_YAW_RATE_P] * er + m[_M_RATE_I_Z])
+
+    # --- collective: the vertical demand, corrected for the current tilt
+    collective = g[_G_MASS] * fz / max(cr * cp, 0.5)
+    return _mix(collective, tx, ty, tz, g[_G_MIX_RP], g[_G_MIX_YAW], g[_G_T_MAX])
 
 
 class CascadedController:
     """Velocity -> attitude -> body-rate -> mixer cascade, with the integrators a real one has.
 
     Call :meth:`reset` at the start of a flight, then :meth:`update` every physics step with the
-    measured state. The only memory is the integrators and the altitude/heading latched for
-    "hold" setpoints; everything else is a function of (state, setpoint, dt).
+    measured state. The only memory (``memory``) is the integrators and the altitude/heading
+    latched for "hold" setpoints; everything else is a function of (state, setpoint, dt).
+    Hot loops call :func:`control_step` with ``memory`` and ``gains`` directly.
     """
 
     def __init__(self, config: ControllerConfig = ControllerConfig()) -> None:
         """:param config: gains, limits and airframe model."""
         self.config = config
-        self._tan_tilt = math.tan(math.radians(config.max_tilt_deg))
-        self._ixx, self._iyy, self._izz = config.inertia_kg_m2
+        self.gains = gain_vector(config)
+        self.memory = np.zeros(_N_MEMORY)
         self.reset(altitude=0.0, yaw=0.0)
 
     def reset(self, *, altitude: float, yaw: float, hover_mass_kg: float | None = None) -> None:
@@ -178,16 +383,13 @@ class CascadedController:
             pre-loads the climb-rate integrator as a converged hover-thrust estimate would be.
             None: start from the configured mass (e.g. on the ground before take-off).
         """
-        self._alt_hold = altitude
-        self._yaw_hold = yaw
-        self._vel_i_x = 0.0
-        self._vel_i_y = 0.0
-        # The climb-rate integrator is an acceleration bias: g * (true mass / assumed mass - 1) at hover.
-        mass_ratio = 1.0 if hover_mass_kg is None else hover_mass_kg / self.config.mass_kg
-        self._climb_i = GRAVITY * (mass_ratio - 1.0)
-        self._rate_i_x = 0.0
-        self._rate_i_y = 0.0
-        self._rate_i_z = 0.0
+        m = self.memory
+        m[:] = 0.0
+        m[_M_ALT_HOLD] = altitude
+        m[_M_YAW_HOLD] = yaw
+        # The climb-rate integrator is an acceleration bias: g * (true / assumed mass - 1) at hover.
+        if hover_mass_kg is not None:
+            m[_M_CLIMB_I] = GRAVITY * (hover_mass_kg / self.config.mass_kg - 1.0)
 
     def update(
         self,
@@ -222,87 +424,7 @@ class CascadedController:
         :param on_ground: the feet touch the floor: without a climb demand the motors idle
             and the integrators stay cleared, as an autopilot's landed state does.
         """
-        c = self.config
-        # --- vertical: altitude -> climb rate -> vertical acceleration
-        if setpoint.vz is not None:
-            vz_sp = _clip(setpoint.vz, -c.max_descent_rate, c.max_climb_rate)
-            self._alt_hold = z
-        else:
-            if setpoint.altitude is not None:
-                target = setpoint.altitude
-                self._alt_hold = z
-            else:
-                target = self._alt_hold
-            vz_sp = _clip(c.altitude_p * (target - z), -c.max_descent_rate, c.max_climb_rate)
-
-        # --- heading: yaw-rate demand (Euler rate)
-        if setpoint.yaw_rate is not None:
-            yaw_rate_sp = setpoint.yaw_rate
-            self._yaw_hold = yaw
-        else:
-            if setpoint.yaw is not None:
-                target_yaw = setpoint.yaw
-                self._yaw_hold = yaw
-            else:
-                target_yaw = self._yaw_hold
-            yaw_rate_sp = c.yaw_p * wrap_angle(target_yaw - yaw)
-        yaw_rate_sp = _clip(yaw_rate_sp, -c.max_yaw_rate, c.max_yaw_rate)
-
-        if on_ground and vz_sp <= 0.1:
-            self.reset(altitude=self._alt_hold, yaw=self._yaw_hold)
-            idle = c.idle_rotor_thrust_n
-            return idle, idle, idle, idle
-
-        err_vz = vz_sp - vz
-        az = c.climb_rate_p * err_vz + self._climb_i
-        az = _clip(az, -0.7 * GRAVITY, GRAVITY)
-        if not on_ground:
-            self._climb_i = _clip(self._climb_i + c.climb_rate_i * err_vz * dt, -4.0, 4.0)
-        fz = GRAVITY + az
-
-        # --- horizontal: velocity -> acceleration (tilt-limited, anti-windup)
-        ex = setpoint.vx - vx
-        ey = setpoint.vy - vy
-        ax = c.velocity_p * ex + self._vel_i_x
-        ay = c.velocity_p * ey + self._vel_i_y
-        a_max = fz * self._tan_tilt
-        a_norm = math.hypot(ax, ay)
-        if a_norm > a_max:
-            k = a_max / a_norm
-            ax *= k
-            ay *= k
-        elif not on_ground:
-            lim = c.velocity_i_limit
-            self._vel_i_x = _clip(self._vel_i_x + c.velocity_i * ex * dt, -lim, lim)
-            self._vel_i_y = _clip(self._vel_i_y + c.velocity_i * ey * dt, -lim, lim)
-
-        # --- attitude from the thrust direction in the heading frame
-        cy, sy = math.cos(yaw), math.sin(yaw)
-        f_fwd = cy * ax + sy * ay
-        f_left = -sy * ax + cy * ay
-        pitch_sp = math.atan2(f_fwd, fz)
-        roll_sp = math.atan2(-f_left, math.hypot(f_fwd, fz))
-
-        # --- attitude -> Euler rates -> body rates (Z-Y-X kinematics)
-        roll_dot = c.attitude_p * (roll_sp - roll)
-        pitch_dot = c.attitude_p * (pitch_sp - pitch)
-        sr, cr = math.sin(roll), math.cos(roll)
-        sp_, cp = math.sin(pitch), math.cos(pitch)
-        lim = c.max_roll_pitch_rate
-        p_sp = _clip(roll_dot - yaw_rate_sp * sp_, -lim, lim)
-        q_sp = _clip(pitch_dot * cr + yaw_rate_sp * sr * cp, -lim, lim)
-        r_sp = -pitch_dot * sr + yaw_rate_sp * cr * cp
-
-        # --- body rates -> torques (P + I on angular acceleration, scaled by inertia)
-        ep, eq, er = p_sp - p, q_sp - q, r_sp - r
-        if not on_ground:
-            self._rate_i_x = _clip(self._rate_i_x + c.rate_i * ep * dt, -5.0, 5.0)
-            self._rate_i_y = _clip(self._rate_i_y + c.rate_i * eq * dt, -5.0, 5.0)
-            self._rate_i_z = _clip(self._rate_i_z + c.yaw_rate_i * er * dt, -3.0, 3.0)
-        tx = self._ixx * (c.rate_p * ep + self._rate_i_x)
-        ty = self._iyy * (c.rate_p * eq + self._rate_i_y)
-        tz = self._izz * (c.yaw_rate_p * er + self._rate_i_z)
-
-        tilt = max(cr * cp, 0.5)
-        collective = c.mass_kg * fz / tilt
-        return mix(collective, tx, ty, tz, c)
+        return control_step(
+            self.memory, self.gains, *setpoint_values(setpoint),
+            dt, z, vx, vy, vz, roll, pitch, yaw, p, q, r, on_ground,
+        )  # fmt: skip

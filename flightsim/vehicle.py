@@ -19,7 +19,14 @@ from pathlib import Path
 import jsbsim
 import numpy as np
 
-from flightsim.control import CascadedController, ControllerConfig, Setpoint, wrap_angle
+from flightsim.control import (
+    CascadedController,
+    ControllerConfig,
+    Setpoint,
+    control_step,
+    setpoint_values,
+    wrap_angle,
+)
 
 MODEL_ROOT = Path(__file__).resolve().parent / "models"
 MODEL_NAME = "lidar_quad"
@@ -292,7 +299,8 @@ class Vehicle:
         set0, set1, set2, set3 = self._set_rotor
         set_yaw = self._set_yaw_moment
         run = self._run
-        update = self.controller.update
+        memory, gains = self.controller.memory, self.controller.gains
+        vx_sp, vy_sp, vz_sp, altitude_sp, yaw_rate_sp, yaw_sp = setpoint_values(setpoint)
         dt = self._dt
         lag = self._lag
         km = YAW_MOMENT_PER_THRUST_M * _LBFFT_PER_NM
@@ -300,17 +308,19 @@ class Vehicle:
         armed = self._armed
         half_pi = 0.5 * math.pi
         t_max = MAX_ROTOR_THRUST_N
+        limit = self.controller.config.max_rotor_thrust_n > t_max  # the controller assumes more
         c0 = c1 = c2 = c3 = 0.0
         for _ in range(n):
             if armed:
-                c0, c1, c2, c3 = update(
-                    setpoint, dt,
+                c0, c1, c2, c3 = control_step(
+                    memory, gains, vx_sp, vy_sp, vz_sp, altitude_sp, yaw_rate_sp, yaw_sp, dt,
                     get_h() * _FT, get_ve() * _FT, get_vn() * _FT, -get_vd() * _FT,
                     get_phi(), -get_theta(), half_pi - get_psi(),
                     get_p(), -get_q(), -get_r(),
                     get_gear() != 0.0,
                 )  # fmt: skip
-                c0, c1, c2, c3 = min(c0, t_max), min(c1, t_max), min(c2, t_max), min(c3, t_max)
+                if limit:
+                    c0, c1, c2, c3 = min(c0, t_max), min(c1, t_max), min(c2, t_max), min(c3, t_max)
             t0 += lag * (c0 - t0)
             t1 += lag * (c1 - t1)
             t2 += lag * (c2 - t2)
