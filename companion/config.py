@@ -30,10 +30,13 @@ class VelodyneConfig:
 
     :param host: address to listen on (``0.0.0.0``: every interface)
     :param port: UDP data port (the sensor's default is 2368)
+    :param decoder: ``numpy`` (the project's vectorised decoder) or ``velodyne-decoder`` (the C++
+        package); both give the same cloud
     """
 
     host: str = "0.0.0.0"
     port: int = field(default=2368, metadata={"min": 1, "max": 65535})
+    decoder: Literal["numpy", "velodyne-decoder"] = "numpy"
 
 
 @dataclass(frozen=True)

@@ -83,6 +83,10 @@ class Px4Link:
         :meth:`send_velocity`, seconds
     """
 
+    #: PX4 accepts a switch to OFFBOARD only while setpoints stream: the application streams zero
+    #: setpoints while the vehicle is armed and the supervisor is ready, so the pilot can switch.
+    setpoints_before_offboard = True
+
     def __init__(
         self,
         connect: str,
