@@ -64,6 +64,8 @@ class GroundStation:
         self.last: dict[str, Any] = {}
         self.statustexts: list[str] = []
         self._next_hb = 0.0
+        #: called with every message received (the SITL harness relays an external SITL with it)
+        self.on_message: Any = None
 
     # ----------------------------------------------------------------- plumbing
     def pump(self, duration: float = 0.0) -> None:
@@ -86,6 +88,8 @@ class GroundStation:
         kind = msg.get_type()
         if kind == "BAD_DATA":
             return
+        if self.on_message is not None:
+            self.on_message(msg)
         self.last[kind] = msg
         if kind == "HEARTBEAT" and msg.get_srcComponent() == mavutil.mavlink.MAV_COMP_ID_AUTOPILOT1:
             self.heartbeat = msg

@@ -1,0 +1,787 @@
+"""SITL harness: the real companion process flying a simulated (or external) autopilot.
+
+One flight = a :class:`SitlFlight`: the simulated autopilot (real MAVLink over loopback UDP,
+flying the JSBSim vehicle in real time), the lidar co-simulation (real VLP-16 packets to the
+companion's port), the companion started as its own process (``python -m companion run``) with a
+generated config, and a pymavlink ground station that does what the pilot does: GUIDED, arm,
+take off to 1.5 m; on PX4 it streams zero setpoints as proof of life, switches to OFFBOARD and
+stops streaming once the companion's own setpoints arrive. The companion then flies; the harness
+watches (collision, clearance, setpoint rate, latency, the companion's STATUSTEXTs) and reports.
+
+With ``autopilot="external"`` a real ArduPilot/PX4 SITL flies its own physics; the harness
+mirrors its pose (LOCAL_POSITION_NED + ATTITUDE) into the world and casts the lidar from there.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from companion.config import CompanionConfig
+from companion.errors import UserError
+from companion.scan import ScanConfig
+from companion.tomlconfig import to_dict
+from flightsim.cosim import LidarCosim
+from flightsim.raycast import LidarConfig
+from flightsim.sim_autopilot.gcs import GroundStation
+from flightsim.world import DEFAULT_VEHICLE_RADIUS, World
+
+log = logging.getLogger(__name__)
+
+AUTOPILOTS = ("sim-ardupilot", "sim-px4", "external")
+TAKEOFF_ALTITUDE = 1.5
+#: the companion's STATUSTEXT on entering ACTIVE starts with this (supervisor state names)
+ACTIVE_MARK = "ACTIVE"
+
+
+# ------------------------------------------------------------------------------------ config file
+def free_udp_port() -> int:
+    """A UDP port nobody on loopback uses right now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def toml_dumps(data: dict[str, Any]) -> str:
+    """Serialise a config dict (tables, arrays of tables, scalars, scalar lists) as TOML."""
+
+    def scalar(v: Any) -> str:
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, (int, float)):
+            return repr(v) if math.isfinite(v) else ("nan" if math.isnan(v) else ("inf" if v > 0 else "-inf"))
+        if isinstance(v, str):
+            return json.dumps(v)
+        if isinstance(v, (list, tuple)):
+            return "[" + ", ".join(scalar(x) for x in v) + "]"
+        raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+    lines: list[str] = []
+
+    def table(prefix: str, d: dict[str, Any]) -> None:
+        subs = []
+        for k, v in d.items():
+            if isinstance(v, dict):
+                subs.append((k, v))
+            elif isinstance(v, (list, tuple)) and v and all(isinstance(x, dict) for x in v):
+                subs.append((k, list(v)))
+            else:
+                lines.append(f"{k} = {scalar(v)}")
+        for k, v in subs:
+            name = f"{prefix}.{k}" if prefix else k
+            if isinstance(v, list):
+                for item in v:
+                    lines.extend(["", f"[[{name}]]"])
+                    table(name, item)
+            else:
+                lines.extend(["", f"[{name}]"])
+                table(name, v)
+
+    table("", data)
+    return "\n".join(lines).lstrip() + "\n"
+
+
+def companion_config(
+    *,
+    autopilot_type: str,
+    connect: str,
+    lidar_port: int,
+    policy: Path,
+    overrides: dict[str, Any] | None = None,
+) -> CompanionConfig:
+    """The companion's config for a SITL flight, built from its own dataclasses (not hand-written TOML)."""
+    base = CompanionConfig()
+    cfg = dataclasses.replace(
+        base,
+        lidar=dataclasses.replace(
+            base.lidar, velodyne=dataclasses.replace(base.lidar.velodyne, host="127.0.0.1", port=lidar_port)
+        ),
+        policy=dataclasses.replace(base.policy, model=str(policy)),
+        autopilot=dataclasses.replace(base.autopilot, type=autopilot_type, connect=connect),
+    )
+    for section, values in (overrides or {}).items():
+        cfg = dataclasses.replace(cfg, **{section: dataclasses.replace(getattr(cfg, section), **values)})
+    return cfg
+
+
+# ------------------------------------------------------------------------------------ records
+@dataclass
+class FlightOptions:
+    """What to fly.
+
+    :param autopilot: ``sim-ardupilot``, ``sim-px4`` or ``external``
+    :param world: the room
+    :param policy: ONNX policy file for the companion
+    :param duration: seconds the companion flies after engaging (or after take-off if it never does)
+    :param connect: external only: pymavlink string of the SITL's GCS port (e.g. ``tcp:127.0.0.1:5760``)
+    :param lidar_step_deg: ray-caster azimuth step (0.2 = the real VLP-16)
+    :param workdir: where the generated config, the companion's log and the plot go
+    :param companion_overrides: section -> {field: value} applied to the generated companion config
+    :param autopilot_params: parameter overrides for the simulated autopilot
+    :param engage_timeout: seconds to wait for the companion to go ACTIVE
+    """
+
+    autopilot: str
+    world: World
+    policy: Path
+    duration: float = 30.0
+    connect: str = ""
+    lidar_step_deg: float = 0.2
+    workdir: Path = Path(".")
+    companion_overrides: dict[str, Any] = field(default_factory=dict)
+    autopilot_params: dict[str, float] = field(default_factory=dict)
+    engage_timeout: float = 20.0
+
+
+@dataclass
+class FlightReport:
+    """The outcome of one flight (JSON-serialisable)."""
+
+    world: str
+    autopilot: str
+    engaged: bool
+    collision: bool
+    flight_time_s: float
+    distance_m: float
+    min_clearance_m: float
+    setpoint_rate_hz: float
+    latency_p50_ms: float
+    latency_p99_ms: float
+    transitions: list[str]
+    malformed: dict[str, int]
+    plot: str = ""
+    error: str = ""
+
+    def to_json(self) -> str:
+        return json.dumps(dataclasses.asdict(self), indent=2)
+
+
+@dataclass
+class Recorder:
+    """What the harness observes during a flight (filled from the autopilot's and cosim's threads)."""
+
+    t0: float  # monotonic time of the autopilot's clock zero
+    setpoint_times: list[float] = field(default_factory=list)  # monotonic arrival times (companion)
+    setpoints: list[tuple[float, float, float]] = field(default_factory=list)  # (t, vx body, yaw rate)
+    statustexts: list[tuple[float, str]] = field(default_factory=list)
+    companion_heartbeats: list[float] = field(default_factory=list)
+    trajectory: list[tuple[float, float, float, float, float, float]] = field(default_factory=list)
+    min_clearance: float = math.inf
+    collision_time: float | None = None
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def on_companion_message(self, msg: Any, t_mono: float) -> None:
+        kind = msg.get_type()
+        with self.lock:
+            if kind == "SET_POSITION_TARGET_LOCAL_NED":
+                self.setpoint_times.append(t_mono)
+                self.setpoints.append((t_mono, float(msg.vx), float(msg.yaw_rate)))
+            elif kind == "STATUSTEXT":
+                self.statustexts.append((t_mono, msg.text))
+            elif kind == "HEARTBEAT":
+                self.companion_heartbeats.append(t_mono)
+
+    def on_pose(self, t_mono: float, position: np.ndarray, yaw: float, speed: float, world: World) -> None:
+        clearance = world.clearance(position) if position[2] > 0.3 else math.inf
+        with self.lock:
+            self.trajectory.append((t_mono, *map(float, position), float(yaw), float(speed)))
+            if position[2] > 0.3:
+                self.min_clearance = min(self.min_clearance, clearance)
+                if clearance < DEFAULT_VEHICLE_RADIUS and self.collision_time is None:
+                    self.collision_time = t_mono
+
+    def texts(self, since: float = 0.0) -> list[str]:
+        with self.lock:
+            return [text for t, text in self.statustexts if t >= since]
+
+    def setpoints_since(self, since: float) -> int:
+        with self.lock:
+            return sum(1 for t in self.setpoint_times if t >= since)
+
+
+def latency_ms(
+    revolution_ends: list[float], setpoint_times: list[float], horizon: float = 0.3
+) -> list[float]:
+    """For each revolution end, the delay to the first setpoint that arrived after it (within ``horizon``)."""
+    sp = np.asarray(sorted(setpoint_times))
+    out = []
+    for end in revolution_ends:
+        i = int(np.searchsorted(sp, end))
+        if i < len(sp) and sp[i] - end <= horizon:
+            out.append(1000.0 * (sp[i] - end))
+    return out
+
+
+# ------------------------------------------------------------------------------------ the flight
+class ExternalPose:
+    """Mirror a real SITL's pose into the world frame from LOCAL_POSITION_NED and ATTITUDE.
+
+    The SITL's local origin (home) is put at the world's start position; heading is the SITL's own.
+    """
+
+    def __init__(self, world: World) -> None:
+        self.origin = np.array([world.start_position[0], world.start_position[1], 0.0])
+        self.ned = np.zeros(3)
+        self.vel_ned = np.zeros(3)
+        self.rpy_frd = (0.0, 0.0, 0.0)
+        self.received = threading.Event()
+
+    def update(self, msg: Any) -> None:
+        kind = msg.get_type()
+        if kind == "LOCAL_POSITION_NED":
+            self.ned = np.array([msg.x, msg.y, msg.z])
+            self.vel_ned = np.array([msg.vx, msg.vy, msg.vz])
+            self.received.set()
+        elif kind == "ATTITUDE":
+            self.rpy_frd = (msg.roll, msg.pitch, msg.yaw)
+
+    def state(self) -> Any:
+        from flightsim.vehicle import VehicleState
+
+        n, e, d = self.ned
+        roll, pitch, yaw_ned = self.rpy_frd
+        return VehicleState(
+            time=0.0,
+            position=self.origin + np.array([e, n, -d]),
+            velocity=np.array([self.vel_ned[1], self.vel_ned[0], -self.vel_ned[2]]),
+            roll=roll,
+            pitch=-pitch,
+            yaw=math.atan2(math.sin(math.pi / 2 - yaw_ned), math.cos(math.pi / 2 - yaw_ned)),
+            angular_rate=np.zeros(3),
+            on_ground=-d < 0.1,
+            armed=True,
+        )
+
+
+class SitlFlight:
+    """All the moving parts of one SITL flight; use as a context manager (it always cleans up).
+
+    :param options: what to fly
+    :param vehicle: a JSBSim vehicle to reuse across flights (loading one takes a moment)
+    """
+
+    def __init__(self, options: FlightOptions, vehicle: Any = None) -> None:
+        if options.autopilot not in AUTOPILOTS:
+            raise UserError(f"--autopilot must be one of {', '.join(AUTOPILOTS)}, not {options.autopilot!r}")
+        if not Path(options.policy).is_file():
+            raise UserError(f"policy file not found: {options.policy}")
+        self.options = options
+        self.world = options.world
+        self.workdir = Path(options.workdir)
+        self.workdir.mkdir(parents=True, exist_ok=True)
+        self.vehicle = vehicle
+        self.server: Any = None
+        self.cosim: LidarCosim | None = None
+        self.gcs: GroundStation | None = None
+        self.companion: subprocess.Popen[bytes] | None = None
+        self.external: ExternalPose | None = None
+        self.recorder = Recorder(t0=time.monotonic())
+        self.lidar_port = free_udp_port()
+        self.companion_port = free_udp_port()
+        self.config_path = self.workdir / "companion.toml"
+        self.log_path = self.workdir / "companion.log"
+        self.engaged_at: float | None = None
+        self._log_file: Any = None
+        self._gcs_stream = threading.Event()
+        self._gcs_lock = threading.Lock()
+        self._pump_thread: threading.Thread | None = None
+        self._stop = threading.Event()
+
+    @property
+    def personality(self) -> str:
+        return {"sim-ardupilot": "ardupilot", "sim-px4": "px4"}.get(self.options.autopilot, "external")
+
+    # ------------------------------------------------------------------ start / stop
+    def __enter__(self) -> SitlFlight:
+        try:
+            self.start()
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def start(self) -> None:
+        """Start the autopilot (or connect to the external one), the lidar stream and the companion."""
+        scan = ScanConfig()
+        if self.options.autopilot == "external":
+            self._start_external()
+            pose = self.external.state  # type: ignore[union-attr]
+            companion_type = "px4" if self.gcs.is_px4 else "ardupilot"  # type: ignore[union-attr]
+        else:
+            self._start_simulated()
+            pose = lambda: self.server.state  # noqa: E731
+            companion_type = self.personality
+        lidar = LidarConfig(azimuth_step_deg=self.options.lidar_step_deg, max_range=scan.max_range)
+        self.cosim = LidarCosim(
+            self.world, pose, ("127.0.0.1", self.lidar_port), lidar=lidar, scan=scan
+        ).start()
+        connect = (
+            f"udpin://127.0.0.1:{self.companion_port}"
+            if companion_type == "px4"
+            else f"udpin:127.0.0.1:{self.companion_port}"
+        )
+        cfg = companion_config(
+            autopilot_type=companion_type,
+            connect=connect,
+            lidar_port=self.lidar_port,
+            policy=Path(self.options.policy).resolve(),
+            overrides=self.options.companion_overrides,
+        )
+        self.config_path.write_text(toml_dumps(to_dict(cfg)))
+        self.start_companion()
+
+    def _start_simulated(self) -> None:
+        from flightsim.sim_autopilot.server import SimAutopilotServer
+
+        start = np.array([self.world.start_position[0], self.world.start_position[1], 0.0])
+        self.server = SimAutopilotServer(
+            self.personality,
+            ["udpin:127.0.0.1:0", f"udpout:127.0.0.1:{self.companion_port}"],
+            start_position=start,
+            start_yaw=math.radians(self.world.start_yaw_deg),
+            params=self.options.autopilot_params,
+            vehicle=self.vehicle,
+        )
+        self.recorder.t0 = self.server.t0
+        self.server.message_hooks.append(self._on_autopilot_message)
+        self.server.step_hooks.append(self._on_step)
+        self.server.start()
+        gcs_port = self.server.endpoint.address(0)[1]
+        self.gcs = GroundStation(f"udpout:127.0.0.1:{gcs_port}")
+        self.gcs.wait_heartbeat()
+
+    def _start_external(self) -> None:
+        """Connect the GCS to a running SITL and relay it to the companion (MAVLink router role)."""
+        if not self.options.connect:
+            raise UserError("--autopilot external needs --connect (e.g. tcp:127.0.0.1:5760)")
+        self.external = ExternalPose(self.world)
+        self.gcs = GroundStation(self.options.connect)
+        self.gcs.wait_heartbeat(timeout=30.0)
+        from pymavlink import mavutil
+
+        relay = mavutil.mavlink_connection(f"udpout:127.0.0.1:{self.companion_port}", source_system=255)
+        gcs = self.gcs
+
+        def forward_to_companion(msg: Any) -> None:
+            self.external.update(msg)  # type: ignore[union-attr]
+            relay.write(msg.get_msgbuf())
+
+        gcs.on_message = forward_to_companion
+        self._relay = relay
+        self._relay_thread = threading.Thread(target=self._relay_back, daemon=True)
+        self._relay_thread.start()
+        gcs.mav.mav.request_data_stream_send(gcs.target_system, 1, 0, 10, 1)
+
+    def _relay_back(self) -> None:
+        """External SITL: companion → autopilot (setpoints, heartbeats, STATUSTEXT), recorded on the way."""
+        while not self._stop.is_set():
+            msg = self._relay.recv_match(blocking=True, timeout=0.1)
+            if msg is None or msg.get_type() == "BAD_DATA":
+                continue
+            self.recorder.on_companion_message(msg, time.monotonic())
+            with self._gcs_lock:
+                self.gcs.mav.write(msg.get_msgbuf())  # type: ignore[union-attr]
+
+    def start_companion(self) -> None:
+        """Start (or restart) the companion process with the generated config."""
+        if self._log_file is None:
+            self._log_file = open(self.log_path, "ab")  # noqa: SIM115 - lives as long as the flight
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        self.companion = subprocess.Popen(
+            [sys.executable, "-m", "companion", "run", "--config", str(self.config_path)],
+            stdout=self._log_file,
+            stderr=subprocess.STDOUT,
+            env=env,
+        )
+        log.info("companion started (pid %d), log %s", self.companion.pid, self.log_path)
+
+    def kill_companion(self, sig: int = signal.SIGKILL) -> None:
+        if self.companion is not None and self.companion.poll() is None:
+            self.companion.send_signal(sig)
+            self.companion.wait(timeout=10)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._gcs_stream.clear()
+        if self.companion is not None and self.companion.poll() is None:
+            self.companion.send_signal(signal.SIGINT)
+            try:
+                self.companion.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                self.companion.kill()
+                self.companion.wait(timeout=5)
+        if self._pump_thread is not None:
+            self._pump_thread.join(timeout=2)
+        if self.cosim is not None:
+            self.cosim.stop()
+        if self.server is not None:
+            self.server.stop()
+        if self.gcs is not None:
+            self.gcs.close()
+        if self._log_file is not None:
+            self._log_file.close()
+            self._log_file = None
+
+    # ------------------------------------------------------------------ observation hooks
+    def now(self) -> float:
+        return time.monotonic()
+
+    def _on_autopilot_message(self, link: int, msg: Any, t: float) -> None:
+        if link == 1:
+            self.recorder.on_companion_message(msg, self.recorder.t0 + t)
+
+    def _on_step(self, state: Any) -> None:
+        self.recorder.on_pose(
+            time.monotonic(), state.position, state.yaw, float(np.linalg.norm(state.velocity[:2])), self.world
+        )
+
+    def companion_alive(self) -> bool:
+        return self.companion is not None and self.companion.poll() is None
+
+    def companion_log(self) -> str:
+        try:
+            return self.log_path.read_text(errors="replace")
+        except OSError:
+            return ""
+
+    # ------------------------------------------------------------------ the pilot
+    def pump_gcs(self) -> None:
+        """Keep the GCS link alive (heartbeats, telemetry) from a background thread."""
+
+        def run() -> None:
+            while not self._stop.is_set():
+                with self._gcs_lock:
+                    gcs = self.gcs
+                    assert gcs is not None
+                    gcs.pump(0.02)
+                    if self._gcs_stream.is_set():
+                        self._send_zero_setpoint()
+                time.sleep(0.03)
+
+        self._pump_thread = threading.Thread(target=run, name="gcs-pump", daemon=True)
+        self._pump_thread.start()
+
+    def _send_zero_setpoint(self) -> None:
+        from pymavlink import mavutil
+
+        gcs = self.gcs
+        assert gcs is not None
+        gcs.mav.mav.set_position_target_local_ned_send(
+            0,
+            gcs.target_system,
+            1,
+            mavutil.mavlink.MAV_FRAME_BODY_NED,
+            0x05C7,
+            0,
+            0,
+            0,
+            0,
+            0,
+            0,
+            0,
+            0,
+            0,
+            0,
+            0,
+        )
+
+    def pilot(self, action: Any) -> Any:
+        """Run ``action(gcs)`` with the GCS to itself (the background pump pauses meanwhile)."""
+        with self._gcs_lock:
+            return action(self.gcs)
+
+    def take_off(self) -> None:
+        """GUIDED (ArduPilot) / Hold (PX4), arm, take off to 1.5 m; PX4: proof of life, then OFFBOARD."""
+        gcs = self.gcs
+        assert gcs is not None
+        with self._gcs_lock:
+            gcs.pump(0.3)
+            if gcs.is_px4:
+                gcs.arm()
+                gcs.takeoff(TAKEOFF_ALTITUDE)
+            else:
+                gcs.set_mode("GUIDED")
+                gcs.arm()
+                gcs.takeoff(TAKEOFF_ALTITUDE)
+        if gcs.is_px4:
+            # PX4 accepts OFFBOARD only while setpoints stream; the companion sends none until the
+            # vehicle is in OFFBOARD, so the GCS streams zeros as proof of life until it takes over.
+            self._gcs_stream.set()
+            self.pump_gcs()
+            time.sleep(1.5)
+            with self._gcs_lock:
+                gcs.set_mode("OFFBOARD")
+        else:
+            self.pump_gcs()
+
+    def wait_engaged(self, timeout: float) -> bool:
+        """Wait until the companion's setpoints arrive (it is ACTIVE); stop the GCS's zero stream then."""
+        end = time.monotonic() + timeout
+        start = time.monotonic()
+        while time.monotonic() < end:
+            if any(ACTIVE_MARK in t for t in self.recorder.texts(start - 60)) and (
+                self.recorder.setpoints_since(start) > 0 or not self._gcs_stream.is_set()
+            ):
+                self._gcs_stream.clear()
+                self.engaged_at = time.monotonic()
+                return True
+            if not self.companion_alive():
+                return False
+            time.sleep(0.05)
+        self._gcs_stream.clear()
+        return False
+
+    def fly(self, duration: float) -> None:
+        """Let the companion fly for ``duration`` s, or until a collision or the companion exits."""
+        end = time.monotonic() + duration
+        while time.monotonic() < end and not self._stop.is_set():
+            if self.recorder.collision_time is not None or not self.companion_alive():
+                return
+            if self.server is not None and self.server.error is not None:
+                raise RuntimeError(f"simulated autopilot failed: {self.server.error}")
+            time.sleep(0.05)
+
+    # ------------------------------------------------------------------ report
+    def report(self, plot: Path | None = None, error: str = "") -> FlightReport:
+        rec = self.recorder
+        with rec.lock:
+            traj = np.array(
+                [row for row in rec.trajectory if self.engaged_at is None or row[0] >= self.engaged_at]
+            )
+            sp_times = [t for t in rec.setpoint_times if self.engaged_at is None or t >= self.engaged_at]
+            texts = [text for _, text in rec.statustexts]
+        end = rec.collision_time or (traj[-1, 0] if len(traj) else 0.0)
+        if len(traj) and rec.collision_time is not None:
+            traj = traj[traj[:, 0] <= rec.collision_time]
+        distance = (
+            float(np.sum(np.linalg.norm(np.diff(traj[:, 1:3], axis=0), axis=1))) if len(traj) > 1 else 0.0
+        )
+        flight_time = float(end - self.engaged_at) if self.engaged_at is not None and len(traj) else 0.0
+        rate = 0.0
+        if len(sp_times) > 1:
+            rate = (len(sp_times) - 1) / (sp_times[-1] - sp_times[0])
+        ends = (
+            []
+            if self.cosim is None
+            else [e for e in self.cosim.stats.revolution_ends if e >= (self.engaged_at or 0)]
+        )
+        lat = latency_ms(ends, sp_times)
+        malformed: dict[str, int] = {}
+        if self.server is not None:
+            malformed["autopilot_malformed"] = self.server.endpoint.counters.get("malformed", 0)
+        result = FlightReport(
+            world=self.world.name,
+            autopilot=self.options.autopilot,
+            engaged=self.engaged_at is not None,
+            collision=rec.collision_time is not None,
+            flight_time_s=round(flight_time, 2),
+            distance_m=round(distance, 2),
+            min_clearance_m=round(float(rec.min_clearance), 3) if math.isfinite(rec.min_clearance) else -1.0,
+            setpoint_rate_hz=round(rate, 2),
+            latency_p50_ms=round(float(np.percentile(lat, 50)), 1) if lat else -1.0,
+            latency_p99_ms=round(float(np.percentile(lat, 99)), 1) if lat else -1.0,
+            transitions=[
+                t for t in texts if any(s in t for s in ("ACTIVE", "HOLD", "STANDBY", "OVERRIDE", "WAIT"))
+            ],
+            malformed=malformed,
+            error=error,
+        )
+        if plot is not None:
+            with rec.lock:
+                full = np.array(rec.trajectory)
+            plot_flight(self.world, full, self.engaged_at, rec.collision_time, plot, title=_title(result))
+            result.plot = str(plot)
+        return result
+
+
+def _title(r: FlightReport) -> str:
+    outcome = "COLLISION" if r.collision else "no collision"
+    return (
+        f"{r.world} / {r.autopilot}: {outcome}, {r.distance_m:.1f} m, min clearance {r.min_clearance_m:.2f} m"
+    )
+
+
+def plot_flight(
+    world: World,
+    traj: np.ndarray,
+    engaged_at: float | None,
+    collision_at: float | None,
+    path: Path,
+    title: str,
+) -> None:
+    """A top-down PNG: room, obstacles, the path (grey before the companion engaged), the end."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Circle, Polygon, Rectangle
+
+    from flightsim.world import Box
+
+    fig, ax = plt.subplots(figsize=(7, 7 * world.room_size[1] / world.room_size[0] + 0.6))
+    hx, hy = world.room_size[0] / 2, world.room_size[1] / 2
+    ax.add_patch(Rectangle((-hx, -hy), 2 * hx, 2 * hy, fill=False, lw=2, color="k"))
+    for ob in world.obstacles:
+        if isinstance(ob, Box):
+            c, s = math.cos(math.radians(ob.yaw_deg)), math.sin(math.radians(ob.yaw_deg))
+            dx, dy = ob.size[0] / 2, ob.size[1] / 2
+            corners = [
+                (ob.center[0] + c * u - s * v, ob.center[1] + s * u + c * v)
+                for u, v in ((-dx, -dy), (dx, -dy), (dx, dy), (-dx, dy))
+            ]
+            ax.add_patch(Polygon(corners, color="tab:brown", alpha=0.7))
+        else:
+            ax.add_patch(Circle(ob.center[:2], ob.radius, color="tab:brown", alpha=0.7))
+    if len(traj):
+        engaged = traj[:, 0] >= engaged_at if engaged_at is not None else np.zeros(len(traj), bool)
+        ax.plot(traj[~engaged, 1], traj[~engaged, 2], color="0.6", lw=1, label="take-off")
+        ax.plot(traj[engaged, 1], traj[engaged, 2], color="tab:blue", lw=1.5, label="companion flying")
+        ax.plot(*traj[0, 1:3], "go", label="start")
+        if collision_at is not None:
+            i = int(np.searchsorted(traj[:, 0], collision_at))
+            ax.plot(*traj[min(i, len(traj) - 1), 1:3], "rx", ms=12, mew=3, label="collision")
+        else:
+            ax.plot(*traj[-1, 1:3], "bs", label="end")
+    ax.set_xlim(-hx - 0.5, hx + 0.5)
+    ax.set_ylim(-hy - 0.5, hy + 0.5)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x east (m)")
+    ax.set_ylabel("y north (m)")
+    ax.set_title(title, fontsize=9)
+    ax.legend(loc="upper right", fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def run_flight(options: FlightOptions, plot: Path | None = None, vehicle: Any = None) -> FlightReport:
+    """One complete flight: start everything, take off, let the companion fly, report, clean up."""
+    with SitlFlight(options, vehicle=vehicle) as flight:
+        error = ""
+        try:
+            flight.take_off()
+            if flight.wait_engaged(options.engage_timeout):
+                flight.fly(options.duration)
+            else:
+                error = "the companion never engaged (see " + str(flight.log_path) + ")"
+        except KeyboardInterrupt:
+            error = "interrupted"
+        except RuntimeError as exc:
+            error = str(exc)
+        return flight.report(plot, error)
+
+
+# ------------------------------------------------------------------------------------ CLI: fly
+def load_flight_world(world_file: str | None, seed: int | None, difficulty: float) -> World:
+    """``--world FILE`` or ``--seed N --difficulty D`` (UserError naming the problem)."""
+    from flightsim.world import generate_world, load_world
+
+    if world_file and seed is not None:
+        raise UserError("give either --world or --seed, not both")
+    if world_file:
+        return load_world(world_file)
+    if not 0.0 <= difficulty <= 1.0:
+        raise UserError(f"--difficulty must be within [0, 1], got {difficulty}")
+    if seed is not None and seed < 0:
+        raise UserError(f"--seed must be a non-negative integer, got {seed}")
+    return generate_world(0 if seed is None else seed, difficulty)
+
+
+def default_policy() -> Path:
+    """The shipped policy (``models/policy.onnx`` in the checkout or the package's copy)."""
+    here = Path(__file__).resolve().parent
+    for candidate in (here.parent / "models" / "policy.onnx", here / "models" / "policy.onnx"):
+        if candidate.is_file():
+            return candidate
+    raise UserError(
+        "no shipped policy found (models/policy.onnx): train and export one with `avoid-train`, "
+        "or pass --policy FILE"
+    )
+
+
+def configure_parser(parser: Any) -> None:
+    """``avoid-sim fly``."""
+    parser.add_argument(
+        "--autopilot",
+        choices=AUTOPILOTS,
+        default="sim-ardupilot",
+        help="simulated ArduCopter, simulated PX4, or an external SITL (default sim-ardupilot)",
+    )
+    parser.add_argument(
+        "--connect",
+        default="",
+        help="external SITL's MAVLink address (pymavlink string, e.g. tcp:127.0.0.1:5760)",
+    )
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument("--world", help="world JSON file (e.g. flightsim/worlds/slalom.json)")
+    where.add_argument("--seed", type=int, help="generate a room from this seed")
+    parser.add_argument("--difficulty", type=float, default=0.5, help="generated room difficulty 0..1 (0.5)")
+    parser.add_argument("--policy", help="ONNX policy (default: the shipped models/policy.onnx)")
+    parser.add_argument("--duration", type=float, default=30.0, help="seconds the companion flies (30)")
+    parser.add_argument(
+        "--lidar-step",
+        type=float,
+        default=0.2,
+        choices=(0.2, 1.0),
+        help="ray-cast azimuth step in degrees: 0.2 like the VLP-16, 1.0 to save CPU",
+    )
+    parser.add_argument("--json", help="write the flight report as JSON here")
+    parser.add_argument("--plot", help="write a top-down PNG of the flight here")
+    parser.add_argument("--workdir", help="where the companion's config and log go (default: a temp dir)")
+
+
+def command(args: Any) -> int:
+    import tempfile
+
+    if args.duration <= 0:
+        raise UserError(f"--duration must be positive, got {args.duration}")
+    world = load_flight_world(args.world, args.seed, args.difficulty)
+    policy = Path(args.policy) if args.policy else default_policy()
+    workdir = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="avoid-sim-fly-"))
+    options = FlightOptions(
+        autopilot=args.autopilot,
+        world=world,
+        policy=policy,
+        duration=args.duration,
+        connect=args.connect,
+        lidar_step_deg=args.lidar_step,
+        workdir=workdir,
+    )
+    report = run_flight(options, plot=Path(args.plot) if args.plot else None)
+    print_report(report)
+    print(f"companion log: {workdir / 'companion.log'}")
+    if args.json:
+        Path(args.json).write_text(report.to_json())
+    return 0 if not report.error else 1
+
+
+def print_report(r: FlightReport) -> None:
+    print(f"world {r.world}, autopilot {r.autopilot}")
+    if r.error:
+        print(f"  error: {r.error}")
+    print(f"  engaged: {r.engaged}   collision: {r.collision}   flight {r.flight_time_s:.1f} s")
+    print(f"  distance flown {r.distance_m:.1f} m, minimum clearance {r.min_clearance_m:.2f} m")
+    print(
+        f"  setpoints {r.setpoint_rate_hz:.1f} Hz, latency revolution end → setpoint "
+        f"p50 {r.latency_p50_ms:.1f} ms, p99 {r.latency_p99_ms:.1f} ms"
+    )
+    print(f"  companion states: {' | '.join(r.transitions) or '-'}")
+    if r.plot:
+        print(f"  plot: {r.plot}")
