@@ -21,7 +21,9 @@ from __future__ import annotations
 
 import logging
 import math
+import operator
 import socket
+import struct
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -94,8 +96,6 @@ _SLOT_COS_ELEVATION_M = (np.cos(np.radians(VLP16_ELEVATIONS_DEG)) * DISTANCE_UNI
 _SLOT_SIN_ELEVATION_M = (np.sin(np.radians(VLP16_ELEVATIONS_DEG)) * DISTANCE_UNIT_M)[_SLOT_LASER].astype(
     np.float32
 )
-# Firing index within the packet of every return slot, shape (12, 32).
-_SLOT_FIRING_IN_PACKET = (2 * np.arange(BLOCKS_PER_PACKET)[:, None] + _SLOT_FIRING[None, :]).astype(np.int64)
 _CENTIDEG_TO_RAD = np.float32(math.pi / 18000.0)
 
 
@@ -114,18 +114,26 @@ def laser_azimuths_deg(firing_azimuth_deg: np.ndarray, step_deg: float) -> np.nd
     return np.mod(np.asarray(firing_azimuth_deg, dtype=np.float64)[:, None] + offsets[None, :], 360.0)
 
 
-def _reason_codes(packets: np.ndarray) -> np.ndarray:
-    """Index into MALFORMED_REASONS + 1 for each (P, 1206) packet, 0 when it is well formed."""
-    view = packets.view(PACKET_DTYPE)[:, 0]
-    blocks = view["blocks"]
-    codes = np.zeros(len(packets), dtype=np.int8)
-    # Checked last to first so the first reason in MALFORMED_REASONS wins.
-    codes[view["product_id"] != PRODUCT_ID_VLP16] = 5
-    mode = view["return_mode"]
-    codes[(mode != RETURN_STRONGEST) & (mode != RETURN_LAST)] = 4
-    codes[(blocks["azimuth"] >= 36000).any(axis=1)] = 3
-    codes[(blocks["flag"] != 0xEEFF).any(axis=1)] = 2
-    return codes
+# Header fields of a data packet: 12 × (flag, azimuth), then timestamp, return mode, product id.
+_HEADER = struct.Struct("<" + "HH96x" * BLOCKS_PER_PACKET + "IBB")
+_FLAGS = (0xEEFF,) * BLOCKS_PER_PACKET  # b"\xff\xee" read little-endian
+assert _HEADER.size == PACKET_SIZE
+
+
+def _parse_header(packet: bytes) -> tuple[str | None, tuple[int, ...]]:
+    """(why the packet is malformed or None, its unpacked header fields); a couple of µs per packet."""
+    if len(packet) != PACKET_SIZE:
+        return "wrong_length", ()
+    fields = _HEADER.unpack_from(packet)
+    if fields[0:24:2] != _FLAGS:
+        return "bad_block_flag", fields
+    if max(fields[1:24:2]) >= 36000:
+        return "azimuth_out_of_range", fields
+    if fields[25] not in (RETURN_STRONGEST, RETURN_LAST):
+        return "unsupported_return_mode", fields
+    if fields[26] != PRODUCT_ID_VLP16:
+        return "unknown_product_id", fields
+    return None, fields
 
 
 def packet_error(packet: bytes) -> str | None:
@@ -137,40 +145,34 @@ def packet_error(packet: bytes) -> str | None:
     :param packet: the UDP payload.
     :return: one of MALFORMED_REASONS, or None when the packet is well formed.
     """
-    if len(packet) != PACKET_SIZE:
-        return "wrong_length"
-    code = int(_reason_codes(np.frombuffer(packet, dtype=np.uint8).reshape(1, PACKET_SIZE))[0])
-    return MALFORMED_REASONS[code - 1] if code else None
+    return _parse_header(packet)[0]
+
+
+def firing_azimuths(block_azimuths: Sequence[int]) -> list[float]:
+    """Azimuth of each of a packet's 24 firing sequences in 0.01°, in [0, 36000).
+
+    The second firing of a block lies halfway to the next block; the last block reuses the step
+    before it (within the packet only, as the ROS driver and velodyne-decoder do).
+
+    :param block_azimuths: the 12 block azimuths of one packet, 0.01°.
+    """
+    out: list[float] = []
+    step = 0
+    for b, azimuth in enumerate(block_azimuths):
+        if b + 1 < BLOCKS_PER_PACKET:
+            step = (block_azimuths[b + 1] - azimuth) % 36000
+        out.append(float(azimuth))
+        out.append((azimuth + 0.5 * step) % 36000)
+    return out
 
 
 class DecodedPackets(NamedTuple):
-    """Points of a run of consecutive packets, with the firing each came from."""
+    """Points of a run of consecutive packets."""
 
-    #: (N, 3) float32 FLU points in metres; no-return slots dropped.
+    #: (N, 3) float32 FLU points in metres, in packet order; no-return slots dropped.
     points: np.ndarray
-    #: (N,) int64 firing index of each point, counted from the run's first firing (24 per packet).
-    firing: np.ndarray
-    #: (P × 24,) float64 azimuth of every firing sequence in 0.01°, in [0, 36000).
-    firing_azimuth: np.ndarray
-
-
-def _block_steps(azimuth: np.ndarray) -> np.ndarray:
-    """(P, 12) azimuth step from each block to the next in 0.01°; the last block reuses the one before.
-
-    Within a packet only, as the ROS driver and velodyne-decoder do, so both backends agree.
-    """
-    step = np.empty_like(azimuth)
-    np.subtract(azimuth[:, 1:], azimuth[:, :-1], out=step[:, :-1])
-    np.mod(step[:, :-1], 36000.0, out=step[:, :-1])
-    step[:, -1] = step[:, -2]
-    return step
-
-
-def _firing_azimuths(azimuth: np.ndarray, step: np.ndarray) -> np.ndarray:
-    firing = np.empty((len(azimuth), BLOCKS_PER_PACKET, 2), dtype=np.float64)
-    firing[:, :, 0] = azimuth
-    firing[:, :, 1] = azimuth + 0.5 * step
-    return np.mod(firing, 36000.0).reshape(-1)
+    #: (P × 24,) number of points each firing sequence contributed, to cut between firings.
+    points_per_firing: np.ndarray
 
 
 def decode_packets_numpy(packets: np.ndarray) -> DecodedPackets:
@@ -178,41 +180,41 @@ def decode_packets_numpy(packets: np.ndarray) -> DecodedPackets:
 
     :param packets: (P, 1206) uint8, consecutive packets of one sensor.
     """
-    view = packets.view(PACKET_DTYPE)[:, 0]
-    blocks = view["blocks"]
-    azimuth = blocks["azimuth"].astype(np.float64)
-    step = _block_steps(azimuth)
-    distance = blocks["returns"]["distance"]
-    hit = distance != 0
-    dist = distance[hit].astype(np.float32)
-    slot = np.broadcast_to(np.arange(2 * LASERS, dtype=np.intp), distance.shape)[hit]
-    step_f32 = step.astype(np.float32)[:, :, None]
-    alpha = (azimuth.astype(np.float32)[:, :, None] + step_f32 * _SLOT_STEP_FRACTION)[hit]
+    blocks = packets.view(PACKET_DTYPE)[:, 0]["blocks"]
+    azimuth = blocks["azimuth"].astype(np.float32)
+    step = np.empty_like(azimuth)
+    np.subtract(azimuth[:, 1:], azimuth[:, :-1], out=step[:, :-1])
+    np.mod(step[:, :-1], 36000.0, out=step[:, :-1])
+    step[:, -1] = step[:, -2]
+    raw = blocks["returns"]["distance"]
+    hit = raw != 0
+    distance = raw.astype(np.float32)
+    alpha = step[:, :, None] * _SLOT_STEP_FRACTION
+    alpha += azimuth[:, :, None]
+    alpha = alpha[hit]
     alpha *= _CENTIDEG_TO_RAD
-    horizontal = dist * _SLOT_COS_ELEVATION_M[slot]
-    points = np.empty((len(dist), 3), dtype=np.float32)
+    horizontal = (distance * _SLOT_COS_ELEVATION_M)[hit]
+    points = np.empty((len(alpha), 3), dtype=np.float32)
     np.multiply(horizontal, np.cos(alpha), out=points[:, 0])
     np.multiply(horizontal, np.sin(alpha), out=points[:, 1])
     np.negative(points[:, 1], out=points[:, 1])
-    np.multiply(dist, _SLOT_SIN_ELEVATION_M[slot], out=points[:, 2])
-    return DecodedPackets(points, _firings_of_hits(hit), _firing_azimuths(azimuth, step))
+    points[:, 2] = (distance * _SLOT_SIN_ELEVATION_M)[hit]
+    return DecodedPackets(points, _points_per_firing(hit))
+
+
+def _points_per_firing(hit: np.ndarray) -> np.ndarray:
+    return np.count_nonzero(hit.reshape(-1, LASERS), axis=1)
 
 
 def _decode_numpy(packets: np.ndarray, _payloads: Sequence[bytes]) -> DecodedPackets:
     return decode_packets_numpy(packets)
 
 
-def _firings_of_hits(hit: np.ndarray) -> np.ndarray:
-    """Firing index (counted from the first packet) of every True slot of a (P, 12, 32) mask."""
-    packet_start = np.arange(len(hit), dtype=np.int64)[:, None, None] * FIRINGS_PER_PACKET
-    return (packet_start + _SLOT_FIRING_IN_PACKET)[hit]
-
-
 class _VelodyneDecoderBackend:
     """velodyne-decoder's C++ ScanDecoder on a run of packets.
 
-    Its `column` field skips firings that had no return, so the firing of each point is taken from
-    the packets themselves: the decoder emits every non-zero slot in packet order.
+    Its `column` field skips firings that had no return, so where each firing's points start is taken
+    from the packets themselves: the decoder emits every non-zero slot in packet order.
     """
 
     def __init__(self) -> None:
@@ -225,17 +227,11 @@ class _VelodyneDecoderBackend:
     def decode(self, packets: np.ndarray, payloads: Sequence[bytes]) -> DecodedPackets:
         vd = self._vd
         _, cloud = self._decoder.decode(vd.PacketVector([vd.VelodynePacket(0.0, p) for p in payloads]))
-        view = packets.view(PACKET_DTYPE)[:, 0]
-        hit = view["blocks"]["returns"]["distance"] != 0
+        hit = packets.view(PACKET_DTYPE)[:, 0]["blocks"]["returns"]["distance"] != 0
         if len(cloud) != np.count_nonzero(hit):
             log.error("velodyne-decoder gave %d points for %d returns; using numpy", len(cloud), hit.sum())
             return decode_packets_numpy(packets)
-        azimuth = view["blocks"]["azimuth"].astype(np.float64)
-        return DecodedPackets(
-            np.ascontiguousarray(cloud[:, :3], dtype=np.float32),
-            _firings_of_hits(hit),
-            _firing_azimuths(azimuth, _block_steps(azimuth)),
-        )
+        return DecodedPackets(np.ascontiguousarray(cloud[:, :3], dtype=np.float32), _points_per_firing(hit))
 
 
 Backend = Literal["numpy", "velodyne-decoder"]
@@ -273,25 +269,35 @@ class Revolution(NamedTuple):
 class RevolutionAssembler:
     """Validates VLP-16 packets, decodes them and cuts revolutions exactly where the azimuth wraps.
 
-    The wrap is found per firing sequence (it usually falls inside a packet): the firings before it
-    close the revolution, the rest start the next one. The part before the first wrap is dropped
-    (its start was not seen). Malformed packets are counted per reason and dropped, never raised.
+    Each packet's header is checked as it arrives (malformed packets are counted per reason and
+    dropped, never raised) and its firings' azimuths are scanned for the wrap: the azimuth falling by
+    more than half a turn from one firing sequence to the next, usually inside a packet. Packets are
+    decoded in vectorised runs: at every wrap (so a revolution is ready as soon as its last packet
+    is in) and whenever ``decode_every`` packets wait (so that run stays short). The firings before
+    the wrap close the revolution, the rest start the next one; the part before the first wrap is
+    dropped (its start was not seen).
 
     :param backend: "numpy" (default) or "velodyne-decoder"; see the module docstring.
+    :param decode_every: decode waiting packets once this many have arrived without a wrap.
     :param max_packets_per_revolution: abandon a revolution that never wraps after this many packets
         (the VLP-16's slowest 300 rpm needs about 151).
     """
 
-    def __init__(self, backend: Backend = "numpy", max_packets_per_revolution: int = 512) -> None:
+    def __init__(
+        self, backend: Backend = "numpy", *, decode_every: int = 8, max_packets_per_revolution: int = 512
+    ) -> None:
         if backend not in ("numpy", "velodyne-decoder"):
             raise ValueError(f"unknown VLP-16 decoder backend {backend!r} (numpy or velodyne-decoder)")
         self.backend = backend
         self._decode: Callable[[np.ndarray, Sequence[bytes]], DecodedPackets] = (
             _VelodyneDecoderBackend().decode if backend == "velodyne-decoder" else _decode_numpy
         )
+        self.decode_every = decode_every
         self.max_packets_per_revolution = max_packets_per_revolution
         self.counters = VelodyneCounters()
-        self._parts: list[np.ndarray] = []
+        self._pending: list[bytes] = []  # well-formed packets not decoded yet
+        self._pending_wraps: list[int] = []  # firing index (within _pending) where a revolution starts
+        self._parts: list[np.ndarray] = []  # decoded points of the revolution being built
         self._packets_in_revolution = 0
         self._started = False  # a wrap has been seen: the revolution being built is whole
         self._last_azimuth: float | None = None
@@ -303,87 +309,96 @@ class RevolutionAssembler:
         :param packet: a UDP payload from the sensor.
         :return: completed revolutions as (N, 3) float32 FLU clouds.
         """
-        return [rev.points for rev in self.feed_batch([packet])]
+        return [rev.points for rev in self.feed_batch((packet,))]
 
     def feed_batch(self, packets: Sequence[bytes]) -> list[Revolution]:
-        """Add consecutive packets at once (decoded in one pass); return the revolutions completed.
+        """Add consecutive packets; return the revolutions they completed, oldest first.
 
         :param packets: UDP payloads in arrival order.
         """
-        self.counters.packets += len(packets)
-        valid_index = [i for i, p in enumerate(packets) if len(p) == PACKET_SIZE]
-        self._count_malformed("wrong_length", len(packets) - len(valid_index))
-        if not valid_index:
-            return []
-        payloads = [packets[i] for i in valid_index]
-        data = np.frombuffer(b"".join(payloads), dtype=np.uint8).reshape(-1, PACKET_SIZE)
-        codes = _reason_codes(data)
-        if codes.any():
-            for code in codes[codes > 0]:
-                self._count_malformed(MALFORMED_REASONS[code - 1])
-            keep = np.flatnonzero(codes == 0)
-            valid_index = [valid_index[k] for k in keep]
-            payloads = [payloads[k] for k in keep]
-            data = data[keep]
-            if not valid_index:
-                return []
-        self._check_timestamps(data.view(PACKET_DTYPE)[:, 0]["timestamp"].astype(np.int64))
-        return self._cut(self._decode(data, payloads), valid_index)
-
-    def _cut(self, decoded: DecodedPackets, packet_index: list[int]) -> list[Revolution]:
-        azimuth = decoded.firing_azimuth
-        previous = np.empty_like(azimuth)
-        previous[1:] = azimuth[:-1]
-        previous[0] = azimuth[0] if self._last_azimuth is None else self._last_azimuth
-        self._last_azimuth = float(azimuth[-1])
-        # A wrap is the azimuth falling by more than half a turn from one firing to the next.
-        wraps = np.flatnonzero(azimuth < previous - 18000.0)
-        bounds = np.searchsorted(decoded.firing, wraps)
         revolutions: list[Revolution] = []
+        for index, packet in enumerate(packets):
+            self.counters.packets += 1
+            reason, fields = _parse_header(packet)
+            if reason is not None:
+                self._count_malformed(reason)
+                continue
+            self._check_timestamp(fields[24])
+            first_firing = FIRINGS_PER_PACKET * len(self._pending)
+            self._pending.append(packet)
+            self._packets_in_revolution += 1
+            wraps = self._find_wraps(fields[1:24:2])
+            if wraps:
+                self._pending_wraps += [first_firing + w for w in wraps]
+                revolutions += [Revolution(points, index) for points in self._decode_pending()]
+                self._packets_in_revolution = 1
+            elif self._packets_in_revolution > self.max_packets_per_revolution:
+                self._overflow()
+        if len(self._pending) >= self.decode_every:
+            self._decode_pending()  # no wrap waiting, so this completes nothing
+        return revolutions
+
+    def _find_wraps(self, block_azimuths: Sequence[int]) -> list[int]:
+        """Firings of this packet where the azimuth falls by more than half a turn."""
+        previous = self._last_azimuth
+        last = block_azimuths[-1] + 0.5 * ((block_azimuths[-1] - block_azimuths[-2]) % 36000)
+        if (
+            last < 36000
+            and (previous is None or block_azimuths[0] >= previous - 18000.0)
+            and all(map(operator.le, block_azimuths, block_azimuths[1:]))
+        ):  # the common case, cheaply: azimuths only rise within the packet and from the last one
+            self._last_azimuth = last
+            return []
+        wraps = []
+        for i, azimuth in enumerate(firing_azimuths(block_azimuths)):
+            if previous is not None and azimuth < previous - 18000.0:
+                wraps.append(i)
+            previous = azimuth
+        self._last_azimuth = previous
+        return wraps
+
+    def _decode_pending(self) -> list[np.ndarray]:
+        data = np.frombuffer(b"".join(self._pending), dtype=np.uint8).reshape(-1, PACKET_SIZE)
+        decoded = self._decode(data, self._pending)
+        bounds = np.concatenate(([0], np.cumsum(decoded.points_per_firing)))
+        revolutions = []
         start = 0
-        for wrap_firing, bound in zip(wraps.tolist(), bounds.tolist(), strict=True):
-            self._parts.append(decoded.points[start:bound])
-            start = bound
-            completed_by = packet_index[wrap_firing // FIRINGS_PER_PACKET]
+        for wrap in self._pending_wraps:
+            end = int(bounds[wrap])
+            self._parts.append(decoded.points[start:end])
+            start = end
             if self._started:
-                revolutions.append(Revolution(np.concatenate(self._parts), completed_by))
+                revolutions.append(np.concatenate(self._parts))
                 self.counters.revolutions += 1
             else:
                 self.counters.partial_revolutions += 1
             self._started = True
             self._parts = []
-            self._packets_in_revolution = 0
         self._parts.append(decoded.points[start:])
-        tail_firings = len(azimuth) - (int(wraps[-1]) if len(wraps) else 0)
-        self._packets_in_revolution += math.ceil(tail_firings / FIRINGS_PER_PACKET)
-        if self._packets_in_revolution > self.max_packets_per_revolution:
-            log.warning(
-                "VLP-16: no azimuth wrap in %d packets, dropping the revolution", self._packets_in_revolution
-            )
-            self.counters.overflows += 1
-            self._parts = []
-            self._packets_in_revolution = 0
-            self._started = False
+        self._pending = []
+        self._pending_wraps = []
         return revolutions
 
-    def _check_timestamps(self, stamps: np.ndarray) -> None:
-        previous = np.empty_like(stamps)
-        previous[1:] = stamps[:-1]
-        previous[0] = stamps[0] if self._last_timestamp is None else self._last_timestamp
-        self._last_timestamp = int(stamps[-1])
-        delta = np.mod(stamps - previous, US_PER_HOUR)
-        gaps = int(np.count_nonzero(delta > 1.5 * PACKET_DURATION_US))
-        if gaps:
-            self.counters.timestamp_gaps += gaps
-            log.debug("VLP-16: %d timestamp gap(s), packets lost or reordered", gaps)
+    def _overflow(self) -> None:
+        log.warning("VLP-16: no azimuth wrap in %d packets, dropping them", self._packets_in_revolution)
+        self.counters.overflows += 1
+        self._pending = []
+        self._pending_wraps = []
+        self._parts = []
+        self._packets_in_revolution = 0
+        self._started = False
 
-    def _count_malformed(self, reason: str, n: int = 1) -> None:
-        if n <= 0:
-            return
+    def _check_timestamp(self, stamp: int) -> None:
+        previous, self._last_timestamp = self._last_timestamp, stamp
+        if previous is not None and (stamp - previous) % US_PER_HOUR > 1.5 * PACKET_DURATION_US:
+            self.counters.timestamp_gaps += 1
+            log.debug("VLP-16: timestamp gap %d → %d µs, packets lost or reordered", previous, stamp)
+
+    def _count_malformed(self, reason: str) -> None:
         malformed = self.counters.malformed
         if reason not in malformed:
             log.warning("VLP-16: dropping malformed packet (%s); further ones are only counted", reason)
-        malformed[reason] = malformed.get(reason, 0) + n
+        malformed[reason] = malformed.get(reason, 0) + 1
 
 
 def encode_packets(

@@ -228,7 +228,8 @@ def test_backends_agree_on_the_recording(recording: list[bytes]) -> None:
     data = np.frombuffer(b"".join(recording[:200]), dtype=np.uint8).reshape(-1, PACKET_SIZE)
     ours = RevolutionAssembler("numpy")._decode(data, recording[:200])
     theirs = RevolutionAssembler("velodyne-decoder")._decode(data, recording[:200])
-    np.testing.assert_array_equal(ours.firing, theirs.firing)
+    np.testing.assert_array_equal(ours.points_per_firing, theirs.points_per_firing)
+    assert ours.points_per_firing.sum() == len(ours.points) == len(theirs.points)
     horizontal = np.hypot(ours.points[:, 0], ours.points[:, 1])
     np.testing.assert_allclose(np.hypot(theirs.points[:, 0], theirs.points[:, 1]), horizontal, atol=1e-5)
     # velodyne-decoder 3.1 rounds each laser's azimuth to 0.01° and advances it at the mean rotation
@@ -369,28 +370,41 @@ def test_encode_decode_round_trip(
     assert_round_trip(cloud[:, :3], expected, z_slack=0.0115)
 
 
-@pytest.mark.parametrize(("step", "packets_per_revolution"), [(1.0, 15), (0.2, 75)])
+@pytest.mark.parametrize(
+    ("step", "start", "packets_per_revolution"),
+    [
+        (1.0, 90.0, 15),  # wrap at the first firing of a block, inside a packet
+        (0.2, 90.0, 75),
+        (0.2, 90.3, 75),  # wrap at the interpolated second firing of a block
+        (0.2, 0.0, 75),  # wrap at a packet boundary
+    ],
+)
 @pytest.mark.parametrize("backend", ["numpy", "velodyne-decoder"])
+@pytest.mark.parametrize("batched", [False, True])
 def test_encoded_revolutions_assemble_to_the_cloud_that_went_in(
-    step: float, packets_per_revolution: int, backend: str
+    step: float, start: float, packets_per_revolution: int, backend: str, batched: bool
 ) -> None:
-    """Three revolutions starting at 90°: a partial one, two whole ones, cut at 0°."""
+    """Three turns: a partial revolution, then whole ones, each cut where the azimuth wraps."""
     rng = np.random.default_rng(7)
     firings = round(360 / step)
     assert firings == packets_per_revolution * 24
-    azimuth = np.mod(90.0 + step * np.arange(3 * firings), 360.0)
-    ranges = rng.uniform(0.5, 30.0, size=(3 * firings, 16))
+    azimuth = np.mod(start + step * np.arange(3 * firings + 24), 360.0)
+    ranges = rng.uniform(0.5, 30.0, size=(len(azimuth), 16))
     ranges[rng.random(ranges.shape) < 0.3] = 0.0
     packets = encode_packets(azimuth, ranges, start_timestamp_us=1e6)
-    assert len(packets) == 3 * packets_per_revolution
     assembler = RevolutionAssembler(backend)
-    clouds = [c for p in packets for c in assembler.feed(p)]
-    assert len(clouds) == 2
+    if batched:
+        clouds = [rev.points for rev in assembler.feed_batch(packets)]
+    else:
+        clouds = [c for p in packets for c in assembler.feed(p)]
+    wraps = np.flatnonzero(np.diff(azimuth) < -180) + 1
+    assert len(clouds) == len(wraps) - 1 >= 2
     assert assembler.counters.partial_revolutions == 1
     assert assembler.counters.timestamp_gaps == 0
-    first_whole = slice(firings * 3 // 4, firings * 7 // 4)  # from 0° to 360°
-    expected = expected_points(azimuth[first_whole], ranges[first_whole], step)
-    assert_round_trip(clouds[0], expected, z_slack=0.0115 if backend == "velodyne-decoder" else 0.0)
+    for k, cloud in enumerate(clouds):
+        whole = slice(wraps[k], wraps[k + 1])
+        expected = expected_points(azimuth[whole], ranges[whole], step)
+        assert_round_trip(cloud, expected, z_slack=0.0115 if backend == "velodyne-decoder" else 0.0)
 
 
 def test_lost_packets_show_as_timestamp_gaps() -> None:
