@@ -303,7 +303,8 @@ def control_step(
     err_vz = climb_sp - vz
     az = _clip(g[_G_CLIMB_P] * err_vz + m[_M_CLIMB_I], -0.7 * GRAVITY, GRAVITY)
     if integrate:
-        m[_M_CLIMB_I] = _clip(m[_M_CLIMB_I] + g[_G_CLIMB_I] * err_vz * dt, -4.0, 4.0)
+        # +-0.7 g covers the masses a vehicle accepts (0.47 ... 1.67 x the assumed mass).
+        m[_M_CLIMB_I] = _clip(m[_M_CLIMB_I] + g[_G_CLIMB_I] * err_vz * dt, -0.7 * GRAVITY, 0.7 * GRAVITY)
     fz = GRAVITY + az
 
     # --- horizontal velocity -> acceleration, tilt-limited, integrating only when unsaturated

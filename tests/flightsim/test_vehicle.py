@@ -118,11 +118,14 @@ def test_disarming_in_flight_cuts_the_motors(vehicle):
     assert s.velocity[2] < -3.0  # close to free fall: 0.5 s * 9.8 m/s^2, less the motor spin-down
 
 
-def test_heavier_vehicle_still_hovers(vehicle):
-    vehicle.reset((0.0, 0.0, 1.5), 0.0, mass_kg=2.0)
-    assert vehicle.mass_kg == 2.0
+@pytest.mark.parametrize("mass", [0.7, 2.0, 2.5])
+def test_lighter_and_heavier_vehicles_hover_and_climb(vehicle, mass):
+    vehicle.reset((0.0, 0.0, 1.5), 0.0, mass_kg=mass)
+    assert vehicle.mass_kg == mass
     z = [s.position[2] for s in fly(vehicle, 3.0, lambda s: Setpoint())]
     assert max(abs(v - 1.5) for v in z) < 0.05
+    s = fly(vehicle, 2.0, lambda s: Setpoint(vz=1.0))[-1]
+    assert s.velocity[2] == pytest.approx(1.0, abs=0.1)
 
 
 def test_wind_pushes_and_the_controller_leans_into_it(vehicle):
