@@ -7,7 +7,9 @@ import sys
 from companion.cli import run_cli
 
 # subcommand name -> (module providing configure_parser/command, one-line help)
-SUBCOMMANDS: dict[str, tuple[str, str]] = {}
+SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "fly": ("flightsim.harness", "SITL flight: the real companion flying a simulated (or external) autopilot"),
+}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -45,7 +45,7 @@ log = logging.getLogger(__name__)
 AUTOPILOTS = ("sim-ardupilot", "sim-px4", "external")
 TAKEOFF_ALTITUDE = 1.5
 #: the companion's STATUSTEXT on entering ACTIVE starts with this (supervisor state names)
-ACTIVE_MARK = "ACTIVE"
+ACTIVE_MARK = "->ACTIVE"
 
 
 # ------------------------------------------------------------------------------------ config file
@@ -183,6 +183,7 @@ class Recorder:
     min_clearance: float = math.inf
     collision_time: float | None = None
     lock: threading.Lock = field(default_factory=threading.Lock)
+    _chunks: dict[int, list[str]] = field(default_factory=dict)
 
     def on_companion_message(self, msg: Any, t_mono: float) -> None:
         kind = msg.get_type()
@@ -191,7 +192,7 @@ class Recorder:
                 self.setpoint_times.append(t_mono)
                 self.setpoints.append((t_mono, float(msg.vx), float(msg.yaw_rate)))
             elif kind == "STATUSTEXT":
-                self.statustexts.append((t_mono, msg.text))
+                self._statustext(msg, t_mono)
             elif kind == "HEARTBEAT":
                 self.companion_heartbeats.append(t_mono)
 
@@ -203,6 +204,15 @@ class Recorder:
                 self.min_clearance = min(self.min_clearance, clearance)
                 if clearance < DEFAULT_VEHICLE_RADIUS and self.collision_time is None:
                     self.collision_time = t_mono
+
+    def _statustext(self, msg: Any, t_mono: float) -> None:
+        """Join MAVLink 2 chunked STATUSTEXTs (same non-zero id; a chunk shorter than 50 ends it)."""
+        if msg.id == 0:
+            self.statustexts.append((t_mono, msg.text))
+            return
+        self._chunks.setdefault(msg.id, []).append(msg.text)
+        if len(msg.text) < 50:
+            self.statustexts.append((t_mono, "".join(self._chunks.pop(msg.id))))
 
     def texts(self, since: float = 0.0) -> list[str]:
         with self.lock:
@@ -296,7 +306,6 @@ class SitlFlight:
         self.log_path = self.workdir / "companion.log"
         self.engaged_at: float | None = None
         self._log_file: Any = None
-        self._gcs_stream = threading.Event()
         self._gcs_lock = threading.Lock()
         self._pump_thread: threading.Thread | None = None
         self._stop = threading.Event()
@@ -419,7 +428,6 @@ class SitlFlight:
 
     def close(self) -> None:
         self._stop.set()
-        self._gcs_stream.clear()
         if self.companion is not None and self.companion.poll() is None:
             self.companion.send_signal(signal.SIGINT)
             try:
@@ -471,36 +479,10 @@ class SitlFlight:
                     gcs = self.gcs
                     assert gcs is not None
                     gcs.pump(0.02)
-                    if self._gcs_stream.is_set():
-                        self._send_zero_setpoint()
                 time.sleep(0.03)
 
         self._pump_thread = threading.Thread(target=run, name="gcs-pump", daemon=True)
         self._pump_thread.start()
-
-    def _send_zero_setpoint(self) -> None:
-        from pymavlink import mavutil
-
-        gcs = self.gcs
-        assert gcs is not None
-        gcs.mav.mav.set_position_target_local_ned_send(
-            0,
-            gcs.target_system,
-            1,
-            mavutil.mavlink.MAV_FRAME_BODY_NED,
-            0x05C7,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-        )
 
     def pilot(self, action: Any) -> Any:
         """Run ``action(gcs)`` with the GCS to itself (the background pump pauses meanwhile)."""
@@ -520,32 +502,31 @@ class SitlFlight:
                 gcs.set_mode("GUIDED")
                 gcs.arm()
                 gcs.takeoff(TAKEOFF_ALTITUDE)
+        self.pump_gcs()
         if gcs.is_px4:
-            # PX4 accepts OFFBOARD only while setpoints stream; the companion sends none until the
-            # vehicle is in OFFBOARD, so the GCS streams zeros as proof of life until it takes over.
-            self._gcs_stream.set()
-            self.pump_gcs()
-            time.sleep(1.5)
-            with self._gcs_lock:
-                gcs.set_mode("OFFBOARD")
-        else:
-            self.pump_gcs()
+            # PX4 accepts OFFBOARD only while setpoints stream: the companion streams zeros once the
+            # vehicle is armed and it is ready (Px4Link.setpoints_before_offboard); retry until then.
+            end = time.monotonic() + 15.0
+            while True:
+                try:
+                    self.pilot(lambda g: g.set_mode("OFFBOARD", timeout=2.0))
+                    break
+                except RuntimeError:
+                    if time.monotonic() > end:
+                        raise
+                    time.sleep(0.5)
 
     def wait_engaged(self, timeout: float) -> bool:
-        """Wait until the companion's setpoints arrive (it is ACTIVE); stop the GCS's zero stream then."""
+        """Wait until the companion announces ACTIVE (True), exits or ``timeout`` s pass."""
         end = time.monotonic() + timeout
         start = time.monotonic()
         while time.monotonic() < end:
-            if any(ACTIVE_MARK in t for t in self.recorder.texts(start - 60)) and (
-                self.recorder.setpoints_since(start) > 0 or not self._gcs_stream.is_set()
-            ):
-                self._gcs_stream.clear()
+            if any(ACTIVE_MARK in t for t in self.recorder.texts(start - 60)):
                 self.engaged_at = time.monotonic()
                 return True
             if not self.companion_alive():
                 return False
             time.sleep(0.05)
-        self._gcs_stream.clear()
         return False
 
     def fly(self, duration: float) -> None:
