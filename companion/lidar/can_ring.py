@@ -20,12 +20,15 @@ import struct
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import can
 import numpy as np
 
 from companion.errors import UserError
+
+if TYPE_CHECKING:
+    from companion.config import CanConfig
 
 log = logging.getLogger(__name__)
 
@@ -168,12 +171,15 @@ class CanRangefinderRing:
             bus.shutdown()
             raise
 
-    def fileno(self) -> int:
-        """The bus's descriptor for select, where the interface has one (socketcan does).
+    def fileno(self) -> int | None:
+        """The bus's descriptor for select where the interface has one (socketcan does), else None.
 
-        :raises NotImplementedError: for interfaces without one (virtual): poll read_available.
+        Without one (the virtual interface), poll read_available from the loop's timeout.
         """
-        return self.bus.fileno()
+        try:
+            return self.bus.fileno()
+        except NotImplementedError:
+            return None
 
     def read_available(self, now: float | None = None) -> list[np.ndarray]:
         """Drain the frames waiting (never blocks) and return the clouds they completed.
@@ -245,3 +251,21 @@ class CanRangefinderRing:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def open_can_ring(config: CanConfig, clock: Callable[[], float] = time.monotonic) -> CanRangefinderRing:
+    """Open the ring described by the companion's ``[lidar.can]`` config.
+
+    :param config: interface, channel, bitrate, max_range, stale_after and the sensors.
+    :param clock: time source for staleness.
+    :raises UserError: when the bus cannot be opened or the sensor list is wrong.
+    """
+    return CanRangefinderRing.open(
+        config.interface,
+        config.channel,
+        [CanRangefinder(s.can_id, s.yaw_deg) for s in config.sensors],
+        bitrate=config.bitrate,
+        max_range=config.max_range,
+        stale_after=config.stale_after,
+        clock=clock,
+    )

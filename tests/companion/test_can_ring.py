@@ -9,8 +9,9 @@ import can
 import numpy as np
 import pytest
 
+from companion.config import CanConfig, CanSensorConfig
 from companion.errors import UserError
-from companion.lidar.can_ring import CanRangefinder, CanRangefinderRing, benewake_frame
+from companion.lidar.can_ring import CanRangefinder, CanRangefinderRing, benewake_frame, open_can_ring
 from companion.scan import ScanConfig, scan_from_points
 
 _channels = itertools.count()
@@ -121,8 +122,7 @@ def test_extended_ids_and_the_scan_code_apply_unchanged() -> None:
         can.Bus(interface="virtual", channel="can-ring-scan") as sensor_bus,
         CanRangefinderRing.open("virtual", "can-ring-scan", sensors, max_range=10.0) as ring,
     ):
-        with pytest.raises(NotImplementedError):
-            ring.fileno()  # the virtual interface has no descriptor: poll instead
+        assert ring.fileno() is None  # the virtual interface has no descriptor: poll instead
         for k, distance in enumerate((2.0, 5.0, 8.0, 1.0)):
             sensor_bus.send(benewake_frame(0x18FF0000 + k, distance))
         [cloud] = ring.read_available()
@@ -149,3 +149,27 @@ def test_bad_sensor_lists_are_user_errors(sensors: list, message: str) -> None:
 def test_a_bus_that_cannot_open_is_a_user_error() -> None:
     with pytest.raises(UserError, match="cannot open CAN bus no-such-interface:can0"):
         CanRangefinderRing.open("no-such-interface", "can0", RING)
+
+
+def test_open_from_the_companion_config_with_an_injected_clock() -> None:
+    config = CanConfig(
+        interface="virtual",
+        channel="can-ring-config",
+        max_range=3.0,
+        stale_after=0.1,
+        sensors=(CanSensorConfig(can_id=0x21, yaw_deg=30.0), CanSensorConfig(can_id=0x22, yaw_deg=-30.0)),
+    )
+    now = [10.0]
+    with (
+        can.Bus(interface="virtual", channel="can-ring-config") as sensor_bus,
+        open_can_ring(config, clock=lambda: now[0]) as ring,
+    ):
+        assert ring.max_range == 3.0 and ring.stale_after == 0.1
+        sensor_bus.send(benewake_frame(0x21, 2.0))
+        assert ring.read_available() == []
+        now[0] = 10.2  # the first reading is now too old
+        sensor_bus.send(benewake_frame(0x22, 2.0))
+        assert ring.read_available() == [] and ring.counters.stale == 1
+        sensor_bus.send(benewake_frame(0x21, 4.0))  # beyond max_range 3 m: no point
+        [cloud] = ring.read_available()
+    np.testing.assert_allclose(cloud, [[2 * np.cos(np.radians(30)), -1.0, 0.0]], atol=1e-6)
