@@ -191,7 +191,7 @@ class Vehicle:
         self, position: np.ndarray | tuple[float, float, float], yaw: float, *,
         mass_kg: float | None = None, on_ground: bool = False,
     ) -> VehicleState:  # fmt: skip
-        """Start a new flight.
+        """Start a new flight (the wind is cleared; set it again after a reset).
 
         :param position: (x, y, z) world ENU, m. Airborne: the CG is put at z. On the ground:
             z is ignored and the vehicle rests on the floor (CG at about ``GEAR_HEIGHT_M``).
