@@ -341,3 +341,23 @@ def test_write_to_unknown_name_on_px4_returns_at_once(peer_factory):
         assert encode_param_value(1.5, REAL32, True) == 1.5
     finally:
         conn.close()
+
+
+@pytest.mark.parametrize(
+    ("personality", "link", "scheme"),
+    [("ardupilot", "tcpin:127.0.0.1:0", "tcp"), ("px4", "udpin:127.0.0.1:0", "udpout")],
+)
+def test_against_the_simulated_autopilot(capsys, personality, link, scheme):
+    """The whole simulated flight controller (flightsim.sim_autopilot), not only its table."""
+    from flightsim.sim_autopilot.server import SimAutopilotServer
+
+    with SimAutopilotServer(personality, [link]) as server:
+        host, port = server.endpoint.address(0)
+        url = f"{scheme}:{host}:{port}"
+        assert main(cli("check", personality, url)) == 1
+        assert main(cli("apply", personality, url)) == 0
+        assert main(cli("check", personality, url)) == 0
+        wanted_file = "ardupilot-copter.parm" if personality == "ardupilot" else "px4.params"
+        for p in load_param_file(REPO / "firmware_params" / wanted_file, personality):
+            assert server.autopilot.params.get(p.name) == pytest.approx(p.value), p.name
+    assert "value encoding: " + ("bytewise" if personality == "px4" else "C cast") in capsys.readouterr().out
