@@ -47,7 +47,6 @@ PACKET_SIZE = 1206
 BLOCKS_PER_PACKET = 12
 LASERS = 16
 FIRINGS_PER_PACKET = 2 * BLOCKS_PER_PACKET
-BLOCK_FLAG = b"\xff\xee"
 DISTANCE_UNIT_M = 0.002
 MAX_RANGE_M = 65535 * DISTANCE_UNIT_M
 #: Duration of one firing sequence of all 16 lasers (16 × 2.304 µs + 18.43 µs recharge), µs.
@@ -58,7 +57,7 @@ PACKET_DURATION_US = FIRINGS_PER_PACKET * FIRING_SEQUENCE_US
 US_PER_HOUR = 3_600_000_000
 RETURN_STRONGEST = 0x37
 RETURN_LAST = 0x38
-RETURN_DUAL = 0x39
+RETURN_DUAL = 0x39  # refused: two returns per firing
 PRODUCT_ID_VLP16 = 0x22  # shared with the Puck LITE (same elevations); the Puck Hi-Res is 0x24
 
 #: Why a packet was dropped, in the order they are checked; the keys of the ``malformed`` counter.
@@ -116,7 +115,7 @@ def laser_azimuths_deg(firing_azimuth_deg: np.ndarray, step_deg: float) -> np.nd
 
 # Header fields of a data packet: 12 × (flag, azimuth), then timestamp, return mode, product id.
 _HEADER = struct.Struct("<" + "HH96x" * BLOCKS_PER_PACKET + "IBB")
-_FLAGS = (0xEEFF,) * BLOCKS_PER_PACKET  # b"\xff\xee" read little-endian
+_FLAGS = (0xEEFF,) * BLOCKS_PER_PACKET  # the bytes FF EE, read little-endian
 assert _HEADER.size == PACKET_SIZE
 
 
