@@ -20,8 +20,8 @@ log = logging.getLogger(__name__)
 class SystemdNotifier:
     """Send ``sd_notify`` states to systemd when running under it, else nothing.
 
-    A notification that cannot be delivered is logged once and counted, never raised: losing
-    systemd's socket must not take the flight software down.
+    A notification that cannot be delivered (socket gone, receive queue full) is logged once and
+    counted, never raised and never waited for: systemd must not be able to stall the flight loop.
 
     :param environ: where to read ``NOTIFY_SOCKET`` / ``WATCHDOG_USEC`` (default ``os.environ``)
     """
@@ -33,7 +33,11 @@ class SystemdNotifier:
         if address:
             if address.startswith("@"):
                 address = "\0" + address[1:]
-            self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
+            # Non-blocking: a full receive queue (systemd busy, max_dgram_qlen reached) must cost a
+            # dropped notification, never a stalled flight loop.
+            self._sock = socket.socket(
+                socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC | socket.SOCK_NONBLOCK
+            )
             self._address = address
         usec = env.get("WATCHDOG_USEC", "")
         #: seconds between WATCHDOG=1 pings: half the systemd deadline (as sd_watchdog_enabled advises);

@@ -68,3 +68,13 @@ def test_abstract_namespace_address():
         assert sock.recv(64) == b"WATCHDOG=1"
     finally:
         sock.close()
+
+
+def test_full_queue_never_blocks(systemd_socket):
+    """Nobody reads the socket: notifications are dropped and counted, the caller does not wait."""
+    path, _sock = systemd_socket
+    notifier = SystemdNotifier({"NOTIFY_SOCKET": str(path)})
+    for _ in range(2000):  # far beyond net.unix.max_dgram_qlen
+        notifier.watchdog()
+    assert notifier.counters["failed"] > 0
+    assert notifier.counters["watchdog"] + notifier.counters["failed"] == 2000

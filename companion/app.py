@@ -1,0 +1,421 @@
+"""``avoid-companion run``: the companion process. Wiring and the main loop, nothing else.
+
+Start-up: load the config, the policy (refusing a model that does not match), the lidar source,
+the optional autopilot parameter check, then the autopilot link; READY=1 to systemd.
+
+The loop (one thread, ``select()`` on the lidar socket with a short timeout so the link is
+serviced even when the lidar is silent):
+
+- every finished revolution: scan → OBSTACLE_DISTANCE → frame stack → policy → supervisor.on_scan
+- the link's vehicle status → supervisor.on_vehicle; supervisor.tick() says what to send:
+  POLICY → the shielded policy setpoint (every scan), ZERO → zero velocity (every scan, and at
+  10 Hz without scans), NONE → no setpoint
+- HEARTBEAT at 1 Hz; every supervisor transition: one log line, one STATUSTEXT
+- WATCHDOG=1 after every iteration that completed; a periodic counters log line
+
+Nothing a packet or the autopilot sends may end the process in the air: each iteration's faults
+are caught, counted and logged. SIGTERM/SIGINT only wake the loop (``signal.set_wakeup_fd``); the
+loop then sends a zero-velocity setpoint if it was commanding, and exits 0.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import os
+import select
+import signal
+import time
+from collections import Counter
+from collections.abc import Callable
+from typing import Any, Protocol
+
+import numpy as np
+
+from companion.autopilot.link import AutopilotLink, VehicleStatus
+from companion.config import CompanionConfig, load_config
+from companion.errors import UserError
+from companion.framestack import FrameStack
+from companion.notify import SystemdNotifier
+from companion.obstacle_distance import obstacle_distance_from_scan
+from companion.policy import InferenceFault, OnnxPolicy, PolicySpec
+from companion.scan import BIN_CONVENTION, N_BINS, scan_from_points
+from companion.shield import Command, SafetyShield, command_from_action
+from companion.supervisor import CommandKind, Supervisor, SupervisorState, Transition
+
+log = logging.getLogger(__name__)
+
+#: Zero setpoints (HOLD, and PX4's pre-OFFBOARD stream) go out at least this often without scans, s.
+ZERO_SETPOINT_PERIOD = 0.1
+#: Watchdog ping period when systemd does not say (WATCHDOG_USEC unset), s.
+DEFAULT_WATCHDOG_PERIOD = 1.0
+
+# MAV_SEVERITY of the STATUSTEXT for a transition into each state.
+_SEVERITY = {
+    SupervisorState.HOLD: 4,  # WARNING
+    SupervisorState.PILOT_OVERRIDE: 4,
+    SupervisorState.WAITING_FOR_AUTOPILOT: 4,
+    SupervisorState.ACTIVE: 5,  # NOTICE
+}
+_INFO = 6
+_COMMANDING = (CommandKind.POLICY, CommandKind.ZERO)
+
+
+class LidarSource(Protocol):
+    """What the loop needs from a lidar adapter (VLP-16 over UDP, CAN rangefinder ring)."""
+
+    def fileno(self) -> int | None: ...
+
+    def read_available(self) -> list[np.ndarray]: ...
+
+    def close(self) -> None: ...
+
+
+# ---- start-up --------------------------------------------------------------------------------
+
+
+def policy_spec(config: CompanionConfig) -> PolicySpec:
+    """What the companion feeds the model; the model's metadata must agree with every field."""
+    return PolicySpec(
+        stack=config.policy.stack,
+        n_bins=N_BINS,
+        max_range=config.scan.max_range,
+        bin_convention=BIN_CONVENTION,
+        max_speed=config.policy.max_speed,
+        max_yaw_rate=config.policy.max_yaw_rate,
+    )
+
+
+def open_lidar(config: CompanionConfig, clock: Callable[[], float]) -> LidarSource:
+    """The configured lidar source, opened (a bad port or bus is a :class:`UserError`)."""
+    lidar = config.lidar
+    if lidar.source == "velodyne":
+        from companion.lidar.velodyne import VelodyneUdpSource
+
+        v = lidar.velodyne
+        return VelodyneUdpSource(v.host, v.port, backend=v.decoder, clock=clock)
+    from companion.lidar.can_ring import open_can_ring
+
+    return open_can_ring(lidar.can, clock)
+
+
+def obstacle_distance_limits(config: CompanionConfig) -> tuple[int, int]:
+    """OBSTACLE_DISTANCE (min_distance, max_distance) in cm, from the scan's range limits."""
+    return max(1, round(config.scan.min_range * 100)), round(config.scan.max_range * 100)
+
+
+def open_link(config: CompanionConfig, clock: Callable[[], float]) -> AutopilotLink:
+    """The configured autopilot link (ArduPilot via pymavlink, PX4 via MAVSDK)."""
+    ap = config.autopilot
+    min_cm, max_cm = obstacle_distance_limits(config)
+    common: dict[str, Any] = {
+        "clock": clock,
+        "source_system": ap.source_system,
+        "source_component": ap.source_component,
+        "stream_rate_hz": ap.stream_rate_hz,
+        "min_distance_cm": min_cm,
+        "max_distance_cm": max_cm,
+    }
+    if ap.type == "px4":
+        from companion.autopilot.px4 import Px4Link
+
+        return Px4Link(ap.connection, **common)
+    from companion.autopilot.ardupilot import ArduPilotLink
+
+    return ArduPilotLink(ap.connection, baud=ap.baud, **common)
+
+
+def pymavlink_connection(config: CompanionConfig) -> tuple[str, int]:
+    """The autopilot connection as a pymavlink string and baud (the parameter check speaks pymavlink).
+
+    PX4 connections are MAVSDK URLs: ``udpin://H:P`` → ``udpin:H:P``, ``serial:///dev/X:B`` →
+    ``/dev/X`` at ``B`` baud, ``tcpout://H:P`` → ``tcp:H:P``.
+    """
+    ap = config.autopilot
+    url = ap.connection
+    if "://" not in url:
+        return url, ap.baud
+    scheme, rest = url.split("://", 1)
+    if scheme in ("serial", "serial_flowcontrol"):
+        device, _, baud = rest.rpartition(":")
+        return (device, int(baud)) if baud.isdigit() else (rest, ap.baud)
+    mapping = {"udpin": "udpin", "udpout": "udpout", "udp": "udpin", "tcpout": "tcp", "tcp": "tcp",
+               "tcpin": "tcpin"}
+    if scheme not in mapping:
+        raise UserError(f"autopilot.connect: cannot check parameters over {url!r} (scheme {scheme})")
+    return f"{mapping[scheme]}:{rest}", ap.baud
+
+
+def check_parameters(config: CompanionConfig) -> list[str]:
+    """Run the configured autopilot parameter check before the link takes the port.
+
+    :return: one line per mismatch (``warn``: the caller logs and STATUSTEXTs them)
+    :raises UserError: ``refuse`` and something differs, or the check could not run
+    """
+    pc = config.params_check
+    if pc.mode == "off":
+        return []
+    from companion import params
+
+    wanted = params.load_param_file(pc.file, config.autopilot.type)
+    url, baud = pymavlink_connection(config)
+    try:
+        conn = params.open_connection(url, baud)
+        try:
+            report = params.run_params(conn, config.autopilot.type, wanted, heartbeat_timeout=pc.timeout)
+        finally:
+            conn.close()
+    except UserError as exc:
+        if pc.mode == "refuse":
+            raise UserError(f"params_check: {exc}") from None
+        log.warning("parameter check could not run: %s", exc)
+        return [f"param check failed: {exc}"]
+    bad = [r for r in report.results if not r.ok]
+    lines = [
+        f"param {r.name}: wanted {params.format_value(r.wanted.value, r.wanted.param_type)}, "
+        f"autopilot {params.format_value(r.actual, r.actual_type)} ({r.status.value})"
+        for r in bad
+    ]
+    if bad and pc.mode == "refuse":
+        raise UserError(f"params_check: {len(bad)} autopilot parameter(s) differ from {pc.file}: "
+                        + "; ".join(lines))
+    log.info("parameter check: %d/%d as wanted", len(report.results) - len(bad), len(report.results))
+    return lines
+
+
+# ---- the loop ----------------------------------------------------------------------------------
+
+
+class Companion:
+    """The running companion: owns the policy, the lidar source, the link and the pure parts.
+
+    :param config: the loaded configuration
+    :param clock: monotonic clock shared by the supervisor, the links and the lidar source
+    :param notifier: systemd notification (default: from the environment)
+    """
+
+    def __init__(
+        self,
+        config: CompanionConfig,
+        clock: Callable[[], float] = time.monotonic,
+        notifier: SystemdNotifier | None = None,
+    ) -> None:
+        self.config = config
+        self._clock = clock
+        self.notifier = notifier if notifier is not None else SystemdNotifier()
+        self.policy = OnnxPolicy(config.policy.model, policy_spec(config), config.policy.providers or None)
+        self._param_messages = check_parameters(config)
+        self.lidar = open_lidar(config, clock)
+        try:
+            self.link = open_link(config, clock)
+        except BaseException:
+            self.lidar.close()
+            raise
+        self.supervisor = Supervisor(config.supervisor, clock)
+        self.shield = SafetyShield(config.shield, config.scan.max_range)
+        self.stack = FrameStack(config.policy.stack, N_BINS)
+        self._od_limits = obstacle_distance_limits(config)
+        # PX4 only accepts a switch to OFFBOARD while setpoints already stream.
+        self._stream_before_mode = bool(getattr(self.link, "setpoints_before_offboard", False))
+        self.counters: Counter[str] = Counter()
+        self._status = VehicleStatus()
+        self._kind = CommandKind.NONE
+        self._reset_stack = True
+        self._latest: tuple[np.ndarray, Command] | None = None  # newest scan and its requested command
+        self._last_filter: float | None = None
+        self._last_zero = -math.inf
+        self._last_heartbeat = -math.inf
+        self._last_watchdog = -math.inf
+        self._last_log = clock()
+        self._stopping = False
+
+    # ---- one iteration ---------------------------------------------------------------------
+
+    def step(self, timeout: float) -> None:
+        """Wait up to ``timeout`` for lidar data, then do everything one iteration does."""
+        fds = [fd for fd in (self.lidar.fileno(), self.link_fileno()) if fd is not None]
+        if fds:
+            select.select(fds, [], [], timeout)
+        elif timeout > 0:
+            time.sleep(timeout)
+        clouds = self.lidar.read_available()
+        self._status = self.link.poll()
+        self.supervisor.on_vehicle(self._status)
+        for cloud in clouds:
+            self._on_cloud(cloud)
+        kind = self.supervisor.tick()
+        for transition in self.supervisor.drain_transitions():
+            self._announce(transition)
+        self._send(kind, new_scan=bool(clouds))
+        self._kind = kind
+        self._periodic()
+
+    def link_fileno(self) -> int | None:
+        fileno = getattr(self.link, "fileno", None)
+        return fileno() if fileno is not None else None
+
+    def _on_cloud(self, cloud: np.ndarray) -> None:
+        scan = scan_from_points(cloud, self.config.scan)
+        self.counters["scans"] += 1
+        if self.config.autopilot.obstacle_distance:
+            self.link.send_obstacle_distance(obstacle_distance_from_scan(scan, self.config.scan.max_range,
+                                                                         *self._od_limits))
+        obs = self.stack.reset(scan) if self._reset_stack else self.stack.push(scan)
+        self._reset_stack = False
+        try:
+            action = self.policy.act(obs)
+        except InferenceFault as exc:
+            self.counters["inference_faults"] += 1
+            if self.counters["inference_faults"] == 1 or self.counters["inference_faults"] % 100 == 0:
+                log.warning("inference fault (%d so far): %s", self.counters["inference_faults"], exc)
+            self.supervisor.on_scan(False)
+            self._latest = (scan, Command(0.0, 0.0))
+            return
+        self.supervisor.on_scan(True)
+        cfg = self.config.policy
+        self._latest = (scan, command_from_action(action, cfg.max_speed, cfg.max_yaw_rate))
+
+    def _send(self, kind: CommandKind, new_scan: bool) -> None:
+        now = self._clock()
+        if kind is CommandKind.POLICY:
+            if new_scan and self._latest is not None:
+                scan, requested = self._latest
+                last = self._last_filter
+                dt = min(max(now - last, 1e-3), 0.5) if last is not None else 0.1
+                command = self.shield.filter(requested, scan, dt)
+                self._last_filter = now
+                self.link.send_velocity(command.forward, command.yaw_rate)
+                self.counters["setpoints_policy"] += 1
+        else:
+            # Leaving ACTIVE: the next engagement ramps up from standstill, with a fresh stack.
+            self.shield.reset()
+            self._last_filter = None
+            stream = kind is CommandKind.ZERO or (
+                self._stream_before_mode
+                and self._status.armed
+                and self.supervisor.state in (SupervisorState.STANDBY, SupervisorState.PILOT_OVERRIDE)
+            )
+            if stream and (new_scan or now - self._last_zero >= ZERO_SETPOINT_PERIOD):
+                self.link.send_velocity(0.0, 0.0)
+                self._last_zero = now
+                self.counters["setpoints_zero"] += 1
+        if self.supervisor.state is not SupervisorState.ACTIVE:
+            self._reset_stack = True
+
+    def _announce(self, transition: Transition) -> None:
+        self.counters["transitions"] += 1
+        log.info("supervisor %s", transition)
+        self.link.send_statustext(f"avoid {transition}", _SEVERITY.get(transition.new, _INFO))
+        self.notifier.status(transition.new.value)
+
+    def _periodic(self) -> None:
+        now = self._clock()
+        if now - self._last_heartbeat >= self.config.runtime.heartbeat_interval:
+            self.link.send_heartbeat()
+            self._last_heartbeat = now
+        if self._param_messages and self._status.heartbeat_time is not None:
+            for line in self._param_messages:  # warn mode: the pilot sees them once the link is up
+                self.link.send_statustext(line, 4)
+            self._param_messages = []
+        if now - self._last_log >= self.config.runtime.log_interval:
+            self._last_log = now
+            log.info("%s", self.summary())
+
+    def summary(self) -> str:
+        """One line of counters for the periodic log."""
+        parts = [f"state={self.supervisor.state.value}"]
+        parts += [f"{k}={v}" for k, v in sorted(self.counters.items())]
+        parts += [f"link.{k}={v}" for k, v in sorted(self.link.counters.items()) if v]
+        lidar_counters = getattr(self.lidar, "counters", None)
+        if lidar_counters is not None:
+            parts += [f"lidar.{k}={v}" for k, v in sorted(vars(lidar_counters).items()) if v]
+        parts += [f"shield.{k}={v}" for k, v in sorted(self.shield.interventions.items())]
+        return " ".join(parts)
+
+    # ---- the whole run ---------------------------------------------------------------------
+
+    def run(self) -> int:
+        """Loop until SIGTERM/SIGINT; return the exit status (0)."""
+        wake_r, wake_w = os.pipe2(os.O_NONBLOCK | os.O_CLOEXEC)
+        previous_handlers = {s: signal.signal(s, _wake_only) for s in (signal.SIGTERM, signal.SIGINT)}
+        previous_wakeup = signal.set_wakeup_fd(wake_w, warn_on_full_buffer=False)
+        try:
+            self.supervisor.start()
+            for transition in self.supervisor.drain_transitions():
+                self._announce(transition)
+            self.notifier.ready("model loaded, links open")
+            log.info("companion running: lidar %s, autopilot %s %s", self.config.lidar.source,
+                     self.config.autopilot.type, self.config.autopilot.connection)
+            watchdog_period = self.notifier.watchdog_period or DEFAULT_WATCHDOG_PERIOD
+            while not self._stopping:
+                ok = self._guarded_step(wake_r)
+                now = self._clock()
+                if ok and now - self._last_watchdog >= watchdog_period:
+                    self.notifier.watchdog()
+                    self._last_watchdog = now
+            return 0
+        finally:
+            signal.set_wakeup_fd(previous_wakeup)
+            for s, handler in previous_handlers.items():
+                signal.signal(s, handler)
+            os.close(wake_r)
+            os.close(wake_w)
+
+    def _guarded_step(self, wake_r: int) -> bool:
+        """One iteration; True when it completed. A fault is counted and logged, never raised."""
+        try:
+            ready, _, _ = select.select([wake_r], [], [], 0)
+            if ready:
+                signals = os.read(wake_r, 64)
+                log.info("signal %s: stopping", ", ".join(signal.Signals(s).name for s in signals))
+                self._stopping = True
+                return True
+            self.step(self.config.runtime.poll_interval)
+            return True
+        except Exception as exc:  # the process must survive whatever one iteration met
+            self.counters["loop_faults"] += 1
+            n = self.counters["loop_faults"]
+            if n <= 5 or n % 100 == 0:
+                log.exception("fault in the main loop (%d so far): %s", n, exc)
+            time.sleep(min(self.config.runtime.poll_interval, 0.01))  # never spin on a persistent fault
+            return False
+
+    def close(self) -> None:
+        """Zero setpoint if the companion was commanding, then release everything."""
+        self.notifier.stopping()
+        try:
+            if self._kind in _COMMANDING:
+                self.link.send_velocity(0.0, 0.0)
+                self.counters["setpoints_zero"] += 1
+                log.info("sent a zero-velocity setpoint on the way out")
+            log.info("%s", self.summary())
+        finally:
+            self.link.close()
+            self.lidar.close()
+            self.notifier.close()
+
+
+def _wake_only(signum: int, frame: Any) -> None:
+    """Signal handler: nothing. ``set_wakeup_fd`` already put the signal number in the loop's pipe."""
+
+
+# ---- CLI ----------------------------------------------------------------------------------------
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    """``run --config FILE [key=value ...]``."""
+    parser.add_argument("--config", required=True, metavar="FILE.toml",
+                        help="companion configuration (see config/companion.example.toml)")
+    parser.add_argument("overrides", nargs="*", metavar="KEY=VALUE",
+                        help="override config keys, e.g. shield.max_speed=1.0")
+
+
+def command(args: argparse.Namespace) -> int:
+    """Run the companion until SIGTERM/SIGINT."""
+    config = load_config(args.config, args.overrides)
+    companion = Companion(config)
+    try:
+        return companion.run()
+    finally:
+        companion.close()

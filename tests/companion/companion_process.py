@@ -1,0 +1,170 @@
+"""Run the real ``avoid-companion run`` in a subprocess, feed it VLP-16 packets, listen to systemd.
+
+Shared by the process-level tests (test_app, test_isolation) and the bench.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from companion.lidar.velodyne import FIRINGS_PER_PACKET, PACKET_DURATION_US, encode_packets
+from tests.companion.mavlink_peer import free_udp_port
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def revolution_packets(index: int, step_deg: float = 1.0, range_m: float = 8.0) -> list[bytes]:
+    """The packets of one whole revolution, laid out so the azimuth wraps inside the last packet.
+
+    Revolutions of consecutive ``index`` continue each other, so each one completes the previous.
+    """
+    n = round(360 / step_deg)
+    start = step_deg * (FIRINGS_PER_PACKET // 2)  # the wrap falls half-way through the last packet
+    azimuth = (start + step_deg * np.arange(n)) % 360.0
+    ranges = np.full((n, 16), range_m)
+    first_stamp = index * (n // FIRINGS_PER_PACKET) * PACKET_DURATION_US
+    return encode_packets(azimuth, ranges, start_timestamp_us=first_stamp)
+
+
+class LidarSender:
+    """Sends revolutions to the companion's VLP-16 port at ``rate_hz`` from a thread while ``on``."""
+
+    def __init__(self, port: int, rate_hz: float = 10.0, step_deg: float = 1.0) -> None:
+        self.address = ("127.0.0.1", port)
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.period = 1.0 / rate_hz
+        self.step_deg = step_deg
+        self.on = False
+        self.sent: list[float] = []  # monotonic time each revolution's last packet left
+        self._index = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.period):
+            if self.on:
+                self.send_one()
+
+    def send_one(self) -> None:
+        for packet in revolution_packets(self._index, self.step_deg):
+            self.sock.sendto(packet, self.address)
+        self.sent.append(time.monotonic())
+        self._index += 1
+
+    def garbage(self) -> None:
+        """Malformed datagrams: too short, wrong flag, random bytes of the right length."""
+        rng = np.random.default_rng(7)
+        self.sock.sendto(b"\x00" * 100, self.address)
+        self.sock.sendto(b"\xff" * 1206, self.address)
+        self.sock.sendto(rng.integers(0, 256, 1206, dtype=np.uint8).tobytes(), self.address)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2)
+        self.sock.close()
+
+
+class NotifySocket:
+    """An AF_UNIX datagram socket standing in for systemd's NOTIFY_SOCKET."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.bind(str(path))
+        self.sock.setblocking(False)
+        self.received: list[tuple[float, str]] = []
+
+    def drain(self) -> list[str]:
+        while True:
+            try:
+                self.received.append((time.monotonic(), self.sock.recv(4096).decode()))
+            except BlockingIOError:
+                return [m for _, m in self.received]
+
+    def wait_for(self, text: str, timeout: float = 10.0) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if any(text in m for m in self.drain()):
+                return True
+            time.sleep(0.01)
+        return False
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+def write_config(tmp_path: Path, model: Path, lidar_port: int, mavlink_port: int, extra: str = "") -> Path:
+    """A companion config for loopback: VLP-16 on ``lidar_port``, ArduPilot via udpin ``mavlink_port``."""
+    path = tmp_path / "companion.toml"
+    path.write_text(
+        f"""
+[lidar.velodyne]
+host = "127.0.0.1"
+port = {lidar_port}
+
+[policy]
+model = "{model}"
+
+[supervisor]
+recover_scans = 5
+climb_settled_time = 0.3
+
+[autopilot]
+type = "ardupilot"
+connect = "udpin:127.0.0.1:{mavlink_port}"
+
+[runtime]
+log_interval = 2.0
+{extra}
+"""
+    )
+    return path
+
+
+def start_companion(config: Path, notify: Path | None = None, extra_env: dict[str, str] | None = None,
+                    python_args: tuple[str, ...] = ()) -> subprocess.Popen[str]:
+    env = dict(os.environ)
+    env.pop("NOTIFY_SOCKET", None)
+    if notify is not None:
+        env["NOTIFY_SOCKET"] = str(notify)
+        env["WATCHDOG_USEC"] = "1000000"
+    env.update(extra_env or {})
+    return subprocess.Popen(
+        [sys.executable, *python_args, "-m", "companion", "run", "--config", str(config)],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def run_to_exit(args: list[str], timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "companion", *args], cwd=REPO, capture_output=True,
+                          text=True, timeout=timeout)
+
+
+def stop(proc: subprocess.Popen[str], timeout: float = 10.0) -> tuple[int, str, str]:
+    """SIGTERM, wait, return (exit status, stdout, stderr); kill if it does not stop."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+    try:
+        out, err = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, err = proc.communicate()
+    return proc.returncode, out, err
+
+
+__all__ = ["LidarSender", "NotifySocket", "free_udp_port", "revolution_packets", "run_to_exit",
+           "start_companion", "stop", "write_config"]

@@ -1,0 +1,183 @@
+"""The real ``avoid-companion run`` process: VLP-16 UDP packets in, MAVLink setpoints out.
+
+A pymavlink peer poses as ArduPilot Copter (armed, GUIDED, in the air at 1.5 m); a test thread
+streams VLP-16 revolutions; an AF_UNIX socket stands in for systemd.
+"""
+
+from __future__ import annotations
+
+import signal
+import time
+
+import pytest
+
+from companion.autopilot.mavlink_adapter import mavlink
+from companion.policy import PolicySpec
+from tests.companion.companion_process import (
+    LidarSender,
+    NotifySocket,
+    free_udp_port,
+    run_to_exit,
+    start_companion,
+    stop,
+    write_config,
+)
+from tests.companion.mavlink_peer import COPTER_GUIDED, COPTER_LOITER, SimulatedAutopilot
+from tests.onnx_models import write_policy
+
+SETPOINT = "SET_POSITION_TARGET_LOCAL_NED"
+
+
+def _wait(condition, timeout=10.0, what="condition"):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = condition()
+        if value:
+            return value
+        time.sleep(0.01)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+@pytest.fixture
+def rig(tmp_path):
+    """The companion process with its peers; yields a namespace, tears everything down."""
+    lidar_port, mavlink_port = free_udp_port(), free_udp_port()
+    model = write_policy(tmp_path / "forward.onnx", kind="forward")
+    config = write_config(tmp_path, model, lidar_port, mavlink_port)
+    notify = NotifySocket(tmp_path / "notify.sock")
+    vehicle = SimulatedAutopilot(f"udpout:127.0.0.1:{mavlink_port}")
+    proc = start_companion(config, notify=notify.path)
+    lidar = LidarSender(lidar_port)
+
+    class Rig:
+        pass
+
+    rig = Rig()
+    rig.proc, rig.vehicle, rig.lidar, rig.notify, rig.config = proc, vehicle, lidar, notify, config
+    yield rig
+    lidar.close()
+    if proc.poll() is None:
+        print(stop(proc)[2][-5000:])  # the companion's log, shown when a test fails
+    vehicle.close()
+    notify.close()
+
+
+def test_flight_engage_hold_recover_override_and_sigterm(rig):
+    proc, vehicle, lidar, notify = rig.proc, rig.vehicle, rig.lidar, rig.notify
+    assert notify.wait_for("READY=1"), "no READY=1 from the companion"
+    # The autopilot hears the companion: HEARTBEAT as an onboard controller, component 191.
+    hb = _wait(lambda: vehicle.wait_for("HEARTBEAT", timeout=0.1), what="companion heartbeat")
+    assert hb.type == mavlink.MAV_TYPE_ONBOARD_CONTROLLER and hb.get_srcComponent() == 191
+    time.sleep(0.5)
+    assert vehicle.messages(SETPOINT) == [], "setpoints before any lidar data"
+
+    # Engage: setpoints only after recover_scans (5) good scans; the first revolution only starts one.
+    lidar.on = True
+    first = _wait(lambda: vehicle.wait_for(SETPOINT, timeout=0.1), what="first setpoint")
+    first_time = vehicle.times(SETPOINT)[0]
+    revolutions_before = sum(t < first_time for t in lidar.sent)
+    assert revolutions_before - 1 >= 5, f"engaged after {revolutions_before - 1} scans"
+    assert first.type_mask == 0x05C7 and first.coordinate_frame == mavlink.MAV_FRAME_BODY_OFFSET_NED
+    assert first.vy == 0.0 and first.vz == 0.0 and first.yaw_rate == 0.0
+    lidar.garbage()  # malformed packets in flight: counted and dropped
+    time.sleep(1.0)
+    active = vehicle.messages(SETPOINT)
+    assert len(active) >= 5
+    assert active[-1].vx > 0.0, "the forward policy should be flying forward"
+    assert max(m.vx for m in active) <= 2.0 + 1e-6  # shield max_speed
+    assert any("ACTIVE" in m.text for m in vehicle.messages("STATUSTEXT"))
+    distances = vehicle.messages("OBSTACLE_DISTANCE")
+    assert len(distances) >= len(active) - 1
+    assert distances[-1].increment == 5 and distances[-1].frame == mavlink.MAV_FRAME_BODY_FRD
+
+    # Lidar stops: HOLD, zero setpoints keep coming (~10 Hz).
+    lidar.on = False
+    t_stop = time.monotonic()
+    _wait(lambda: any("HOLD" in m.text for m in vehicle.messages("STATUSTEXT", since=t_stop)), what="HOLD")
+    time.sleep(0.6)
+    t_hold = time.monotonic() - 0.5
+    held = vehicle.messages(SETPOINT, since=t_hold)
+    assert len(held) >= 3 and all(m.vx == 0.0 and m.yaw_rate == 0.0 for m in held)
+
+    # Lidar back: ACTIVE again after recover_scans good scans, ramping up from standstill.
+    lidar.on = True
+    t_back = time.monotonic()
+    _wait(lambda: any(m.vx > 0 for m in vehicle.messages(SETPOINT, since=t_back)), what="recovery")
+    assert sum(t > t_back for t in lidar.sent) >= 5
+
+    # The pilot switches to LOITER: the companion stops commanding and never switches back.
+    vehicle.custom_mode = COPTER_LOITER
+    t_override = time.monotonic()
+    _wait(lambda: any("PILOT_OVERRIDE" in m.text for m in vehicle.messages("STATUSTEXT", since=t_override)),
+          what="PILOT_OVERRIDE")
+    time.sleep(0.5)
+    late = vehicle.messages(SETPOINT, since=time.monotonic() - 0.3)
+    assert late == []
+    assert not [m for m in vehicle.messages(since=t_override)
+                if m.get_type() in ("SET_MODE", "COMMAND_LONG") and getattr(m, "command", None) != 511]
+    vehicle.custom_mode = COPTER_GUIDED
+    t_guided = time.monotonic()
+    _wait(lambda: vehicle.messages(SETPOINT, since=t_guided), what="re-engage")
+
+    # systemd watchdog pings while healthy.
+    assert notify.wait_for("WATCHDOG=1")
+
+    # SIGTERM while commanding: a zero setpoint goes out, exit 0.
+    proc.send_signal(signal.SIGTERM)
+    t_term = time.monotonic()
+    code, _out, err = stop(proc)
+    lidar.on = False
+    assert code == 0, err
+    time.sleep(0.2)
+    after = vehicle.messages(SETPOINT, since=t_term)
+    assert after and after[-1].vx == 0.0 and after[-1].yaw_rate == 0.0
+    assert "Traceback" not in err
+    assert "lidar.malformed" in err or "malformed" in err  # the garbage was counted (summary line)
+
+
+def test_bad_config_key_is_one_line_exit_2(tmp_path):
+    model = write_policy(tmp_path / "m.onnx")
+    extra = "[shield]\nmax_sped = 1.0\n"
+    config = write_config(tmp_path, model, free_udp_port(), free_udp_port(), extra=extra)
+    result = run_to_exit(["run", "--config", str(config)])
+    assert result.returncode == 2
+    assert result.stderr.strip() == "avoid-companion: error: shield.max_sped: unknown config key"
+
+
+def test_bad_override_is_one_line_exit_2(tmp_path):
+    model = write_policy(tmp_path / "m.onnx")
+    config = write_config(tmp_path, model, free_udp_port(), free_udp_port())
+    result = run_to_exit(["run", "--config", str(config), "supervisor.recover_scans=0"])
+    assert result.returncode == 2
+    expected = "avoid-companion: error: supervisor.recover_scans: 0 is below the minimum 1"
+    assert result.stderr.strip() == expected
+
+
+def test_model_trained_for_another_range_is_refused(tmp_path):
+    model = write_policy(tmp_path / "m.onnx", spec=PolicySpec(max_range=8.0))
+    config = write_config(tmp_path, model, free_udp_port(), free_udp_port())
+    result = run_to_exit(["run", "--config", str(config)])
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr
+    assert "max_range 8.0" in lines[0] and "scan.max_range 10.0" in lines[0]
+
+
+def test_missing_model_and_busy_lidar_port(tmp_path):
+    config = write_config(tmp_path, tmp_path / "nope.onnx", free_udp_port(), free_udp_port())
+    result = run_to_exit(["run", "--config", str(config)])
+    assert result.returncode == 2 and "policy model not found" in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
+
+    import socket
+
+    busy = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    busy.bind(("127.0.0.1", 0))
+    try:
+        model = write_policy(tmp_path / "m.onnx")
+        config = write_config(tmp_path, model, busy.getsockname()[1], free_udp_port())
+        result = run_to_exit(["run", "--config", str(config)])
+        assert result.returncode == 2
+        assert "cannot listen for VLP-16 packets" in result.stderr.strip().splitlines()[-1]
+    finally:
+        busy.close()
