@@ -57,15 +57,16 @@ class CanConfig:
 
     :param interface: python-can interface (``socketcan`` on the Jetson, ``virtual`` for tests)
     :param channel: python-can channel (``can0``)
-    :param bitrate: bus bit rate (ignored by interfaces that do not set it, e.g. socketcan)
+    :param bitrate: bus bit rate (Benewake's default 250 kbit/s; ignored by interfaces that do not set
+        it, e.g. socketcan)
     :param max_range: readings beyond this are "no return", metres
-    :param stale_after: a sensor silent for longer than this no longer contributes, s
+    :param stale_after: a reading older than this is not used, s (a silent sensor stops the clouds)
     :param sensors: one entry per rangefinder
     """
 
     interface: str = "socketcan"
     channel: str = "can0"
-    bitrate: int = field(default=1_000_000, metadata={"min": 10_000, "max": 8_000_000})
+    bitrate: int = field(default=250_000, metadata={"min": 10_000, "max": 8_000_000})
     max_range: float = field(default=12.0, metadata={"min": 0.5, "max": 200.0})
     stale_after: float = field(default=0.3, metadata={"min": 0.01, "max": 10.0})
     sensors: tuple[CanSensorConfig, ...] = ()

@@ -181,3 +181,53 @@ def test_missing_model_and_busy_lidar_port(tmp_path):
         assert "cannot listen for VLP-16 packets" in result.stderr.strip().splitlines()[-1]
     finally:
         busy.close()
+
+
+def test_can_ring_in_process(tmp_path):
+    """The CAN rangefinder path, in-process (python-can's virtual bus does not cross processes)."""
+    import can
+
+    from companion.app import Companion
+    from companion.config import load_config
+    from companion.lidar.can_ring import benewake_frame
+    from companion.notify import SystemdNotifier
+
+    mavlink_port = free_udp_port()
+    channel = f"ring-{mavlink_port}"
+    model = write_policy(tmp_path / "forward.onnx", kind="forward")
+    config_path = write_config(tmp_path, model, free_udp_port(), mavlink_port, extra=f"""
+[lidar]
+source = "can"
+[lidar.can]
+interface = "virtual"
+channel = "{channel}"
+[[lidar.can.sensors]]
+can_id = 0x10
+yaw_deg = 0.0
+[[lidar.can.sensors]]
+can_id = 0x11
+yaw_deg = 90.0
+""")
+    companion = Companion(load_config(config_path), notifier=SystemdNotifier({}))
+    vehicle = SimulatedAutopilot(f"udpout:127.0.0.1:{mavlink_port}")
+    sensors = can.Bus(interface="virtual", channel=channel)
+    try:
+        companion.supervisor.start()
+        deadline = time.monotonic() + 10
+        next_frames = 0.0
+        while time.monotonic() < deadline and not vehicle.messages(SETPOINT):
+            if time.monotonic() >= next_frames:
+                next_frames = time.monotonic() + 0.1
+                sensors.send(benewake_frame(0x10, 6.0))  # 6 m ahead
+                sensors.send(benewake_frame(0x11, 1.0))  # 1 m to the left
+            companion.step(0.01)
+        first = vehicle.wait_for(SETPOINT, timeout=1.0)
+        assert first is not None, companion.summary()
+        assert first.vx > 0
+        distances = vehicle.wait_for("OBSTACLE_DISTANCE")
+        assert distances.distances[0] == 600 and distances.distances[54] == 100  # ahead; left = 270° cw
+        assert companion.counters["scans"] >= 5
+    finally:
+        sensors.shutdown()
+        companion.close()
+        vehicle.close()
