@@ -9,6 +9,7 @@ from companion.cli import run_cli
 # subcommand name -> (module providing configure_parser/command, one-line help)
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "fly": ("flightsim.harness", "SITL flight: the real companion flying a simulated (or external) autopilot"),
+    "demo": ("flightsim.demo", "a few short SITL flights in generated and example rooms (under 3 minutes)"),
 }
 
 

@@ -329,18 +329,20 @@ class SitlFlight:
     def start(self) -> None:
         """Start the autopilot (or connect to the external one), the lidar stream and the companion."""
         scan = ScanConfig()
+        lidar = LidarConfig(azimuth_step_deg=self.options.lidar_step_deg, max_range=scan.max_range)
+        self.cosim = LidarCosim(
+            self.world, self._pose, ("127.0.0.1", self.lidar_port), lidar=lidar, scan=scan
+        )
+        # cast once before anything runs in real time: the first cast compiles the numba kernel,
+        # which holds the interpreter lock for seconds and would stall the autopilot's loop
+        self.cosim.revolution_packets(self._start_state())
         if self.options.autopilot == "external":
             self._start_external()
-            pose = self.external.state  # type: ignore[union-attr]
             companion_type = "px4" if self.gcs.is_px4 else "ardupilot"  # type: ignore[union-attr]
         else:
             self._start_simulated()
-            pose = lambda: self.server.state  # noqa: E731
             companion_type = self.personality
-        lidar = LidarConfig(azimuth_step_deg=self.options.lidar_step_deg, max_range=scan.max_range)
-        self.cosim = LidarCosim(
-            self.world, pose, ("127.0.0.1", self.lidar_port), lidar=lidar, scan=scan
-        ).start()
+        self.cosim.start()
         connect = (
             f"udpin://127.0.0.1:{self.companion_port}"
             if companion_type == "px4"
@@ -355,6 +357,28 @@ class SitlFlight:
         )
         self.config_path.write_text(toml_dumps(to_dict(cfg)))
         self.start_companion()
+
+    def _pose(self) -> Any:
+        """The vehicle state the lidar is cast from (simulated vehicle or mirrored external SITL)."""
+        if self.external is not None:
+            return self.external.state()
+        return self.server.state
+
+    def _start_state(self) -> Any:
+        from flightsim.vehicle import VehicleState
+
+        x, y, z = self.world.start_position
+        return VehicleState(
+            time=0.0,
+            position=np.array([x, y, z]),
+            velocity=np.zeros(3),
+            roll=0.0,
+            pitch=0.0,
+            yaw=math.radians(self.world.start_yaw_deg),
+            angular_rate=np.zeros(3),
+            on_ground=False,
+            armed=False,
+        )
 
     def _start_simulated(self) -> None:
         from flightsim.sim_autopilot.server import SimAutopilotServer
