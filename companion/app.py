@@ -180,6 +180,8 @@ def check_parameters(config: CompanionConfig) -> list[str]:
     if bad and pc.mode == "refuse":
         raise UserError(f"params_check: {len(bad)} autopilot parameter(s) differ from {pc.file}: "
                         + "; ".join(lines))
+    for line in lines:
+        log.warning("%s", line)
     log.info("parameter check: %d/%d as wanted", len(report.results) - len(bad), len(report.results))
     return lines
 

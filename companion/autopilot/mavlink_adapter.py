@@ -52,6 +52,7 @@ class MavlinkEndpoint:
                 autoreconnect=True,
                 retries=1,
                 reconnect_delay=0.5,
+                dialect="ardupilotmega",  # pymavlink's dialect is global: others may have switched it
             )
         except (OSError, ValueError) as exc:  # refused TCP, busy port, missing device, bad syntax
             raise UserError(f"autopilot.connect: cannot open {connect!r}: {exc}") from None

@@ -137,6 +137,7 @@ class SimulatedAutopilot:
         self.climb = 0.0
         self.landed = mavlink.MAV_LANDED_STATE_IN_AIR
         self.sending = True  # False: go silent (heartbeat loss)
+        self.params: dict[str, float] = {}  # answered to PARAM_REQUEST_READ (REAL32, C-cast)
         self._period = 1.0 / rate_hz
         self._lock = threading.Lock()
         self._received: list[tuple[float, Any]] = []
@@ -165,6 +166,11 @@ class SimulatedAutopilot:
                     self._received.append((time.monotonic(), msg))
                 if msg.get_type() == "COMMAND_LONG":
                     self._answer(msg)
+                elif msg.get_type() == "PARAM_REQUEST_READ" and msg.param_id in self.params:
+                    names = sorted(self.params)
+                    self.peer.mav.param_value_send(msg.param_id.encode(), self.params[msg.param_id],
+                                                   mavlink.MAV_PARAM_TYPE_REAL32, len(names),
+                                                   names.index(msg.param_id))
             if not got:
                 time.sleep(0.001)
 

@@ -231,3 +231,41 @@ yaw_deg = 90.0
         sensors.shutdown()
         companion.close()
         vehicle.close()
+
+
+def _params_rig(tmp_path, mode):
+    mavlink_port = free_udp_port()
+    model = write_policy(tmp_path / "m.onnx")
+    parm = tmp_path / "copter.parm"
+    parm.write_text("# wanted\nPRX1_TYPE 2\nFENCE_ENABLE 1\n")
+    config = write_config(tmp_path, model, free_udp_port(), mavlink_port,
+                          extra=f'[params_check]\nmode = "{mode}"\nfile = "{parm.name}"\ntimeout = 5.0\n')
+    vehicle = SimulatedAutopilot(f"udpout:127.0.0.1:{mavlink_port}")
+    vehicle.params = {"PRX1_TYPE": 0.0, "FENCE_ENABLE": 1.0}  # proximity from MAVLink not enabled
+    return config, vehicle
+
+
+def test_parameter_check_refuse_exits_naming_the_parameter(tmp_path):
+    config, vehicle = _params_rig(tmp_path, "refuse")
+    try:
+        result = run_to_exit(["run", "--config", str(config)])
+    finally:
+        vehicle.close()
+    assert result.returncode == 2
+    last = result.stderr.strip().splitlines()[-1]
+    assert last.startswith("avoid-companion: error: params_check: 1 autopilot parameter(s) differ")
+    assert "PRX1_TYPE: wanted 2, autopilot 0" in last
+
+
+def test_parameter_check_warn_tells_the_pilot_and_flies_on(tmp_path):
+    config, vehicle = _params_rig(tmp_path, "warn")
+    proc = start_companion(config)
+    try:
+        text = vehicle.wait_for("STATUSTEXT", timeout=20, condition=lambda m: "PRX1_TYPE" in m.text)
+        assert text is not None and text.severity == mavlink.MAV_SEVERITY_WARNING
+        assert proc.poll() is None
+    finally:
+        code, _out, err = stop(proc)
+        vehicle.close()
+    assert code == 0, err
+    assert "param PRX1_TYPE: wanted 2, autopilot 0" in err
