@@ -147,6 +147,20 @@ def packet_error(packet: bytes) -> str | None:
     return _parse_header(packet)[0]
 
 
+def _reason_codes(packets: np.ndarray) -> np.ndarray:
+    """_parse_header's checks on (P, 1206) packets at once: 1 + index into MALFORMED_REASONS, or 0."""
+    view = packets.view(PACKET_DTYPE)[:, 0]
+    blocks = view["blocks"]
+    codes = np.zeros(len(packets), dtype=np.int8)
+    # Assigned last reason first, so that the first reason found wins as in _parse_header.
+    codes[view["product_id"] != PRODUCT_ID_VLP16] = 5
+    mode = view["return_mode"]
+    codes[(mode != RETURN_STRONGEST) & (mode != RETURN_LAST)] = 4
+    codes[(blocks["azimuth"] >= 36000).any(axis=1)] = 3
+    codes[(blocks["flag"] != _FLAGS[0]).any(axis=1)] = 2
+    return codes
+
+
 def firing_azimuths(block_azimuths: Sequence[int]) -> list[float]:
     """Azimuth of each of a packet's 24 firing sequences in 0.01°, in [0, 36000).
 
@@ -163,6 +177,18 @@ def firing_azimuths(block_azimuths: Sequence[int]) -> list[float]:
         out.append(float(azimuth))
         out.append((azimuth + 0.5 * step) % 36000)
     return out
+
+
+def _firing_azimuths_array(block_azimuths: np.ndarray) -> np.ndarray:
+    """firing_azimuths of (P, 12) packets at once, flattened to (P × 24,)."""
+    step = np.empty_like(block_azimuths)
+    np.subtract(block_azimuths[:, 1:], block_azimuths[:, :-1], out=step[:, :-1])
+    np.mod(step[:, :-1], 36000.0, out=step[:, :-1])
+    step[:, -1] = step[:, -2]
+    firing = np.empty((len(block_azimuths), BLOCKS_PER_PACKET, 2), dtype=np.float64)
+    firing[:, :, 0] = block_azimuths
+    np.mod(block_azimuths + 0.5 * step, 36000.0, out=firing[:, :, 1])
+    return firing.reshape(-1)
 
 
 class DecodedPackets(NamedTuple):
@@ -234,6 +260,9 @@ class _VelodyneDecoderBackend:
 
 
 Backend = Literal["numpy", "velodyne-decoder"]
+
+#: Batches at least this long are checked with numpy rather than packet by packet.
+_VECTORISE_FROM = 4
 
 
 @dataclass
@@ -313,8 +342,13 @@ class RevolutionAssembler:
     def feed_batch(self, packets: Sequence[bytes]) -> list[Revolution]:
         """Add consecutive packets; return the revolutions they completed, oldest first.
 
+        A few packets are checked one by one in plain Python (cheapest per packet); from
+        ``_VECTORISE_FROM`` packets on, headers and wraps are checked in one numpy pass.
+
         :param packets: UDP payloads in arrival order.
         """
+        if len(packets) >= _VECTORISE_FROM:
+            return self._feed_vectorised(packets)
         revolutions: list[Revolution] = []
         for index, packet in enumerate(packets):
             self.counters.packets += 1
@@ -322,20 +356,63 @@ class RevolutionAssembler:
             if reason is not None:
                 self._count_malformed(reason)
                 continue
-            self._check_timestamp(fields[24])
+            self._check_timestamps(fields[24:25])
             first_firing = FIRINGS_PER_PACKET * len(self._pending)
             self._pending.append(packet)
             self._packets_in_revolution += 1
             wraps = self._find_wraps(fields[1:24:2])
             if wraps:
                 self._pending_wraps += [first_firing + w for w in wraps]
-                revolutions += [Revolution(points, index) for points in self._decode_pending()]
+                revolutions += [Revolution(points, index) for points, _ in self._decode_pending()]
                 self._packets_in_revolution = 1
             elif self._packets_in_revolution > self.max_packets_per_revolution:
                 self._overflow()
         if len(self._pending) >= self.decode_every:
             self._decode_pending()  # no wrap waiting, so this completes nothing
         return revolutions
+
+    def _feed_vectorised(self, packets: Sequence[bytes]) -> list[Revolution]:
+        self.counters.packets += len(packets)
+        index = [i for i, packet in enumerate(packets) if len(packet) == PACKET_SIZE]
+        for _ in range(len(packets) - len(index)):
+            self._count_malformed("wrong_length")
+        if not index:
+            return []
+        payloads = [packets[i] for i in index]
+        data = np.frombuffer(b"".join(payloads), dtype=np.uint8).reshape(-1, PACKET_SIZE)
+        codes = _reason_codes(data)
+        if codes.any():
+            for code in codes[codes > 0].tolist():
+                self._count_malformed(MALFORMED_REASONS[code - 1])
+            keep = np.flatnonzero(codes == 0).tolist()
+            if not keep:
+                return []
+            index = [index[k] for k in keep]
+            payloads = [payloads[k] for k in keep]
+        view = np.frombuffer(b"".join(payloads), dtype=PACKET_DTYPE)
+        self._check_timestamps(view["timestamp"].tolist())
+        azimuth = _firing_azimuths_array(view["blocks"]["azimuth"].astype(np.float64))
+        previous = np.empty_like(azimuth)
+        previous[1:] = azimuth[:-1]
+        previous[0] = azimuth[0] if self._last_azimuth is None else self._last_azimuth
+        self._last_azimuth = float(azimuth[-1])
+        wraps = np.flatnonzero(azimuth < previous - 18000.0)
+        first_packet = len(self._pending)
+        self._pending += payloads
+        self._pending_wraps += (wraps + FIRINGS_PER_PACKET * first_packet).tolist()
+        if len(wraps):
+            self._packets_in_revolution = len(payloads) - int(wraps[-1]) // FIRINGS_PER_PACKET
+        else:
+            self._packets_in_revolution += len(payloads)
+            if self._packets_in_revolution > self.max_packets_per_revolution:
+                self._overflow()
+                return []
+        if not len(wraps) and len(self._pending) < self.decode_every:
+            return []
+        return [
+            Revolution(points, index[wrap // FIRINGS_PER_PACKET - first_packet])
+            for points, wrap in self._decode_pending()
+        ]
 
     def _find_wraps(self, block_azimuths: Sequence[int]) -> list[int]:
         """Firings of this packet where the azimuth falls by more than half a turn."""
@@ -356,7 +433,8 @@ class RevolutionAssembler:
         self._last_azimuth = previous
         return wraps
 
-    def _decode_pending(self) -> list[np.ndarray]:
+    def _decode_pending(self) -> list[tuple[np.ndarray, int]]:
+        """Decode the waiting packets; return each revolution completed with its wrap's firing index."""
         data = np.frombuffer(b"".join(self._pending), dtype=np.uint8).reshape(-1, PACKET_SIZE)
         decoded = self._decode(data, self._pending)
         bounds = np.concatenate(([0], np.cumsum(decoded.points_per_firing)))
@@ -367,7 +445,7 @@ class RevolutionAssembler:
             self._parts.append(decoded.points[start:end])
             start = end
             if self._started:
-                revolutions.append(np.concatenate(self._parts))
+                revolutions.append((np.concatenate(self._parts), wrap))
                 self.counters.revolutions += 1
             else:
                 self.counters.partial_revolutions += 1
@@ -387,11 +465,14 @@ class RevolutionAssembler:
         self._packets_in_revolution = 0
         self._started = False
 
-    def _check_timestamp(self, stamp: int) -> None:
-        previous, self._last_timestamp = self._last_timestamp, stamp
-        if previous is not None and (stamp - previous) % US_PER_HOUR > 1.5 * PACKET_DURATION_US:
-            self.counters.timestamp_gaps += 1
-            log.debug("VLP-16: timestamp gap %d → %d µs, packets lost or reordered", previous, stamp)
+    def _check_timestamps(self, stamps: Sequence[int]) -> None:
+        previous = self._last_timestamp
+        for stamp in stamps:
+            if previous is not None and (stamp - previous) % US_PER_HOUR > 1.5 * PACKET_DURATION_US:
+                self.counters.timestamp_gaps += 1
+                log.debug("VLP-16: timestamp gap %d → %d µs, packets lost or reordered", previous, stamp)
+            previous = stamp
+        self._last_timestamp = previous
 
     def _count_malformed(self, reason: str) -> None:
         malformed = self.counters.malformed

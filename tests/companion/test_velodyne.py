@@ -393,11 +393,14 @@ def test_encoded_revolutions_assemble_to_the_cloud_that_went_in(
     ranges[rng.random(ranges.shape) < 0.3] = 0.0
     packets = encode_packets(azimuth, ranges, start_timestamp_us=1e6)
     assembler = RevolutionAssembler(backend)
+    wraps = np.flatnonzero(np.diff(azimuth) < -180) + 1
     if batched:
-        clouds = [rev.points for rev in assembler.feed_batch(packets)]
+        revolutions = assembler.feed_batch(packets)
+        # Each revolution names the packet holding the wrap that closed it.
+        assert [rev.completed_by for rev in revolutions] == [w // 24 for w in wraps[1:]]
+        clouds = [rev.points for rev in revolutions]
     else:
         clouds = [c for p in packets for c in assembler.feed(p)]
-    wraps = np.flatnonzero(np.diff(azimuth) < -180) + 1
     assert len(clouds) == len(wraps) - 1 >= 2
     assert assembler.counters.partial_revolutions == 1
     assert assembler.counters.timestamp_gaps == 0
