@@ -12,10 +12,12 @@ import json
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numba import njit
 
 from companion.errors import UserError
 
@@ -79,9 +81,58 @@ class World:
         Walls count by their horizontal distance while the point is below the wall top; obstacles
         by the true 3-D distance to the solid (so the horizontal distance while within their
         height). The floor does not count: the vehicle holds its altitude, and collision is
-        ``clearance < vehicle radius``.
+        ``clearance < vehicle radius``. Compiled (the environment calls this every step);
+        :func:`clearances` is the vectorised numpy twin that the tests hold it to.
         """
-        return float(clearances(self, np.asarray(position, dtype=np.float64).reshape(1, 3))[0])
+        x, y, z = (float(v) for v in position)
+        room, boxes, cylinders = self.packed
+        return float(_clearance_kernel(x, y, z, room, boxes, cylinders))
+
+    @cached_property
+    def packed(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The geometry as flat arrays for compiled kernels (computed once per world).
+
+        :return: ``room`` (half x, half y, height); ``boxes`` ``(B, 8)``: centre xyz, half sizes,
+            cos yaw, sin yaw; ``cylinders`` ``(C, 4)``: centre xy, radius, height
+        """
+        room = np.array([self.room_size[0] / 2.0, self.room_size[1] / 2.0, self.room_height])
+        boxes = [
+            (*o.center, *(v / 2.0 for v in o.size), *_cos_sin(o.yaw_deg))
+            for o in self.obstacles
+            if isinstance(o, Box)
+        ]
+        cylinders = [(*o.center, o.radius, o.height) for o in self.obstacles if not isinstance(o, Box)]
+        return (
+            room,
+            np.array(boxes, dtype=np.float64).reshape(-1, 8),
+            np.array(cylinders, dtype=np.float64).reshape(-1, 4),
+        )
+
+
+def _cos_sin(deg: float) -> tuple[float, float]:
+    return math.cos(math.radians(deg)), math.sin(math.radians(deg))
+
+
+@njit(cache=True)
+def _clearance_kernel(x, y, z, room, boxes, cylinders):  # pragma: no cover - compiled
+    best = min(room[0] - abs(x), room[1] - abs(y))
+    if best > 0.0 and z > room[2]:
+        best = math.hypot(best, z - room[2])
+    for k in range(boxes.shape[0]):
+        b = boxes[k]
+        dx, dy = x - b[0], y - b[1]
+        qx = abs(b[6] * dx + b[7] * dy) - b[3]
+        qy = abs(-b[7] * dx + b[6] * dy) - b[4]
+        qz = abs(z - b[2]) - b[5]
+        outside = math.sqrt(max(qx, 0.0) ** 2 + max(qy, 0.0) ** 2 + max(qz, 0.0) ** 2)
+        best = min(best, outside + min(max(qx, qy, qz), 0.0))
+    for k in range(cylinders.shape[0]):
+        c = cylinders[k]
+        qr = math.hypot(x - c[0], y - c[1]) - c[2]
+        qz = abs(z - c[3] / 2.0) - c[3] / 2.0
+        outside = math.hypot(max(qr, 0.0), max(qz, 0.0))
+        best = min(best, outside + min(max(qr, qz), 0.0))
+    return best
 
 
 # ----------------------------------------------------------------------------------------------

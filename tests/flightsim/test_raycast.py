@@ -43,17 +43,37 @@ def _cast(world, position=(0.0, 0.0, 1.5), rotation=None, **cfg) -> RangeGrid:
 
 
 # -- analytic ranges -------------------------------------------------------------------------
+# Columns sit at (j + 0.5) * step degrees clockwise; with step 1, column j points -(j + 0.5) deg
+# counter-clockwise from the sensor's nose. Yawing the sensor by +0.5 deg (HALF) makes column j
+# point exactly -j deg.
+
+HALF = _rz(0.5)
+
+
+def _wall_distance(x0: float, y0: float, hx: float, hy: float, ccw_deg: float) -> float:
+    """Horizontal distance from (x0, y0) to the room walls along a world heading."""
+    c, s = math.cos(math.radians(ccw_deg)), math.sin(math.radians(ccw_deg))
+    tx = ((hx if c > 0 else -hx) - x0) / c if abs(c) > 1e-12 else math.inf
+    ty = ((hy if s > 0 else -hy) - y0) / s if abs(s) > 1e-12 else math.inf
+    return min(tx, ty)
+
+
+def test_columns_are_half_a_step_off_whole_degrees() -> None:
+    grid = _cast(_room(), azimuth_step_deg=0.2)
+    assert grid.azimuth_deg.shape == (1800,)
+    assert grid.azimuth_deg[0] == pytest.approx(0.1) and grid.azimuth_deg[-1] == pytest.approx(359.9)
 
 
 def test_range_to_walls_by_azimuth() -> None:
     grid = _cast(_room(), position=(1.0, 0.5, 1.5))
     assert grid.ranges.shape == (360, 16) and grid.ranges.dtype == np.float32
-    for laser in FLAT:
-        cos_w = math.cos(EL[laser])
-        assert grid.ranges[0, laser] == pytest.approx(5.0 / cos_w, abs=1e-3)  # front: x = +6
-        assert grid.ranges[90, laser] == pytest.approx(4.5 / cos_w, abs=1e-3)  # clockwise 90 = right: y = -4
-        assert grid.ranges[180, laser] == pytest.approx(7.0 / cos_w, abs=1e-3)  # back: x = -6
-        assert grid.ranges[270, laser] == pytest.approx(3.5 / cos_w, abs=1e-3)  # left: y = +4
+    for column in (0, 89, 90, 179, 270, 300):
+        horizontal = _wall_distance(1.0, 0.5, 6.0, 4.0, -grid.azimuth_deg[column])  # azimuth is clockwise
+        for laser in FLAT:
+            assert grid.ranges[column, laser] == pytest.approx(horizontal / math.cos(EL[laser]), abs=1e-3)
+    # the convention itself: clockwise 90 is the right-hand wall (y = -4), 270 the left (y = +4)
+    assert grid.ranges[90, 1] == pytest.approx(4.5 / math.cos(math.radians(0.5)) / math.cos(EL[1]), abs=1e-3)
+    assert grid.ranges[270, 1] == pytest.approx(3.5 / math.cos(math.radians(0.5)) / math.cos(EL[1]), abs=1e-3)
 
 
 def test_range_to_floor() -> None:
@@ -66,32 +86,34 @@ def test_range_to_rotated_box_face() -> None:
     # box centred 3 m away along 30 deg and yawed 30 deg: its -x face is 2.5 m along that line
     c30, s30 = math.cos(math.radians(30)), math.sin(math.radians(30))
     box = Box((3.0 * c30, 3.0 * s30, 1.5), (1.0, 2.0, 3.0), 30.0)
-    # the sensor unrotated: 30 deg counter-clockwise is azimuth 330 (azimuth runs clockwise)
-    grid = _cast(_room([box]))
-    for laser in FLAT:
-        assert grid.ranges[330, laser] == pytest.approx(2.5 / math.cos(EL[laser]), abs=1e-3)
-    # the sensor yawed onto the box: straight ahead; 5 deg to the left hits the same face obliquely
-    grid = _cast(_room([box]), rotation=_rz(30.0))
+    # the sensor yawed 30.5 deg: column 0 points along 30 deg, column 355 (5 deg left) obliquely
+    grid = _cast(_room([box]), rotation=_rz(30.5))
     for laser in FLAT:
         assert grid.ranges[0, laser] == pytest.approx(2.5 / math.cos(EL[laser]), abs=1e-3)
         horizontal = 2.5 / math.cos(math.radians(5.0))
         assert grid.ranges[355, laser] == pytest.approx(horizontal / math.cos(EL[laser]), abs=1e-3)
+    # unrotated, 30 deg counter-clockwise is clockwise azimuth 330: column 329 (329.5 deg) is just
+    # right of the box's centre line, at 0.5 deg incidence
+    grid = _cast(_room([box]))
+    horizontal = 2.5 / math.cos(math.radians(0.5))
+    assert grid.ranges[329, 1] == pytest.approx(horizontal / math.cos(EL[1]), abs=1e-3)
 
 
 def test_range_to_cylinder() -> None:
     cyl = Cylinder((4.0, 0.0), 0.5, 3.0)
-    grid = _cast(_room([cyl]))
+    grid = _cast(_room([cyl]), rotation=HALF)
     for laser in FLAT:
         assert grid.ranges[0, laser] == pytest.approx(3.5 / math.cos(EL[laser]), abs=1e-3)
-        a = math.radians(5.0)  # azimuth 5 clockwise: grazes the right-hand side of the cylinder
+        a = math.radians(5.0)  # column 5: 5 deg right, grazing the cylinder's right-hand side
         horizontal = 4.0 * math.cos(a) - math.sqrt(0.25 - (4.0 * math.sin(a)) ** 2)
         assert grid.ranges[5, laser] == pytest.approx(horizontal / math.cos(EL[laser]), abs=1e-3)
+    # 8 deg right misses it and hits the end wall x = +6
     assert grid.ranges[8, 1] == pytest.approx(6.0 / math.cos(math.radians(8)) / math.cos(EL[1]), abs=1e-3)
 
 
 def test_rays_pass_over_short_obstacles_and_walls() -> None:
     low = Box((3.0, 0.0, 0.6), (1.0, 1.0, 1.2))  # x from 2.5 to 3.5, top at z = 1.2
-    grid = _cast(_room([low], height=1.7), max_range=20.0)
+    grid = _cast(_room([low], height=1.7), max_range=20.0, rotation=HALF)
     # +15 deg at 1.5 m altitude rises above the 1.7 m wall top long before x = 6: no return
     assert grid.ranges[0, 15] == 0.0
     # -15 deg hits the box's front face (x = 2.5 at z = 0.83)
@@ -104,9 +126,12 @@ def test_rays_pass_over_short_obstacles_and_walls() -> None:
 
 def test_tilted_sensor_sees_floor_closer() -> None:
     """Pitched 10 deg nose down (FLU: positive pitch about y tips the nose down)."""
-    grid = _cast(_room(size=(60.0, 60.0)), rotation=_ry(10.0), max_range=30.0)
-    for laser in (0, 14):  # -15 and -1 deg become -25 and -11 deg in front
-        assert grid.ranges[0, laser] == pytest.approx(1.5 / math.sin(math.radians(10) - EL[laser]), abs=1e-3)
+    grid = _cast(_room(size=(60.0, 60.0)), rotation=HALF @ _ry(10.0), max_range=30.0)
+    theta = math.radians(10.0)
+    for laser in (0, 14):  # -15 and -1 deg become about -25 and -11 deg in front
+        x = math.cos(EL[laser]) * math.cos(math.radians(0.5))
+        down = math.sin(theta) * x - math.cos(theta) * math.sin(EL[laser])  # -(world z of the ray)
+        assert grid.ranges[0, laser] == pytest.approx(1.5 / down, abs=1e-3)
 
 
 # -- limits ----------------------------------------------------------------------------------
@@ -124,7 +149,7 @@ def test_nothing_beyond_max_range() -> None:
 
 def test_nothing_under_min_range() -> None:
     near = Cylinder((0.3, 0.0), 0.25, 3.0)  # its face is 0.05 m in front of the sensor
-    grid = _cast(_room([near]), min_range=0.1)
+    grid = _cast(_room([near]), min_range=0.1, rotation=HALF)
     assert (grid.ranges[0] == 0.0).all()
     assert grid.ranges[180, 1] == pytest.approx(6.0 / math.cos(EL[1]), abs=1e-3)
 
