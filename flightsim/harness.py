@@ -179,6 +179,7 @@ class Recorder:
     setpoints: list[tuple[float, float, float]] = field(default_factory=list)  # (t, vx body, yaw rate)
     statustexts: list[tuple[float, str]] = field(default_factory=list)
     companion_heartbeats: list[float] = field(default_factory=list)
+    companion_commands: list[tuple[float, str]] = field(default_factory=list)
     trajectory: list[tuple[float, float, float, float, float, float]] = field(default_factory=list)
     min_clearance: float = math.inf
     collision_time: float | None = None
@@ -195,6 +196,8 @@ class Recorder:
                 self._statustext(msg, t_mono)
             elif kind == "HEARTBEAT":
                 self.companion_heartbeats.append(t_mono)
+            elif kind in ("COMMAND_LONG", "COMMAND_INT", "SET_MODE"):
+                self.companion_commands.append((t_mono, kind))
 
     def on_pose(self, t_mono: float, position: np.ndarray, yaw: float, speed: float, world: World) -> None:
         clearance = world.clearance(position) if position[2] > 0.3 else math.inf
@@ -217,6 +220,11 @@ class Recorder:
     def texts(self, since: float = 0.0) -> list[str]:
         with self.lock:
             return [text for t, text in self.statustexts if t >= since]
+
+    def first_text(self, mark: str, since: float) -> float | None:
+        """Arrival time of the first STATUSTEXT containing ``mark`` at or after ``since``."""
+        with self.lock:
+            return next((t for t, text in self.statustexts if t >= since and mark in text), None)
 
     def setpoints_since(self, since: float) -> int:
         with self.lock:

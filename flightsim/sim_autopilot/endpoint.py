@@ -228,6 +228,18 @@ class MavlinkEndpoint:
                 except OSError:
                     self.count("socket_errors")
 
+    def send_raw(self, link: int, data: bytes) -> None:
+        """Send raw bytes on ``link`` to its peers (fault injection: line noise, corrupt frames)."""
+        lk = self._links[link]
+        for peer in list(lk.peers):
+            try:
+                if lk.spec.kind == "tcpin":
+                    peer.sendall(data)
+                else:
+                    lk.sock.sendto(data, peer)
+            except OSError:
+                self.count("socket_errors")
+
     def close(self) -> None:
         for link in self._links:
             if link.spec.kind == "tcpin":

@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 import math
+import time
+from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from flightsim.sim_autopilot.common import SimAutopilot, VehicleSnapshot
+from flightsim.world import World
 
 GCS = (255, 190)
 COMPANION = (1, 191)
@@ -67,3 +71,79 @@ def fly(
         ap.observe(vehicle.step(setpoint, dt))
         ap.tick(t)
     return t
+
+
+# ------------------------------------------------------------------------------------ SITL flights
+OPEN_ROOM = World(
+    name="open-room",
+    room_size=(16.0, 16.0),
+    room_height=3.0,
+    obstacles=(),
+    start_position=(0.0, -1.7, 1.5),
+    start_yaw_deg=0.0,
+)
+
+
+def write_constant_policy(path: Path, forward: float, turn: float) -> Path:
+    """A real ONNX policy that always answers ``(forward, turn)`` (a0, a1 in [-1, 1]).
+
+    (0.5, 0.4) flies a circle of about 1.7 m radius at 1 m/s: the vehicle keeps moving without
+    ever meeting a wall of :data:`OPEN_ROOM`, so stopping it is always the system's doing.
+    """
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
+    from companion.policy import PolicySpec, policy_metadata
+
+    spec = PolicySpec()
+    w = np.zeros((spec.obs_size, 2), dtype=np.float32)
+    b = np.array([forward, turn], dtype=np.float32)
+    graph = helper.make_graph(
+        [helper.make_node("Gemm", ["obs", "W", "B"], ["action"])],
+        "constant-policy",
+        [helper.make_tensor_value_info("obs", TensorProto.FLOAT, ["N", spec.obs_size])],
+        [helper.make_tensor_value_info("action", TensorProto.FLOAT, ["N", 2])],
+        initializer=[numpy_helper.from_array(w, "W"), numpy_helper.from_array(b, "B")],
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], producer_name="tests")
+    model.ir_version = 8
+    helper.set_model_props(model, policy_metadata(spec, '{"test_policy": "constant"}'))
+    onnx.save(model, str(path))
+    return path
+
+
+def wait_for(predicate: Callable[[], Any], timeout: float, what: str, poll: float = 0.02) -> Any:
+    """Poll until ``predicate()`` is truthy and return it; AssertionError naming ``what`` on timeout."""
+    end = time.monotonic() + timeout
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if time.monotonic() > end:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(poll)
+
+
+def speed(flight: Any) -> float:
+    """Horizontal speed of the simulated vehicle, m/s."""
+    return float(np.linalg.norm(flight.server.state.velocity[:2]))
+
+
+def stopped_at(flight: Any, since: float, threshold: float = 0.1) -> float | None:
+    """First trajectory time after ``since`` from which the speed stays below ``threshold``."""
+    rec = flight.recorder
+    with rec.lock:
+        rows = [(t, v) for t, *_, v in rec.trajectory if t >= since]
+    first = None
+    for t, v in rows:
+        if v >= threshold:
+            first = None
+        elif first is None:
+            first = t
+    return first
+
+
+def companion_counters(flight: Any) -> str:
+    """The companion's last counters log line."""
+    lines = [line for line in flight.companion_log().splitlines() if " state=" in line]
+    return lines[-1] if lines else ""
