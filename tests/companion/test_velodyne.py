@@ -21,6 +21,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from companion.errors import UserError
+from companion.lidar import velodyne
 from companion.lidar.velodyne import (
     MALFORMED_REASONS,
     PACKET_SIZE,
@@ -117,6 +118,21 @@ def test_packet_error_names_each_reason(recording: list[bytes]) -> None:
     assert packet_error(recording[0] + b"\x00") == "wrong_length"
     # The first reason found wins: a bad flag and a bad product id is a bad flag.
     assert packet_error(_corrupt(variants["unknown_product_id"], 0, b"\x00\x00")) == "bad_block_flag"
+
+
+def test_batch_checks_agree_with_the_per_packet_ones(recording: list[bytes]) -> None:
+    """Batches are checked with numpy, single packets in plain Python: same verdicts, same azimuths."""
+    packets = [*malformed_variants(recording[3]).values(), *recording[:50]]
+    packets = [p for p in packets if len(p) == PACKET_SIZE]
+    data = np.frombuffer(b"".join(packets), dtype=np.uint8).reshape(-1, PACKET_SIZE)
+    codes = velodyne._reason_codes(data)
+    assert [MALFORMED_REASONS[c - 1] if c else None for c in codes] == [packet_error(p) for p in packets]
+    good = data[codes == 0]
+    blocks = good.view(velodyne.PACKET_DTYPE)[:, 0]["blocks"]["azimuth"]
+    expected = [a for row in blocks.tolist() for a in velodyne.firing_azimuths(row)]
+    assert velodyne._firing_azimuths_array(blocks.astype(np.float64)).tolist() == expected
+    # and both agree with the plain-struct reference on the recording
+    assert expected[: 24 * 50] == [az for az, _ in reference_firings(recording[:50])]
 
 
 @pytest.mark.parametrize("backend", ["numpy", "velodyne-decoder"])
