@@ -238,8 +238,9 @@ def _decode_numpy(packets: np.ndarray, _payloads: Sequence[bytes]) -> DecodedPac
 class _VelodyneDecoderBackend:
     """velodyne-decoder's C++ ScanDecoder on a run of packets.
 
-    Its `column` field skips firings that had no return, so where each firing's points start is taken
-    from the packets themselves: the decoder emits every non-zero slot in packet order.
+    Its `column` field is not a firing index (it does not advance one for one over firings without a
+    return), so where each firing's points start is taken from the packets themselves: the decoder
+    emits every non-zero slot, in packet order.
     """
 
     def __init__(self) -> None:
