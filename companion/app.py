@@ -6,10 +6,10 @@ the optional autopilot parameter check, then the autopilot link; READY=1 to syst
 The loop (one thread, ``select()`` on the lidar socket with a short timeout so the link is
 serviced even when the lidar is silent):
 
-- every finished revolution: scan → OBSTACLE_DISTANCE → frame stack → policy → supervisor.on_scan
+- every finished revolution: scan → frame stack → policy → supervisor.on_scan
 - the link's vehicle status → supervisor.on_vehicle; supervisor.tick() says what to send:
   POLICY → the shielded policy setpoint (every scan), ZERO → zero velocity (every scan, and at
-  10 Hz without scans), NONE → no setpoint
+  10 Hz without scans), NONE → no setpoint; then OBSTACLE_DISTANCE for the newest scan
 - HEARTBEAT at 1 Hz; every supervisor transition: one log line, one STATUSTEXT
 - WATCHDOG=1 after every iteration that completed; a periodic counters log line
 
@@ -225,6 +225,7 @@ class Companion:
         self._kind = CommandKind.NONE
         self._reset_stack = True
         self._latest: tuple[np.ndarray, Command] | None = None  # newest scan and its requested command
+        self._unsent_scan: np.ndarray | None = None  # newest scan not yet sent as OBSTACLE_DISTANCE
         self._last_filter: float | None = None
         self._last_zero = -math.inf
         self._last_heartbeat = -math.inf
@@ -247,10 +248,11 @@ class Companion:
         for cloud in clouds:
             self._on_cloud(cloud)
         kind = self.supervisor.tick()
+        self._send(kind, new_scan=bool(clouds))  # the setpoint first: it is the time-critical message
+        self._kind = kind
+        self._send_obstacle_distance()
         for transition in self.supervisor.drain_transitions():
             self._announce(transition)
-        self._send(kind, new_scan=bool(clouds))
-        self._kind = kind
         self._periodic()
 
     def link_fileno(self) -> int | None:
@@ -260,9 +262,7 @@ class Companion:
     def _on_cloud(self, cloud: np.ndarray) -> None:
         scan = scan_from_points(cloud, self.config.scan)
         self.counters["scans"] += 1
-        if self.config.autopilot.obstacle_distance:
-            self.link.send_obstacle_distance(obstacle_distance_from_scan(scan, self.config.scan.max_range,
-                                                                         *self._od_limits))
+        self._unsent_scan = scan
         obs = self.stack.reset(scan) if self._reset_stack else self.stack.push(scan)
         self._reset_stack = False
         try:
@@ -277,6 +277,18 @@ class Companion:
         self.supervisor.on_scan(True)
         cfg = self.config.policy
         self._latest = (scan, command_from_action(action, cfg.max_speed, cfg.max_yaw_rate))
+
+    def _send_obstacle_distance(self) -> None:
+        """OBSTACLE_DISTANCE for the newest scan (the autopilot's own avoidance layer).
+
+        Sent after the setpoint, which is the time-critical message; when a backlog brought several
+        scans in one iteration, the older ones are stale and not sent.
+        """
+        scan, self._unsent_scan = self._unsent_scan, None
+        if scan is None or not self.config.autopilot.obstacle_distance:
+            return
+        sectors = obstacle_distance_from_scan(scan, self.config.scan.max_range, *self._od_limits)
+        self.link.send_obstacle_distance(sectors)
 
     def _send(self, kind: CommandKind, new_scan: bool) -> None:
         now = self._clock()

@@ -1,0 +1,221 @@
+"""End-to-end latency of the real companion process: VLP-16 packets in → setpoint bytes out.
+
+Starts ``avoid-companion run`` as a subprocess (ArduPilot link over UDP loopback, VLP-16 source on
+UDP loopback, a small ONNX policy) and plays ArduPilot to it from this process with a pymavlink
+socket (armed, GUIDED, in the air at 1.5 m). Each revolution is 75 real VLP-16 data packets at
+0.2° (28,800 returns); its azimuth wraps inside the last packet, so the companion can finish the
+revolution only once that packet is in. Per revolution this script records
+
+    last packet sent → SET_POSITION_TARGET_LOCAL_NED received   (the latency the companion adds)
+    first packet sent → setpoint received                         (including the packets' own transfer)
+
+and prints p50/p99/max over ``--revolutions`` (default 1,000), plus the companion's resident
+memory (VmRSS, and the peak VmHWM) and its CPU time per revolution. ``--pacing sensor`` (default)
+spreads the 75 packets over the revolution as the sensor does (one every 1.33 ms at 10 Hz);
+``--pacing burst`` sends them back to back, the worst case where all decoding follows the last one.
+Targets (issue 3): p99 ≤ 2 ms, resident memory ≤ 150 MB.
+
+    /work/venv/bin/python bench/bench_companion.py [--revolutions 1000] [--rate 10]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import select
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from pymavlink import mavutil  # noqa: E402
+
+from companion.autopilot.mavlink_adapter import mavlink  # noqa: E402  (selects MAVLink 2 first)
+from companion.lidar.velodyne import PACKET_DURATION_US, encode_packets  # noqa: E402
+from tests.onnx_models import write_policy  # noqa: E402
+
+FIRINGS = 1800  # 0.2° steps: 75 packets, 28,800 returns
+STEP_DEG = 0.2
+COPTER_GUIDED = 4
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def revolution(index: int) -> list[bytes]:
+    """75 packets of one whole revolution; the wrap falls inside the last packet (its 13th firing)."""
+    azimuth = (STEP_DEG * 12 + STEP_DEG * np.arange(FIRINGS)) % 360.0
+    ranges = np.repeat((5.0 + 3.0 * np.sin(np.radians(azimuth)))[:, None], 16, axis=1)
+    return encode_packets(azimuth, ranges, start_timestamp_us=index * 75 * PACKET_DURATION_US)
+
+
+def proc_status(pid: int) -> dict[str, int]:
+    """VmRSS / VmHWM of a process in kB."""
+    out = {}
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        key, _, value = line.partition(":")
+        if key in ("VmRSS", "VmHWM"):
+            out[key] = int(value.split()[0])
+    return out
+
+
+def cpu_seconds(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime + stime
+
+
+class Autopilot:
+    """This process's end of the MAVLink link: plays an ArduPilot Copter, catches setpoints."""
+
+    def __init__(self, port: int) -> None:
+        self.conn = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1,
+                                               source_component=1)
+        self.sock = self.conn.port
+        self.last_status = 0.0
+
+    def status(self) -> None:
+        """Heartbeat and status streams, at most every 0.1 s (between revolutions only)."""
+        now = time.monotonic()
+        if now - self.last_status < 0.1:
+            return
+        self.last_status = now
+        mav = self.conn.mav
+        base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+        mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, base,
+                           COPTER_GUIDED, mavlink.MAV_STATE_ACTIVE)
+        mav.extended_sys_state_send(0, mavlink.MAV_LANDED_STATE_IN_AIR)
+        mav.global_position_int_send(0, 0, 0, 101_500, 1500, 0, 0, 0, 0)
+        mav.vfr_hud_send(0.0, 0.0, 0, 0, 101.5, 0.0)
+
+    def wait_setpoint(self, timeout: float) -> float | None:
+        """Monotonic time a SET_POSITION_TARGET_LOCAL_NED datagram arrived, None on timeout."""
+        deadline = time.monotonic() + timeout
+        parser = self.conn.mav
+        while (remaining := deadline - time.monotonic()) > 0:
+            if not select.select([self.sock], [], [], remaining)[0]:
+                return None
+            data, _ = self.sock.recvfrom(4096)
+            arrived = time.monotonic()
+            for msg in parser.parse_buffer(data) or ():
+                if msg.get_type() == "SET_POSITION_TARGET_LOCAL_NED":
+                    return arrived
+        return None
+
+    def drain(self) -> None:
+        while select.select([self.sock], [], [], 0)[0]:
+            self.sock.recvfrom(4096)
+
+
+def percentiles(values_ms: list[float]) -> str:
+    a = np.asarray(values_ms)
+    return f"p50 {np.percentile(a, 50):.3f} ms  p99 {np.percentile(a, 99):.3f} ms  max {a.max():.3f} ms"
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--revolutions", type=int, default=1000)
+    parser.add_argument("--rate", type=float, default=10.0, help="revolutions per second (VLP-16: 5-20)")
+    parser.add_argument("--decoder", default="numpy", choices=("numpy", "velodyne-decoder"))
+    parser.add_argument(
+        "--pacing", default="sensor", choices=("sensor", "burst"),
+        help="sensor: packets spread over the revolution as the VLP-16 sends them; "
+             "burst: all 75 at once (worst case: everything is decoded after the last packet)",
+    )
+    args = parser.parse_args()
+
+    tmp = Path(tempfile.mkdtemp(prefix="bench-companion-"))
+    lidar_port, mavlink_port = free_port(), free_port()
+    model = write_policy(tmp / "steer.onnx", kind="steer")
+    config = tmp / "companion.toml"
+    config.write_text(
+        f'[lidar.velodyne]\nhost = "127.0.0.1"\nport = {lidar_port}\ndecoder = "{args.decoder}"\n'
+        f'[policy]\nmodel = "{model}"\n'
+        "[supervisor]\nclimb_settled_time = 0.3\n"
+        f'[autopilot]\nconnect = "udpin:127.0.0.1:{mavlink_port}"\n'
+        "[runtime]\nlog_interval = 3600.0\n"
+    )
+    autopilot = Autopilot(mavlink_port)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "companion", "run", "--config", str(config)],
+        cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+    )
+    lidar = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    target = ("127.0.0.1", lidar_port)
+    period = 1.0 / args.rate
+    from_last: list[float] = []
+    from_first: list[float] = []
+    missed = 0
+    engaged = False
+    index = 0
+    cpu_start = 0.0
+    try:
+        time.sleep(1.0)  # model load, sockets bound
+        deadline = time.monotonic() + 30
+        while len(from_last) < args.revolutions:
+            if proc.poll() is not None:
+                raise SystemExit(f"companion exited: {proc.communicate()[1][-2000:]}")
+            packets = revolution(index)
+            index += 1
+            autopilot.status()
+            autopilot.drain()  # heartbeats, OBSTACLE_DISTANCE, ... of the previous revolution
+            start = time.monotonic()
+            t_first = time.monotonic()
+            gap = period / len(packets) if args.pacing == "sensor" else 0.0
+            t_last = t_first
+            for i, packet in enumerate(packets):
+                if gap:
+                    while time.monotonic() < t_first + i * gap:
+                        pass  # spin: sleep() is far too coarse for 1.3 ms gaps
+                # Stamped before the call: on loopback the receiver may run inside this sendto.
+                t_last = time.monotonic()
+                lidar.sendto(packet, target)
+            arrived = autopilot.wait_setpoint(timeout=0.05)
+            if not engaged:
+                if arrived is not None:
+                    engaged = True
+                    cpu_start = cpu_seconds(proc.pid)
+                    print(f"engaged after {index} revolutions; measuring {args.revolutions}", flush=True)
+                elif time.monotonic() > deadline:
+                    raise SystemExit("the companion never engaged: " + proc.stderr.read1()[-2000:])
+            elif arrived is None:
+                missed += 1
+            else:
+                from_last.append((arrived - t_last) * 1e3)
+                from_first.append((arrived - t_first) * 1e3)
+            if not gap:
+                time.sleep(max(0.0, period - (time.monotonic() - start)))
+        cpu = cpu_seconds(proc.pid) - cpu_start
+        memory = proc_status(proc.pid)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+        lidar.close()
+
+    n = len(from_last)
+    print(f"companion end to end, {n} revolutions of 28,800 points (75 VLP-16 packets), "
+          f"{args.rate:g} Hz, {args.pacing} pacing, decoder {args.decoder}:")
+    print(f"  last packet -> setpoint:  {percentiles(from_last)}   (target p99 <= 2 ms)")
+    print(f"  first packet -> setpoint: {percentiles(from_first)}")
+    print(f"  setpoints missing: {missed}")
+    print(f"  CPU time per revolution: {cpu / max(n + missed, 1) * 1e3:.2f} ms")
+    print(f"  resident memory: {memory['VmRSS'] / 1024:.1f} MB (peak {memory['VmHWM'] / 1024:.1f} MB)"
+          "   (target <= 150 MB)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
