@@ -420,8 +420,14 @@ class SitlFlight:
         relay = mavutil.mavlink_connection(f"udpout:127.0.0.1:{self.companion_port}", source_system=255)
         gcs = self.gcs
 
+        external = self.external
+
         def forward_to_companion(msg: Any) -> None:
-            self.external.update(msg)  # type: ignore[union-attr]
+            external.update(msg)
+            if msg.get_type() == "LOCAL_POSITION_NED":
+                state = external.state()
+                speed = float(np.linalg.norm(state.velocity[:2]))
+                self.recorder.on_pose(time.monotonic(), state.position, state.yaw, speed, self.world)
             relay.write(msg.get_msgbuf())
 
         gcs.on_message = forward_to_companion
@@ -437,8 +443,7 @@ class SitlFlight:
             if msg is None or msg.get_type() == "BAD_DATA":
                 continue
             self.recorder.on_companion_message(msg, time.monotonic())
-            with self._gcs_lock:
-                self.gcs.mav.write(msg.get_msgbuf())  # type: ignore[union-attr]
+            self.gcs.mav.write(msg.get_msgbuf())  # type: ignore[union-attr]  (a socket send: no lock)
 
     def start_companion(self) -> None:
         """Start (or restart) the companion process with the generated config."""
@@ -528,11 +533,11 @@ class SitlFlight:
         with self._gcs_lock:
             gcs.pump(0.3)
             if gcs.is_px4:
-                gcs.arm()
+                self._arm(gcs)
                 gcs.takeoff(TAKEOFF_ALTITUDE)
             else:
                 gcs.set_mode("GUIDED")
-                gcs.arm()
+                self._arm(gcs)
                 gcs.takeoff(TAKEOFF_ALTITUDE)
         self.pump_gcs()
         if gcs.is_px4:
@@ -547,6 +552,18 @@ class SitlFlight:
                     if time.monotonic() > end:
                         raise
                     time.sleep(0.5)
+
+    def _arm(self, gcs: GroundStation) -> None:
+        """Arm; a real SITL refuses until its pre-arm checks pass (EKF, GPS), so keep trying a while."""
+        end = time.monotonic() + (90.0 if self.external is not None else 0.0)
+        while True:
+            try:
+                gcs.arm()
+                return
+            except RuntimeError:
+                if time.monotonic() > end:
+                    raise
+                gcs.pump(2.0)
 
     def wait_engaged(self, timeout: float) -> bool:
         """Wait until the companion announces ACTIVE (True), exits or ``timeout`` s pass."""

@@ -1,0 +1,65 @@
+"""SITL on the simulated PX4: the real companion (MAVSDK inside) flies in OFFBOARD; killing it makes
+PX4's offboard-loss failsafe (COM_OF_LOSS_T, then COM_OBL_RC_ACT = 5: Hold) stop the vehicle."""
+
+from __future__ import annotations
+
+import signal
+import time
+
+import pytest
+
+from flightsim.harness import FlightOptions, SitlFlight
+from tests.sitl.helpers import OPEN_ROOM, speed, stopped_at, wait_for, write_constant_policy
+
+pytestmark = pytest.mark.sitl
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory):
+    workdir = tmp_path_factory.mktemp("sitl-px4")
+    options = FlightOptions(
+        autopilot="sim-px4",
+        world=OPEN_ROOM,
+        policy=write_constant_policy(workdir / "circle.onnx", 0.5, 0.4),
+        workdir=workdir,
+        autopilot_params={"COM_OBL_RC_ACT": 5},
+    )
+    with SitlFlight(options) as f:
+        f.take_off()
+        assert f.wait_engaged(25.0), f.companion_log()
+        yield f
+
+
+def test_companion_flies_px4_in_offboard(flight):
+    f = flight
+    assert f.server.autopilot.mode_name() == "OFFBOARD"
+    wait_for(lambda: speed(f) > 0.6, 5.0, "the vehicle to fly")
+    t0 = time.monotonic()
+    revs0 = f.cosim.stats.revolutions
+    time.sleep(3.0)
+    assert f.recorder.setpoints_since(t0) >= f.cosim.stats.revolutions - revs0 - 2  # (MAVSDK also repeats)
+    with f.recorder.lock:
+        recent = [s for s in f.recorder.setpoints if s[0] >= t0]
+    assert all(
+        vx == pytest.approx(1.0, abs=0.05) and yr == pytest.approx(-0.6, abs=0.05) for _, vx, yr in recent
+    )
+    report = f.report()
+    assert report.engaged and not report.collision and report.distance_m > 2.0
+
+
+def test_companion_sigkill_offboard_loss_holds_after_com_of_loss_t(flight):
+    f = flight
+    ap = f.server.autopilot
+    t_kill = time.monotonic()
+    f.kill_companion(signal.SIGKILL)
+    time.sleep(0.6)
+    assert ap.mode_name() == "OFFBOARD" and speed(f) > 0.5  # within COM_OF_LOSS_T: still flying
+    wait_for(lambda: ap.mode_name() == "AUTO.LOITER", 3.0, "the offboard-loss failsafe", poll=0.005)
+    with f.recorder.lock:
+        last_setpoint = f.recorder.setpoint_times[-1]
+    assert last_setpoint < t_kill + 0.05
+    assert 1.0 <= time.monotonic() - last_setpoint < 1.5  # COM_OF_LOSS_T = 1 s after the last setpoint
+    assert ap.counters["offboard_lost"] == 1
+    wait_for(lambda: stopped_at(f, t_kill) is not None, 4.0, "the vehicle to stop")
+    assert stopped_at(f, t_kill) - t_kill < 1.0 + 1.5
+    assert any("no offboard signal" in t for t in f.pilot(lambda g: g.statustexts))  # to the GCS link only
