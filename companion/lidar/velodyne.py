@@ -203,6 +203,9 @@ class DecodedPackets(NamedTuple):
 def decode_packets_numpy(packets: np.ndarray) -> DecodedPackets:
     """Decode well-formed VLP-16 packets in one vectorised pass (see packet_error).
 
+    Every slot is computed and the returns picked out once at the end: boolean masks over the
+    ragged pattern of real returns cost more in branch mispredictions than the extra arithmetic.
+
     :param packets: (P, 1206) uint8, consecutive packets of one sensor.
     """
     blocks = packets.view(PACKET_DTYPE)[:, 0]["blocks"]
@@ -212,19 +215,18 @@ def decode_packets_numpy(packets: np.ndarray) -> DecodedPackets:
     np.mod(step[:, :-1], 36000.0, out=step[:, :-1])
     step[:, -1] = step[:, -2]
     raw = blocks["returns"]["distance"]
-    hit = raw != 0
     distance = raw.astype(np.float32)
     alpha = step[:, :, None] * _SLOT_STEP_FRACTION
     alpha += azimuth[:, :, None]
-    alpha = alpha[hit]
     alpha *= _CENTIDEG_TO_RAD
-    horizontal = (distance * _SLOT_COS_ELEVATION_M)[hit]
-    points = np.empty((len(alpha), 3), dtype=np.float32)
-    np.multiply(horizontal, np.cos(alpha), out=points[:, 0])
-    np.multiply(horizontal, np.sin(alpha), out=points[:, 1])
-    np.negative(points[:, 1], out=points[:, 1])
-    points[:, 2] = (distance * _SLOT_SIN_ELEVATION_M)[hit]
-    return DecodedPackets(points, _points_per_firing(hit))
+    horizontal = distance * _SLOT_COS_ELEVATION_M
+    slots = np.empty((*distance.shape, 3), dtype=np.float32)
+    np.multiply(horizontal, np.cos(alpha), out=slots[..., 0])
+    np.multiply(horizontal, np.sin(alpha), out=slots[..., 1])
+    np.negative(slots[..., 1], out=slots[..., 1])
+    np.multiply(distance, _SLOT_SIN_ELEVATION_M, out=slots[..., 2])
+    points = slots.reshape(-1, 3).take(np.flatnonzero(raw), axis=0)
+    return DecodedPackets(points, _points_per_firing(raw != 0))
 
 
 def _points_per_firing(hit: np.ndarray) -> np.ndarray:
