@@ -63,6 +63,11 @@ class EnvConfig:
     wind_gust_max: float = field(default=0.0, metadata={"min": 0.0, "max": 8.0})
 
 
+def _clip_unit(v: float) -> float:
+    """Clip to [-1, 1]; NaN becomes 0 (a broken policy output must not become a command)."""
+    return 0.0 if v != v else min(1.0, max(-1.0, v))
+
+
 def _rz(angle: float) -> np.ndarray:
     c, s = math.cos(angle), math.sin(angle)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
@@ -182,18 +187,18 @@ class LidarAvoidEnv(gym.Env):
     def step(self, action: np.ndarray):
         if self.world is None:
             raise RuntimeError("call reset() before step()")
-        a = np.clip(np.nan_to_num(np.asarray(action, dtype=np.float32).reshape(2), nan=0.0), -1.0, 1.0)
+        a0, a1 = (_clip_unit(v) for v in np.asarray(action, dtype=np.float32).reshape(2).tolist())
+        a = np.array([a0, a1], dtype=np.float32)
         cfg = self.config
         if cfg.wind_gust_max > 0.0:
             self._update_wind()
         previous = self._state.position
         setpoint = Setpoint.from_body(
-            float(a[0]) * cfg.max_speed, 0.0, self._state.yaw,
-            yaw_rate=float(a[1]) * cfg.max_yaw_rate, altitude=self._altitude,
-        )  # fmt: skip
+            a0 * cfg.max_speed, 0.0, self._state.yaw, yaw_rate=a1 * cfg.max_yaw_rate, altitude=self._altitude
+        )
         self._state = self._vehicle.step(setpoint)
         position = self._state.position
-        self._distance += float(np.linalg.norm(position - previous))
+        self._distance += math.dist(position, previous)
         self._trajectory.append(position.copy())
         self._steps += 1
         self._clearance = self.world.clearance(position)

@@ -84,8 +84,8 @@ class World:
         ``clearance < vehicle radius``. Compiled (the environment calls this every step);
         :func:`clearances` is the vectorised numpy twin that the tests hold it to.
         """
-        x, y, z = (float(v) for v in position)
         room, boxes, cylinders = self.packed
+        x, y, z = float(position[0]), float(position[1]), float(position[2])
         return float(_clearance_kernel(x, y, z, room, boxes, cylinders))
 
     @cached_property

@@ -1,0 +1,179 @@
+"""Environment throughput: LidarAvoid-v0 steps per second, and where a step's time goes.
+
+Figures (issue 2), each against the target of 5,000 env steps/s per core with 16 × 360 rays:
+
+    one env in one process             1° azimuth (16 × 360 rays) and 0.2° (16 × 1,800, the real sensor)
+    SB3 SubprocVecEnv with 2 envs      the same two, total steps/s across both workers
+
+then a per-step breakdown over the poses of a real flight: JSBSim vehicle (12 physics steps of
+JSBSim plus the Python cascaded controller), ray cast, point cloud, the companion's
+``scan_from_points``, clearance/collision, and the rest (reward, info, bookkeeping). Actions are a
+fixed random sequence (forward-biased); episodes that end are reset (a new generated world each
+time), and the resets are counted in the figures. The machine's load average is printed: the
+figures are only comparable on an idle machine.
+
+    /work/venv/bin/python bench/bench_env.py [--steps 3000] [--difficulty 0.5] [--skip-subproc]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from companion.scan import scan_from_points  # noqa: E402
+from flightsim.control import Setpoint  # noqa: E402
+from flightsim.env import EnvConfig, LidarAvoidEnv  # noqa: E402
+from flightsim.raycast import LidarConfig, grid_to_points  # noqa: E402
+
+TARGET_PER_CORE = 5000.0
+
+
+def actions(n: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    a = rng.uniform(-1.0, 1.0, (n, 2)).astype(np.float32)
+    a[:, 0] = 0.2 + 0.5 * np.abs(a[:, 0])
+    return a
+
+
+def run_single(cfg: EnvConfig, n: int) -> tuple[float, int]:
+    """Steps/s of one env in this process, and how many resets that included."""
+    env = LidarAvoidEnv(cfg)
+    acts = actions(n)
+    env.reset(seed=0)
+    for a in acts[:50]:  # warm-up: numba caches loaded, first allocations done
+        if any(env.step(a)[2:4]):
+            env.reset()
+    env.reset(seed=1)
+    resets = 0
+    t0 = time.perf_counter()
+    for a in acts:
+        _, _, terminated, truncated, _ = env.step(a)
+        if terminated or truncated:
+            env.reset()
+            resets += 1
+    elapsed = time.perf_counter() - t0
+    env.close()
+    return n / elapsed, resets
+
+
+def _make(cfg: EnvConfig):
+    return lambda: LidarAvoidEnv(cfg)
+
+
+def run_subproc(cfg: EnvConfig, n: int, n_envs: int = 2) -> float:
+    """Total steps/s of an SB3 SubprocVecEnv (auto-resetting workers)."""
+    from stable_baselines3.common.vec_env import SubprocVecEnv
+
+    vec = SubprocVecEnv([_make(cfg) for _ in range(n_envs)])
+    vec.seed(0)
+    vec.reset()
+    acts = actions(n)
+    for a in acts[:50]:
+        vec.step(np.stack([a] * n_envs))
+    t0 = time.perf_counter()
+    for a in acts:
+        vec.step(np.stack([a] * n_envs))
+    elapsed = time.perf_counter() - t0
+    vec.close()
+    return n * n_envs / elapsed
+
+
+def breakdown(cfg: EnvConfig, n: int) -> dict[str, float]:
+    """Microseconds per step of each part, timed separately over the poses of one flight."""
+    env = LidarAvoidEnv(cfg)
+    env.reset(seed=2)
+    acts = actions(n, seed=2)
+    states, setpoints, worlds = [], [], []
+    for a in acts:  # record a flight: vehicle states and the setpoints that produced them
+        state = env._state
+        setpoints.append(
+            Setpoint.from_body(float(a[0]) * cfg.max_speed, 0.0, state.yaw,
+                               yaw_rate=float(a[1]) * cfg.max_yaw_rate, altitude=env._altitude)
+        )  # fmt: skip
+        _, _, terminated, truncated, _ = env.step(a)
+        states.append(env._state)
+        worlds.append(env.world)
+        if terminated or truncated:
+            env.reset()
+    caster, band, scan_cfg = env._caster, env._slice_band, cfg.scan
+    poses = [(s.position, s.rotation()) for s in states]
+    out: dict[str, float] = {}
+
+    vehicle = env._vehicle
+    vehicle.reset(states[0].position, states[0].yaw)
+    t0 = time.perf_counter()
+    for sp in setpoints:
+        vehicle.step(sp)
+    out["JSBSim vehicle (12 physics steps + controller)"] = (time.perf_counter() - t0) / n
+
+    t0 = time.perf_counter()
+    grids = [caster.cast(w, p, r) for w, (p, r) in zip(worlds, poses, strict=True)]
+    out["lidar ray cast"] = (time.perf_counter() - t0) / n
+    t0 = time.perf_counter()
+    clouds = [grid_to_points(g, band) for g in grids]
+    out["point cloud (grid_to_points)"] = (time.perf_counter() - t0) / n
+    t0 = time.perf_counter()
+    for c in clouds:
+        scan_from_points(c, scan_cfg)
+    out["companion scan_from_points"] = (time.perf_counter() - t0) / n
+    t0 = time.perf_counter()
+    for w, (p, _) in zip(worlds, poses, strict=True):
+        w.clearance(p)
+    out["clearance (collision check)"] = (time.perf_counter() - t0) / n
+    out["points per scan (after slice pre-filter)"] = float(np.mean([len(c) for c in clouds]))
+
+    env.reset(seed=2)
+    t0 = time.perf_counter()
+    for a in acts:
+        if any(env.step(a)[2:4]):
+            env.reset()
+    out["whole env.step"] = (time.perf_counter() - t0) / n
+    env.close()
+    return out
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--steps", type=int, default=3000, help="timed steps per figure")
+    parser.add_argument("--difficulty", type=float, default=0.5)
+    parser.add_argument("--skip-subproc", action="store_true", help="only the single-process figures")
+    args = parser.parse_args()
+
+    print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}, cpus: {os.cpu_count()}")
+    print(f"target: >= {TARGET_PER_CORE:,.0f} env steps/s per core with 16 x 360 rays\n")
+    rows = []
+    for step_deg in (1.0, 0.2):
+        cfg = EnvConfig(difficulty=args.difficulty, lidar=LidarConfig(azimuth_step_deg=step_deg))
+        rays = 16 * round(360 / step_deg)
+        rate, resets = run_single(cfg, args.steps)
+        rows.append((f"1 env, 1 process, {step_deg} deg ({rays} rays)", rate, rate, resets))
+        if not args.skip_subproc:
+            total = run_subproc(cfg, args.steps // 2)
+            rows.append((f"SubprocVecEnv x2, {step_deg} deg ({rays} rays)", total, total / 2, None))
+    print(f"{'configuration':44s} {'steps/s':>9s} {'per core':>9s} {'vs target':>9s}")
+    for name, rate, per_core, resets in rows:
+        note = f"   ({resets} resets incl.)" if resets is not None else ""
+        print(f"{name:44s} {rate:9.0f} {per_core:9.0f} {per_core / TARGET_PER_CORE:8.0%}{note}")
+
+    print("\nwhere a step's time goes (1 deg azimuth, same flight, each part timed on its own):")
+    parts = breakdown(EnvConfig(difficulty=args.difficulty), min(args.steps, 2000))
+    total = parts["whole env.step"]
+    for name, value in parts.items():
+        if name.startswith("points"):
+            print(f"  {name:50s} {value:8.0f}")
+        else:
+            print(f"  {name:50s} {value * 1e6:8.1f} us  {value / total:6.1%}")
+    print(f"\nload average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
