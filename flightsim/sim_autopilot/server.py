@@ -152,3 +152,61 @@ class SimAutopilotServer:
                 log.warning("simulated autopilot fell %.2f s behind real time", now - next_step)
                 self.autopilot.count("overruns")
                 next_step = now
+
+
+# ------------------------------------------------------------------------------------ CLI
+def configure_parser(parser: Any) -> None:
+    """``avoid-sim autopilot``: a simulated autopilot alone, for a GCS or ``fly --autopilot external``."""
+    parser.add_argument(
+        "--personality",
+        choices=sorted(PERSONALITIES),
+        default="ardupilot",
+        help="firmware to imitate (ardupilot)",
+    )
+    parser.add_argument(
+        "--link",
+        action="append",
+        default=[],
+        help="udpin:HOST:PORT | udpout:HOST:PORT | tcpin:HOST:PORT; repeatable "
+        "(default tcpin:127.0.0.1:5760, like ArduPilot SITL)",
+    )
+    parser.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="set a parameter before start, e.g. COM_OBL_RC_ACT=5; repeatable",
+    )
+
+
+def command(args: Any) -> int:
+    from companion.errors import UserError
+
+    params: dict[str, float] = {}
+    for item in args.param:
+        name, sep, value = item.partition("=")
+        try:
+            params[name.strip()] = float(value)
+        except ValueError:
+            raise UserError(f"--param {item!r}: expected NAME=NUMBER") from None
+        if not sep:
+            raise UserError(f"--param {item!r}: expected NAME=NUMBER")
+    known = set(default_table(args.personality).names())
+    for name in params:
+        if name not in known:
+            raise UserError(f"--param {name}: not a parameter of the {args.personality} table")
+    server = SimAutopilotServer(args.personality, args.link or ["tcpin:127.0.0.1:5760"], params=params)
+    server.start()
+    print(
+        f"simulated {args.personality} running on {', '.join(args.link or ['tcpin:127.0.0.1:5760'])}; "
+        "Ctrl-C stops it",
+        flush=True,
+    )
+    try:
+        while server.error is None:
+            time.sleep(0.5)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.stop()
+    return 0 if server.error is None else 1
