@@ -103,9 +103,11 @@ class NotifySocket:
         self.sock.close()
 
 
-def write_config(tmp_path: Path, model: Path, lidar_port: int, mavlink_port: int, extra: str = "") -> Path:
-    """A companion config for loopback: VLP-16 on ``lidar_port``, ArduPilot via udpin ``mavlink_port``."""
+def write_config(tmp_path: Path, model: Path, lidar_port: int, mavlink_port: int, extra: str = "",
+                 autopilot: str = "ardupilot") -> Path:
+    """A companion config for loopback: VLP-16 on ``lidar_port``, the autopilot via udpin ``mavlink_port``."""
     path = tmp_path / "companion.toml"
+    connect = f"udpin://127.0.0.1:{mavlink_port}" if autopilot == "px4" else f"udpin:127.0.0.1:{mavlink_port}"
     path.write_text(
         f"""
 [lidar.velodyne]
@@ -120,8 +122,8 @@ recover_scans = 5
 climb_settled_time = 0.3
 
 [autopilot]
-type = "ardupilot"
-connect = "udpin:127.0.0.1:{mavlink_port}"
+type = "{autopilot}"
+connect = "{connect}"
 
 [runtime]
 log_interval = 2.0

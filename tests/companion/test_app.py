@@ -269,3 +269,37 @@ def test_parameter_check_warn_tells_the_pilot_and_flies_on(tmp_path):
         vehicle.close()
     assert code == 0, err
     assert "param PRX1_TYPE: wanted 2, autopilot 0" in err
+
+
+def test_px4_streams_before_offboard_then_flies(tmp_path):
+    """PX4 takes OFFBOARD only while setpoints flow: zeros stream in POSCTL, the policy's in OFFBOARD."""
+    from tests.companion.mavlink_peer import PX4_MAIN_OFFBOARD, PX4_MAIN_POSCTL, px4_custom_mode
+
+    lidar_port, mavlink_port = free_udp_port(), free_udp_port()
+    model = write_policy(tmp_path / "forward.onnx", kind="forward")
+    config = write_config(tmp_path, model, lidar_port, mavlink_port, autopilot="px4")
+    vehicle = SimulatedAutopilot(f"udpout:127.0.0.1:{mavlink_port}", autopilot=mavlink.MAV_AUTOPILOT_PX4)
+    vehicle.custom_mode = px4_custom_mode(PX4_MAIN_POSCTL)
+    proc = start_companion(config)
+    lidar = LidarSender(lidar_port)
+    try:
+        lidar.on = True
+        hb = _wait(lambda: vehicle.wait_for("HEARTBEAT", timeout=0.1), timeout=20, what="heartbeat")
+        assert hb.type == mavlink.MAV_TYPE_ONBOARD_CONTROLLER and hb.get_srcComponent() == 191
+        time.sleep(1.5)
+        before = vehicle.messages(SETPOINT)
+        assert len(before) >= 5 and all(m.vx == 0.0 and m.yaw_rate == 0.0 for m in before)
+        assert all(m.coordinate_frame == mavlink.MAV_FRAME_BODY_NED for m in before)
+        vehicle.custom_mode = px4_custom_mode(PX4_MAIN_OFFBOARD)  # the pilot switches
+        t_switch = time.monotonic()
+        _wait(lambda: any(m.vx > 0 for m in vehicle.messages(SETPOINT, since=t_switch)),
+              what="policy setpoints")
+        assert vehicle.wait_for("OBSTACLE_DISTANCE", since=t_switch) is not None
+    finally:
+        lidar.close()
+        t_term = time.monotonic()
+        code, _out, err = stop(proc)
+        vehicle.close()
+    assert code == 0, err
+    after = vehicle.messages(SETPOINT, since=t_term)
+    assert after and after[-1].vx == 0.0
