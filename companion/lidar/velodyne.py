@@ -589,7 +589,13 @@ class VelodyneUdpSource:
             raise UserError(f"cannot listen for VLP-16 packets on {host}:{port}: {exc}") from exc
         sock.setblocking(False)
         self._sock = sock
-        log.info("VLP-16: listening on %s:%d (decoder %s)", *sock.getsockname()[:2], backend)
+        # Linux caps the buffer at net.core.rmem_max; say what we got (a revolution is ~90 KiB).
+        log.info(
+            "VLP-16: listening on %s:%d (decoder %s, receive buffer %d bytes)",
+            *sock.getsockname()[:2],
+            backend,
+            sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF),
+        )
 
     @property
     def address(self) -> tuple[str, int]:
