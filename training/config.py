@@ -17,6 +17,8 @@ from companion.tomlconfig import apply_overrides, from_dict, load_toml, to_dict
 
 #: success needs at least this mean speed over a full episode: 40 m in the default 100 s
 SUCCESS_MIN_MEAN_SPEED = 0.4
+#: one environment step: LidarAvoidEnv runs its vehicle at a 10 Hz control rate
+STEP_SECONDS = 0.1
 #: a clearance below this counts as a near miss in evaluation, metres
 NEAR_MISS_DISTANCE = 0.5
 
@@ -50,6 +52,8 @@ class EvalConfig:
     #: first world seed of the held-out set; training worlds use seeds >= 1_000_000
     first_seed: int = field(default=0, metadata={"min": 0, "max": 999_999})
     difficulty: float = field(default=0.5, metadata={"min": 0.0, "max": 1.0})
+    #: evaluation processes; 0 = one per training environment, 1 = in the training process (no pool)
+    workers: int = field(default=0, metadata={"min": 0, "max": 256})
 
 
 @dataclass(frozen=True)

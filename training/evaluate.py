@@ -32,7 +32,7 @@ import numpy as np
 from companion.errors import UserError
 from companion.framestack import FrameStack
 from companion.scan import N_BINS
-from training.config import NEAR_MISS_DISTANCE, SUCCESS_MIN_MEAN_SPEED
+from training.config import NEAR_MISS_DISTANCE, STEP_SECONDS, SUCCESS_MIN_MEAN_SPEED
 
 log = logging.getLogger(__name__)
 
@@ -168,7 +168,7 @@ def run_episode(
             break
         action = controller.act(obs)
     max_steps = int(env.unwrapped.config.max_steps)
-    dt = float(env.unwrapped.dt)
+    dt = STEP_SECONDS
     distance = float(info["distance"])
     return EpisodeResult(
         controller="",
@@ -242,8 +242,11 @@ def load_policy(
             raise UserError(f"{path}: cannot load the ONNX policy: {exc}") from None
         return policy.act, n_stack
     if path.suffix == ".zip":
+        import torch
+
         from training.export import load_model
 
+        torch.set_num_threads(1)  # one episode per process: more threads only contend for the cores
         model = load_model(path)
         stack = int(model.observation_space.shape[0]) // N_BINS
         return sb3_controller(model, stack)._act, stack
@@ -362,47 +365,45 @@ def format_table(summary: dict[str, Any], per_world: bool) -> str:
 def plot_trajectories(
     results: Sequence[EpisodeResult], worlds: Sequence[WorldSpec], out: Path, env_config: Any
 ) -> None:
-    """One panel per world: the world drawn top-down, every controller's first episode over it."""
-    import matplotlib
+    """One panel per world (drawn by :func:`flightsim.render.draw_top_down`), each controller's first
+    episode over it; a red cross marks a collision."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from flightsim.render import draw_world
+    from flightsim.render import draw_top_down
     from flightsim.world import generate_world, load_world
 
-    colours = {"random": "tab:gray", "gap_follower": "tab:orange"}
+    colours = {"policy": "tab:blue", "gap_follower": "tab:orange", "random": "tab:gray"}
     cols = min(len(worlds), 10 if len(worlds) > 16 else 4)
     rows = math.ceil(len(worlds) / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 2.6 * rows), squeeze=False)
-    for ax in axes.flat[len(worlds) :]:
-        ax.axis("off")
-    for ax, w in zip(axes.flat, worlds, strict=False):
+    fig = Figure(figsize=(2.8 * cols, 2.4 * rows + 0.6))
+    canvas = FigureCanvasAgg(fig)
+    for i, w in enumerate(worlds):
+        ax = fig.add_subplot(rows, cols, i + 1)
+        radius = env_config.vehicle_radius
         world = (
-            load_world(w.path, vehicle_radius=env_config.vehicle_radius)
+            load_world(w.path, vehicle_radius=radius)
             if w.path
-            else generate_world(w.seed, w.difficulty, env_config.vehicle_radius)
+            else generate_world(w.seed, w.difficulty, radius)
         )
-        draw_world(ax, world)
+        draw_top_down(world, ax=ax, vehicle_radius=radius)
         for r in results:
             if r.world != w.name or r.episode != 0:
                 continue
             xy = np.asarray(r.trajectory)
-            colour = colours.get(r.controller, "tab:blue")
-            ax.plot(xy[:, 0], xy[:, 1], lw=0.8, color=colour, label=r.controller)
+            colour = colours.get(r.controller, "tab:green")
+            ax.plot(xy[:, 0], xy[:, 1], lw=0.9, color=colour, label=r.controller, zorder=5)
             if r.collision:
-                ax.plot(xy[-1, 0], xy[-1, 1], "x", color="red", ms=6, mew=1.5)
+                ax.plot(xy[-1, 0], xy[-1, 1], "x", color="red", ms=7, mew=2, zorder=6)
         ax.set_title(w.name, fontsize=8)
-        ax.set_xticks([])
-        ax.set_yticks([])
-    handles, labels = axes.flat[0].get_legend_handles_labels()
-    if handles:
-        fig.legend(handles, labels, loc="lower center", ncol=len(handles), fontsize=9)
-    fig.suptitle("first episode per world (red x: collision)", fontsize=10)
-    fig.tight_layout(rect=(0, 0.04, 1, 0.97))
+        ax.set_xlabel("")
+        ax.set_ylabel("")
+        ax.tick_params(labelsize=5)
+    handles, labels = fig.axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=max(len(handles), 1), fontsize=9)
+    fig.tight_layout(rect=(0, 0.6 / fig.get_figheight(), 1, 1))
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=80)
-    plt.close(fig)
+    canvas.print_png(str(out))
 
 
 # --- command line ----------------------------------------------------------------------------------

@@ -180,7 +180,8 @@ def export_policy(
     :param samples: rollout observations for the parity check
     """
     from companion.policy import policy_metadata
-    from training.config import config_to_toml, load_train_config
+    from companion.tomlconfig import to_dict
+    from training.config import load_train_config
 
     model = load_model(model_path)
     config = load_train_config(config_path or find_run_config(model_path))
@@ -190,7 +191,7 @@ def export_policy(
             f"{model_path}: observation shape {model.observation_space.shape} does not match the config's "
             f"{config.n_stack} stacked scans {expected}"
         )
-    config_json = json.dumps({"config_toml": config_to_toml(config)})
+    config_json = json.dumps(to_dict(config), sort_keys=True)
     export_onnx(model, out, policy_metadata(policy_spec_for(config), config_json))
     observations = rollout_observations(model, config, samples, seed=config.seed + 12345)
     diff = parity_max_abs_diff(model, out, observations)

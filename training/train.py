@@ -246,7 +246,8 @@ def train(config: TrainConfig, resume: Path | None = None) -> Path:
     if config.curriculum.enabled:
         difficulty = previous[-1]["difficulty"] if previous else config.curriculum.start_difficulty
     venv = make_vec_env(config, n_envs, config.seed, difficulty=difficulty)
-    executor = make_executor(n_envs)
+    eval_workers = config.eval.workers or n_envs
+    executor = make_executor(eval_workers) if eval_workers > 1 else None
     try:
         model = build_model(config, venv, run_dir, resume)
         remaining = config.total_timesteps - (model.num_timesteps if resume else 0)
@@ -267,7 +268,8 @@ def train(config: TrainConfig, resume: Path | None = None) -> Path:
         log.info("saved %s after %d steps", final, model.num_timesteps)
         return final
     finally:
-        executor.shutdown(cancel_futures=True)
+        if executor is not None:
+            executor.shutdown(cancel_futures=True)
         venv.close()
 
 

@@ -49,7 +49,5 @@ def test_gap_follower_stops_but_turns_when_boxed_in_ahead():
 def test_random_controller_is_seeded_and_in_range():
     a = [RandomController(3).act(np.ones(360)) for _ in range(2)]
     np.testing.assert_array_equal(a[0], a[1])
-    many = np.array([
-        RandomController(i).act(np.ones(360)) for i in range(200)
-    ])
+    many = np.array([RandomController(i).act(np.ones(360)) for i in range(200)])
     assert many.min() >= -1.0 and many.max() <= 1.0 and many.std() > 0.3

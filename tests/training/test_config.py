@@ -1,0 +1,77 @@
+"""The training config: strict loading, overrides, the [env] table checked by the simulator's own rules."""
+
+import pytest
+
+from companion.errors import UserError
+from companion.tomlconfig import load_toml
+from training.config import TrainConfig, config_from_dict, config_to_toml, load_train_config
+
+
+def _write(tmp_path, text: str):
+    path = tmp_path / "mine.toml"
+    path.write_text(text)
+    return path
+
+
+def test_defaults_are_the_tutorial_hyperparameters():
+    c = load_train_config(None)
+    p = c.ppo
+    assert (p.learning_rate, p.n_steps, p.batch_size, p.n_epochs) == (3e-4, 2048, 64, 10)
+    assert (p.gamma, p.gae_lambda, p.clip_range, p.ent_coef, p.vf_coef, p.max_grad_norm) == (
+        0.99,
+        0.95,
+        0.2,
+        0.01,
+        0.5,
+        0.5,
+    )
+    assert c.n_stack == 4 and c.checkpoint_every == 50_000
+
+
+def test_name_defaults_to_the_file_stem_and_sets_the_run_directory(tmp_path):
+    c = load_train_config(_write(tmp_path, "seed = 7\nrun_root = 'out'\n"))
+    assert c.name == "mine"
+    assert str(c.run_dir) == "out/mine-s7"
+
+
+def test_overrides_reach_nested_tables_and_env(tmp_path):
+    c = load_train_config(
+        _write(tmp_path, "[ppo]\nn_steps = 512\n"), ["ppo.n_steps=128", "env.max_steps=200", "seed=3"]
+    )
+    assert c.ppo.n_steps == 128 and c.seed == 3
+    assert c.env_config().max_steps == 200
+
+
+@pytest.mark.parametrize(
+    ("text", "overrides", "named"),
+    [
+        ("[ppo]\nn_step = 5\n", [], "ppo.n_step"),
+        ("[ppo]\ngamma = 1.5\n", [], "ppo.gamma"),
+        ("[env]\nmax_step = 5\n", [], "env.max_step"),
+        ("[env]\nmax_steps = 'many'\n", [], "env.max_steps"),
+        ("", ["eval.first_seed=1000000"], "eval.first_seed"),
+        ("", ["ppo.batch_size=4096", "ppo.n_steps=16", "n_envs=2"], "ppo.batch_size"),
+        ("name = 'a b'\n", [], "name"),
+    ],
+)
+def test_mistakes_name_the_key(tmp_path, text, overrides, named):
+    with pytest.raises(UserError, match=named.replace(".", r"\.")):
+        load_train_config(_write(tmp_path, text), overrides)
+
+
+def test_saved_toml_reloads_to_the_same_config(tmp_path):
+    c = load_train_config(
+        _write(tmp_path, "[env]\nmax_steps = 300\n[curriculum]\nenabled = true\n[ppo]\nnet_arch = [32, 16]\n")
+    )
+    again = config_from_dict(load_toml(_write(tmp_path, config_to_toml(c))))
+    assert again == c
+    assert isinstance(again, TrainConfig)
+
+
+def test_every_committed_config_loads():
+    from pathlib import Path
+
+    configs = sorted((Path(__file__).parents[2] / "training" / "configs").glob("*.toml"))
+    assert configs, "training/configs/ must hold the shipped policy's config"
+    for path in configs:
+        assert load_train_config(path).name == path.stem

@@ -1,0 +1,186 @@
+"""The whole training pipeline through its command line, tiny: train, resume, export (parity), evaluate.
+
+One module-scoped run keeps the suite fast; each test checks one promise of it. Everything is real:
+the JSBSim simulator in subprocesses, SB3 PPO, torch's ONNX export, ONNX Runtime through the
+companion's own OnnxPolicy and FrameStack.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import onnx
+import pytest
+
+from companion.errors import UserError
+from companion.framestack import FrameStack
+from companion.policy import OnnxPolicy, PolicySpec
+from training.__main__ import main
+
+WORLDS = Path(__file__).parents[2] / "flightsim" / "worlds"
+
+TINY = """
+name = "tiny"
+seed = 1
+total_timesteps = 256
+n_envs = 2
+checkpoint_every = 128
+progress_bar = false
+
+[env]
+max_steps = 40
+
+[ppo]
+n_steps = 64
+batch_size = 64
+n_epochs = 1
+net_arch = [16, 16]
+
+[eval]
+every_steps = 128
+n_worlds = 1
+workers = 1
+"""
+
+
+@pytest.fixture(scope="module")
+def pipeline(tmp_path_factory):
+    """Train 256 steps, resume to 384, export with parity, evaluate against the baselines."""
+    tmp = tmp_path_factory.mktemp("pipeline")
+    config = tmp / "tiny.toml"
+    config.write_text(TINY)
+    run_dir = tmp / "runs" / "tiny-s1"
+    out: dict = {"tmp": tmp, "run_dir": run_dir, "config": config}
+    assert main(["train", "--config", str(config), f"run_root={tmp / 'runs'}"]) == 0
+    out["checkpoints_first"] = sorted(p.name for p in (run_dir / "checkpoints").glob("*.zip"))
+    out["eval_rows_first"] = (run_dir / "eval.csv").read_text().splitlines()
+    resume_from = run_dir / "checkpoints" / "ppo_256_steps.zip"
+    assert main(["train", "--config", str(config), "--resume", str(resume_from), f"run_root={tmp / 'runs'}",
+                 "total_timesteps=384"]) == 0  # fmt: skip
+    onnx_path = tmp / "policy.onnx"
+    out["onnx"] = onnx_path
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        assert main(["export", "--model", str(run_dir / "final_model.zip"), "--out", str(onnx_path),
+                     "--parity-samples", "300"]) == 0  # fmt: skip
+    out["export_printed"] = printed.getvalue()
+    return out
+
+
+def test_training_writes_checkpoints_eval_log_and_tensorboard(pipeline):
+    run_dir = pipeline["run_dir"]
+    assert pipeline["checkpoints_first"] == ["ppo_128_steps.zip", "ppo_256_steps.zip"]
+    header, *rows = pipeline["eval_rows_first"]
+    assert header.startswith("timesteps,wall_s,difficulty,success_rate")
+    assert [int(r.split(",")[0]) for r in rows] == [128, 256]
+    assert any((run_dir / "tb").rglob("events.out.tfevents.*"))
+    assert (run_dir / "config.toml").is_file() and (run_dir / "best_model.zip").is_file()
+
+
+def test_resume_continues_the_step_count(pipeline):
+    from stable_baselines3 import PPO
+
+    run_dir = pipeline["run_dir"]
+    final = PPO.load(run_dir / "final_model.zip", device="cpu")
+    assert final.num_timesteps == 384
+    assert (run_dir / "checkpoints" / "ppo_384_steps.zip").is_file()
+    rows = (run_dir / "eval.csv").read_text().splitlines()[1:]
+    steps = [int(r.split(",")[0]) for r in rows]
+    assert steps[:2] == [128, 256] and steps[-1] == 384
+    walls = [float(r.split(",")[1]) for r in rows]
+    assert walls == sorted(walls), "wall-clock time continues across the resume"
+
+
+def test_export_checks_parity_and_writes_what_the_companion_checks(pipeline):
+    onnx_path, printed = pipeline["onnx"], pipeline["export_printed"]
+    diff = float(re.search(r"rollout observations ([0-9.e+-]+)", printed).group(1))
+    assert diff <= 1e-5
+    proto = onnx.load(str(onnx_path))
+    onnx.checker.check_model(proto, full_check=True)
+    ops = {n.op_type for n in proto.graph.node}
+    assert ("Clip" in ops or {"Min", "Max"} <= ops) and not any("Random" in op for op in ops)
+    assert len(proto.graph.output) == 1  # the action; no value head
+    meta = {p.key: p.value for p in proto.metadata_props}
+    assert meta["lidar_avoid.stack"] == "4" and meta["lidar_avoid.max_range"] == "10.0"
+    assert json.loads(meta["lidar_avoid.config"])["env"]["max_steps"] == 40
+    OnnxPolicy(onnx_path, PolicySpec())  # the companion accepts it...
+    with pytest.raises(UserError, match="max_speed"):
+        OnnxPolicy(onnx_path, PolicySpec(max_speed=3.0))  # ...and refuses it under another config
+
+
+def test_vecframestack_sb3_and_companion_framestack_onnx_act_the_same(pipeline):
+    """The same scans through training's VecFrameStack + SB3 and flight's FrameStack + ONNX."""
+    from stable_baselines3 import PPO
+
+    from training.config import load_train_config
+    from training.train import make_vec_env
+
+    onnx_path = pipeline["onnx"]
+    model = PPO.load(pipeline["run_dir"] / "final_model.zip", device="cpu")
+    config = load_train_config(pipeline["config"], ["env.max_steps=15"])
+    venv = make_vec_env(config, n_envs=1, seed=5, subprocess=False)
+    policy, stack = OnnxPolicy(onnx_path, PolicySpec()), FrameStack(4, 360)
+    obs, new_episode, episodes = venv.reset(), True, 0
+    try:
+        for _ in range(40):
+            scan = obs[0, -360:]
+            flight_obs = stack.reset(scan) if new_episode else stack.push(scan)
+            np.testing.assert_array_equal(flight_obs, obs[0])
+            sb3_action, _ = model.predict(obs, deterministic=True)
+            np.testing.assert_allclose(policy.act(flight_obs), sb3_action[0], atol=1e-5, rtol=0)
+            obs, _, dones, _ = venv.step(sb3_action)
+            new_episode = bool(dones[0])
+            episodes += new_episode
+    finally:
+        venv.close()
+    assert episodes >= 2, "the sequence must cross episode resets"
+
+
+def test_evaluate_reports_policy_and_baselines_with_json_and_png(pipeline, capsys):
+    tmp, onnx_path = pipeline["tmp"], pipeline["onnx"]
+    report, png = tmp / "eval.json", tmp / "eval.png"
+    assert main(["evaluate", "--policy", str(onnx_path), "--seeds", "2", "--set", "env.max_steps=40",
+                 "--workers", "1", "--json", str(report), "--png", str(png)]) == 0  # fmt: skip
+    table = capsys.readouterr().out
+    assert re.search(r"^policy\s+ALL\s+2\s", table, re.M)
+    data = json.loads(report.read_text())
+    assert set(data["controllers"]) == {"policy", "gap_follower", "random"}
+    for c in data["controllers"].values():
+        assert set(c["per_world"]) == {"seed-0", "seed-1"}
+        overall = c["overall"]
+        assert overall["episodes"] == 2 and 0.0 <= overall["success_rate"] <= 1.0
+        assert overall["min_clearance_m"] >= 0.0
+    assert len(data["episodes"]) == 6
+    assert png.stat().st_size > 10_000
+
+
+def test_evaluate_on_the_example_worlds(pipeline, capsys):
+    model = pipeline["run_dir"] / "final_model.zip"
+    assert main(["evaluate", "--policy", str(model), "--worlds", str(WORLDS), "--set", "env.max_steps=30",
+                 "--workers", "1"]) == 0  # fmt: skip
+    table = capsys.readouterr().out
+    for name in ("two-pillars", "slalom"):
+        assert re.search(rf"^gap_follower\s+{name}\s+1\s", table, re.M)
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["train", "--config", "{tmp}/tiny.toml", "ppo.n_stepz=3"],
+        ["train", "--config", "{tmp}/missing.toml"],
+        ["export", "--model", "{tmp}/tiny.toml", "--out", "{tmp}/x.onnx"],
+        ["evaluate", "--policy", "{tmp}/nope.onnx", "--seeds", "1"],
+        ["evaluate", "--policy", "{tmp}/tiny.toml", "--seeds", "1"],
+        ["evaluate", "--policy", "{tmp}/policy.onnx", "--seeds", "1", "--set", "env.max_speed=3.0"],
+    ],
+)
+def test_user_mistakes_are_one_line_errors(pipeline, capsys, argv):
+    tmp = pipeline["tmp"]
+    assert main([a.format(tmp=tmp) for a in argv]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("avoid-train: error: ") and "\n" not in err
