@@ -1,0 +1,104 @@
+"""Evaluation's bookkeeping: success, near misses and summaries, on scripted episodes."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from training.evaluate import EpisodeResult, WorldSpec, format_table, is_success, report, run_episode
+
+
+class ScriptedEnv:
+    """Replays clearances and distances (a stand-in for the simulator in a test of pure bookkeeping)."""
+
+    def __init__(self, clearances, step_length=0.1, collide_at=None, max_steps=None):
+        self.clearances = clearances
+        self.step_length = step_length
+        self.collide_at = collide_at
+        self.config = SimpleNamespace(max_steps=max_steps or len(clearances) - 1)
+        self.unwrapped = self
+        self.actions = []
+
+    def _info(self):
+        return {
+            "collision": self.i == self.collide_at,
+            "min_distance": self.clearances[self.i],
+            "distance": self.i * self.step_length,
+            "position": np.array([self.i * self.step_length, 0.0, 1.5]),
+        }
+
+    def reset(self, seed=None, options=None):
+        self.i = 0
+        return np.ones(360, np.float32), self._info()
+
+    def step(self, action):
+        self.actions.append(np.asarray(action))
+        self.i += 1
+        info = self._info()
+        terminated = info["collision"]
+        return (
+            np.ones(360, np.float32),
+            0.0,
+            terminated,
+            self.i >= self.config.max_steps and not terminated,
+            info,
+        )
+
+
+class Constant:
+    def reset(self, scan):
+        return np.array([0.5, 0.0], np.float32)
+
+    def act(self, scan):
+        return np.array([0.5, 0.0], np.float32)
+
+
+def test_near_misses_count_entries_below_half_a_metre_and_clearance_is_the_minimum():
+    env = ScriptedEnv([2.0, 0.4, 0.3, 1.0, 0.45, 2.0, 0.6])
+    r = run_episode(env, Constant(), {})
+    assert r.near_misses == 2
+    assert r.min_clearance == pytest.approx(0.3)
+    assert r.steps == 6 and not r.collision
+    assert len(r.trajectory) == 7 and len(env.actions) == 6
+
+
+def test_a_collision_ends_the_episode_and_is_never_a_success():
+    env = ScriptedEnv([2.0] * 20, step_length=10.0, collide_at=5)
+    r = run_episode(env, Constant(), {})
+    assert r.collision and r.steps == 5 and not r.success
+
+
+@pytest.mark.parametrize(
+    ("collision", "steps", "distance", "expected"),
+    [
+        (False, 1000, 40.0, True),
+        (False, 1000, 39.9, False),  # hovering survives but does not succeed
+        (False, 999, 80.0, False),  # the episode must run to max_steps
+        (True, 1000, 80.0, False),
+    ],
+)
+def test_success_needs_the_full_episode_and_40_m(collision, steps, distance, expected):
+    assert is_success(collision, steps, 1000, distance, 0.1) is expected
+
+
+def _result(controller, world, success, distance):
+    return EpisodeResult(
+        controller, world, 0, 1000, 1000, not success, distance, distance / 100, 0.4, 1, success
+    )
+
+
+def test_report_summarises_per_controller_and_world():
+    worlds = [WorldSpec("a", seed=0), WorldSpec("b", seed=1)]
+    results = [
+        _result("policy", "a", True, 100.0),
+        _result("policy", "b", False, 20.0),
+        _result("gap_follower", "a", True, 60.0),
+        _result("gap_follower", "b", True, 60.0),
+    ]
+    data = report(results, worlds)
+    policy = data["controllers"]["policy"]
+    assert policy["overall"]["success_rate"] == 0.5 and policy["overall"]["mean_distance_m"] == 60.0
+    assert policy["per_world"]["b"]["collisions"] == 1
+    assert data["controllers"]["gap_follower"]["overall"]["success_rate"] == 1.0
+    table = format_table(data, per_world=True)
+    assert "policy" in table and "ALL" in table and len(table.splitlines()) == 2 + 2 * 3
