@@ -237,7 +237,7 @@ class Companion:
 
     def step(self, timeout: float) -> None:
         """Wait up to ``timeout`` for lidar data, then do everything one iteration does."""
-        fds = [fd for fd in (self.lidar.fileno(), self.link_fileno()) if fd is not None]
+        fds = [fd for fd in (self.lidar.fileno(), self._link_fileno()) if fd is not None]
         if fds:
             select.select(fds, [], [], timeout)
         elif timeout > 0:
@@ -255,7 +255,7 @@ class Companion:
             self._announce(transition)
         self._periodic()
 
-    def link_fileno(self) -> int | None:
+    def _link_fileno(self) -> int | None:
         fileno = getattr(self.link, "fileno", None)
         return fileno() if fileno is not None else None
 
