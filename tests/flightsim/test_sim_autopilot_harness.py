@@ -1,0 +1,104 @@
+"""SITL harness pieces without a flight: the generated companion config, latency matching, and the
+lidar co-simulation's packets read back by the companion's own UDP source (real loopback)."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+
+from companion.config import CompanionConfig, load_config
+from companion.errors import UserError
+from companion.lidar.velodyne import VelodyneUdpSource
+from companion.scan import ScanConfig, scan_from_points
+from companion.tomlconfig import to_dict
+from flightsim.cosim import LidarCosim
+from flightsim.harness import companion_config, free_udp_port, latency_ms, load_flight_world, toml_dumps
+from flightsim.raycast import LidarConfig
+from flightsim.vehicle import VehicleState
+from flightsim.world import load_world
+
+
+def test_generated_companion_config_loads_strictly(tmp_path):
+    policy = tmp_path / "p.onnx"
+    cfg = companion_config(
+        autopilot_type="px4",
+        connect="udpin://127.0.0.1:14540",
+        lidar_port=23680,
+        policy=policy,
+        overrides={"runtime": {"log_interval": 1.0}},
+    )
+    path = tmp_path / "companion.toml"
+    path.write_text(toml_dumps(to_dict(cfg)))
+    loaded = load_config(path)
+    assert isinstance(loaded, CompanionConfig)
+    assert loaded.autopilot.type == "px4" and loaded.autopilot.connect == "udpin://127.0.0.1:14540"
+    assert loaded.lidar.velodyne.port == 23680 and loaded.lidar.velodyne.host == "127.0.0.1"
+    assert loaded.policy.model == str(policy)
+    assert loaded.runtime.log_interval == 1.0
+    assert loaded == cfg
+
+
+def test_toml_dumps_writes_tables_arrays_of_tables_and_scalars(tmp_path):
+    from companion.tomlconfig import load_toml
+
+    data = {"a": 1, "b": {"c": 'x"y', "d": [1.5, 2.0], "e": True, "f": [{"g": 1}, {"g": 2}]}}
+    path = tmp_path / "t.toml"
+    path.write_text(toml_dumps(data))
+    assert load_toml(path) == data
+
+
+def test_latency_matches_each_revolution_to_the_next_setpoint():
+    ends = [1.0, 1.1, 1.2, 1.3]
+    setpoints = [0.95, 1.004, 1.103, 1.104, 1.6]
+    assert latency_ms(ends, setpoints) == pytest.approx([4.0, 3.0])  # 1.2 and 1.3 got no setpoint in time
+
+
+def test_world_arguments_are_checked():
+    with pytest.raises(UserError, match="difficulty"):
+        load_flight_world(None, 1, 1.5)
+    with pytest.raises(UserError, match="seed"):
+        load_flight_world(None, -1, 0.5)
+    assert load_flight_world(None, 3, 0.2).name.startswith("gen-3")
+
+
+def hover_state(x: float, y: float, yaw_deg: float) -> VehicleState:
+    return VehicleState(
+        time=0.0,
+        position=np.array([x, y, 1.5]),
+        velocity=np.zeros(3),
+        roll=0.0,
+        pitch=0.0,
+        yaw=math.radians(yaw_deg),
+        angular_rate=np.zeros(3),
+        on_ground=False,
+        armed=True,
+    )
+
+
+def test_cosim_streams_revolutions_the_companion_decodes_into_the_right_scan():
+    world = load_world("flightsim/worlds/two-pillars.json")
+    state = hover_state(-4.5, 0.0, 0.0)  # room 12 x 8 m: the wall behind is 1.5 m away, East wall 10.5 m
+    port = free_udp_port()
+    source = VelodyneUdpSource("127.0.0.1", port)
+    cosim = LidarCosim(world, lambda: state, ("127.0.0.1", port), lidar=LidarConfig(azimuth_step_deg=1.0))
+    cosim.revolution_packets(state)  # compile before timing anything
+    clouds = []
+    try:
+        cosim.start()
+        end = time.monotonic() + 1.05
+        while time.monotonic() < end:
+            clouds += source.read_available()
+            time.sleep(0.005)
+    finally:
+        cosim.stop()
+        source.close()
+    assert 8 <= cosim.stats.revolutions <= 11  # 10 Hz, real time
+    assert cosim.stats.packets == 15 * cosim.stats.revolutions  # 360 firings / 24 per packet
+    assert len(clouds) >= cosim.stats.revolutions - 2
+    scan = scan_from_points(clouds[-1], ScanConfig())
+    assert scan[180] * 10.0 == pytest.approx(1.5, abs=0.05)  # bin 180 = behind: the West wall
+    assert scan[90] * 10.0 == pytest.approx(4.0, abs=0.05)  # left = North wall at y = 4
+    assert scan[270] * 10.0 == pytest.approx(4.0, abs=0.05)
