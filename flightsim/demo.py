@@ -75,6 +75,8 @@ def command(args: argparse.Namespace) -> int:
         report = run_flight(options, plot=out / f"{world.name}.png", vehicle=vehicle)
         reports.append(report)
         print(_row(report), flush=True)
+        if report.error == "interrupted":  # Ctrl-C: that flight was cleaned up; skip the rest
+            break
     wall = time.monotonic() - start
     (out / "summary.json").write_text(
         json.dumps({"wall_time_s": round(wall, 1), "flights": [r.__dict__ for r in reports]}, indent=2)

@@ -578,15 +578,22 @@ class SitlFlight:
             time.sleep(0.05)
         return False
 
-    def fly(self, duration: float) -> None:
-        """Let the companion fly for ``duration`` s, or until a collision or the companion exits."""
+    def fly(self, duration: float) -> str:
+        """Let the companion fly for ``duration`` s, or until a collision or the companion exits.
+
+        :return: why the flight ended early ("" when it ran its course or collided)
+        """
         end = time.monotonic() + duration
         while time.monotonic() < end and not self._stop.is_set():
-            if self.recorder.collision_time is not None or not self.companion_alive():
-                return
+            if self.recorder.collision_time is not None:
+                return ""
+            if not self.companion_alive():
+                assert self.companion is not None
+                return f"the companion exited (status {self.companion.returncode}, see {self.log_path})"
             if self.server is not None and self.server.error is not None:
                 raise RuntimeError(f"simulated autopilot failed: {self.server.error}")
             time.sleep(0.05)
+        return ""
 
     # ------------------------------------------------------------------ report
     def report(self, plot: Path | None = None, error: str = "") -> FlightReport:
@@ -708,7 +715,7 @@ def run_flight(options: FlightOptions, plot: Path | None = None, vehicle: Any = 
         try:
             flight.take_off()
             if flight.wait_engaged(options.engage_timeout):
-                flight.fly(options.duration)
+                error = flight.fly(options.duration)
             else:
                 error = "the companion never engaged (see " + str(flight.log_path) + ")"
         except KeyboardInterrupt:
@@ -794,7 +801,11 @@ def command(args: Any) -> int:
         lidar_step_deg=args.lidar_step,
         workdir=workdir,
     )
-    report = run_flight(options, plot=Path(args.plot) if args.plot else None)
+    try:
+        report = run_flight(options, plot=Path(args.plot) if args.plot else None)
+    except KeyboardInterrupt:  # during start-up; run_flight cleaned up on its way out
+        print("avoid-sim fly: interrupted", file=sys.stderr)
+        return 130
     print_report(report)
     print(f"companion log: {workdir / 'companion.log'}")
     if args.json:
