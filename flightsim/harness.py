@@ -663,49 +663,29 @@ def plot_flight(
     path: Path,
     title: str,
 ) -> None:
-    """A top-down PNG: room, obstacles, the path (grey before the companion engaged), the end."""
-    import matplotlib
+    """A top-down PNG (:func:`flightsim.render.draw_top_down`): the take-off and the companion's path.
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.patches import Circle, Polygon, Rectangle
+    :param traj: ``(N, 6)`` rows of (time, x, y, z, yaw, speed)
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
 
-    from flightsim.world import Box
+    from flightsim.render import draw_top_down
 
-    fig, ax = plt.subplots(figsize=(7, 7 * world.room_size[1] / world.room_size[0] + 0.6))
-    hx, hy = world.room_size[0] / 2, world.room_size[1] / 2
-    ax.add_patch(Rectangle((-hx, -hy), 2 * hx, 2 * hy, fill=False, lw=2, color="k"))
-    for ob in world.obstacles:
-        if isinstance(ob, Box):
-            c, s = math.cos(math.radians(ob.yaw_deg)), math.sin(math.radians(ob.yaw_deg))
-            dx, dy = ob.size[0] / 2, ob.size[1] / 2
-            corners = [
-                (ob.center[0] + c * u - s * v, ob.center[1] + s * u + c * v)
-                for u, v in ((-dx, -dy), (dx, -dy), (dx, dy), (-dx, dy))
-            ]
-            ax.add_patch(Polygon(corners, color="tab:brown", alpha=0.7))
-        else:
-            ax.add_patch(Circle(ob.center[:2], ob.radius, color="tab:brown", alpha=0.7))
+    if collision_at is not None and len(traj):
+        traj = traj[traj[:, 0] <= collision_at]
+    parts: list[np.ndarray] = [np.zeros((0, 2))]
+    pose = None
     if len(traj):
-        engaged = traj[:, 0] >= engaged_at if engaged_at is not None else np.zeros(len(traj), bool)
-        ax.plot(traj[~engaged, 1], traj[~engaged, 2], color="0.6", lw=1, label="take-off")
-        ax.plot(traj[engaged, 1], traj[engaged, 2], color="tab:blue", lw=1.5, label="companion flying")
-        ax.plot(*traj[0, 1:3], "go", label="start")
-        if collision_at is not None:
-            i = int(np.searchsorted(traj[:, 0], collision_at))
-            ax.plot(*traj[min(i, len(traj) - 1), 1:3], "rx", ms=12, mew=3, label="collision")
-        else:
-            ax.plot(*traj[-1, 1:3], "bs", label="end")
-    ax.set_xlim(-hx - 0.5, hx + 0.5)
-    ax.set_ylim(-hy - 0.5, hy + 0.5)
-    ax.set_aspect("equal")
-    ax.set_xlabel("x east (m)")
-    ax.set_ylabel("y north (m)")
-    ax.set_title(title, fontsize=9)
-    ax.legend(loc="upper right", fontsize=7)
+        flying = traj[:, 0] >= engaged_at if engaged_at is not None else np.zeros(len(traj), bool)
+        parts = [traj[~flying, 1:3], traj[flying, 1:3]]  # take-off and hold first, then the companion
+        pose = (traj[-1, 1:4], float(traj[-1, 4]))
+    fig = Figure(figsize=(7, 7 * world.room_size[1] / world.room_size[0] + 0.6))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    draw_top_down(world, parts, ax=ax, pose=pose, collided=collision_at is not None, title=title)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
-    plt.close(fig)
 
 
 def run_flight(options: FlightOptions, plot: Path | None = None, vehicle: Any = None) -> FlightReport:
