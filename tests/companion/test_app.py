@@ -303,3 +303,71 @@ def test_px4_streams_before_offboard_then_flies(tmp_path):
     assert code == 0, err
     after = vehicle.messages(SETPOINT, since=t_term)
     assert after and after[-1].vx == 0.0
+
+
+def _in_process(tmp_path, kind):
+    from companion.app import Companion
+    from companion.config import load_config
+    from companion.notify import SystemdNotifier
+
+    lidar_port, mavlink_port = free_udp_port(), free_udp_port()
+    model = write_policy(tmp_path / f"{kind}.onnx", kind=kind)
+    companion = Companion(load_config(write_config(tmp_path, model, lidar_port, mavlink_port)),
+                          notifier=SystemdNotifier({}))
+    vehicle = SimulatedAutopilot(f"udpout:127.0.0.1:{mavlink_port}")
+    lidar = LidarSender(lidar_port)
+    companion.supervisor.start()
+    return companion, vehicle, lidar
+
+
+def _run_for(companion, lidar, seconds):
+    deadline = time.monotonic() + seconds
+    next_revolution = 0.0
+    while time.monotonic() < deadline:
+        if time.monotonic() >= next_revolution:
+            next_revolution = time.monotonic() + 0.1
+            lidar.send_one()
+        companion.step(0.01)
+
+
+def test_inference_faults_never_engage_and_never_crash(tmp_path):
+    companion, vehicle, lidar = _in_process(tmp_path, "nan")
+    try:
+        _run_for(companion, lidar, 1.5)
+        assert companion.counters["inference_faults"] >= 8
+        assert companion.supervisor.state.value == "STANDBY"
+        assert vehicle.messages(SETPOINT) == []
+        assert vehicle.messages("OBSTACLE_DISTANCE")  # the autopilot's own layer still gets the scans
+    finally:
+        lidar.close()
+        companion.close()
+        vehicle.close()
+
+
+def test_a_fault_in_one_iteration_is_counted_and_the_loop_goes_on(tmp_path, monkeypatch):
+    import os
+
+    companion, vehicle, lidar = _in_process(tmp_path, "forward")
+    read, write = os.pipe()
+    try:
+        real_read = companion.lidar.read_available
+        calls = {"n": 0}
+
+        def flaky():
+            calls["n"] += 1
+            if calls["n"] == 3:
+                raise RuntimeError("injected")
+            return real_read()
+
+        monkeypatch.setattr(companion.lidar, "read_available", flaky)
+        results = [companion._guarded_step(read) for _ in range(5)]
+        assert results == [True, True, False, True, True]
+        assert companion.counters["loop_faults"] == 1
+        _run_for(companion, lidar, 1.5)
+        assert vehicle.messages(SETPOINT), companion.summary()
+    finally:
+        os.close(read)
+        os.close(write)
+        lidar.close()
+        companion.close()
+        vehicle.close()
