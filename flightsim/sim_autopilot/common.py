@@ -427,6 +427,12 @@ class SimAutopilot:
             return []
         if kind == "REQUEST_DATA_STREAM":
             return self.handle_request_data_stream(msg, link)
+        if kind == "PING" and msg.target_system == 0:
+            # a ping request (MAVSDK sends them): answer to its sender with the same sequence
+            reply = mavlink.MAVLink_ping_message(
+                int((self.now - self.boot_time) * 1e6), msg.seq, msg.get_srcSystem(), msg.get_srcComponent()
+            )
+            return [Outgoing(reply, link)]
         return self.handle_other(msg, link)
 
     def handle_other(self, msg: Any, link: int) -> list[Outgoing]:

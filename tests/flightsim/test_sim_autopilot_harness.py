@@ -102,3 +102,21 @@ def test_cosim_streams_revolutions_the_companion_decodes_into_the_right_scan():
     assert scan[180] * 10.0 == pytest.approx(1.5, abs=0.05)  # bin 180 = behind: the West wall
     assert scan[90] * 10.0 == pytest.approx(4.0, abs=0.05)  # left = North wall at y = 4
     assert scan[270] * 10.0 == pytest.approx(4.0, abs=0.05)
+
+
+def test_external_pose_mirrors_ned_telemetry_into_the_world_frame():
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+    from flightsim.harness import ExternalPose
+
+    world = load_world("flightsim/worlds/two-pillars.json")
+    pose = ExternalPose(world)
+    pose.update(mavlink.MAVLink_local_position_ned_message(0, 1.0, 2.0, -1.5, 0.5, 0.0, -0.1))
+    pose.update(mavlink.MAVLink_attitude_message(0, 0.1, 0.2, math.pi / 2, 0, 0, 0))  # facing East
+    state = pose.state()
+    x0, y0, _ = world.start_position
+    np.testing.assert_allclose(state.position, [x0 + 2.0, y0 + 1.0, 1.5])  # NED (N 1, E 2, D -1.5)
+    np.testing.assert_allclose(state.velocity, [0.0, 0.5, 0.1])
+    assert state.yaw == pytest.approx(0.0, abs=1e-9)  # ENU yaw 0 = East
+    assert state.roll == pytest.approx(0.1) and state.pitch == pytest.approx(-0.2)  # FLU pitch: nose down
+    assert not state.on_ground

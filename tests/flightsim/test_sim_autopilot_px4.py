@@ -134,3 +134,11 @@ def test_takeoff_goes_through_auto_takeoff_to_hold():
     assert ap.landed_state() == mavlink.MAV_LANDED_STATE_IN_AIR
     assert ap.build("GLOBAL_POSITION_INT").relative_alt == pytest.approx(1500, abs=120)
     assert ap.build("EXTENDED_SYS_STATE").vtol_state == mavlink.MAV_VTOL_STATE_MC
+
+
+def test_ping_requests_are_answered_to_the_sender():
+    ap = make()
+    out = ap.handle(wire(mavlink.MAVLink_ping_message(123, 7, 0, 0), COMPANION), 1, 0.5)
+    assert len(out) == 1 and out[0].link == 1
+    reply = out[0].message
+    assert (reply.seq, reply.target_system, reply.target_component) == (7, *COMPANION)
