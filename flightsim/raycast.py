@@ -95,10 +95,13 @@ def grid_to_points(grid: RangeGrid, keep_band: tuple[np.ndarray, float, float] |
 
 
 _UNIT_CACHE: dict[bytes, np.ndarray] = {}
+_LAST_UNIT: list = [None, None]  # (azimuth array, its unit vectors): the caster reuses one array
 
 
 def _unit_vectors(azimuth_deg: np.ndarray) -> np.ndarray:
     """``(A, 16, 3)`` unit ray directions in the sensor frame, cached per azimuth table."""
+    if _LAST_UNIT[0] is azimuth_deg:
+        return _LAST_UNIT[1]
     key = azimuth_deg.tobytes()
     unit = _UNIT_CACHE.get(key)
     if unit is None:
@@ -111,6 +114,8 @@ def _unit_vectors(azimuth_deg: np.ndarray) -> np.ndarray:
         if len(_UNIT_CACHE) > 16:
             _UNIT_CACHE.clear()
         _UNIT_CACHE[key] = unit
+    if not azimuth_deg.flags.writeable:  # only a read-only table can't change behind the cache's back
+        _LAST_UNIT[:] = [azimuth_deg, unit]
     return unit
 
 
@@ -143,6 +148,7 @@ class VLP16Raycaster:
         # would land in either neighbour by rounding, leaving holes (empty bins read as free space).
         step = self.config.azimuth_step_deg
         self.azimuth_deg = (np.arange(self.config.n_columns, dtype=np.float64) + 0.5) * step
+        self.azimuth_deg.setflags(write=False)
         alpha = np.radians(self.azimuth_deg)
         # column directions in the sensor frame: azimuth runs clockwise, so y = -sin(alpha)
         self._columns = np.stack([np.cos(alpha), -np.sin(alpha), np.zeros_like(alpha)], axis=1)
