@@ -198,7 +198,7 @@ class LidarAvoidEnv(gym.Env):
         )
         self._state = self._vehicle.step(setpoint)
         position = self._state.position
-        self._distance += math.dist(position, previous)
+        self._distance += math.dist(position.tolist(), previous.tolist())
         self._trajectory.append(position.copy())
         self._steps += 1
         self._clearance = self.world.clearance(position)
