@@ -225,12 +225,14 @@ def decode_packets_numpy(packets: np.ndarray) -> DecodedPackets:
     np.multiply(horizontal, np.sin(alpha), out=slots[..., 1])
     np.negative(slots[..., 1], out=slots[..., 1])
     np.multiply(distance, _SLOT_SIN_ELEVATION_M, out=slots[..., 2])
-    points = slots.reshape(-1, 3).take(np.flatnonzero(raw), axis=0)
-    return DecodedPackets(points, _points_per_firing(raw != 0))
+    returns = np.flatnonzero(distance != 0)  # a contiguous bool array: the fast case of flatnonzero
+    points = slots.reshape(-1, 3).take(returns, axis=0)
+    return DecodedPackets(points, _points_per_firing(returns, len(packets)))
 
 
-def _points_per_firing(hit: np.ndarray) -> np.ndarray:
-    return np.count_nonzero(hit.reshape(-1, LASERS), axis=1)
+def _points_per_firing(returns: np.ndarray, n_packets: int) -> np.ndarray:
+    """Points per firing sequence, from the flat slot indices of the returns (32 slots per block)."""
+    return np.bincount(returns >> 4, minlength=n_packets * FIRINGS_PER_PACKET)  # 16 slots per firing
 
 
 def _decode_numpy(packets: np.ndarray, _payloads: Sequence[bytes]) -> DecodedPackets:
@@ -255,11 +257,12 @@ class _VelodyneDecoderBackend:
     def decode(self, packets: np.ndarray, payloads: Sequence[bytes]) -> DecodedPackets:
         vd = self._vd
         _, cloud = self._decoder.decode(vd.PacketVector([vd.VelodynePacket(0.0, p) for p in payloads]))
-        hit = packets.view(PACKET_DTYPE)[:, 0]["blocks"]["returns"]["distance"] != 0
-        if len(cloud) != np.count_nonzero(hit):
-            log.error("velodyne-decoder gave %d points for %d returns; using numpy", len(cloud), hit.sum())
+        returns = np.flatnonzero(packets.view(PACKET_DTYPE)[:, 0]["blocks"]["returns"]["distance"] != 0)
+        if len(cloud) != len(returns):
+            log.error("velodyne-decoder gave %d points for %d returns; using numpy", len(cloud), len(returns))
             return decode_packets_numpy(packets)
-        return DecodedPackets(np.ascontiguousarray(cloud[:, :3], dtype=np.float32), _points_per_firing(hit))
+        points = np.ascontiguousarray(cloud[:, :3], dtype=np.float32)
+        return DecodedPackets(points, _points_per_firing(returns, len(packets)))
 
 
 Backend = Literal["numpy", "velodyne-decoder"]
