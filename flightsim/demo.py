@@ -72,7 +72,10 @@ def command(args: argparse.Namespace) -> int:
             duration=args.duration,
             workdir=out / world.name,
         )
-        report = run_flight(options, plot=out / f"{world.name}.png", vehicle=vehicle)
+        try:
+            report = run_flight(options, plot=out / f"{world.name}.png", vehicle=vehicle)
+        except RuntimeError as exc:  # this flight could not start; try the others
+            report = FlightReport.failed(world.name, args.autopilot, str(exc))
         reports.append(report)
         print(_row(report), flush=True)
         if report.error == "interrupted":  # Ctrl-C: that flight was cleaned up; skip the rest

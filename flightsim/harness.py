@@ -169,6 +169,11 @@ class FlightReport:
     def to_json(self) -> str:
         return json.dumps(dataclasses.asdict(self), indent=2)
 
+    @classmethod
+    def failed(cls, world: str, autopilot: str, error: str) -> FlightReport:
+        """The report of a flight that could not start."""
+        return cls(world, autopilot, False, False, 0.0, 0.0, -1.0, 0.0, -1.0, -1.0, [], {}, error=error)
+
 
 @dataclass
 class Recorder:
@@ -786,6 +791,9 @@ def command(args: Any) -> int:
     except KeyboardInterrupt:  # during start-up; run_flight cleaned up on its way out
         print("avoid-sim fly: interrupted", file=sys.stderr)
         return 130
+    except RuntimeError as exc:  # start-up failed (no autopilot heartbeat, ...): one line, no traceback
+        print(f"avoid-sim fly: error: {exc}", file=sys.stderr)
+        return 1
     print_report(report)
     print(f"companion log: {workdir / 'companion.log'}")
     if args.json:
