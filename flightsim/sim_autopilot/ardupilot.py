@@ -31,7 +31,6 @@ AVOID_USE_PROXIMITY = 1 << 1
 PRX_TYPE_MAVLINK = 2
 #: ArduPilot drops proximity readings older than this (AP_Proximity_MAV timeout), seconds.
 PROXIMITY_TIMEOUT = 0.5
-FORCE_ARM_MAGIC = 2989.0
 
 
 class CopterMode(IntEnum):

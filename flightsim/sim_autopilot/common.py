@@ -290,7 +290,6 @@ class SimAutopilot:
         self.intervals: dict[tuple[int, str], float] = {}
         self.next_due: dict[tuple[int, str], float] = {}
         self.counters: dict[str, int] = {}
-        self.statustext_log: list[str] = []
         #: set by a test harness to stop this autopilot's HEARTBEATs (a "dead" autopilot)
         self.heartbeat_enabled = True
         self.ground_since: float | None = None
@@ -321,7 +320,6 @@ class SimAutopilot:
 
     def statustext(self, text: str, severity: int = mavlink.MAV_SEVERITY_INFO) -> list[Outgoing]:
         """A STATUSTEXT to the links this firmware sends them to (every link by default)."""
-        self.statustext_log.append(text)
         log.info("autopilot: %s", text)
         msg = mavlink.MAVLink_statustext_message(severity, text.encode()[:50])
         return [Outgoing(msg, None)]

@@ -9,6 +9,7 @@ links that have sent a GCS heartbeat; AUTOPILOT_VERSION advertises bytewise para
 
 from __future__ import annotations
 
+import logging
 import math
 from enum import IntEnum
 from typing import Any, ClassVar
@@ -23,6 +24,8 @@ from flightsim.sim_autopilot.common import (
     SimAutopilot,
     decode_position_target,
 )
+
+log = logging.getLogger(__name__)
 
 
 class MainMode(IntEnum):
@@ -220,7 +223,7 @@ class PX4Autopilot(SimAutopilot):
 
     def statustext(self, text: str, severity: int = mavlink.MAV_SEVERITY_INFO) -> list[Outgoing]:
         """PX4 sends STATUSTEXT only to links on which a GCS has announced itself."""
-        self.statustext_log.append(text)
+        log.info("autopilot: %s", text)
         msg = mavlink.MAVLink_statustext_message(severity, text.encode()[:50])
         return [Outgoing(msg, link) for link, info in sorted(self.links.items()) if info.is_gcs]
 
