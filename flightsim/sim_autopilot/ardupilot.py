@@ -239,11 +239,14 @@ class ArduCopterAutopilot(SimAutopilot):
             return vx, vy
         margin = self.param("AVOID_MARGIN", 2.0)
         v = np.array([vx, vy])
-        for ux, uy, _dist in self.obstacles[self.obstacles[:, 2] < margin]:
+        limited = False
+        for ux, uy, _distance in self.obstacles[self.obstacles[:, 2] < margin]:
             toward = v[0] * ux + v[1] * uy
             if toward > 0:
                 v = v - toward * np.array([ux, uy])
-                self.count("avoid_limited")
+                limited = True
+        if limited:
+            self.count("avoid_limited")
         return float(v[0]), float(v[1])
 
     def flight_sw_version(self) -> int:
