@@ -9,13 +9,17 @@ revolution only once that packet is in. Per revolution this script records
     last packet sent → SET_POSITION_TARGET_LOCAL_NED received   (the latency the companion adds)
     first packet sent → setpoint received                         (including the packets' own transfer)
 
-and prints p50/p99/max over ``--revolutions`` (default 1,000), plus the companion's resident
+The arrival time is the kernel's receive timestamp of the setpoint datagram (SO_TIMESTAMPNS), so
+this script's own scheduling delays do not count against the companion; send times are taken just
+before each ``sendto``. ``--realtime`` runs the companion SCHED_FIFO as its systemd unit does.
+Prints p50/p99/max over ``--revolutions`` (default 1,000), plus the companion's resident
 memory (VmRSS, and the peak VmHWM) and its CPU time per revolution. ``--pacing sensor`` (default)
 spreads the 75 packets over the revolution as the sensor does (one every 1.33 ms at 10 Hz);
 ``--pacing burst`` sends them back to back, the worst case where all decoding follows the last one.
 Targets (issue 3): p99 ≤ 2 ms, resident memory ≤ 150 MB.
 
     /work/venv/bin/python bench/bench_companion.py [--revolutions 1000] [--rate 10]
+        [--pacing sensor|burst] [--decoder numpy|velodyne-decoder] [--realtime]
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ import os
 import select
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import tempfile
@@ -45,6 +50,7 @@ from tests.onnx_models import write_policy  # noqa: E402
 FIRINGS = 1800  # 0.2° steps: 75 packets, 28,800 returns
 STEP_DEG = 0.2
 COPTER_GUIDED = 4
+SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux
 
 
 def free_port() -> int:
@@ -82,6 +88,7 @@ class Autopilot:
         self.conn = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1,
                                                source_component=1)
         self.sock = self.conn.port
+        self.sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
         self.last_status = 0.0
 
     def status(self) -> None:
@@ -99,14 +106,20 @@ class Autopilot:
         mav.vfr_hud_send(0.0, 0.0, 0, 0, 101.5, 0.0)
 
     def wait_setpoint(self, timeout: float) -> float | None:
-        """Monotonic time a SET_POSITION_TARGET_LOCAL_NED datagram arrived, None on timeout."""
+        """When a SET_POSITION_TARGET_LOCAL_NED datagram reached this socket (kernel receive
+        timestamp, CLOCK_REALTIME seconds: not delayed by this process's own scheduling), or None.
+        """
         deadline = time.monotonic() + timeout
         parser = self.conn.mav
         while (remaining := deadline - time.monotonic()) > 0:
             if not select.select([self.sock], [], [], remaining)[0]:
                 return None
-            data, _ = self.sock.recvfrom(4096)
-            arrived = time.monotonic()
+            data, ancillary, _flags, _addr = self.sock.recvmsg(4096, 64)
+            arrived = time.time()
+            for level, kind, payload in ancillary:
+                if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS:
+                    seconds, nanoseconds = struct.unpack("qq", payload[:16])
+                    arrived = seconds + nanoseconds * 1e-9
             for msg in parser.parse_buffer(data) or ():
                 if msg.get_type() == "SET_POSITION_TARGET_LOCAL_NED":
                     return arrived
@@ -128,6 +141,11 @@ def main() -> int:
     parser.add_argument("--rate", type=float, default=10.0, help="revolutions per second (VLP-16: 5-20)")
     parser.add_argument("--decoder", default="numpy", choices=("numpy", "velodyne-decoder"))
     parser.add_argument(
+        "--realtime", action="store_true",
+        help="run the companion SCHED_FIFO priority 20, as systemd/lidar-avoid-companion.service does "
+             "(needs root; keeps other load on the machine from delaying it)",
+    )
+    parser.add_argument(
         "--pacing", default="sensor", choices=("sensor", "burst"),
         help="sensor: packets spread over the revolution as the VLP-16 sends them; "
              "burst: all 75 at once (worst case: everything is decoded after the last packet)",
@@ -146,8 +164,11 @@ def main() -> int:
         "[runtime]\nlog_interval = 3600.0\n"
     )
     autopilot = Autopilot(mavlink_port)
+    command = [sys.executable, "-m", "companion", "run", "--config", str(config)]
+    if args.realtime:
+        command = ["chrt", "--fifo", "20", *command]
     proc = subprocess.Popen(
-        [sys.executable, "-m", "companion", "run", "--config", str(config)],
+        command,
         cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
     )
     lidar = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -170,15 +191,15 @@ def main() -> int:
             autopilot.status()
             autopilot.drain()  # heartbeats, OBSTACLE_DISTANCE, ... of the previous revolution
             start = time.monotonic()
-            t_first = time.monotonic()
+            t_first = time.time()  # CLOCK_REALTIME, the clock of the kernel receive timestamps
             gap = period / len(packets) if args.pacing == "sensor" else 0.0
             t_last = t_first
             for i, packet in enumerate(packets):
                 if gap:
-                    while time.monotonic() < t_first + i * gap:
+                    while time.time() < t_first + i * gap:
                         pass  # spin: sleep() is far too coarse for 1.3 ms gaps
                 # Stamped before the call: on loopback the receiver may run inside this sendto.
-                t_last = time.monotonic()
+                t_last = time.time()
                 lidar.sendto(packet, target)
             arrived = autopilot.wait_setpoint(timeout=0.05)
             if not engaged:
@@ -207,7 +228,9 @@ def main() -> int:
 
     n = len(from_last)
     print(f"companion end to end, {n} revolutions of 28,800 points (75 VLP-16 packets), "
-          f"{args.rate:g} Hz, {args.pacing} pacing, decoder {args.decoder}:")
+          f"{args.rate:g} Hz, {args.pacing} pacing, decoder {args.decoder}"
+          f"{', companion SCHED_FIFO 20' if args.realtime else ''}; load average {os.getloadavg()[0]:.1f} "
+          f"on {os.cpu_count()} CPUs:")
     print(f"  last packet -> setpoint:  {percentiles(from_last)}   (target p99 <= 2 ms)")
     print(f"  first packet -> setpoint: {percentiles(from_first)}")
     print(f"  setpoints missing: {missed}")
