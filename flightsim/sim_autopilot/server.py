@@ -10,6 +10,7 @@ small control surface (:meth:`set_heartbeat_enabled`, :meth:`call`).
 from __future__ import annotations
 
 import logging
+import signal
 import threading
 import time
 from collections.abc import Callable
@@ -196,6 +197,9 @@ def command(args: Any) -> int:
         if name not in known:
             raise UserError(f"--param {name}: not a parameter of the {args.personality} table")
     server = SimAutopilotServer(args.personality, args.link or ["tcpin:127.0.0.1:5760"], params=params)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):  # Ctrl-C, or a supervisor's/test's SIGTERM
+        signal.signal(sig, lambda *_: stop.set())
     server.start()
     print(
         f"simulated {args.personality} running on {', '.join(args.link or ['tcpin:127.0.0.1:5760'])}; "
@@ -203,10 +207,8 @@ def command(args: Any) -> int:
         flush=True,
     )
     try:
-        while server.error is None:
-            time.sleep(0.5)
-    except KeyboardInterrupt:
-        pass
+        while server.error is None and not stop.wait(0.5):
+            pass
     finally:
         server.stop()
     return 0 if server.error is None else 1
