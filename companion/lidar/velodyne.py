@@ -12,7 +12,7 @@ Points come out in the sensor's FLU frame of ARCHITECTURE.md (azimuth α clockwi
 elevation ω): x = r·cosω·cosα, y = −r·cosω·sinα, z = r·sinω.
 
 Two decoder backends produce the same clouds (tests hold them to each other on a real recording):
-``"numpy"`` (default: one vectorised pass over all packets waiting, measured 2–3× faster than the
+``"numpy"`` (default: one vectorised pass over all packets waiting, measured 2.5–4× faster than the
 binding, see bench/bench_velodyne.py) and ``"velodyne-decoder"`` (the maintained C++ decoder; it also
 applies the manual's per-laser vertical offsets of up to ±11.2 mm in z, the numpy backend does not).
 """
