@@ -78,6 +78,8 @@ class TrainConfig:
     :param checkpoint_every: save a checkpoint every this many environment steps
     :param run_root: parent directory of run directories
     :param progress_bar: show SB3's progress bar (turn off for background runs with a log file)
+    :param difficulty_spread: each training world's difficulty is drawn uniformly within this of
+        ``env.difficulty`` (or of the curriculum's current difficulty), clipped to [0, 1]
     :param env: the simulator's ``EnvConfig`` table (domain randomisation switches included)
     """
 
@@ -89,6 +91,7 @@ class TrainConfig:
     checkpoint_every: int = field(default=50_000, metadata={"min": 1})
     run_root: str = "runs"
     progress_bar: bool = True
+    difficulty_spread: float = field(default=0.0, metadata={"min": 0.0, "max": 1.0})
     env: dict[str, Any] = field(default_factory=dict)
     ppo: PPOConfig = field(default_factory=PPOConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)

@@ -46,13 +46,16 @@ EVAL_FIELDS = (
 class TrainingWorlds(gym.Wrapper):
     """A fresh generated training world every episode, at a difficulty the curriculum can raise.
 
-    World seeds are drawn at or above ``flightsim.env.TRAIN_SEED_OFFSET``, so evaluation's
-    held-out worlds (lower seeds) are never trained on.
+    Each episode's difficulty is drawn uniformly within ``spread`` of the current difficulty, so
+    one run sees big sparse rooms and small crowded ones. World seeds are drawn at or above
+    ``flightsim.env.TRAIN_SEED_OFFSET``, so evaluation's held-out worlds (lower seeds) are never
+    trained on.
     """
 
-    def __init__(self, env: gym.Env, difficulty: float) -> None:
+    def __init__(self, env: gym.Env, difficulty: float, spread: float = 0.0) -> None:
         super().__init__(env)
         self.difficulty = difficulty
+        self.spread = spread
         self._rng = np.random.default_rng()
 
     def set_difficulty(self, difficulty: float) -> None:
@@ -66,7 +69,8 @@ class TrainingWorlds(gym.Wrapper):
             self._rng = np.random.default_rng(seed)
         if options is None:
             world_seed = TRAIN_SEED_OFFSET + int(self._rng.integers(0, 2**31 - 1 - TRAIN_SEED_OFFSET))
-            options = {"world_seed": world_seed, "difficulty": self.difficulty}
+            low, high = max(0.0, self.difficulty - self.spread), min(1.0, self.difficulty + self.spread)
+            options = {"world_seed": world_seed, "difficulty": float(self._rng.uniform(low, high))}
         return self.env.reset(seed=seed, options=options)
 
 
@@ -77,7 +81,7 @@ def make_env(config: TrainConfig, difficulty: float):
     def thunk() -> gym.Env:
         from flightsim.env import LidarAvoidEnv
 
-        return TrainingWorlds(LidarAvoidEnv(env_config), difficulty)
+        return TrainingWorlds(LidarAvoidEnv(env_config), difficulty, config.difficulty_spread)
 
     return thunk
 
