@@ -16,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from companion.scan import N_BINS
 
@@ -70,17 +71,34 @@ def corridor_clearance(ranges: np.ndarray, body_radius: float) -> np.ndarray:
     limits travel to ``r cos d``. Returns closer than ``body_radius`` block every heading they are
     in front of.
 
-    :param ranges: ``(360,)`` ranges in metres (``inf`` or ``max_range`` where nothing was seen)
+    :param ranges: ``(360,)`` ranges in metres (``inf`` where nothing was seen)
     :param body_radius: corridor half-width, metres
     :return: ``(360,)`` clearance per heading, metres (``inf`` when nothing blocks it)
     """
-    seen = np.isfinite(ranges)
-    r = np.where(seen, ranges, 0.0)[None, :]
-    delta = _ANGLES[None, :] - _ANGLES[:, None]  # [heading, return]
-    along = r * np.cos(delta)
-    across = np.abs(r * np.sin(delta))
-    blocking = seen[None, :] & (along > 0.0) & (across < body_radius)
-    return np.where(blocking, along, np.inf).min(axis=1)
+    return _corridor_kernel(np.ascontiguousarray(ranges, dtype=np.float64), float(body_radius))
+
+
+@njit(cache=True)
+def _corridor_kernel(ranges: np.ndarray, body_radius: float) -> np.ndarray:  # pragma: no cover - compiled
+    """Each return only touches the headings within ``asin(body_radius / r)`` of it: O(bins × window)."""
+    n = ranges.shape[0]
+    step = 2.0 * np.pi / n
+    out = np.full(n, np.inf)
+    for j in range(n):
+        r = ranges[j]
+        if not np.isfinite(r):
+            continue
+        half = np.pi / 2.0 if r <= body_radius else np.arcsin(body_radius / r)
+        w = int(half / step) + 1
+        for k in range(-w, w + 1):
+            d = k * step
+            along = r * np.cos(d)
+            if along <= 1e-9 or abs(r * np.sin(d)) >= body_radius:  # exactly abeam is not ahead
+                continue
+            i = (j - k) % n  # heading i sees return j at offset j - i = k
+            if along < out[i]:
+                out[i] = along
+    return out
 
 
 class GapFollower:

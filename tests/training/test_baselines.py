@@ -51,3 +51,16 @@ def test_random_controller_is_seeded_and_in_range():
     np.testing.assert_array_equal(a[0], a[1])
     many = np.array([RandomController(i).act(np.ones(360)) for i in range(200)])
     assert many.min() >= -1.0 and many.max() <= 1.0 and many.std() > 0.3
+
+
+def test_corridor_clearance_matches_the_brute_force_definition():
+    rng = np.random.default_rng(0)
+    angles = np.deg2rad(np.arange(360) + 0.5)
+    delta = angles[None, :] - angles[:, None]  # [heading, return]
+    for _ in range(20):
+        ranges = np.where(rng.uniform(size=360) < 0.3, np.inf, rng.uniform(0.2, 10.0, size=360))
+        r = np.where(np.isfinite(ranges), ranges, 0.0)[None, :]
+        along, across = r * np.cos(delta), np.abs(r * np.sin(delta))
+        blocking = np.isfinite(ranges)[None, :] & (along > 1e-9) & (across < 0.55)
+        expected = np.where(blocking, along, np.inf).min(axis=1)
+        np.testing.assert_allclose(corridor_clearance(ranges, 0.55), expected, rtol=1e-12)
