@@ -424,11 +424,15 @@ def worlds_from_args(args: argparse.Namespace) -> list[WorldSpec]:
         return [WorldSpec(name=f.stem, path=str(f.resolve())) for f in files]
     from flightsim.env import TRAIN_SEED_OFFSET
 
-    if args.seeds < 1 or args.seeds > TRAIN_SEED_OFFSET:
-        raise UserError(f"--seeds must be in 1..{TRAIN_SEED_OFFSET} (held-out world seeds), got {args.seeds}")
+    first, last = args.first_seed, args.first_seed + args.seeds - 1
+    if args.seeds < 1 or first < 0 or last >= TRAIN_SEED_OFFSET:
+        raise UserError(
+            f"--first-seed {first} --seeds {args.seeds}: world seeds must lie in 0..{TRAIN_SEED_OFFSET - 1} "
+            "(seeds from there up are training worlds)"
+        )
     if not 0.0 <= args.difficulty <= 1.0:
         raise UserError(f"--difficulty must be in [0, 1], got {args.difficulty}")
-    return [WorldSpec(name=f"seed-{s}", seed=s, difficulty=args.difficulty) for s in range(args.seeds)]
+    return [WorldSpec(name=f"seed-{s}", seed=s, difficulty=args.difficulty) for s in range(first, last + 1)]
 
 
 def evaluate(
@@ -456,7 +460,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--policy", type=Path, required=True, help="policy to evaluate (.onnx or SB3 .zip)")
     where = parser.add_mutually_exclusive_group(required=True)
     where.add_argument("--worlds", type=Path, help="directory of world JSON files")
-    where.add_argument("--seeds", type=int, help="evaluate on generated worlds with seeds 0..N-1 (held out)")
+    where.add_argument(
+        "--seeds", type=int, help="evaluate on N held-out generated worlds (seeds from --first-seed)"
+    )
+    parser.add_argument("--first-seed", type=int, default=0, help="first world seed for --seeds (default 0)")
     parser.add_argument("--difficulty", type=float, default=0.5, help="generator difficulty for --seeds")
     parser.add_argument("--episodes", type=int, default=1, help="episodes per world (reset seeds 0..N-1)")
     parser.add_argument(

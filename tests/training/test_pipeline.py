@@ -177,6 +177,7 @@ def test_evaluate_on_the_example_worlds(pipeline, capsys):
         ["evaluate", "--policy", "{tmp}/nope.onnx", "--seeds", "1"],
         ["evaluate", "--policy", "{tmp}/tiny.toml", "--seeds", "1"],
         ["evaluate", "--policy", "{tmp}/policy.onnx", "--seeds", "1", "--set", "env.max_speed=3.0"],
+        ["evaluate", "--policy", "{tmp}/policy.onnx", "--seeds", "2", "--first-seed", "999999"],
     ],
 )
 def test_user_mistakes_are_one_line_errors(pipeline, capsys, argv):
