@@ -206,7 +206,12 @@ class Companion:
         self.config = config
         self._clock = clock
         self.notifier = notifier if notifier is not None else SystemdNotifier()
-        self.policy = OnnxPolicy(config.policy.model, policy_spec(config), config.policy.providers or None)
+        self.policy = OnnxPolicy(
+            config.policy.model,
+            policy_spec(config),
+            config.policy.providers or None,
+            trt_cache_dir=config.policy.trt_cache_dir or None,
+        )
         self._param_messages = check_parameters(config)
         self.lidar = open_lidar(config, clock)
         try:

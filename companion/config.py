@@ -104,10 +104,13 @@ class PolicyConfig:
     :param stack: scans per observation (the training frame stack)
     :param max_speed: forward speed that action 1.0 stands for, m/s (as in training)
     :param max_yaw_rate: yaw rate that action 1.0 stands for, rad/s (as in training)
+    :param trt_cache_dir: directory for TensorRT's engine cache (empty: no cache; relative: to the
+        config file); the service's StateDirectory is meant for it
     """
 
     model: str = ""
     providers: tuple[str, ...] = ()
+    trt_cache_dir: str = ""
     stack: int = field(default=4, metadata={"min": 1, "max": 64})
     max_speed: float = field(default=2.0, metadata={"min": 0.01, "max": 20.0})
     max_yaw_rate: float = field(default=1.5, metadata={"min": 0.01, "max": 6.0})
@@ -222,6 +225,10 @@ def load_config(path: str | Path, overrides: list[str] | None = None) -> Compani
 
     return dataclasses.replace(
         config,
-        policy=dataclasses.replace(config.policy, model=resolve(config.policy.model)),
+        policy=dataclasses.replace(
+            config.policy,
+            model=resolve(config.policy.model),
+            trt_cache_dir=resolve(config.policy.trt_cache_dir),
+        ),
         params_check=dataclasses.replace(config.params_check, file=resolve(config.params_check.file)),
     )

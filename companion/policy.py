@@ -115,17 +115,38 @@ def select_providers(requested: Sequence[str] | None = None) -> list[str]:
     return chosen
 
 
+def provider_options(
+    providers: Sequence[str], trt_cache_dir: str | None
+) -> list[str | tuple[str, dict[str, str]]]:
+    """Providers for ONNX Runtime, with TensorRT's engine cache pointed at ``trt_cache_dir``.
+
+    Building a TensorRT engine takes minutes on a Jetson; with the cache (the service's
+    StateDirectory) only the first start after a model change pays for it.
+    """
+    if not trt_cache_dir:
+        return list(providers)
+    options = {"trt_engine_cache_enable": "True", "trt_engine_cache_path": trt_cache_dir}
+    return [(p, options) if p == "TensorrtExecutionProvider" else p for p in providers]
+
+
 class OnnxPolicy:
     """A policy network loaded from an ``.onnx`` file and checked against ``spec``.
 
     :param path: the model file (from ``avoid-train export``)
     :param spec: what the companion will feed it; the model's metadata must match
     :param providers: execution providers to try (default TensorRT → CUDA → CPU, as available)
+    :param trt_cache_dir: where TensorRT keeps its built engines (``None``: no cache)
     :raises UserError: unreadable or not ONNX, wrong input/output shape, metadata missing or not
         matching ``spec``; the message names both values
     """
 
-    def __init__(self, path: str | Path, spec: PolicySpec, providers: Sequence[str] | None = None) -> None:
+    def __init__(
+        self,
+        path: str | Path,
+        spec: PolicySpec,
+        providers: Sequence[str] | None = None,
+        trt_cache_dir: str | None = None,
+    ) -> None:
         self.path = Path(path)
         self.spec = spec
         if not self.path.is_file():
@@ -138,7 +159,9 @@ class OnnxPolicy:
         options.log_severity_level = 3
         try:
             self._session = ort.InferenceSession(
-                str(self.path), sess_options=options, providers=select_providers(providers)
+                str(self.path),
+                sess_options=options,
+                providers=provider_options(select_providers(providers), trt_cache_dir),
             )
         except UserError:
             raise

@@ -18,6 +18,7 @@ from companion.policy import (
     OnnxPolicy,
     PolicySpec,
     policy_metadata,
+    provider_options,
     select_providers,
 )
 from companion.scan import BIN_CONVENTION
@@ -206,3 +207,14 @@ def test_missing_metadata_is_named(tmp_path: Path, key: str) -> None:
     path = write_policy(tmp_path / "p.onnx", metadata_overrides={key: None})
     with pytest.raises(UserError, match=f"lacks metadata {key} "):
         OnnxPolicy(path, SPEC)
+
+
+def test_tensorrt_gets_the_engine_cache_and_others_are_left_alone() -> None:
+    providers = ["TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider"]
+    with_cache = provider_options(providers, "/var/lib/lidar-avoid/trt")
+    assert with_cache[0] == (
+        "TensorrtExecutionProvider",
+        {"trt_engine_cache_enable": "True", "trt_engine_cache_path": "/var/lib/lidar-avoid/trt"},
+    )
+    assert with_cache[1:] == providers[1:]
+    assert provider_options(providers, None) == providers
