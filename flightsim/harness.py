@@ -505,6 +505,13 @@ class SitlFlight:
     def companion_alive(self) -> bool:
         return self.companion is not None and self.companion.poll() is None
 
+    def companion_exit(self) -> str:
+        """Why the companion is gone: its exit status and the last line it logged."""
+        assert self.companion is not None
+        lines = self.companion_log().strip().splitlines()
+        last = lines[-1] if lines else ""
+        return f"the companion exited (status {self.companion.returncode}): {last}"
+
     def companion_log(self) -> str:
         try:
             return self.log_path.read_text(errors="replace")
@@ -530,6 +537,16 @@ class SitlFlight:
         """Run ``action(gcs)`` with the GCS to itself (the background pump pauses meanwhile)."""
         with self._gcs_lock:
             return action(self.gcs)
+
+    def wait_companion_up(self, timeout: float = 20.0) -> None:
+        """Wait for the companion's first HEARTBEAT (it is running); RuntimeError if it exited."""
+        end = time.monotonic() + timeout
+        while not self.recorder.companion_heartbeats:
+            if not self.companion_alive():
+                raise RuntimeError(self.companion_exit())
+            if time.monotonic() > end:
+                raise RuntimeError(f"no companion HEARTBEAT in {timeout:.0f} s (see {self.log_path})")
+            time.sleep(0.05)
 
     def take_off(self) -> None:
         """GUIDED (ArduPilot) / Hold (PX4), arm, take off to 1.5 m; PX4: proof of life, then OFFBOARD."""
@@ -593,8 +610,7 @@ class SitlFlight:
             if self.recorder.collision_time is not None:
                 return ""
             if not self.companion_alive():
-                assert self.companion is not None
-                return f"the companion exited (status {self.companion.returncode}, see {self.log_path})"
+                return self.companion_exit()
             if self.server is not None and self.server.error is not None:
                 raise RuntimeError(f"simulated autopilot failed: {self.server.error}")
             time.sleep(0.05)
@@ -698,11 +714,14 @@ def run_flight(options: FlightOptions, plot: Path | None = None, vehicle: Any = 
     with SitlFlight(options, vehicle=vehicle) as flight:
         error = ""
         try:
+            flight.wait_companion_up()
             flight.take_off()
             if flight.wait_engaged(options.engage_timeout):
                 error = flight.fly(options.duration)
+            elif not flight.companion_alive():
+                error = flight.companion_exit()
             else:
-                error = "the companion never engaged (see " + str(flight.log_path) + ")"
+                error = f"the companion never engaged (see {flight.log_path})"
         except KeyboardInterrupt:
             error = "interrupted"
         except RuntimeError as exc:
