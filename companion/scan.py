@@ -54,35 +54,66 @@ class ScanConfig:
         )
 
 
+_EMPTY_SCAN = np.ones(N_BINS, dtype=np.float32)
+_BINS_PER_RAD = np.float32(N_BINS / (2.0 * math.pi))
+
+
 def scan_from_points(points: np.ndarray, config: ScanConfig) -> np.ndarray:
     """Reduce an ``(N, 3)`` sensor-frame point cloud to a ``(360,)`` float32 scan in ``[0, 1]``.
 
-    Vectorised throughout; non-finite points are ignored.
+    Vectorised throughout, float32 throughout; non-finite points are ignored.
+
+    Written for numpy's per-call overhead as much as for its per-point cost (the training env
+    calls this on ~2,000 points every step, the drone on ~28,800 every 0.1 s): the height slice
+    goes first and picks its points once by index (gathers beat boolean masks on strided
+    columns); ``x² + y²`` is shared by the range and the min-range test; the bin is
+    ``floor(angle)`` in ``[-180, 180]`` used directly as an index (negative indices wrap, which
+    is the ``mod 360``) and ranges are at most 1.0 after the minimum with the empty scan, so no
+    modulo and no clip pass over the points.
 
     :param points: ``(N, 3)`` array of x, y, z in the sensor frame (FLU), metres
     :param config: scan geometry
     :return: normalised minimum range per 1° bin, counter-clockwise from straight ahead
     """
-    scan = np.ones(N_BINS, dtype=np.float32)
+    scan = _EMPTY_SCAN.copy()
     pts = np.asarray(points, dtype=np.float32).reshape(-1, 3)
-    if pts.shape[0] == 0:
+    n = pts.shape[0]
+    if n == 0:
         return scan
-    sx, sy, sz = pts[:, 0], pts[:, 1], pts[:, 2]
-    if config.mount_rpy_deg != (0.0, 0.0, 0.0) or config.mount_xyz != (0.0, 0.0, 0.0):
-        body = pts @ config.rotation().T.astype(np.float32) + np.asarray(config.mount_xyz, np.float32)
-        x, y, z = body[:, 0], body[:, 1], body[:, 2]
+    identity = config.mount_rpy_deg == (0.0, 0.0, 0.0) and config.mount_xyz == (0.0, 0.0, 0.0)
+    if identity:
+        body = pts
     else:
-        x, y, z = sx, sy, sz
+        body = pts @ config.rotation().T.astype(np.float32) + np.asarray(config.mount_xyz, np.float32)
     # The height slice is the most selective test: apply it first, the rest runs on what is left.
-    idx = np.flatnonzero(np.abs(z) < np.float32(config.slice_height))  # NaN compares False: dropped
-    sx, sy, sz = sx[idx], sy[idx], sz[idx]
-    beyond_min = sx * sx + sy * sy + sz * sz >= np.float32(config.min_range**2)
-    x, y = x[idx][beyond_min], y[idx][beyond_min]
-    if x.shape[0] == 0:
+    keep = np.abs(body[:, 2]) < np.float32(config.slice_height)  # NaN compares False: dropped
+    kept = np.count_nonzero(keep)
+    if kept == 0:
         return scan
-    rng = np.sqrt(x * x + y * y) / np.float32(config.max_range)
-    angle = np.arctan2(y, x)  # (-pi, pi], counter-clockwise from forward
-    bins = np.floor(angle * np.float32(N_BINS / (2.0 * math.pi))).astype(np.int64) % N_BINS
-    np.minimum.at(scan, bins, rng.astype(np.float32))
-    np.clip(scan, 0.0, 1.0, out=scan)
+    if kept == n:
+        sx, sy, sz = pts[:, 0], pts[:, 1], pts[:, 2]
+        x, y = body[:, 0], body[:, 1]
+    else:
+        idx = np.flatnonzero(keep)
+        sx, sy, sz = pts[:, 0][idx], pts[:, 1][idx], pts[:, 2][idx]
+        x, y = (sx, sy) if identity else (body[:, 0][idx], body[:, 1][idx])
+    xy2 = x * x
+    xy2 += y * y
+    if identity:  # the sensor's squared range is the body's: reuse x² + y²
+        r2 = sz * sz
+        r2 += xy2
+    else:
+        r2 = sx * sx + sy * sy + sz * sz
+    beyond_min = r2 >= np.float32(config.min_range**2)
+    beyond = np.count_nonzero(beyond_min)
+    if beyond == 0:
+        return scan
+    if beyond < beyond_min.shape[0]:
+        x, y, xy2 = x[beyond_min], y[beyond_min], xy2[beyond_min]
+    rng = np.sqrt(xy2, out=xy2)
+    rng /= np.float32(config.max_range)
+    bins = np.arctan2(y, x)  # (-pi, pi], counter-clockwise from forward
+    bins *= _BINS_PER_RAD
+    np.floor(bins, out=bins)  # [-180, 180]: as an index, -1 is bin 359 and -180 bin 180
+    np.minimum.at(scan, bins.astype(np.intp), rng)
     return scan
