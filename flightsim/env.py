@@ -167,9 +167,6 @@ class LidarAvoidEnv(gym.Env):
         mass = VEHICLE_MASS_KG * (1.0 + rng.uniform(-cfg.mass_jitter, cfg.mass_jitter))
         start = np.asarray(self.world.start_position, dtype=np.float64)
         yaw0 = math.radians(self.world.start_yaw_deg)
-        # Twice: JSBSim's initial state depends on where the previous flight ended by an ulp or two
-        # (geodetic conversions), which would make a seeded episode drift from its replay.
-        self._vehicle.reset(start, yaw0, mass_kg=mass)
         self._state = self._vehicle.reset(start, yaw0, mass_kg=mass)
         self._altitude = float(start[2])
         self._wind_steps_left = 0
