@@ -13,7 +13,7 @@ from gymnasium import spaces
 
 from companion.scan import N_BINS, ScanConfig, scan_from_points
 from flightsim.control import Setpoint
-from flightsim.raycast import LidarConfig, VLP16Raycaster, grid_to_points
+from flightsim.raycast import LidarConfig, VLP16Raycaster
 from flightsim.render import render_rgb
 from flightsim.reward import REWARDS, StepOutcome
 from flightsim.vehicle import Vehicle, VehicleConfig
@@ -253,8 +253,10 @@ class LidarAvoidEnv(gym.Env):
         """Cast the lidar from the current pose and reduce it with the companion's scan code."""
         body = self._state.rotation()
         origin = self._state.position + body @ self._mount_xyz
-        grid = self._caster.cast(self.world, origin, body @ self._sensor_to_body, self.np_random)
-        return scan_from_points(grid_to_points(grid, self._slice_band), self.config.scan)
+        points = self._caster.cast_points(
+            self.world, origin, body @ self._sensor_to_body, self.np_random, self._slice_band
+        )
+        return scan_from_points(points, self.config.scan)
 
     def _update_wind(self) -> None:
         """Piecewise-constant horizontal gusts: a new random wind every 1–3 s."""

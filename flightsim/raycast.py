@@ -86,12 +86,19 @@ def grid_to_points(grid: RangeGrid, keep_band: tuple[np.ndarray, float, float] |
     unit = _unit_vectors(np.asarray(grid.azimuth_deg, dtype=np.float64))
     if ranges.shape != unit.shape[:2]:
         raise ValueError(f"ranges shape {ranges.shape} does not match {unit.shape[0]} azimuths x {N_LASERS}")
-    normal, offset, half = (np.zeros(3), 0.0, np.inf) if keep_band is None else keep_band
-    nx, ny, nz = (float(v) for v in normal)
-    points = _points_kernel(ranges, unit, nx, ny, nz, float(offset), float(half))
+    points = _points_kernel(ranges, unit, *_band_floats(keep_band))
     # numba hands back a float32 dtype that is not numpy's canonical instance; numpy then misses its
     # fast paths downstream (np.minimum.at in the scan ran 25x slower), so re-view it as plain float32
     return points.view(np.float32)
+
+
+def _band_floats(keep_band: tuple[np.ndarray, float, float] | None) -> tuple[float, ...]:
+    """``(nx, ny, nz, offset, half_width)`` of a keep band as the kernels take it (None: keep all)."""
+    if keep_band is None:
+        return 0.0, 0.0, 0.0, 0.0, math.inf
+    normal, offset, half = keep_band
+    nx, ny, nz = normal
+    return float(nx), float(ny), float(nz), float(offset), float(half)
 
 
 _UNIT_CACHE: dict[bytes, np.ndarray] = {}
@@ -136,6 +143,18 @@ def _points_kernel(ranges, unit, nx, ny, nz, offset, half):  # pragma: no cover 
     return points[:n]
 
 
+# fmt: off
+@njit(cache=True)
+def _cast_points_kernel(
+    origin, rot, columns, cos_el, sin_el, room, boxes, cylinders, min_range, max_range, ranges, unit,
+    nx, ny, nz, offset, half,
+):  # pragma: no cover - compiled
+    """:func:`_cast_kernel` into ``ranges``, then :func:`_points_kernel`: one call from Python."""
+    _cast_kernel(origin, rot, columns, cos_el, sin_el, room, boxes, cylinders, min_range, max_range, ranges)
+    return _points_kernel(ranges, unit, nx, ny, nz, offset, half)
+# fmt: on
+
+
 class VLP16Raycaster:
     """Casts one VLP-16 revolution into a world.
 
@@ -154,6 +173,8 @@ class VLP16Raycaster:
         self._columns = np.stack([np.cos(alpha), -np.sin(alpha), np.zeros_like(alpha)], axis=1)
         omega = np.radians(VLP16_ELEVATIONS_DEG.astype(np.float64))
         self._cos_el, self._sin_el = np.cos(omega), np.sin(omega)
+        self._unit = _unit_vectors(self.azimuth_deg)
+        self._scratch = np.empty((self.config.n_columns, N_LASERS), dtype=np.float32)  # cast_points' grid
 
     def cast(
         self,
@@ -188,6 +209,38 @@ class VLP16Raycaster:
         if cfg.noise_std > 0.0 or cfg.dropout > 0.0:
             _corrupt(ranges, cfg, rng if rng is not None else np.random.default_rng())
         return RangeGrid(self.azimuth_deg, ranges)
+
+    def cast_points(
+        self,
+        world: World,
+        position: np.ndarray,
+        rotation: np.ndarray,
+        rng: np.random.Generator | None = None,
+        keep_band: tuple[np.ndarray, float, float] | None = None,
+    ) -> np.ndarray:
+        """One revolution straight to its point cloud: ``grid_to_points(cast(...), keep_band)``.
+
+        The same numbers, but without noise or dropout to apply in between it is one compiled
+        call with a reused grid buffer: the training env does this every step.
+
+        :param world: the geometry to hit
+        :param position: ``(3,)`` sensor origin in the world frame (ENU), metres
+        :param rotation: ``(3, 3)`` sensor (FLU) to world rotation
+        :param rng: random source for noise and dropout (see :meth:`cast`)
+        :param keep_band: see :func:`grid_to_points`
+        :return: ``(N, 3)`` float32 sensor-frame points
+        """
+        cfg = self.config
+        if cfg.noise_std > 0.0 or cfg.dropout > 0.0:
+            return grid_to_points(self.cast(world, position, rotation, rng), keep_band)
+        room, boxes, cylinders = world.packed
+        points = _cast_points_kernel(
+            np.ascontiguousarray(position, dtype=np.float64),
+            np.ascontiguousarray(rotation, dtype=np.float64),
+            self._columns, self._cos_el, self._sin_el, room, boxes, cylinders,
+            cfg.min_range, cfg.max_range, self._scratch, self._unit, *_band_floats(keep_band),
+        )  # fmt: skip
+        return points.view(np.float32)  # numba's float32 dtype instance is not numpy's (see grid_to_points)
 
 
 def _corrupt(ranges: np.ndarray, cfg: LidarConfig, rng: np.random.Generator) -> None:

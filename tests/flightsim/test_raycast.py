@@ -216,6 +216,25 @@ def test_matches_brute_force_on_random_poses(seed: int) -> None:
         checked += 1
 
 
+@pytest.mark.parametrize(
+    "lidar", [LidarConfig(), LidarConfig(azimuth_step_deg=0.2), LidarConfig(noise_std=0.02, dropout=0.1)]
+)
+def test_cast_points_is_grid_to_points_of_cast(lidar: LidarConfig) -> None:
+    # The env's one-call path must give the very same cloud, band or not, step after step.
+    world = generate_world(3, 1.0)
+    caster = VLP16Raycaster(lidar)
+    band = (np.array([0.0, 0.05, 0.998]), 0.01, 0.4)
+    rng = np.random.default_rng(0)
+    for k in range(4):
+        origin = np.array([*world.start_position[:2], 0.8 + 0.3 * k])
+        rot = _rz(rng.uniform(0, 360)) @ _ry(rng.uniform(-15, 15))
+        for keep_band in (None, band):
+            expected = grid_to_points(caster.cast(world, origin, rot, np.random.default_rng(k)), keep_band)
+            got = caster.cast_points(world, origin, rot, np.random.default_rng(k), keep_band)
+            assert got.dtype == np.float32 and got.shape[0] > 100
+            np.testing.assert_array_equal(got, expected)
+
+
 # -- noise and dropout -----------------------------------------------------------------------
 
 
