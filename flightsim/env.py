@@ -68,6 +68,23 @@ def _clip_unit(v: float) -> float:
     return 0.0 if v != v else min(1.0, max(-1.0, v))
 
 
+def slice_band(scan: ScanConfig) -> tuple[np.ndarray, float, float]:
+    """The ``keep_band`` of :func:`flightsim.raycast.grid_to_points` for a scan's height slice.
+
+    Points the scan's slice drops anyway are not materialised: the scan is identical and cheaper.
+    With the sensor mounted level at the body origin (the default) the band is the slice test
+    itself to the bit (``|z| <`` the same float32 bound), so the scan keeps every point it gets
+    and skips its own selection; otherwise it is the slice with the nominal mount, widened by
+    1 mm against float32/float64 rounding.
+
+    :param scan: the scan geometry
+    """
+    mount = scan.rotation()
+    if scan.mount_rpy_deg == (0.0, 0.0, 0.0) and scan.mount_xyz == (0.0, 0.0, 0.0):
+        return mount[2], 0.0, float(np.float32(scan.slice_height))
+    return mount[2], float(scan.mount_xyz[2]), scan.slice_height + 1e-3
+
+
 def _rz(angle: float) -> np.ndarray:
     c, s = math.cos(angle), math.sin(angle)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
@@ -151,9 +168,7 @@ class LidarAvoidEnv(gym.Env):
         self._fixed_world = load_world(self.config.world_file) if self.config.world_file else None
         self._scan_mount = self.config.scan.rotation()
         self._mount_xyz = np.asarray(self.config.scan.mount_xyz, dtype=np.float64)
-        # Points the scan's height slice drops anyway are not materialised (the slice as the scan
-        # computes it, with its nominal mount, widened by 1 mm): the scan is identical and cheaper.
-        self._slice_band = (self._scan_mount[2], self._mount_xyz[2], self.config.scan.slice_height + 1e-3)
+        self._slice_band = slice_band(self.config.scan)
         self.world: World | None = None  # the current episode's
         self.mount_yaw_error_deg = 0.0  # the sensor's yaw error drawn for the current episode, CCW
 
@@ -184,7 +199,8 @@ class LidarAvoidEnv(gym.Env):
     def step(self, action: np.ndarray):
         if self.world is None:
             raise RuntimeError("call reset() before step()")
-        a0, a1 = (_clip_unit(v) for v in np.asarray(action, dtype=np.float32).reshape(2).tolist())
+        v0, v1 = np.asarray(action, dtype=np.float32).reshape(2).tolist()
+        a0, a1 = _clip_unit(v0), _clip_unit(v1)
         a = np.array([a0, a1], dtype=np.float32)
         cfg = self.config
         if cfg.wind_gust_max > 0.0:

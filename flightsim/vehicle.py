@@ -115,13 +115,13 @@ class VehicleState:
         cr, sr = math.cos(self.roll), math.sin(self.roll)
         cp, sp = math.cos(self.pitch), math.sin(self.pitch)
         cy, sy = math.cos(self.yaw), math.sin(self.yaw)
-        return np.array(
+        return np.array(  # from a flat list: numpy builds that several times faster than nested ones
             [
-                [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-                [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-                [-sp, cp * sr, cp * cr],
+                cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr,
+                sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr,
+                -sp, cp * sr, cp * cr,
             ]
-        )
+        ).reshape(3, 3)  # fmt: skip
 
     @property
     def forward_speed(self) -> float:
@@ -345,7 +345,7 @@ class Vehicle:
         self._set_yaw_moment(YAW_MOMENT_PER_THRUST_M * _LBFFT_PER_NM * (t2 + t3 - t0 - t1))
 
     def _read_state(self) -> VehicleState:
-        h, ve, vn, vd, phi, theta, psi, p, q, r, gear_force, lat, lon = (g() for g in self._get)
+        h, ve, vn, vd, phi, theta, psi, p, q, r, gear_force, lat, lon = [g() for g in self._get]
         return VehicleState(
             time=self._time,
             position=np.array([lon * _METRES_PER_RAD_EAST, lat * _METRES_PER_RAD_NORTH, h * _FT]),

@@ -16,7 +16,7 @@ import flightsim
 from companion.errors import UserError
 from companion.scan import ScanConfig, scan_from_points
 from companion.tomlconfig import from_dict
-from flightsim.env import TRAIN_SEED_OFFSET, EnvConfig, LidarAvoidEnv
+from flightsim.env import TRAIN_SEED_OFFSET, EnvConfig, LidarAvoidEnv, slice_band
 from flightsim.raycast import LidarConfig, VLP16Raycaster, grid_to_points
 from flightsim.reward import StepOutcome, progress_reward, tutorial_reward
 from flightsim.world import Box, Cylinder, World, generate_world
@@ -238,6 +238,41 @@ def test_slice_prefilter_leaves_the_scan_unchanged() -> None:
             full = scan_from_points(grid_to_points(grid), scan_cfg)
             banded = scan_from_points(grid_to_points(grid, band), scan_cfg)
             np.testing.assert_array_equal(full, banded)
+
+
+@pytest.mark.parametrize(
+    "scan_cfg",
+    [
+        ScanConfig(),
+        ScanConfig(slice_height=0.3),
+        ScanConfig(mount_xyz=(0.05, 0.0, -0.1), mount_rpy_deg=(3, -8, 20)),
+    ],
+)
+def test_env_slice_band_keeps_exactly_what_the_scan_keeps(scan_cfg: ScanConfig) -> None:
+    # Level mount at the origin: the band is the scan's own slice test, to the bit (the scan then
+    # keeps every point it is given); otherwise a superset. Either way the scan is unchanged.
+    world = generate_world(5, 1.0)
+    caster = VLP16Raycaster(LidarConfig())
+    band = slice_band(scan_cfg)
+    rng = np.random.default_rng(1)
+    for _ in range(5):
+        rot = _rz_deg(rng.uniform(0, 360)) @ _rx_deg(rng.uniform(-20, 20)) @ scan_cfg.rotation()
+        grid = caster.cast(world, np.array([*world.start_position[:2], rng.uniform(0.5, 2.5)]), rot)
+        full, banded = grid_to_points(grid), grid_to_points(grid, band)
+        np.testing.assert_array_equal(scan_from_points(full, scan_cfg), scan_from_points(banded, scan_cfg))
+        if scan_cfg.mount_xyz == (0.0, 0.0, 0.0) and scan_cfg.mount_rpy_deg == (0.0, 0.0, 0.0):
+            in_slice = np.abs(full[:, 2]) < np.float32(scan_cfg.slice_height)
+            np.testing.assert_array_equal(banded, full[in_slice])
+
+
+def _rz_deg(deg: float) -> np.ndarray:
+    c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _rx_deg(deg: float) -> np.ndarray:
+    c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
 
 
 # -- domain randomisation ------------------------------------------------------------------------
