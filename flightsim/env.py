@@ -24,7 +24,7 @@ TRAIN_SEED_OFFSET = 1_000_000
 seeds below it as held-out worlds the policy never trained on."""
 SEED_LIMIT = 2**31
 VEHICLE_MASS_KG = 1.5
-_OPTION_KEYS = {"world", "world_seed", "difficulty"}
+_OPTION_KEYS = {"world", "world_seed", "difficulty", "room_width"}
 
 
 @dataclass(frozen=True)
@@ -140,7 +140,8 @@ class LidarAvoidEnv(gym.Env):
     ## Reset Options
     ``reset(seed=..., options=...)`` is deterministic for a seed. ``options`` may hold
     ``{"world": path or World}`` or ``{"world_seed": int, "difficulty": float}`` (either key
-    alone; the other comes from the config or ``self.np_random``). Without options the world is
+    alone; the other comes from the config or ``self.np_random``), optionally with
+    ``"room_width": float`` (a generated room only that wide, metres, ≥ 6). Without options the world is
     ``config.world_file`` if set, else a fresh generated one with a seed drawn from
     ``self.np_random`` in ``[TRAIN_SEED_OFFSET, 2**31)``: seeds below ``TRAIN_SEED_OFFSET`` are
     held out for evaluation.
@@ -249,7 +250,7 @@ class LidarAvoidEnv(gym.Env):
         if unknown:
             raise ValueError(f"unknown reset option {unknown[0]!r}; known: {', '.join(sorted(_OPTION_KEYS))}")
         if "world" in options:
-            if "world_seed" in options or "difficulty" in options:
+            if set(options) & {"world_seed", "difficulty", "room_width"}:
                 raise ValueError("reset options: give either 'world' or 'world_seed'/'difficulty', not both")
             world = options["world"]
             if isinstance(world, World):
@@ -263,7 +264,13 @@ class LidarAvoidEnv(gym.Env):
         if seed is None:
             seed = int(self.np_random.integers(TRAIN_SEED_OFFSET, SEED_LIMIT))
         difficulty = float(options.get("difficulty", self.config.difficulty))
-        return generate_world(int(seed), difficulty, self.config.vehicle_radius)
+        room_width = options.get("room_width")
+        return generate_world(
+            int(seed),
+            difficulty,
+            self.config.vehicle_radius,
+            room_width=None if room_width is None else float(room_width),
+        )
 
     def _fresh_scan(self) -> np.ndarray:
         """Cast the lidar from the current pose and reduce it with the companion's scan code."""

@@ -381,7 +381,13 @@ def _round(v: float) -> float:
     return round(float(v), 3)
 
 
-def generate_world(seed: int, difficulty: float, vehicle_radius: float = DEFAULT_VEHICLE_RADIUS) -> World:
+def generate_world(
+    seed: int,
+    difficulty: float,
+    vehicle_radius: float = DEFAULT_VEHICLE_RADIUS,
+    *,
+    room_width: float | None = None,
+) -> World:
     """A random room for training or evaluation, deterministic for ``(seed, difficulty)``.
 
     Difficulty 0 is 3 obstacles in a big room (about 23 × 16 m) with wide gaps; difficulty 1 is 10
@@ -393,13 +399,20 @@ def generate_world(seed: int, difficulty: float, vehicle_radius: float = DEFAULT
     :param seed: non-negative integer
     :param difficulty: 0.0 (easy) … 1.0 (hard)
     :param vehicle_radius: used to decide how far the start's heading is free
+    :param room_width: make the room this narrow (its y extent, metres; 6 m and up): corridors and
+        small rooms like the example worlds, which the default sizes never produce. Obstacles that
+        no longer fit with their gap are left out.
     """
     if not 0.0 <= difficulty <= 1.0:
         raise ValueError(f"difficulty must be in [0, 1], got {difficulty}")
+    if room_width is not None and room_width < 6.0:
+        raise ValueError(f"room_width must be at least 6 m, got {room_width}")
     rng = np.random.default_rng(seed)
     d = float(difficulty)
     sx = _lerp(24.0, 14.0, d) * rng.uniform(0.9, 1.0)
     sy = _lerp(17.0, 11.2, d) * rng.uniform(0.9, 1.0)
+    if room_width is not None:
+        sy = float(room_width)
     n_obstacles = round(3 + 7 * d)
     gap = _lerp(2.5, 1.2, d)
     hx, hy = sx / 2.0, sy / 2.0

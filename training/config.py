@@ -80,6 +80,9 @@ class TrainConfig:
     :param progress_bar: show SB3's progress bar (turn off for background runs with a log file)
     :param difficulty_spread: each training world's difficulty is drawn uniformly within this of
         ``env.difficulty`` (or of the curriculum's current difficulty), clipped to [0, 1]
+    :param narrow_room_prob: fraction of training worlds generated as narrow rooms (corridors and
+        small rooms like the example worlds, which the generator's default sizes never produce)
+    :param narrow_room_widths: range the narrow rooms' width is drawn from, metres
     :param env: the simulator's ``EnvConfig`` table (domain randomisation switches included)
     """
 
@@ -92,6 +95,8 @@ class TrainConfig:
     run_root: str = "runs"
     progress_bar: bool = True
     difficulty_spread: float = field(default=0.0, metadata={"min": 0.0, "max": 1.0})
+    narrow_room_prob: float = field(default=0.0, metadata={"min": 0.0, "max": 1.0})
+    narrow_room_widths: tuple[float, float] = (6.0, 9.0)
     env: dict[str, Any] = field(default_factory=dict)
     ppo: PPOConfig = field(default_factory=PPOConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)

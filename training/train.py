@@ -52,10 +52,19 @@ class TrainingWorlds(gym.Wrapper):
     trained on.
     """
 
-    def __init__(self, env: gym.Env, difficulty: float, spread: float = 0.0) -> None:
+    def __init__(
+        self,
+        env: gym.Env,
+        difficulty: float,
+        spread: float = 0.0,
+        narrow_room_prob: float = 0.0,
+        narrow_room_widths: tuple[float, float] = (6.0, 9.0),
+    ) -> None:
         super().__init__(env)
         self.difficulty = difficulty
         self.spread = spread
+        self.narrow_room_prob = narrow_room_prob
+        self.narrow_room_widths = narrow_room_widths
         self._rng = np.random.default_rng()
 
     def set_difficulty(self, difficulty: float) -> None:
@@ -71,6 +80,8 @@ class TrainingWorlds(gym.Wrapper):
             world_seed = TRAIN_SEED_OFFSET + int(self._rng.integers(0, 2**31 - 1 - TRAIN_SEED_OFFSET))
             low, high = max(0.0, self.difficulty - self.spread), min(1.0, self.difficulty + self.spread)
             options = {"world_seed": world_seed, "difficulty": float(self._rng.uniform(low, high))}
+            if self._rng.uniform() < self.narrow_room_prob:
+                options["room_width"] = float(self._rng.uniform(*self.narrow_room_widths))
         return self.env.reset(seed=seed, options=options)
 
 
@@ -81,7 +92,13 @@ def make_env(config: TrainConfig, difficulty: float):
     def thunk() -> gym.Env:
         from flightsim.env import LidarAvoidEnv
 
-        return TrainingWorlds(LidarAvoidEnv(env_config), difficulty, config.difficulty_spread)
+        return TrainingWorlds(
+            LidarAvoidEnv(env_config),
+            difficulty,
+            config.difficulty_spread,
+            config.narrow_room_prob,
+            config.narrow_room_widths,
+        )
 
     return thunk
 

@@ -162,6 +162,10 @@ def test_world_options(env: LidarAvoidEnv) -> None:
     assert env.world is CORRIDOR and info["yaw"] == pytest.approx(0.0)
     env.reset(seed=1, options={"world_seed": 42, "difficulty": 0.9})
     assert env.world == generate_world(42, 0.9)
+    env.reset(seed=1, options={"world_seed": 42, "difficulty": 0.9, "room_width": 7.0})
+    assert env.world == generate_world(42, 0.9, room_width=7.0) and env.world.room_size[1] == 7.0
+    with pytest.raises(ValueError, match="either 'world'"):
+        env.reset(options={"world": str(TWO_PILLARS), "room_width": 7.0})
     with pytest.raises(ValueError, match="unknown reset option 'wrld'"):
         env.reset(options={"wrld": "x"})
     with pytest.raises(UserError, match="not found"):

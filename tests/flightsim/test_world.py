@@ -222,3 +222,17 @@ def test_generated_gaps_are_flyable() -> None:
 def test_generator_rejects_bad_difficulty() -> None:
     with pytest.raises(ValueError, match="difficulty"):
         generate_world(1, 1.5)
+
+
+def test_narrow_rooms_keep_gaps_and_a_clear_start() -> None:
+    for seed in range(20):
+        world = generate_world(seed, 1.0, room_width=6.0)
+        assert world.room_size[1] == 6.0
+        assert 1 <= len(world.obstacles) <= 10
+        assert world.clearance(world.start_position) >= 1.5
+        hx, hy = world.room_size[0] / 2, world.room_size[1] / 2
+        for o in world.obstacles:
+            c = np.asarray(o.center[:2])
+            assert min(hx - abs(c[0]), hy - abs(c[1])) - footprint_radius(o) >= 1.2 - 1e-6
+    with pytest.raises(ValueError, match="room_width"):
+        generate_world(1, 0.5, room_width=4.0)
