@@ -403,7 +403,7 @@ def plot_trajectories(
     fig.legend(handles, labels, loc="lower center", ncol=max(len(handles), 1), fontsize=9)
     fig.tight_layout(rect=(0, 0.6 / fig.get_figheight(), 1, 1))
     out.parent.mkdir(parents=True, exist_ok=True)
-    canvas.print_png(str(out))
+    canvas.print_png(str(out), dpi=100 if len(worlds) <= 16 else 50)  # a 100-world grid stays ~0.5 MB
 
 
 # --- command line ----------------------------------------------------------------------------------
