@@ -377,7 +377,7 @@ def plot_trajectories(
     cols = min(len(worlds), 10 if len(worlds) > 16 else 4)
     rows = math.ceil(len(worlds) / cols)
     fig = Figure(figsize=(2.8 * cols, 2.4 * rows + 0.6))
-    canvas = FigureCanvasAgg(fig)
+    FigureCanvasAgg(fig)  # attaches itself to the figure: no pyplot state in worker processes
     for i, w in enumerate(worlds):
         ax = fig.add_subplot(rows, cols, i + 1)
         radius = env_config.vehicle_radius
@@ -403,7 +403,7 @@ def plot_trajectories(
     fig.legend(handles, labels, loc="lower center", ncol=max(len(handles), 1), fontsize=9)
     fig.tight_layout(rect=(0, 0.6 / fig.get_figheight(), 1, 1))
     out.parent.mkdir(parents=True, exist_ok=True)
-    canvas.print_png(str(out), dpi=100 if len(worlds) <= 16 else 50)  # a 100-world grid stays ~0.5 MB
+    fig.savefig(str(out), dpi=100 if len(worlds) <= 16 else 50)  # a 100-world grid stays ~1 MB
 
 
 # --- command line ----------------------------------------------------------------------------------
