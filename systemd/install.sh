@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Install the lidar-avoid companion as a systemd service (see docs/jetson.md).
+# Install the lidar-avoid companion as a systemd service (see README.md, "On the drone").
 #
 #   sudo systemd/install.sh [--model policy.onnx] [--ort-wheel onnxruntime_gpu-....whl] [--now]
 #
@@ -124,9 +124,7 @@ for f in "$SRC_DIR"/firmware_params/*; do
     run install -m 0644 "$f" "$ROOT$CONF_DIR/firmware_params/"
 done
 [ -z "$MODEL" ] || run install -m 0644 "$MODEL" "$ROOT$CONF_DIR/policy.onnx"
-if [ -f "$SRC_DIR/docs/jetson.md" ]; then
-    run install -D -m 0644 "$SRC_DIR/docs/jetson.md" "$ROOT$PREFIX/docs/jetson.md"
-fi
+run install -D -m 0644 "$SRC_DIR/README.md" "$ROOT$PREFIX/README.md"
 
 echo "== systemd unit"
 run install -D -m 0644 "$SRC_DIR/systemd/$UNIT" "$ROOT/etc/systemd/system/$UNIT"

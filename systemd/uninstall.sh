@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
-# Remove the lidar-avoid companion service installed by systemd/install.sh (see docs/jetson.md).
+# Remove the lidar-avoid companion service installed by systemd/install.sh (see README.md, "On the drone").
 #
 #   sudo systemd/uninstall.sh [--purge]
 #
-# Stops and disables the unit, removes it and /opt/lidar-avoid (virtual environment, docs).
+# Stops and disables the unit, removes it and /opt/lidar-avoid (virtual environment, README).
 # Configuration (/etc/lidar-avoid), state (/var/lib/lidar-avoid: TensorRT engine cache), logs
 # (/var/log/lidar-avoid) and the service user stay unless --purge is given.
 #
