@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import time
 from importlib import resources
 from pathlib import Path
@@ -57,6 +58,8 @@ def command(args: argparse.Namespace) -> int:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise UserError(f"--out {out}: {exc.strerror}") from None
+    if not getattr(args, "verbose", False):  # the table is the demo's output; -v shows every step
+        logging.getLogger("flightsim").setLevel(logging.WARNING)
     from flightsim.vehicle import Vehicle
 
     vehicle = Vehicle()  # one JSBSim load for all flights
