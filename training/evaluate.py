@@ -8,7 +8,9 @@ overall: success rate, collisions, distance flown, mean speed, minimum clearance
 Every controller sees one scan per step through the same interface (``reset(scan)`` then
 ``act(scan)``). The learned policy goes through the companion's own :class:`FrameStack`; an
 ``.onnx`` file runs through the companion's :class:`OnnxPolicy`, so the figures are those of what
-flies, not of the training framework.
+flies, not of the training framework. With ``--shield`` every controller's actions also pass
+through the companion's :class:`SafetyShield` (default ``[shield]`` limits), as they do in flight;
+the report labels those rows ``<controller>+shield``.
 
 Episodes are independent tasks run in a process pool (one process per core by default).
 """
@@ -32,6 +34,7 @@ import numpy as np
 from companion.errors import UserError
 from companion.framestack import FrameStack
 from companion.scan import N_BINS
+from companion.shield import SafetyShield, ShieldConfig, command_from_action
 from training.config import NEAR_MISS_DISTANCE, STEP_SECONDS, SUCCESS_MIN_MEAN_SPEED
 
 log = logging.getLogger(__name__)
@@ -65,6 +68,35 @@ class StackedPolicyController:
         return np.asarray(self._act(self._stack.push(scan)), dtype=np.float32)
 
 
+class ShieldedController:
+    """Another controller's actions filtered by the companion's safety shield, as in flight.
+
+    :param inner: the controller whose actions are filtered
+    :param shield: the companion's shield (its limits are the flight configuration's)
+    :param max_speed: m/s that an action of 1 stands for (the env's action scaling)
+    :param max_yaw_rate: rad/s that an action of 1 stands for
+    """
+
+    def __init__(
+        self, inner: Controller, shield: SafetyShield, max_speed: float, max_yaw_rate: float
+    ) -> None:
+        self._inner = inner
+        self.shield = shield
+        self._scale = (max_speed, max_yaw_rate)
+
+    def reset(self, scan: np.ndarray) -> np.ndarray:
+        self.shield.reset()
+        return self._filter(self._inner.reset(scan), scan)
+
+    def act(self, scan: np.ndarray) -> np.ndarray:
+        return self._filter(self._inner.act(scan), scan)
+
+    def _filter(self, action: np.ndarray, scan: np.ndarray) -> np.ndarray:
+        max_speed, max_yaw_rate = self._scale
+        safe = self.shield.filter(command_from_action(action, max_speed, max_yaw_rate), scan, STEP_SECONDS)
+        return np.array([safe.forward / max_speed, safe.yaw_rate / max_yaw_rate], dtype=np.float32)
+
+
 def sb3_controller(model: Any, n_stack: int) -> StackedPolicyController:
     """An SB3 model acting deterministically (what ``model.predict(..., deterministic=True)`` gives)."""
 
@@ -80,15 +112,17 @@ def sb3_controller(model: Any, n_stack: int) -> StackedPolicyController:
 
 @dataclass(frozen=True)
 class ControllerSpec:
-    """What to build in a worker: ``kind`` is ``policy`` (``path``), ``gap_follower`` or ``random``."""
+    """What to build in a worker: ``kind`` is ``policy`` (``path``), ``gap_follower`` or ``random``;
+    ``shield``: behind the companion's safety shield."""
 
     kind: str
     path: str = ""
     name: str = ""
+    shield: bool = False
 
     @property
     def label(self) -> str:
-        return self.name or self.kind
+        return (self.name or self.kind) + ("+shield" if self.shield else "")
 
 
 @dataclass(frozen=True)
@@ -197,7 +231,16 @@ _WORKER_CACHE: dict[Any, Any] = {}
 
 
 def build_controller(spec: ControllerSpec, env_config: Any, seed: int, n_stack: int = 4) -> Controller:
-    """Build the controller ``spec`` describes (policies are loaded once per process)."""
+    """Build the controller ``spec`` describes, behind the shield if it says so."""
+    controller = _bare_controller(spec, env_config, seed, n_stack)
+    if not spec.shield:
+        return controller
+    shield = SafetyShield(ShieldConfig(), max_range=float(env_config.scan.max_range))
+    return ShieldedController(controller, shield, float(env_config.max_speed), float(env_config.max_yaw_rate))
+
+
+def _bare_controller(spec: ControllerSpec, env_config: Any, seed: int, n_stack: int) -> Controller:
+    """The controller itself (policies are loaded once per process)."""
     from training.baselines import GapFollower, GapFollowerConfig, RandomController
 
     if spec.kind == "random":
@@ -343,13 +386,13 @@ def report(results: Sequence[EpisodeResult], worlds: Sequence[WorldSpec]) -> dic
 
 def format_table(summary: dict[str, Any], per_world: bool) -> str:
     """A readable text table of :func:`report`'s output."""
-    header = f"{'controller':<14} {'world':<16} {'eps':>4} {'success':>8} {'coll':>5} {'dist m':>8} "
+    header = f"{'controller':<19} {'world':<16} {'eps':>4} {'success':>8} {'coll':>5} {'dist m':>8} "
     header += f"{'speed':>6} {'min clr':>8} {'near':>5}"
     lines = [header, "-" * len(header)]
 
     def row(name: str, world: str, s: dict[str, Any]) -> str:
         return (
-            f"{name:<14} {world:<16} {s['episodes']:>4} {100 * s['success_rate']:>7.1f}% "
+            f"{name:<19} {world:<16} {s['episodes']:>4} {100 * s['success_rate']:>7.1f}% "
             f"{s['collisions']:>5} {s['mean_distance_m']:>8.1f} {s['mean_speed_mps']:>6.2f} "
             f"{s['min_clearance_m']:>8.2f} {s['near_misses']:>5}"
         )
@@ -442,10 +485,14 @@ def evaluate(
     env: dict[str, Any],
     workers: int,
     baselines: Sequence[str] = BASELINES,
+    shield: bool = False,
 ) -> tuple[dict[str, Any], list[EpisodeResult]]:
-    """Evaluate ``policy`` (optional) and ``baselines`` on ``worlds``: (report dict, episode results)."""
-    controllers = ([ControllerSpec("policy", str(policy), "policy")] if policy else []) + [
-        ControllerSpec(b) for b in baselines
+    """Evaluate ``policy`` (optional) and ``baselines`` on ``worlds``: (report dict, episode results).
+
+    :param shield: every controller behind the companion's safety shield
+    """
+    controllers = ([ControllerSpec("policy", str(policy), "policy", shield)] if policy else []) + [
+        ControllerSpec(b, shield=shield) for b in baselines
     ]
     tasks = make_tasks(controllers, worlds, episodes, env)
     if workers <= 1:
@@ -477,6 +524,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         metavar="KEY=VALUE",
         help="override an [env] key of the config, e.g. --set env.max_steps=300",
     )
+    parser.add_argument(
+        "--shield",
+        action="store_true",
+        help="fly every controller behind the companion's safety shield (default limits), as in flight",
+    )
     parser.add_argument("--workers", type=int, default=0, help="worker processes (0 = one per core)")
     parser.add_argument("--per-world", action="store_true", help="print a row per world, not only the totals")
     parser.add_argument("--json", type=Path, help="write the full report here")
@@ -493,8 +545,9 @@ def command(args: argparse.Namespace) -> int:
     env_config = config.env_config()
     workers = args.workers or (os.cpu_count() or 1)
     load_policy(args.policy, env_config, config.n_stack)  # fail fast, with a one-line error
-    summary, results = evaluate(args.policy, worlds, args.episodes, config.env, workers)
+    summary, results = evaluate(args.policy, worlds, args.episodes, config.env, workers, shield=args.shield)
     summary["policy"] = str(args.policy)
+    summary["shield"] = asdict(ShieldConfig()) if args.shield else None
     print(format_table(summary, per_world=args.per_world or args.worlds is not None))
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -5,7 +5,17 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from training.evaluate import EpisodeResult, WorldSpec, format_table, is_success, report, run_episode
+from companion.shield import SafetyShield, ShieldConfig
+from training.evaluate import (
+    ControllerSpec,
+    EpisodeResult,
+    ShieldedController,
+    WorldSpec,
+    format_table,
+    is_success,
+    report,
+    run_episode,
+)
 
 
 class ScriptedEnv:
@@ -102,3 +112,41 @@ def test_report_summarises_per_controller_and_world():
     assert data["controllers"]["gap_follower"]["overall"]["success_rate"] == 1.0
     table = format_table(data, per_world=True)
     assert "policy" in table and "ALL" in table and len(table.splitlines()) == 2 + 2 * 3
+
+
+class FullAhead:
+    """Asks for full forward speed and a left turn every step."""
+
+    def reset(self, scan):
+        return np.array([1.0, 1.0], np.float32)
+
+    def act(self, scan):
+        return np.array([1.0, 1.0], np.float32)
+
+
+def shielded() -> ShieldedController:
+    return ShieldedController(FullAhead(), SafetyShield(ShieldConfig(), max_range=10.0), 2.0, 1.5)
+
+
+def test_shield_stops_forward_motion_at_a_wall_but_lets_the_vehicle_turn():
+    scan = np.ones(360, np.float32)
+    scan[:5] = 0.02  # 0.2 m dead ahead: inside the 0.3 m emergency-stop distance
+    controller = shielded()
+    for action in [controller.reset(scan)] + [controller.act(scan) for _ in range(20)]:
+        assert action[0] == 0.0
+    assert action[1] == pytest.approx(1.0)  # turning in place stays allowed, up to the full rate
+
+
+def test_shield_ramps_forward_speed_at_its_acceleration_limit_in_action_units():
+    clear = np.ones(360, np.float32)
+    controller = shielded()
+    first = controller.reset(clear)
+    # 2 m/s² for one 0.1 s step = 0.2 m/s = 0.1 of the 2 m/s action scale; 4 rad/s² -> 0.4 of 1.5 rad/s
+    assert first == pytest.approx([0.1, 0.4 / 1.5])
+    assert controller.act(clear)[0] == pytest.approx(0.2)
+    assert controller.shield.interventions["accel_limit"] == 2
+
+
+def test_shielded_rows_are_labelled_as_such():
+    assert ControllerSpec("gap_follower", shield=True).label == "gap_follower+shield"
+    assert ControllerSpec("policy", "p.onnx", "policy").label == "policy"

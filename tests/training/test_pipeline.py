@@ -159,6 +159,16 @@ def test_evaluate_reports_policy_and_baselines_with_json_and_png(pipeline, capsy
     assert png.stat().st_size > 10_000
 
 
+def test_evaluate_behind_the_shield_flies_every_controller_through_it(pipeline, capsys, tmp_path):
+    report = tmp_path / "shield.json"
+    assert main(["evaluate", "--policy", str(pipeline["onnx"]), "--seeds", "1", "--set", "env.max_steps=20",
+                 "--workers", "1", "--shield", "--json", str(report)]) == 0  # fmt: skip
+    assert re.search(r"^policy\+shield\s+ALL\s+1\s", capsys.readouterr().out, re.M)
+    data = json.loads(report.read_text())
+    assert set(data["controllers"]) == {"policy+shield", "gap_follower+shield", "random+shield"}
+    assert data["shield"]["estop_distance"] == 0.3
+
+
 def test_evaluate_on_the_example_worlds(pipeline, capsys):
     model = pipeline["run_dir"] / "final_model.zip"
     assert main(["evaluate", "--policy", str(model), "--worlds", str(WORLDS), "--set", "env.max_steps=30",
