@@ -10,7 +10,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from companion.errors import UserError
 from companion.tomlconfig import apply_overrides, from_dict, load_toml, to_dict
@@ -28,6 +28,9 @@ class PPOConfig:
     """stable-baselines3 PPO hyperparameters (defaults: the seed tutorial's)."""
 
     learning_rate: float = field(default=3e-4, metadata={"min": 1e-7, "max": 1.0})
+    #: "constant", or "linear": from ``learning_rate`` down to 0 at ``total_timesteps`` (as rl-zoo's
+    #: ``lin_`` schedules), so late updates stop shaking a policy that already flies
+    learning_rate_schedule: Literal["constant", "linear"] = "constant"
     n_steps: int = field(default=2048, metadata={"min": 8})
     batch_size: int = field(default=64, metadata={"min": 2})
     n_epochs: int = field(default=10, metadata={"min": 1})

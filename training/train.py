@@ -218,6 +218,7 @@ def make_callbacks(config: TrainConfig, run_dir: Path, n_envs: int, executor: An
 def build_model(config: TrainConfig, venv: Any, run_dir: Path, resume: Path | None):
     """A fresh PPO model from the config, or the checkpoint ``resume`` attached to ``venv``."""
     from stable_baselines3 import PPO
+    from stable_baselines3.common.utils import LinearSchedule
 
     if resume is not None:
         from training.export import load_model
@@ -225,10 +226,11 @@ def build_model(config: TrainConfig, venv: Any, run_dir: Path, resume: Path | No
         load_model(resume)  # a bad file is the user's error, reported in one line
         return PPO.load(str(resume), env=venv, device="cpu", tensorboard_log=str(run_dir / "tb"))
     p = config.ppo
+    linear = p.learning_rate_schedule == "linear"
     return PPO(
         "MlpPolicy",
         venv,
-        learning_rate=p.learning_rate,
+        learning_rate=LinearSchedule(p.learning_rate, 0.0, 1.0) if linear else p.learning_rate,
         n_steps=p.n_steps,
         batch_size=p.batch_size,
         n_epochs=p.n_epochs,

@@ -52,6 +52,7 @@ def test_overrides_reach_nested_tables_and_env(tmp_path):
         ("", ["eval.first_seed=1000000"], "eval.first_seed"),
         ("", ["ppo.batch_size=4096", "ppo.n_steps=16", "n_envs=2"], "ppo.batch_size"),
         ("name = 'a b'\n", [], "name"),
+        ("[ppo]\nlearning_rate_schedule = 'cosine'\n", [], "ppo.learning_rate_schedule"),
     ],
 )
 def test_mistakes_name_the_key(tmp_path, text, overrides, named):
@@ -75,3 +76,17 @@ def test_every_committed_config_loads():
     assert configs, "training/configs/ must hold the shipped policy's config"
     for path in configs:
         assert load_train_config(path).name == path.stem
+
+
+@pytest.mark.parametrize(("schedule", "at_end"), [("constant", 3e-4), ("linear", 0.0)])
+def test_learning_rate_schedule_reaches_the_ppo_model(tmp_path, schedule, at_end):
+    import gymnasium as gym
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from training.train import build_model
+
+    c = load_train_config(None, [f"ppo.learning_rate_schedule={schedule!r}", "ppo.n_steps=64"])
+    model = build_model(c, DummyVecEnv([lambda: gym.make("Pendulum-v1")]), tmp_path, None)
+    assert model.lr_schedule(1.0) == pytest.approx(3e-4)  # progress_remaining 1: the start
+    assert model.lr_schedule(0.5) == pytest.approx((3e-4 + at_end) / 2)
+    assert model.lr_schedule(0.0) == pytest.approx(at_end)
