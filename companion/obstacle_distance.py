@@ -60,3 +60,14 @@ def obstacle_distance_from_scan(
     out[no_return] = max_cm + 1
     out[unknown] = UNKNOWN_CM
     return out
+
+
+def sector_distances(sectors_cm: np.ndarray) -> list[int]:
+    """The 72 sector values as the plain ints a MAVLink encoder takes; anything else is a bug.
+
+    :param sectors_cm: ``(72,)`` centimetres, as :func:`obstacle_distance_from_scan` returns them
+    """
+    distances = [int(v) for v in np.asarray(sectors_cm, dtype=np.uint16).reshape(-1)]
+    if len(distances) != N_SECTORS:
+        raise ValueError(f"OBSTACLE_DISTANCE needs {N_SECTORS} sectors, got {len(distances)}")
+    return distances

@@ -21,6 +21,7 @@ import numpy as np
 
 from companion.autopilot.link import LandedState, VehicleStatus
 from companion.autopilot.mavlink_adapter import MavlinkEndpoint, mavlink, mode_name
+from companion.obstacle_distance import sector_distances
 
 log = logging.getLogger(__name__)
 
@@ -256,9 +257,7 @@ class ArduPilotLink:
 
         :param sectors_cm: ``(72,)`` uint16 centimetres (no return = ``max_distance_cm + 1``)
         """
-        distances = [int(v) for v in np.asarray(sectors_cm, dtype=np.uint16).reshape(-1)]
-        if len(distances) != 72:
-            raise ValueError(f"OBSTACLE_DISTANCE needs 72 sectors, got {len(distances)}")
+        distances = sector_distances(sectors_cm)
         self._send(
             "obstacle_distance_sent",
             self._endpoint.mav.obstacle_distance_send,

@@ -42,6 +42,7 @@ from mavsdk.plugins.telemetry.telemetry import FlightMode, Telemetry
 from companion.autopilot.ardupilot import SECTOR_INCREMENT_DEG, statustext_chunks
 from companion.autopilot.link import LandedState, VehicleStatus
 from companion.errors import UserError
+from companion.obstacle_distance import sector_distances
 
 log = logging.getLogger(__name__)
 
@@ -300,9 +301,7 @@ class Px4Link:
 
         :param sectors_cm: ``(72,)`` uint16 centimetres (no return = ``max_distance_cm + 1``)
         """
-        distances = [int(v) for v in np.asarray(sectors_cm, dtype=np.uint16).reshape(-1)]
-        if len(distances) != 72:
-            raise ValueError(f"OBSTACLE_DISTANCE needs 72 sectors, got {len(distances)}")
+        distances = sector_distances(sectors_cm)
         self._send_direct(
             "obstacle_distance_sent",
             "OBSTACLE_DISTANCE",

@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from companion.obstacle_distance import N_SECTORS, UNKNOWN_CM, obstacle_distance_from_scan
+from companion.obstacle_distance import N_SECTORS, UNKNOWN_CM, obstacle_distance_from_scan, sector_distances
 from companion.scan import ScanConfig, scan_from_points
 
 EMPTY = 1001  # max_distance + 1
@@ -134,3 +134,10 @@ def test_every_sector_is_valid_and_conservative(scan: np.ndarray) -> None:
         if scan[i] < 1.0:
             for j in _expected_sectors(i):
                 assert out[j] <= max(10, scan[i] * 1000.0) + 1e-3
+
+
+def test_sector_distances_are_72_plain_ints_and_a_wrong_count_is_refused() -> None:
+    out = sector_distances(obstacle_distance_from_scan(np.ones(360), 10.0))
+    assert len(out) == 72 and all(type(v) is int and v == 1001 for v in out)
+    with pytest.raises(ValueError, match="72 sectors, got 71"):
+        sector_distances(np.zeros(71, np.uint16))
