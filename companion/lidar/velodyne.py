@@ -55,6 +55,9 @@ FIRING_SEQUENCE_US = 55.296
 LASER_FIRING_US = 2.304
 PACKET_DURATION_US = FIRINGS_PER_PACKET * FIRING_SEQUENCE_US
 US_PER_HOUR = 3_600_000_000
+#: a forward jump of the sensor's timestamp longer than this (two revolutions at 600 rpm) means the
+#: stream went silent: the revolution in progress is older than the gap and is dropped.
+SILENCE_US = 200_000
 RETURN_STRONGEST = 0x37
 RETURN_LAST = 0x38
 RETURN_DUAL = 0x39  # refused: two returns per firing
@@ -289,6 +292,9 @@ class VelodyneCounters:
     #: consecutive packets whose timestamps are more than 1.5 packet durations apart or go backwards
     #: (lost or reordered packets: that revolution is missing a sector).
     timestamp_gaps: int = 0
+    #: silences (timestamp jumps over SILENCE_US): the revolution in progress was dropped, so the
+    #: first revolution after a lidar outage holds no points from before it.
+    silences: int = 0
 
 
 class Revolution(NamedTuple):
@@ -465,6 +471,11 @@ class RevolutionAssembler:
     def _overflow(self) -> None:
         log.warning("VLP-16: no azimuth wrap in %d packets, dropping them", self._packets_in_revolution)
         self.counters.overflows += 1
+        self._restart()
+
+    def _restart(self) -> None:
+        """Forget everything queued: the next revolution starts at the next wrap."""
+        self._last_azimuth = None
         self._pending = []
         self._pending_wraps = []
         self._parts = []
@@ -472,7 +483,19 @@ class RevolutionAssembler:
         self._started = False
 
     def _check_timestamps(self, stamps: Sequence[int]) -> None:
+        """Count lost or reordered packets; after a silence, start over (called before queueing)."""
         previous = self._last_timestamp
+        if (
+            previous is not None
+            and stamps
+            and SILENCE_US < (stamps[0] - previous) % US_PER_HOUR < US_PER_HOUR / 2
+        ):
+            self.counters.silences += 1
+            log.info(
+                "VLP-16: stream silent for %.2f s; dropping the revolution in progress",
+                ((stamps[0] - previous) % US_PER_HOUR) / 1e6,
+            )
+            self._restart()
         for stamp in stamps:
             if previous is not None and (stamp - previous) % US_PER_HOUR > 1.5 * PACKET_DURATION_US:
                 self.counters.timestamp_gaps += 1

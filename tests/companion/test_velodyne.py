@@ -1,6 +1,6 @@
 """VLP-16 decoding, revolution assembly, encoding and the UDP source, against a real recording.
 
-The reference facts about the recording come from shared/fixtures/README.md. Parsing done here for
+The reference facts about the recording come from tests/fixtures/README.md. Parsing done here for
 comparison uses `struct` and plain Python, independently of the module's numpy code.
 """
 
@@ -37,7 +37,7 @@ from companion.lidar.velodyne import (
 
 def _fixture_dir() -> Path:
     override = os.environ.get("LIDAR_AVOID_FIXTURES")
-    return Path(override) if override else Path(__file__).resolve().parents[3] / "shared/fixtures"
+    return Path(override) if override else Path(__file__).resolve().parents[1] / "fixtures"
 
 
 @pytest.fixture(scope="module")
@@ -434,6 +434,30 @@ def test_lost_packets_show_as_timestamp_gaps() -> None:
     assert assembler.counters.timestamp_gaps == 2
     assert len(clouds) == 1  # the revolution from packet 75 to 149, with 100 and 101 lost
     assert len(clouds[0]) == 1800 * 16 - 2 * 24 * 16  # the lost packets' firings are missing
+
+
+@pytest.mark.parametrize("batched", [False, True])
+def test_after_a_silence_no_revolution_holds_points_from_before_it(batched: bool) -> None:
+    """The sensor goes quiet mid-turn for 1.5 s: the turn it was in is dropped, not completed later."""
+    azimuth = np.mod(0.2 * np.arange(6 * 1800), 360.0)
+    # a partial turn (start not seen), a whole one, about half of the next; after it two more turns
+    before, after = 2 * 1800 + 912, 4 * 1800 + 912
+    packets = encode_packets(azimuth[:before], np.full((before, 16), 2.0), start_timestamp_us=1e6)
+    packets += encode_packets(
+        azimuth[before:after], np.full((after - before, 16), 7.0), start_timestamp_us=2.6e6
+    )
+    assembler = RevolutionAssembler()
+    if batched:
+        # the main loop reads what arrived before the silence, then what came after it
+        clouds = [r.points for r in assembler.feed_batch(packets[: before // 24])]
+        clouds += [r.points for r in assembler.feed_batch(packets[before // 24 :])]
+    else:
+        clouds = [c for p in packets for c in assembler.feed(p)]
+    ranges = [np.linalg.norm(c, axis=1) for c in clouds]
+    assert len(ranges) == 2 and assembler.counters.silences == 1
+    assert np.allclose(ranges[0], 2.0, atol=0.01)  # the whole turn before the silence
+    assert np.allclose(ranges[1], 7.0, atol=0.01)  # and only then a turn of fresh returns
+    assert len(ranges[1]) == 1800 * 16
 
 
 def test_a_sensor_that_never_wraps_does_not_grow_without_bound() -> None:

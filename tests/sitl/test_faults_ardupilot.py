@@ -28,9 +28,9 @@ from tests.sitl.helpers import (
 pytestmark = pytest.mark.sitl
 
 ACTIVE = "->ACTIVE"
-#: supervisor.recover_scans is 5; the revolution the sensor was in when it went silent is only cut
-#: (and counted) when the first packet after the gap arrives, so 4 of the 5 are new revolutions.
-FRESH_REVOLUTIONS = 4
+#: supervisor.recover_scans is 5, and the revolution the sensor was in when it went silent is
+#: dropped (the assembler sees the timestamp jump), so all 5 are revolutions sent after the gap.
+FRESH_REVOLUTIONS = 5
 
 
 @pytest.fixture(scope="module")
