@@ -43,7 +43,9 @@ class ShieldConfig:
     :param max_accel: how fast the forward speed may grow, m/s²
     :param max_yaw_accel: how fast the yaw rate may grow, rad/s²
     :param max_decel: braking the stopping-distance limit assumes, m/s²
-    :param reaction_time: delay before braking starts (latency + autopilot response), s
+    :param reaction_time: delay before braking starts (scan age, control period and the autopilot's
+        velocity-loop lag), s. 0.8 s is what the simulated quad needs to stop at ``estop_distance``
+        from a wall it meets at 2 m/s (``tests/flightsim/test_env.py``); measure a real vehicle's.
     :param estop_distance: a forward return closer than this stops all forward motion, m
     :param rear_clear_margin: backing up needs the rear sector clear beyond ``estop_distance`` plus this, m
     :param forward_sector_deg: half-width of the forward sector, degrees
@@ -56,7 +58,7 @@ class ShieldConfig:
     max_accel: float = field(default=2.0, metadata={"min": 0.01, "max": 20.0})
     max_yaw_accel: float = field(default=4.0, metadata={"min": 0.01, "max": 50.0})
     max_decel: float = field(default=2.0, metadata={"min": 0.1, "max": 20.0})
-    reaction_time: float = field(default=0.3, metadata={"min": 0.0, "max": 5.0})
+    reaction_time: float = field(default=0.8, metadata={"min": 0.0, "max": 5.0})
     estop_distance: float = field(default=0.3, metadata={"min": 0.0, "max": 10.0})
     rear_clear_margin: float = field(default=0.2, metadata={"min": 0.0, "max": 10.0})
     forward_sector_deg: float = field(default=30.0, metadata={"min": 1.0, "max": 90.0})

@@ -12,6 +12,7 @@ import numpy as np
 from gymnasium import spaces
 
 from companion.scan import N_BINS, ScanConfig, scan_from_points
+from companion.shield import SafetyShield, ShieldConfig, command_from_action
 from flightsim.control import Setpoint
 from flightsim.raycast import LidarConfig, VLP16Raycaster
 from flightsim.render import render_rgb
@@ -24,6 +25,8 @@ TRAIN_SEED_OFFSET = 1_000_000
 seeds below it as held-out worlds the policy never trained on."""
 SEED_LIMIT = 2**31
 VEHICLE_MASS_KG = 1.5
+#: control steps per second: one env step is one scan and one setpoint
+CONTROL_HZ = 10
 _OPTION_KEYS = {"world", "world_seed", "difficulty", "room_width"}
 
 
@@ -46,6 +49,8 @@ class EnvConfig:
     :param mass_jitter: domain randomisation: take-off mass within ± this fraction of 1.5 kg
     :param wind_gust_max: domain randomisation: horizontal gusts up to this speed, m/s, each
         held 1–3 s
+    :param shield: fly every action through the companion's safety shield (default ``[shield]``
+        limits) against the scan the policy saw, as the drone does; the reward sees what flew
     """
 
     world_file: str | None = None
@@ -61,6 +66,7 @@ class EnvConfig:
     latency_scans: int = field(default=0, metadata={"min": 0, "max": 1})
     mass_jitter: float = field(default=0.0, metadata={"min": 0.0, "max": 0.4})
     wind_gust_max: float = field(default=0.0, metadata={"min": 0.0, "max": 8.0})
+    shield: bool = False
 
 
 def _clip_unit(v: float) -> float:
@@ -164,8 +170,10 @@ class LidarAvoidEnv(gym.Env):
         self.observation_space = spaces.Box(0.0, 1.0, (N_BINS,), np.float32)
         self.action_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
         self._reward_fn = REWARDS[self.config.reward]
-        self._vehicle = Vehicle(VehicleConfig(mass_kg=VEHICLE_MASS_KG, physics_hz=120, control_hz=10))
+        self._vehicle = Vehicle(VehicleConfig(mass_kg=VEHICLE_MASS_KG, physics_hz=120, control_hz=CONTROL_HZ))
         self._caster = VLP16Raycaster(self.config.lidar)
+        shielded = self.config.shield
+        self._shield = SafetyShield(ShieldConfig(), self.config.scan.max_range) if shielded else None
         self._fixed_world = load_world(self.config.world_file) if self.config.world_file else None
         self._scan_mount = self.config.scan.rotation()
         self._mount_xyz = np.asarray(self.config.scan.mount_xyz, dtype=np.float64)
@@ -195,6 +203,8 @@ class LidarAvoidEnv(gym.Env):
         self._trajectory = [self._state.position.copy()]
         self._scan = self._fresh_scan()
         self._previous_scan = self._scan
+        if self._shield is not None:
+            self._shield.reset()
         return self._scan.copy(), self._info()
 
     def step(self, action: np.ndarray):
@@ -202,8 +212,14 @@ class LidarAvoidEnv(gym.Env):
             raise RuntimeError("call reset() before step()")
         v0, v1 = np.asarray(action, dtype=np.float32).reshape(2).tolist()
         a0, a1 = _clip_unit(v0), _clip_unit(v1)
-        a = np.array([a0, a1], dtype=np.float32)
         cfg = self.config
+        if self._shield is not None:
+            seen = self._previous_scan if cfg.latency_scans else self._scan
+            safe = self._shield.filter(
+                command_from_action((a0, a1), cfg.max_speed, cfg.max_yaw_rate), seen, 1.0 / CONTROL_HZ
+            )
+            a0, a1 = safe.forward / cfg.max_speed, safe.yaw_rate / cfg.max_yaw_rate
+        a = np.array([a0, a1], dtype=np.float32)
         if cfg.wind_gust_max > 0.0:
             self._update_wind()
         previous = self._state.position

@@ -200,6 +200,19 @@ def test_collision_terminates_with_the_collision_reward(env: LidarAvoidEnv) -> N
     assert steps * 0.1 < 7.0 / 1.5  # it really flew at close to 2 m/s
 
 
+def test_shield_option_flies_the_same_actions_to_a_stop_short_of_the_wall() -> None:
+    env = LidarAvoidEnv(EnvConfig(shield=True))
+    _, info = env.reset(seed=0, options={"world": CORRIDOR})
+    for _ in range(100):  # full speed at the end wall, as in the collision test above
+        _, _, terminated, _, info = env.step(np.array([1.0, 0.0], np.float32))
+        assert not terminated
+    # it flew the corridor and stopped at the shield's estop_distance (0.3 m), short of the 0.25 m radius
+    assert not info["collision"] and info["min_distance"] > 0.28
+    assert info["distance"] > 6.0
+    assert env.unwrapped._shield.interventions["stopping_distance"] > 0
+    env.close()
+
+
 def test_truncated_at_max_steps() -> None:
     env = LidarAvoidEnv(EnvConfig(max_steps=5))
     env.reset(seed=0, options={"world": CORRIDOR})
