@@ -51,6 +51,8 @@ class EnvConfig:
         held 1–3 s
     :param shield: fly every action through the companion's safety shield (default ``[shield]``
         limits) against the scan the policy saw, as the drone does; the reward sees what flew
+    :param unshielded_fraction: with ``shield``, this fraction of the episodes (drawn per episode)
+        flies without it, so a policy trained here cannot lean on the shield to stay clear
     """
 
     world_file: str | None = None
@@ -67,6 +69,7 @@ class EnvConfig:
     mass_jitter: float = field(default=0.0, metadata={"min": 0.0, "max": 0.4})
     wind_gust_max: float = field(default=0.0, metadata={"min": 0.0, "max": 8.0})
     shield: bool = False
+    unshielded_fraction: float = field(default=0.0, metadata={"min": 0.0, "max": 1.0})
 
 
 def _clip_unit(v: float) -> float:
@@ -203,6 +206,9 @@ class LidarAvoidEnv(gym.Env):
         self._trajectory = [self._state.position.copy()]
         self._scan = self._fresh_scan()
         self._previous_scan = self._scan
+        self._shielded = self._shield is not None
+        if self._shielded and cfg.unshielded_fraction > 0.0:  # drawn only when used (same streams)
+            self._shielded = bool(rng.uniform() >= cfg.unshielded_fraction)
         if self._shield is not None:
             self._shield.reset()
         return self._scan.copy(), self._info()
@@ -213,7 +219,7 @@ class LidarAvoidEnv(gym.Env):
         v0, v1 = np.asarray(action, dtype=np.float32).reshape(2).tolist()
         a0, a1 = _clip_unit(v0), _clip_unit(v1)
         cfg = self.config
-        if self._shield is not None:
+        if self._shielded:
             seen = self._previous_scan if cfg.latency_scans else self._scan
             safe = self._shield.filter(
                 command_from_action((a0, a1), cfg.max_speed, cfg.max_yaw_rate), seen, 1.0 / CONTROL_HZ

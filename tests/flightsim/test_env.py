@@ -213,6 +213,23 @@ def test_shield_option_flies_the_same_actions_to_a_stop_short_of_the_wall() -> N
     env.close()
 
 
+def test_unshielded_fraction_flies_some_episodes_without_the_shield() -> None:
+    env = LidarAvoidEnv(EnvConfig(shield=True, unshielded_fraction=0.5))
+
+    def hits_the_wall(seed: int) -> bool:
+        env.reset(seed=seed, options={"world": CORRIDOR})
+        for _ in range(60):  # full speed at the end wall: only an unshielded episode reaches it
+            _, _, terminated, _, _ = env.step(np.array([1.0, 0.0], np.float32))
+            if terminated:
+                return True
+        return False
+
+    outcomes = [hits_the_wall(seed) for seed in range(12)]
+    assert 0 < sum(outcomes) < 12
+    assert [hits_the_wall(seed) for seed in range(4)] == outcomes[:4]  # drawn from the episode's seed
+    env.close()
+
+
 def test_truncated_at_max_steps() -> None:
     env = LidarAvoidEnv(EnvConfig(max_steps=5))
     env.reset(seed=0, options={"world": CORRIDOR})
