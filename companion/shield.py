@@ -126,6 +126,19 @@ class SafetyShield:
         """Forget the previous command, so the next one ramps up from standstill (e.g. after HOLD)."""
         self._previous = Command(0.0, 0.0)
 
+    def forward_cap(self, scan: np.ndarray) -> float:
+        """The fastest forward speed the shield lets through against ``scan`` (0 inside
+        ``estop_distance``), m/s: what a policy that needs no shield asks for at most.
+
+        :param scan: ``(360,)`` normalised ranges, bins counter-clockwise from forward
+        """
+        cfg = self.config
+        values = np.nan_to_num(np.asarray(scan, dtype=np.float64).reshape(-1)[self._forward_bins], nan=0.0)
+        front = float(values.min()) * self.max_range
+        if front < cfg.estop_distance:
+            return 0.0
+        return stopping_speed(front - cfg.estop_distance, cfg.max_decel, cfg.reaction_time)
+
     def filter(self, requested: Command, scan: np.ndarray, dt: float) -> Command:
         """Return the command that is safe to send.
 

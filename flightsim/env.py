@@ -53,6 +53,9 @@ class EnvConfig:
         limits) against the scan the policy saw, as the drone does; the reward sees what flew
     :param unshielded_fraction: with ``shield``, this fraction of the episodes (drawn per episode)
         flies without it, so a policy trained here cannot lean on the shield to stay clear
+    :param overspeed_penalty: reward cost per step of asking for more forward speed than the
+        shield lets through (:meth:`SafetyShield.forward_cap`), per ``max_speed`` of excess: a
+        policy trained behind the shield then brakes by itself instead of leaving it to the shield
     """
 
     world_file: str | None = None
@@ -70,6 +73,7 @@ class EnvConfig:
     wind_gust_max: float = field(default=0.0, metadata={"min": 0.0, "max": 8.0})
     shield: bool = False
     unshielded_fraction: float = field(default=0.0, metadata={"min": 0.0, "max": 1.0})
+    overspeed_penalty: float = field(default=0.0, metadata={"min": 0.0, "max": 100.0})
 
 
 def _clip_unit(v: float) -> float:
@@ -127,6 +131,8 @@ class LidarAvoidEnv(gym.Env):
     collision −100. ``"tutorial"``: the seed tutorial's (+1 survival, +0.5·a0 forward, the same
     proximity penalty, −0.2 sharp turn, collision −200). Success is flying ≥ 40 m in 100 s without
     a collision: the tutorial's reward lets a hovering policy score well, "progress" does not.
+    With ``overspeed_penalty`` > 0, asking for more forward speed than the safety shield would let
+    through costs that much per step per ``max_speed`` of excess, with or without the shield.
 
     ## Starting State
     Hovering at the world's start position and heading, motors at hover thrust, zero velocity.
@@ -175,8 +181,8 @@ class LidarAvoidEnv(gym.Env):
         self._reward_fn = REWARDS[self.config.reward]
         self._vehicle = Vehicle(VehicleConfig(mass_kg=VEHICLE_MASS_KG, physics_hz=120, control_hz=CONTROL_HZ))
         self._caster = VLP16Raycaster(self.config.lidar)
-        shielded = self.config.shield
-        self._shield = SafetyShield(ShieldConfig(), self.config.scan.max_range) if shielded else None
+        needs_shield = self.config.shield or self.config.overspeed_penalty > 0.0
+        self._shield = SafetyShield(ShieldConfig(), self.config.scan.max_range) if needs_shield else None
         self._fixed_world = load_world(self.config.world_file) if self.config.world_file else None
         self._scan_mount = self.config.scan.rotation()
         self._mount_xyz = np.asarray(self.config.scan.mount_xyz, dtype=np.float64)
@@ -206,7 +212,7 @@ class LidarAvoidEnv(gym.Env):
         self._trajectory = [self._state.position.copy()]
         self._scan = self._fresh_scan()
         self._previous_scan = self._scan
-        self._shielded = self._shield is not None
+        self._shielded = self.config.shield
         if self._shielded and cfg.unshielded_fraction > 0.0:  # drawn only when used (same streams)
             self._shielded = bool(rng.uniform() >= cfg.unshielded_fraction)
         if self._shield is not None:
@@ -219,8 +225,11 @@ class LidarAvoidEnv(gym.Env):
         v0, v1 = np.asarray(action, dtype=np.float32).reshape(2).tolist()
         a0, a1 = _clip_unit(v0), _clip_unit(v1)
         cfg = self.config
+        seen = self._previous_scan if cfg.latency_scans else self._scan
+        overspeed = 0.0
+        if cfg.overspeed_penalty > 0.0:
+            overspeed = max(0.0, a0 - self._shield.forward_cap(seen) / cfg.max_speed)
         if self._shielded:
-            seen = self._previous_scan if cfg.latency_scans else self._scan
             safe = self._shield.filter(
                 command_from_action((a0, a1), cfg.max_speed, cfg.max_yaw_rate), seen, 1.0 / CONTROL_HZ
             )
@@ -247,7 +256,7 @@ class LidarAvoidEnv(gym.Env):
             max_speed=cfg.max_speed,
             collision=self._collided,
         )
-        reward = float(self._reward_fn(outcome))
+        reward = float(self._reward_fn(outcome)) - cfg.overspeed_penalty * overspeed
         observation = self._previous_scan if cfg.latency_scans else self._scan
         truncated = self._steps >= cfg.max_steps and not self._collided
         return observation.copy(), reward, self._collided, truncated, self._info()

@@ -98,6 +98,14 @@ def test_forward_speed_lets_the_vehicle_stop_before_the_return(distance: float) 
     assert shield.interventions["stopping_distance"] > 0
 
 
+@pytest.mark.parametrize("bins", [{10: 0.8}, {350: 1.5}, {0: 3.0, 90: 0.4}, {5: 0.2}, {}])
+def test_forward_cap_is_the_speed_the_filter_lets_through(bins: dict[int, float]) -> None:
+    shield = SafetyShield(ShieldConfig(max_speed=20.0), MAX_RANGE)
+    scan = scan_with(bins)
+    assert shield.forward_cap(scan) == pytest.approx(settled(shield, Command(20.0, 0.0), scan).forward)
+    assert shield.forward_cap(np.full(360, np.nan)) == 0.0  # unknown = blocked, as in filter
+
+
 def test_returns_outside_the_forward_sector_do_not_slow_forward_flight() -> None:
     shield = SafetyShield(ShieldConfig(), MAX_RANGE)
     # 0.5 m at 31°-left and at 31°-right (bins 31 and 328) are outside ±30°

@@ -230,6 +230,20 @@ def test_unshielded_fraction_flies_some_episodes_without_the_shield() -> None:
     env.close()
 
 
+def test_overspeed_penalty_charges_asking_for_more_than_the_shield_allows() -> None:
+    def rewards(penalty: float, a0: float) -> list[float]:
+        env = LidarAvoidEnv(EnvConfig(shield=True, overspeed_penalty=penalty))
+        env.reset(seed=0, options={"world": CORRIDOR})
+        out = [env.step(np.array([a0, 0.0], np.float32))[1] for _ in range(100)]
+        env.close()
+        return out
+
+    free, charged = rewards(0.0, 1.0), rewards(2.0, 1.0)
+    assert all(c <= f for c, f in zip(charged, free, strict=True))
+    assert free[-1] - charged[-1] == pytest.approx(2.0, abs=0.1)  # stopped at the wall, asking 2 m/s
+    assert rewards(2.0, 0.0) == rewards(0.0, 0.0)  # asking for nothing costs nothing
+
+
 def test_truncated_at_max_steps() -> None:
     env = LidarAvoidEnv(EnvConfig(max_steps=5))
     env.reset(seed=0, options={"world": CORRIDOR})
