@@ -130,17 +130,18 @@ def make_callbacks(config: TrainConfig, run_dir: Path, n_envs: int, executor: An
     """Checkpoints every ``checkpoint_every`` steps and the held-out evaluation (+ curriculum)."""
     from stable_baselines3.common.callbacks import BaseCallback, CheckpointCallback
 
-    # the held-out worlds are flown as training flies them, and a policy trained behind the shield
-    # also without it: one that only flies safely behind it is not the best, however fast
-    eval_envs = [("", config.env)]
-    if config.env_config().shield:
-        eval_envs = [(" behind the shield", config.env), (" without it", {**config.env, "shield": False})]
+    # the held-out worlds are flown behind the companion's shield, as on the drone, and without it:
+    # a policy that needs the shield to stay clear is not the best, however fast it flies behind it
+    eval_envs = [
+        (" behind the shield", {**config.env, "shield": True, "unshielded_fraction": 0.0}),
+        (" without it", {**config.env, "shield": False}),
+    ]
 
     class HeldOutEvaluation(BaseCallback):
         """Every ``eval.every_steps``: fly ``eval.n_worlds`` held-out worlds, log success, set difficulty.
 
-        With ``env.shield`` the worlds are flown with and without the shield and the logged
-        success rate is the lower of the two (distance: their mean; collisions: their sum).
+        The worlds are flown with and without the shield and the logged success rate is the lower
+        of the two (distance: their mean; collisions: their sum).
         """
 
         def __init__(self) -> None:
