@@ -98,6 +98,20 @@ def command_from_action(action: np.ndarray, max_speed: float, max_yaw_rate: floa
     return Command(forward=float(a[0]) * max_speed, yaw_rate=float(a[1]) * max_yaw_rate)
 
 
+def _finite_scan(scan: np.ndarray) -> tuple[np.ndarray, bool]:
+    """``scan`` as ``(360,)`` float64 with NaN/−inf as 0 (unknown = blocked) and +inf as 1.0, and
+    whether anything had to be replaced.
+
+    :raises ValueError: when the scan does not have 360 bins
+    """
+    values = np.asarray(scan, dtype=np.float64).reshape(-1)
+    if values.shape[0] != N_BINS:
+        raise ValueError(f"scan must have {N_BINS} bins, got {values.shape[0]}")
+    if np.isfinite(values).all():
+        return values, False
+    return np.nan_to_num(values, nan=0.0, posinf=1.0, neginf=0.0), True
+
+
 def _slew(target: float, previous: float, step: float) -> float:
     """Limit how fast ``target`` moves away from zero; moving towards zero is never limited."""
     lo = min(previous, 0.0) - step
@@ -132,12 +146,8 @@ class SafetyShield:
 
         :param scan: ``(360,)`` normalised ranges, bins counter-clockwise from forward
         """
-        cfg = self.config
-        values = np.nan_to_num(np.asarray(scan, dtype=np.float64).reshape(-1)[self._forward_bins], nan=0.0)
-        front = float(values.min()) * self.max_range
-        if front < cfg.estop_distance:
-            return 0.0
-        return stopping_speed(front - cfg.estop_distance, cfg.max_decel, cfg.reaction_time)
+        values, _ = _finite_scan(scan)
+        return self._allowed_speed(float(values[self._forward_bins].min()) * self.max_range)
 
     def filter(self, requested: Command, scan: np.ndarray, dt: float) -> Command:
         """Return the command that is safe to send.
@@ -154,12 +164,9 @@ class SafetyShield:
             count["nan"] += 1
             forward, yaw_rate = 0.0, 0.0
 
-        values = np.asarray(scan, dtype=np.float64).reshape(-1)
-        if values.shape[0] != N_BINS:
-            raise ValueError(f"scan must have {N_BINS} bins, got {values.shape[0]}")
-        if not np.isfinite(values).all():
+        values, had_non_finite = _finite_scan(scan)
+        if had_non_finite:
             count["scan_nan"] += 1
-            values = np.nan_to_num(values, nan=0.0, posinf=1.0, neginf=0.0)  # unknown = blocked
         front = float(values[self._forward_bins].min()) * self.max_range
         rear = float(values[self._rear_bins].min()) * self.max_range
 
@@ -188,19 +195,23 @@ class SafetyShield:
         self._previous = out
         return out
 
+    def _allowed_speed(self, clearance: float) -> float:
+        """Largest speed towards a sector with ``clearance`` metres: 0 inside ``estop_distance``,
+        else the speed that still stops at ``estop_distance``."""
+        cfg = self.config
+        if clearance < cfg.estop_distance:
+            return 0.0
+        return stopping_speed(clearance - cfg.estop_distance, cfg.max_decel, cfg.reaction_time)
+
     def _clearance_cap(self, speed: float, clearance: float, blocked_reason: str) -> float:
-        """Largest speed allowed towards a sector with ``clearance`` metres; counts when it bites.
+        """:meth:`_allowed_speed`, counting when it bites.
 
         :param speed: requested speed towards that sector (negative = away from it)
         :param clearance: nearest return in that sector, metres
         :param blocked_reason: counter name when the sector is inside ``estop_distance``
         """
-        cfg = self.config
-        if clearance < cfg.estop_distance:
-            if speed > 0:
-                self.interventions[blocked_reason] += 1
-            return 0.0
-        cap = stopping_speed(clearance - cfg.estop_distance, cfg.max_decel, cfg.reaction_time)
+        cap = self._allowed_speed(clearance)
         if speed > cap:
-            self.interventions["stopping_distance"] += 1
+            blocked = clearance < self.config.estop_distance
+            self.interventions[blocked_reason if blocked else "stopping_distance"] += 1
         return cap

@@ -104,6 +104,9 @@ def test_forward_cap_is_the_speed_the_filter_lets_through(bins: dict[int, float]
     scan = scan_with(bins)
     assert shield.forward_cap(scan) == pytest.approx(settled(shield, Command(20.0, 0.0), scan).forward)
     assert shield.forward_cap(np.full(360, np.nan)) == 0.0  # unknown = blocked, as in filter
+    assert shield.forward_cap(np.full(360, np.inf)) == shield.forward_cap(CLEAR)  # +inf = no return
+    with pytest.raises(ValueError, match="360 bins"):
+        shield.forward_cap(np.ones(359))
 
 
 def test_returns_outside_the_forward_sector_do_not_slow_forward_flight() -> None:
