@@ -49,6 +49,8 @@ def test_overrides_reach_nested_tables_and_env(tmp_path):
         ("[ppo]\ngamma = 1.5\n", [], "ppo.gamma"),
         ("[env]\nmax_step = 5\n", [], "env.max_step"),
         ("[env]\nmax_steps = 'many'\n", [], "env.max_steps"),
+        ("[env]\noverspeed_penalty = -1.0\n", [], "env.overspeed_penalty"),
+        ("", ["env.unshielded_fraction=1.5"], "env.unshielded_fraction"),
         ("", ["eval.first_seed=1000000"], "eval.first_seed"),
         ("", ["ppo.batch_size=4096", "ppo.n_steps=16", "n_envs=2"], "ppo.batch_size"),
         ("name = 'a b'\n", [], "name"),
