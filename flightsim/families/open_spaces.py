@@ -77,38 +77,47 @@ def forest(rng: np.random.Generator, seed: int, d: float, r: float) -> Layout | 
 
 
 def pillars(rng: np.random.Generator, seed: int, d: float, r: float) -> Layout | None:
-    """A regular grid of square or round pillars, the gap between neighbours from 2.5 m down to
-    2 × radius + 0.7 m; a few pillars missing; flights cross the grid diagonally."""
+    """A regular grid of square or round pillars over the whole room, the gap between neighbours
+    from 2.5 m down to 2 × radius + 0.7 m, a few missing; the start and waypoints lie inside the
+    grid, each waypoint half the room's length or more from the point before it."""
     sx, sy = rnd(lerp(16.0, 22.0, rng.uniform())), rnd(lerp(11.0, 15.0, rng.uniform()))
     hx, hy = sx / 2.0, sy / 2.0
     size = lerp(0.4, 0.9, d) * rng.uniform(0.8, 1.0)  # pillar width (diameter or side)
-    pitch = size + lerp(2.5, 2 * r + 0.7, d) * rng.uniform(1.0, 1.1)
+    gap = lerp(2.5, 2 * r + 0.7, d) * rng.uniform(1.0, 1.1)
+    pitch = size + gap
     round_pillars = rng.uniform() < 0.5
     offset = rng.uniform(0.0, pitch, 2)
-    xs = np.arange(-hx + 1.2 + offset[0], hx - 1.2, pitch)
-    ys = np.arange(-hy + 1.2 + offset[1], hy - 1.2, pitch)
-    start = (rnd(-hx + 0.9), rnd(rng.uniform(-hy + 1.0, hy - 1.0)))
-    layout = Layout((sx, sy), [], start)
-    waypoints = far_end_points(rng, layout, int(rng.integers(1, 4)), 0.6, band=0.9)
-    if waypoints is None:
-        return None
-    keep_clear = np.asarray([start, *waypoints])
     obstacles: list[Obstacle] = []
-    for x in xs:
-        for y in ys:
-            if (
-                rng.uniform() < 0.06
-                or np.min(np.hypot(keep_clear[:, 0] - x, keep_clear[:, 1] - y)) < size / 2 + 1.0
-            ):
-                continue
+    for x in np.arange(-hx + offset[0], hx, pitch):
+        for y in np.arange(-hy + offset[1], hy, pitch):
+            if rng.uniform() < 0.05 or min(hx - abs(x), hy - abs(y)) - size / 2 < gap:
+                continue  # missing, or too close to a wall to leave the grid's gap
             if round_pillars:
                 obstacles.append(Cylinder((rnd(x), rnd(y)), rnd(size / 2.0), ROOM_HEIGHT))
             else:
-                obstacles.append(
-                    Box((rnd(x), rnd(y), ROOM_HEIGHT / 2.0), (rnd(size), rnd(size), ROOM_HEIGHT))
-                )
-    layout.obstacles = obstacles
-    layout.waypoints = waypoints
+                side = rnd(size)
+                obstacles.append(Box((rnd(x), rnd(y), ROOM_HEIGHT / 2.0), (side, side, ROOM_HEIGHT)))
+    if len(obstacles) < 4:
+        return None
+    layout = Layout((sx, sy), obstacles)
+    world = layout.world()
+    margin = r + POINT_MARGIN + 0.2
+    # inside the grid (not in the free band along the walls), so every flight crosses pillars
+    centres = np.asarray([o.center[:2] for o in obstacles])
+    lo, hi = centres.min(axis=0), centres.max(axis=0)
+    start = sample_clear(rng, world, tuple(lo), (lo[0] + (hi[0] - lo[0]) / 4, hi[1]), margin)
+    if start is None:
+        return None
+    layout.start = start
+    stops = [start]
+    for _ in range(int(rng.integers(1, 4))):
+        p = sample_clear(
+            rng, world, tuple(lo), tuple(hi), margin, away_from=[stops[-1]], min_distance=(hi[0] - lo[0]) / 2,
+        )  # fmt: skip
+        if p is None:
+            return None
+        stops.append(p)
+    layout.waypoints = stops[1:]
     return layout
 
 

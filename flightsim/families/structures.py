@@ -110,13 +110,18 @@ def office(rng: np.random.Generator, seed: int, d: float, r: float) -> Layout | 
             obstacles.append(
                 wall(line - t, s0, line + t, s1) if vertical else wall(s0, line - t, s1, line + t)
             )
-    cells = rng.permutation(cols * rows)
     layout = Layout((sx, sy), obstacles)
     world = layout.world()
     margin = r + POINT_MARGIN + 0.3
     stops: list[tuple[float, float]] = []
-    for cell in cells[: 1 + int(rng.integers(1, 4))]:
-        c, w = divmod(int(cell), rows)
+    cell = (int(rng.integers(cols)), int(rng.integers(rows)))
+    for k in range(1 + int(rng.integers(1, 4))):
+        if k > 0:  # the next room: not a neighbour of this one where the floor has such rooms
+            others = [(c, w) for c in range(cols) for w in range(rows) if (c, w) != cell]
+            far = [o for o in others if max(abs(o[0] - cell[0]), abs(o[1] - cell[1])) >= 2]
+            pool = far or others
+            cell = pool[int(rng.integers(len(pool)))]
+        c, w = cell
         p = sample_clear(rng, world, (xs[c] + 0.5, ys[w] + 0.5), (xs[c + 1] - 0.5, ys[w + 1] - 0.5), margin)
         if p is None:
             return None
@@ -219,14 +224,14 @@ def warehouse(rng: np.random.Generator, seed: int, d: float, r: float) -> Layout
 
 
 def traps(rng: np.random.Generator, seed: int, d: float, r: float) -> Layout | None:
-    """Concave traps between start and goal: 1-3 U and L shapes (walls 2.5-4 m wide, 1.5-3 m
-    deep) on the straight line, their open side toward the start, so a pilot that heads straight
-    for the goal flies into the cup and must back out."""
+    """Concave traps between start and goal: U and L shapes (1 when easy, 2-3 when hard; walls
+    2.5-4 m wide, 1.5-3 m deep) on the straight line, their open side toward the start, so a
+    pilot that heads straight for the goal flies into the cup and must back out."""
     sx, sy = rnd(lerp(16.0, 22.0, rng.uniform())), rnd(lerp(11.0, 15.0, rng.uniform()))
     hx, hy = sx / 2.0, sy / 2.0
     start = np.array([-hx + rng.uniform(1.0, 2.0), rng.uniform(-hy + 2.0, hy - 2.0)])
     goal = np.array([hx - rng.uniform(1.0, 2.0), rng.uniform(-hy + 2.0, hy - 2.0)])
-    n_traps = 1 + int(rng.integers(0, 1 + round(2 * d)))
+    n_traps = 1 + int(rng.integers(math.floor(d + 0.5), 1 + math.floor(2 * d + 0.5)))  # 1, 1-2, 2-3
     obstacles: list[Obstacle] = []
     centres: list[np.ndarray] = []
     for k in range(n_traps):
