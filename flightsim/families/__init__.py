@@ -79,7 +79,7 @@ def generate_family_world(
         yaw = math.degrees(math.atan2(first[1], first[0])) + rng.uniform(-90.0, 90.0) * d
         return World(
             world.name, world.room_size, world.room_height, world.obstacles, world.start_position,
-            round(yaw % 360.0, 1), world.waypoints, shortest_path_m=round(path.length, 3),
+            round(yaw % 360.0, 1), world.waypoints, shortest_path_m=path.length,
         )  # fmt: skip
     raise RuntimeError(f"{family} seed {seed} difficulty {d}: no feasible layout in {MAX_ATTEMPTS} attempts")
 
