@@ -58,19 +58,18 @@ def forest(rng: np.random.Generator, seed: int, d: float, r: float) -> Layout | 
     density = lerp(0.05, 0.3, d) * rng.uniform(0.85, 1.15)
     gap = lerp(2.2, 2 * r + 0.35, d)  # between trunk surfaces
     clearings = np.asarray([start, *waypoints])
-    trunks: list[tuple[np.ndarray, float]] = []
+    centres, radii = np.empty((0, 2)), np.empty(0)
     for _ in range(round(density * sx * sy)):
         radius = float(np.exp(rng.uniform(np.log(0.05), np.log(0.4))))
-        cand = rng.uniform(
-            [-hx + radius + 0.3, -hy + radius + 0.3], [hx - radius - 0.3, hy - radius - 0.3], (48, 2)
-        )
-        ok = (
-            np.min(np.hypot(*(cand[:, None, :] - clearings[None]).transpose(2, 0, 1)), axis=1) - radius >= 1.0
-        )
-        for c, rad in trunks:
-            ok &= np.hypot(*(cand - c).T) - radius - rad >= gap
+        edge = radius + 0.3
+        cand = rng.uniform([-hx + edge, -hy + edge], [hx - edge, hy - edge], (48, 2))
+        ok = _distances(cand, clearings).min(axis=1) - radius >= 1.0
+        if len(radii):
+            ok &= (_distances(cand, centres) - radii[None, :] - radius).min(axis=1) >= gap
         if ok.any():
-            trunks.append((cand[np.argmax(ok)], radius))
+            centres = np.vstack([centres, cand[np.argmax(ok)]])
+            radii = np.append(radii, radius)
+    trunks = zip(centres, radii, strict=True)
     layout.obstacles = [Cylinder((rnd(c[0]), rnd(c[1])), rnd(rad), ROOM_HEIGHT) for c, rad in trunks]
     layout.waypoints = waypoints
     return layout
@@ -171,6 +170,11 @@ def mixed(rng: np.random.Generator, seed: int, d: float, r: float) -> Layout | N
     layout.obstacles = obstacles
     layout.waypoints = waypoints
     return layout
+
+
+def _distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``(len(a), len(b))`` distances between two sets of points (x, y)."""
+    return np.hypot(a[:, None, 0] - b[None, :, 0], a[:, None, 1] - b[None, :, 1])
 
 
 def _clear_of(obstacle: Obstacle, points: np.ndarray, clearance: float) -> bool:
