@@ -52,7 +52,8 @@ def forest(rng: np.random.Generator, seed: int, d: float, r: float) -> Layout | 
     start = (rnd(-hx + rng.uniform(1.0, 1.8)), rnd(rng.uniform(-hy + 1.5, hy - 1.5)))
     layout = Layout((sx, sy), [], start)
     n_wp = int(rng.integers(1, 4))
-    waypoints = far_end_points(rng, layout, n_wp, 1.0)
+    clearing = max(1.0, r + POINT_MARGIN + 0.2)  # trunk-free around the start and waypoints
+    waypoints = far_end_points(rng, layout, n_wp, clearing)
     if waypoints is None:
         return None
     density = lerp(0.05, 0.3, d) * rng.uniform(0.85, 1.15)
@@ -63,7 +64,7 @@ def forest(rng: np.random.Generator, seed: int, d: float, r: float) -> Layout | 
         radius = float(np.exp(rng.uniform(np.log(0.05), np.log(0.4))))
         edge = radius + 0.3
         cand = rng.uniform([-hx + edge, -hy + edge], [hx - edge, hy - edge], (48, 2))
-        ok = _distances(cand, clearings).min(axis=1) - radius >= 1.0
+        ok = _distances(cand, clearings).min(axis=1) - radius >= clearing
         if len(radii):
             ok &= (_distances(cand, centres) - radii[None, :] - radius).min(axis=1) >= gap
         if ok.any():
@@ -129,7 +130,7 @@ def mixed(rng: np.random.Generator, seed: int, d: float, r: float) -> Layout | N
     hx, hy = sx / 2.0, sy / 2.0
     start = (rnd(-hx + rng.uniform(1.0, 2.0)), rnd(rng.uniform(-hy + 1.5, hy - 1.5)))
     layout = Layout((sx, sy), [], start)
-    waypoints = far_end_points(rng, layout, int(rng.integers(1, 4)), 1.0)
+    waypoints = far_end_points(rng, layout, int(rng.integers(1, 4)), max(1.0, r + POINT_MARGIN + 0.2))
     if waypoints is None:
         return None
     stops = np.asarray([start, *waypoints])

@@ -74,11 +74,12 @@ def test_every_world_is_feasible_and_its_points_clear(family: str, difficulty: f
 
 
 @pytest.mark.parametrize("family", FAMILIES)
-def test_feasible_for_a_bigger_vehicle(family: str) -> None:
+@pytest.mark.parametrize("radius", [0.1, 0.5])
+def test_feasible_for_other_vehicle_sizes(family: str, radius: float) -> None:
     for seed in range(4):
-        world = generate_family_world(family, seed, 1.0, vehicle_radius=0.4)
-        assert shortest_safe_path(world, vehicle_radius=0.4) is not None
-        assert clearances(world, np.asarray([world.start_position, *world.waypoints])).min() >= 0.4
+        world = generate_family_world(family, seed, 1.0, vehicle_radius=radius)
+        assert shortest_safe_path(world, vehicle_radius=radius) is not None
+        assert clearances(world, np.asarray([world.start_position, *world.waypoints])).min() >= radius
 
 
 def test_bad_arguments() -> None:
