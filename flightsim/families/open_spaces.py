@@ -77,21 +77,21 @@ def forest(rng: np.random.Generator, seed: int, d: float, r: float) -> Layout | 
 
 
 def pillars(rng: np.random.Generator, seed: int, d: float, r: float) -> Layout | None:
-    """A regular grid of square or round pillars over the whole room, the gap between neighbours
-    from 2.5 m down to 2 × radius + 0.7 m, a few missing; the start and waypoints lie inside the
-    grid, each waypoint half the room's length or more from the point before it."""
+    """A regular grid of square or round pillars filling the room (half a gap or more from the
+    walls), the gap between neighbours from 2.5 m down to 2 × radius + 0.7 m, a few missing; the
+    start and waypoints lie inside the grid, each waypoint half the grid's length or more from
+    the point before it."""
     sx, sy = rnd(lerp(16.0, 22.0, rng.uniform())), rnd(lerp(11.0, 15.0, rng.uniform()))
-    hx, hy = sx / 2.0, sy / 2.0
     size = lerp(0.4, 0.9, d) * rng.uniform(0.8, 1.0)  # pillar width (diameter or side)
     gap = lerp(2.5, 2 * r + 0.7, d) * rng.uniform(1.0, 1.1)
     pitch = size + gap
     round_pillars = rng.uniform() < 0.5
-    offset = rng.uniform(0.0, pitch, 2)
     obstacles: list[Obstacle] = []
-    for x in np.arange(-hx + offset[0], hx, pitch):
-        for y in np.arange(-hy + offset[1], hy, pitch):
-            if rng.uniform() < 0.05 or min(hx - abs(x), hy - abs(y)) - size / 2 < gap:
-                continue  # missing, or too close to a wall to leave the grid's gap
+    xs, ys = _lattice(rng, sx, pitch, gap / 2 + size / 2), _lattice(rng, sy, pitch, gap / 2 + size / 2)
+    for x in xs:
+        for y in ys:
+            if rng.uniform() < 0.05:
+                continue  # a missing pillar
             if round_pillars:
                 obstacles.append(Cylinder((rnd(x), rnd(y)), rnd(size / 2.0), ROOM_HEIGHT))
             else:
@@ -171,6 +171,17 @@ def mixed(rng: np.random.Generator, seed: int, d: float, r: float) -> Layout | N
     layout.obstacles = obstacles
     layout.waypoints = waypoints
     return layout
+
+
+def _lattice(rng: np.random.Generator, extent: float, pitch: float, margin: float) -> np.ndarray:
+    """Evenly spaced centres across a room of ``extent``, each at least ``margin`` from its walls,
+    the row shifted at random within the slack left over."""
+    usable = extent - 2 * margin
+    if usable < 0:
+        return np.empty(0)
+    n = int(usable // pitch) + 1
+    slack = usable - (n - 1) * pitch
+    return -extent / 2 + margin + rng.uniform(0.0, slack) + pitch * np.arange(n)
 
 
 def _distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
