@@ -241,3 +241,17 @@ def test_mixed_paths_fly_over_low_obstacles() -> None:
 
 def _with(world: World, obstacles: list) -> World:
     return World(world.name, world.room_size, world.room_height, tuple(obstacles), world.start_position, 0.0)
+
+
+def test_pillars_stand_on_a_regular_grid_with_the_specified_gap() -> None:
+    for seed in SEEDS:
+        for d in (0.0, 1.0):
+            world = generate_family_world("pillars", seed, d)
+            centres = np.asarray([o.center[:2] for o in world.obstacles])
+            xs, ys = np.unique(centres[:, 0]), np.unique(centres[:, 1])
+            assert len(xs) * len(ys) >= len(centres) >= 0.8 * len(xs) * len(ys)  # a few missing
+            steps = np.concatenate([np.diff(xs), np.diff(ys)])
+            assert np.ptp(steps) < 3e-3  # one pitch both ways (centres rounded to 1 mm)
+            width = 2 * (world.obstacles[0].radius if isinstance(world.obstacles[0], Cylinder) else
+                         world.obstacles[0].size[0] / 2)  # fmt: skip
+            assert steps.min() - width >= 2 * R + 0.7 - 3e-3
