@@ -120,10 +120,13 @@ def open_link(config: CompanionConfig, clock: Callable[[], float]) -> AutopilotL
     if ap.type == "px4":
         from companion.autopilot.px4 import Px4Link
 
-        return Px4Link(ap.connection, **common)
+        return Px4Link(ap.connection, autopilot=(ap.system_id, ap.component_id), **common)
     from companion.autopilot.ardupilot import ArduPilotLink
+    from companion.autopilot.signing import load_signing_key
 
-    return ArduPilotLink(ap.connection, baud=ap.baud, **common)
+    key = load_signing_key(ap.signing_key) if ap.signing_key else None
+    return ArduPilotLink(ap.connection, baud=ap.baud, autopilot=(ap.system_id, ap.component_id),
+                         signing_key=key, **common)
 
 
 def pymavlink_connection(config: CompanionConfig) -> tuple[str, int]:

@@ -47,7 +47,6 @@ from companion.obstacle_distance import sector_distances
 log = logging.getLogger(__name__)
 
 _MAV_TYPE_ONBOARD_CONTROLLER = 18
-_MAV_COMP_ID_AUTOPILOT1 = 1
 _MAV_DISTANCE_SENSOR_LASER = 0
 _MAV_FRAME_BODY_FRD = 12
 #: A position source older than this no longer counts as current, seconds.
@@ -77,6 +76,8 @@ class Px4Link:
     :param clock: monotonic clock, seconds (heartbeat times are on it)
     :param source_system: MAVLink system id the companion sends as
     :param source_component: component id (191 = MAV_COMP_ID_ONBOARD_COMPUTER)
+    :param autopilot: (system id, component id) of the autopilot: other systems MAVSDK discovers
+        are counted (``foreign_systems``) and never used, whichever was heard first
     :param stream_rate_hz: rate asked for position, velocity and landed-state telemetry
     :param min_distance_cm: OBSTACLE_DISTANCE ``min_distance``
     :param max_distance_cm: OBSTACLE_DISTANCE ``max_distance``
@@ -94,6 +95,7 @@ class Px4Link:
         clock: Callable[[], float] = time.monotonic,
         source_system: int = 1,
         source_component: int = 191,
+        autopilot: tuple[int, int] = (1, 1),
         stream_rate_hz: float = 10.0,
         min_distance_cm: int = 10,
         max_distance_cm: int = 1000,
@@ -101,6 +103,9 @@ class Px4Link:
     ) -> None:
         log_subscribe(_forward_mavsdk_log)
         self._clock = clock
+        self._autopilot = autopilot
+        self._foreign_systems: set[int] = set()
+        self._next_discovery = -math.inf
         self._stream_rate_hz = stream_rate_hz
         self._min_cm = min_distance_cm
         self._max_cm = max_distance_cm
@@ -115,6 +120,8 @@ class Px4Link:
             "messages_without_autopilot": 0,
             "send_errors": 0,
             "stream_rate_refused": 0,
+            "foreign_systems": 0,
+            "foreign_heartbeats": 0,
         }
         configuration = Configuration.create_with_component_type(ComponentType.COMPANION_COMPUTER)
         configuration.system_id = source_system
@@ -130,7 +137,6 @@ class Px4Link:
         # Two locks, so MAVSDK's callback thread (status) never waits on a plugin teardown (offboard).
         self._status_lock = threading.Lock()
         self._offboard_lock = threading.Lock()
-        self._found: Any = None  # the System MAVSDK reported, not yet set up
         self._system: Any = None
         self._telemetry: Telemetry | None = None
         self._direct: MavlinkDirect | None = None
@@ -139,7 +145,6 @@ class Px4Link:
         self._status = VehicleStatus()
         self._seen: dict[str, float] = {}
         self._statustext_id = 0
-        self._autopilot_wait = self._mavsdk.first_autopilot_async(-1.0, self._on_autopilot)
 
         self._stop = threading.Event()
         self._guard = threading.Thread(target=self._guard_setpoint_repeat, name="px4-setpoint-guard",
@@ -148,9 +153,26 @@ class Px4Link:
 
     # ---- discovery and telemetry (callbacks run on MAVSDK's thread) -------------------------
 
-    def _on_autopilot(self, system: Any) -> None:
-        with self._status_lock:
-            self._found = system
+    def _discover(self) -> None:
+        """Look among the systems MAVSDK has heard for the configured autopilot (main thread, 2 Hz).
+
+        Not ``first_autopilot``: that takes whichever autopilot spoke first, an impostor included.
+        """
+        now = self._clock()
+        if now < self._next_discovery:
+            return
+        self._next_discovery = now + 0.5
+        for system in self._mavsdk.get_systems():
+            system_id = system.get_system_id()
+            if self._system is None and system_id == self._autopilot[0] and system.has_autopilot():
+                self._set_up(system)
+                continue
+            if system_id != self._autopilot[0] and system_id not in self._foreign_systems:
+                self._foreign_systems.add(system_id)
+                self.counters["foreign_systems"] = len(self._foreign_systems)
+                log.warning("ignoring MAVLink system %d: the autopilot is system %d", system_id,
+                            self._autopilot[0])
+            system.destroy()  # only this wrapper; MAVSDK keeps its own record of the system
 
     def _set_up(self, system: Any) -> None:
         """Create the plugins and subscriptions for the autopilot MAVSDK found (main thread)."""
@@ -176,9 +198,9 @@ class Px4Link:
             log.debug("PX4 refused a telemetry rate: %s", result.name)
 
     def _on_heartbeat(self, message: MavlinkMessage, _user_data: Any) -> None:
-        if message.component_id != _MAV_COMP_ID_AUTOPILOT1:
-            return
-        if self._system is None or message.system_id != self._system.get_system_id():
+        if (message.system_id, message.component_id) != self._autopilot:
+            with self._status_lock:
+                self.counters["foreign_heartbeats"] += 1
             return
         now = self._clock()
         with self._status_lock:
@@ -240,10 +262,7 @@ class Px4Link:
     def poll(self) -> VehicleStatus:
         """Set the plugins up once the autopilot has been found; return the latest status."""
         if self._system is None:
-            with self._status_lock:
-                found, self._found = self._found, None
-            if found is not None:
-                self._set_up(found)
+            self._discover()
         with self._status_lock:
             return dataclasses.replace(self._status)
 
@@ -346,5 +365,4 @@ class Px4Link:
         self._guard.join(timeout=1.0)
         with self._offboard_lock:
             self._offboard = None
-        self._mavsdk.cancel_first_autopilot(self._autopilot_wait)
         self._mavsdk.destroy()
