@@ -155,3 +155,30 @@ def test_bad_connection_url_is_a_user_error():
         Px4Link("serial:///dev/nonexistent-tty:57600")
     with pytest.raises(UserError, match=r"autopilot\.connect"):
         Px4Link("bogus://what")
+
+
+def test_an_impostor_px4_that_speaks_first_is_never_used():
+    """first_autopilot() took whichever autopilot MAVSDK heard first: system 42 in OFFBOARD, armed."""
+    port = free_udp_port()
+    link = Px4Link(f"udpin://127.0.0.1:{port}", autopilot=(1, 1))
+    impostor = SimulatedAutopilot(f"udpout:127.0.0.1:{port}", autopilot=mavlink.MAV_AUTOPILOT_PX4, sysid=42)
+    vehicle = None
+    try:
+        _wait(lambda: link.poll() and link.counters["foreign_systems"] == 1)
+        time.sleep(1.0)
+        status = link.poll()
+        assert not link.connected and status.heartbeat_time is None and not status.armed
+        link.send_velocity(1.0, 0.0)
+        assert link.counters["setpoints_without_autopilot"] == 1
+        vehicle = SimulatedAutopilot(f"udpout:127.0.0.1:{port}", autopilot=mavlink.MAV_AUTOPILOT_PX4, sysid=1)
+        _wait(lambda: link.poll().heartbeat_time is not None and link.connected)
+        assert link._system.get_system_id() == 1
+        t0 = time.monotonic()
+        link.send_velocity(0.5, 0.0)
+        msg = vehicle.wait_for("SET_POSITION_TARGET_LOCAL_NED", since=t0)
+        assert (msg.target_system, msg.target_component) == (1, 1)
+    finally:
+        link.close()
+        impostor.close()
+        if vehicle is not None:
+            vehicle.close()
