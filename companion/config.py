@@ -131,7 +131,7 @@ class AutopilotConfig:
     :param system_id: the autopilot's system id: the only system the companion listens to
     :param component_id: the autopilot's component id (1 = MAV_COMP_ID_AUTOPILOT1)
     :param signing_key: MAVLink 2 signing key file (64 hex digits, mode 0600; relative: to the
-        config file); empty = no signing. ArduPilot only: MAVSDK, which the PX4 link uses, cannot sign.
+        config file); empty = no signing
     :param stream_rate_hz: rate asked for the status messages the supervisor needs
     :param obstacle_distance: send OBSTACLE_DISTANCE every scan (the autopilot's own avoidance layer)
     """
@@ -148,11 +148,6 @@ class AutopilotConfig:
     obstacle_distance: bool = True
 
     def __post_init__(self) -> None:
-        if self.signing_key and self.type == "px4":
-            raise ValueError(
-                "signing_key: MAVLink 2 signing is not available with type = 'px4': the PX4 link runs "
-                "on MAVSDK, which cannot sign messages; leave signing_key empty or use type = 'ardupilot'"
-            )
         if self.connect and self.type == "px4" and "://" not in self.connect:
             raise ValueError(
                 f"connect: {self.connect!r} is not a MAVSDK URL; PX4 links look like "

@@ -133,7 +133,7 @@ class FlightOptions:
     :param companion_overrides: section -> {field: value} applied to the generated companion config
     :param autopilot_params: parameter overrides for the simulated autopilot
     :param engage_timeout: seconds to wait for the companion to go ACTIVE
-    :param signed: MAVLink 2 signing on every link (simulated ArduPilot only): a fresh key in the
+    :param signed: MAVLink 2 signing on every link (simulated autopilots): a fresh key in the
         workdir for the autopilot, the ground station and the companion's ``autopilot.signing_key``
     """
 
@@ -305,8 +305,8 @@ class SitlFlight:
             raise UserError(f"--autopilot must be one of {', '.join(AUTOPILOTS)}, not {options.autopilot!r}")
         if not Path(options.policy).is_file():
             raise UserError(f"policy file not found: {options.policy}")
-        if options.signed and options.autopilot != "sim-ardupilot":
-            raise UserError("--signed needs --autopilot sim-ardupilot (the PX4 link's MAVSDK cannot sign)")
+        if options.signed and options.autopilot == "external":
+            raise UserError("--signed needs a simulated autopilot (--autopilot sim-ardupilot or sim-px4)")
         self.options = options
         self.world = options.world
         self.workdir = Path(options.workdir)
@@ -804,7 +804,7 @@ def configure_parser(parser: Any) -> None:
         help="ray-cast azimuth step in degrees: 0.2 like the VLP-16, 1.0 to save CPU",
     )
     parser.add_argument("--signed", action="store_true",
-                        help="MAVLink 2 signing on every link: autopilot, GCS, companion (sim-ardupilot)")
+                        help="MAVLink 2 signing on every link: autopilot, GCS, companion (sim autopilots)")
     parser.add_argument("--json", help="write the flight report as JSON here")
     parser.add_argument("--plot", help="write a top-down PNG of the flight here")
     parser.add_argument("--workdir", help="where the companion's config and log go (default: a temp dir)")

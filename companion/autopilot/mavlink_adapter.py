@@ -50,6 +50,7 @@ class MavlinkEndpoint:
     :param peer: (system, component) of the autopilot, whose address replies go to
     :param signing_key: MAVLink 2 signing secret (32 bytes); None = no signing. With a key every
         frame sent is signed and every frame received unsigned or badly signed is dropped.
+    :param label: how error messages name the connection (default: ``repr(connect)``)
     """
 
     def __init__(
@@ -60,6 +61,7 @@ class MavlinkEndpoint:
         source_component: int,
         peer: tuple[int, int] = (1, 1),
         signing_key: bytes | None = None,
+        label: str | None = None,
     ) -> None:
         try:
             self._conn = mavutil.mavlink_connection(
@@ -73,7 +75,7 @@ class MavlinkEndpoint:
                 dialect="ardupilotmega",  # pymavlink's dialect is global: others may have switched it
             )
         except (OSError, ValueError) as exc:  # refused TCP, busy port, missing device, bad syntax
-            raise UserError(f"autopilot.connect: cannot open {connect!r}: {exc}") from None
+            raise UserError(f"autopilot.connect: cannot open {label or repr(connect)}: {exc}") from None
         self.connect = connect
         self.peer = peer
         if signing_key is not None:
@@ -159,6 +161,10 @@ class MavlinkEndpoint:
                 parser.buf = bytearray()
                 parser.buf_index = 0
                 parser.expected_length = mavlink.HEADER_LEN_V1 + 2
+
+    def write(self, frame: bytes) -> None:
+        """Send an already encoded frame (on ``udpin``: to the autopilot's address only)."""
+        self._conn.write(frame)
 
     def _from_peer_heartbeat(self, msg: Any) -> bool:
         """A HEARTBEAT from the autopilot's ids (parsing already dropped any that failed signing)."""

@@ -12,6 +12,11 @@ setpoints are already streaming. MAVSDK's Offboard plugin repeats the last setpo
 its own thread for as long as the vehicle stays in OFFBOARD; that would hide a stalled companion
 from PX4's offboard-loss failsafe (COM_OF_LOSS_T), so this link stops the repetition whenever no
 fresh setpoint arrived within ``setpoint_timeout``.
+
+MAVSDK's bytes travel through :class:`~companion.autopilot.px4_transport.RawMavlinkTransport`
+(the companion's own endpoint): MAVSDK's ``udpin://`` would answer every address it has heard,
+and MAVSDK cannot sign. The transport replies to the autopilot's address only, passes MAVSDK only
+the autopilot system's frames, and signs and checks signatures when a key is given.
 """
 
 from __future__ import annotations
@@ -41,6 +46,7 @@ from mavsdk.plugins.telemetry.telemetry import FlightMode, Telemetry
 
 from companion.autopilot.ardupilot import SECTOR_INCREMENT_DEG, statustext_chunks
 from companion.autopilot.link import LandedState, VehicleStatus
+from companion.autopilot.px4_transport import RawMavlinkTransport
 from companion.errors import UserError
 from companion.obstacle_distance import sector_distances
 
@@ -78,6 +84,8 @@ class Px4Link:
     :param source_component: component id (191 = MAV_COMP_ID_ONBOARD_COMPUTER)
     :param autopilot: (system id, component id) of the autopilot: other systems MAVSDK discovers
         are counted (``foreign_systems``) and never used, whichever was heard first
+    :param signing_key: MAVLink 2 signing secret (32 bytes): MAVSDK's frames are signed on their
+        way out and unsigned or badly signed frames never reach MAVSDK; None = no signing
     :param stream_rate_hz: rate asked for position, velocity and landed-state telemetry
     :param min_distance_cm: OBSTACLE_DISTANCE ``min_distance``
     :param max_distance_cm: OBSTACLE_DISTANCE ``max_distance``
@@ -96,6 +104,7 @@ class Px4Link:
         source_system: int = 1,
         source_component: int = 191,
         autopilot: tuple[int, int] = (1, 1),
+        signing_key: bytes | None = None,
         stream_rate_hz: float = 10.0,
         min_distance_cm: int = 10,
         max_distance_cm: int = 1000,
@@ -128,10 +137,18 @@ class Px4Link:
         configuration.component_id = source_component
         self._configuration = configuration  # kept alive as long as MAVSDK runs
         self._mavsdk = Mavsdk(configuration)
-        result = self._mavsdk.add_any_connection(connect)
+        # MAVSDK gets its bytes through the companion's own endpoint (one autopilot, one address,
+        # signing), not through a socket of its own: see companion.autopilot.px4_transport.
+        result = self._mavsdk.add_any_connection("raw://")
         if result != ConnectionResult.SUCCESS:
             self._mavsdk.destroy()
-            raise UserError(f"autopilot.connect: cannot open {connect!r}: {result.name}")
+            raise UserError(f"autopilot.connect: MAVSDK refused its raw connection: {result.name}")
+        try:
+            self._transport = RawMavlinkTransport(self._mavsdk, connect, autopilot, source_system,
+                                                  source_component, signing_key)
+        except BaseException:
+            self._mavsdk.destroy()
+            raise
         self.connect = connect
 
         # Two locks, so MAVSDK's callback thread (status) never waits on a plugin teardown (offboard).
@@ -263,6 +280,9 @@ class Px4Link:
         """Set the plugins up once the autopilot has been found; return the latest status."""
         if self._system is None:
             self._discover()
+        self.counters.update(self._transport.endpoint_counters)
+        self.counters["foreign_messages"] = self._transport.counters["foreign_messages"]
+        self.counters["unsignable_frames"] = self._transport.counters["unsignable_frames"]
         with self._status_lock:
             return dataclasses.replace(self._status)
 
@@ -365,4 +385,6 @@ class Px4Link:
         self._guard.join(timeout=1.0)
         with self._offboard_lock:
             self._offboard = None
+        self._transport.stop_reading()
         self._mavsdk.destroy()
+        self._transport.close()

@@ -24,6 +24,8 @@ from collections.abc import Callable, Collection
 from pathlib import Path
 from typing import Any
 
+from pymavlink.generator.mavcrc import x25crc
+
 from companion.errors import UserError
 
 #: Length of the MAVLink 2 signing secret, bytes.
@@ -34,6 +36,10 @@ SIGNING_EPOCH = 1420070400
 NEW_STREAM_TOLERANCE = 6000 * 1000
 
 _TIMESTAMP = struct.Struct("<IH")
+#: MAVLink 2 frame: magic, length, incompat flags, compat flags, seq, system, component, msgid (3)
+_V2_MAGIC = 0xFD
+_V2_HEADER = 10
+_IFLAG_SIGNED = 0x01
 
 
 def load_signing_key(path: str | Path, setting: str = "autopilot.signing_key") -> bytes:
@@ -139,3 +145,34 @@ def _check_signature(signing: Any, msgbuf: bytearray, src_system: int, src_compo
     signing.stream_timestamps[stream] = timestamp
     signing.timestamp = max(signing.timestamp, timestamp)
     return True
+
+
+class FrameSigner:
+    """Signs finished MAVLink 2 frames someone else encoded (MAVSDK's), as pymavlink would have.
+
+    :param key: the 32-byte secret
+    :param link_id: the signature's link id
+    """
+
+    def __init__(self, key: bytes, link_id: int = 0) -> None:
+        self._key = bytes(key)
+        self._link_id = link_id
+        self._timestamp = signing_timestamp()
+
+    def sign(self, frame: bytes, crc_extra: int) -> bytes | None:
+        """``frame`` with the signed flag, its CRC recomputed and the 13-byte signature appended.
+
+        :param crc_extra: the message's CRC_EXTRA byte (from the dialect)
+        :return: None for a frame that cannot be signed (MAVLink 1)
+        """
+        if len(frame) < _V2_HEADER + 2 or frame[0] != _V2_MAGIC:
+            return None
+        length = frame[1]
+        body = bytearray(frame[: _V2_HEADER + length])
+        body[2] |= _IFLAG_SIGNED
+        crc = x25crc(bytes(body[1:]) + bytes([crc_extra])).crc
+        # one tick past both the last timestamp used and the clock: strictly increasing per link
+        self._timestamp = max(self._timestamp + 1, signing_timestamp())
+        stamp = self._timestamp
+        out = body + struct.pack("<HB", crc, self._link_id) + _TIMESTAMP.pack(stamp & 0xFFFFFFFF, stamp >> 32)
+        return bytes(out + hashlib.sha256(self._key + out).digest()[:6])

@@ -158,13 +158,14 @@ def test_bad_connection_url_is_a_user_error():
 
 
 def test_an_impostor_px4_that_speaks_first_is_never_used():
-    """first_autopilot() took whichever autopilot MAVSDK heard first: system 42 in OFFBOARD, armed."""
+    """first_autopilot() took whichever autopilot MAVSDK heard first (system 42, OFFBOARD, armed), and
+    MAVSDK's own udpin:// wrote everything to every address it had heard."""
     port = free_udp_port()
     link = Px4Link(f"udpin://127.0.0.1:{port}", autopilot=(1, 1))
     impostor = SimulatedAutopilot(f"udpout:127.0.0.1:{port}", autopilot=mavlink.MAV_AUTOPILOT_PX4, sysid=42)
     vehicle = None
     try:
-        _wait(lambda: link.poll() and link.counters["foreign_systems"] == 1)
+        _wait(lambda: link.poll() and link.counters["foreign_messages"] >= 10)  # never reach MAVSDK
         time.sleep(1.0)
         status = link.poll()
         assert not link.connected and status.heartbeat_time is None and not status.armed
@@ -177,6 +178,8 @@ def test_an_impostor_px4_that_speaks_first_is_never_used():
         link.send_velocity(0.5, 0.0)
         msg = vehicle.wait_for("SET_POSITION_TARGET_LOCAL_NED", since=t0)
         assert (msg.target_system, msg.target_component) == (1, 1)
+        time.sleep(0.3)
+        assert impostor.messages() == [], "MAVSDK's udpin:// wrote to every address it had heard"
     finally:
         link.close()
         impostor.close()

@@ -88,10 +88,11 @@ def test_config_refuses_a_bad_key_file_at_load(tmp_path):
         load_config(_config(tmp_path, 'signing_key = "signing.key"'))
 
 
-def test_px4_with_signing_is_a_config_error_that_says_why(tmp_path):
+def test_px4_takes_a_signing_key_too(tmp_path):
+    """MAVSDK cannot sign, but the PX4 link carries MAVSDK's frames through its own endpoint, which does."""
     _key_file(tmp_path, KEY_HEX)
-    with pytest.raises(UserError, match=r"autopilot: signing_key: .*type = 'px4'.*MAVSDK.*cannot sign"):
-        load_config(_config(tmp_path, 'type = "px4"\nsigning_key = "signing.key"'))
+    config = load_config(_config(tmp_path, 'type = "px4"\nsigning_key = "signing.key"'))
+    assert config.autopilot.signing_key == str(tmp_path / "signing.key")
 
 
 @pytest.mark.parametrize("key", ["system_id = 0", "component_id = 256", 'system_id = "1"'])

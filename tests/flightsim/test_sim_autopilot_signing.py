@@ -143,3 +143,31 @@ def test_px4_accepts_only_its_own_unsigned_exceptions(vehicle):
     finally:
         peer.close()
         server.stop()
+
+
+@pytest.mark.parametrize("sim_key", [KEY, None])
+def test_px4_link_signs_mavsdk_frames_and_drops_unsigned_ones(vehicle, sim_key):
+    """MAVSDK cannot sign; the PX4 link carries its frames through the companion's endpoint, which
+    signs them on the way out and checks signatures on the way in."""
+    from companion.autopilot.px4 import Px4Link
+
+    port = free_udp_port()
+    server = SimAutopilotServer("px4", [f"udpout:127.0.0.1:{port}"], vehicle=vehicle,
+                                signing_key=sim_key).start()
+    link = Px4Link(f"udpin://127.0.0.1:{port}", signing_key=KEY)
+    try:
+        if sim_key is None:
+            _wait(lambda: link.poll() and link.counters["signature_rejected"] >= 10, what="rejections")
+            assert link.poll().heartbeat_time is None and not link.connected
+            return
+        _wait(lambda: link.poll().heartbeat_time is not None and link.poll().mode != "UNKNOWN",
+              what="PX4's status through MAVSDK")
+        _wait(lambda: server.autopilot.counters.get("rx_HEARTBEAT", 0) >= 1, what="MAVSDK's heartbeat at PX4")
+        link.send_velocity(0.0, 0.0)
+        _wait(lambda: server.autopilot.counters.get("rx_SET_POSITION_TARGET_LOCAL_NED", 0) >= 1,
+              what="a signed setpoint at PX4")
+        assert server.endpoint.counters.get("signature_rejected", 0) == 0
+        assert link.counters["signature_rejected"] == 0 and link.counters["unsignable_frames"] == 0
+    finally:
+        link.close()
+        server.stop()
