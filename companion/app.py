@@ -344,6 +344,8 @@ class Companion:
         if lidar_counters is not None:
             parts += [f"lidar.{k}={v}" for k, v in sorted(vars(lidar_counters).items()) if v]
         parts += [f"shield.{k}={v}" for k, v in sorted(self.shield.interventions.items())]
+        sup = self.supervisor.counters
+        parts += [f"supervisor.{k.replace(' ', '_')}={v}" for k, v in sorted(sup.items())]
         return " ".join(parts)
 
     # ---- the whole run ---------------------------------------------------------------------

@@ -285,6 +285,8 @@ class Supervisor:
 
     def _try_engage(self, now: float) -> None:
         if self._engage_blockers(now):
+            if self._clear_since is not None and self._disengaged:
+                self.counters["reengage_debounced"] += 1  # conditions broke again within reengage_delay
             self._clear_since = None
             return
         if self._clear_since is None:

@@ -356,6 +356,7 @@ def test_mode_flapping_at_20_hz_never_reengages_and_barely_announces() -> None:
     assert set(kinds) == {CommandKind.NONE}
     assert [t[:2] for t in rig.transitions()] == [(S.ACTIVE, S.PILOT_OVERRIDE), (S.PILOT_OVERRIDE, S.STANDBY)]
     assert rig.sup.counters["engaged"] == 1
+    assert rig.sup.counters["reengage_debounced"] >= 95  # every GUIDED spell cut short, counted
     # the flapping stops in GUIDED: engaged again once it has held for reengage_delay
     rig.set(guided=True, mode="GUIDED")
     assert rig.steps(8) is CommandKind.NONE
