@@ -75,3 +75,21 @@ def test_unsigned_frames_with_the_autopilots_ids_change_nothing(flight):
     finally:
         spoof.close()
         rogue.close()
+
+
+def test_signed_px4_flight_engages_through_mavsdk(tmp_path):
+    """MAVSDK cannot sign: the PX4 link signs its frames, and PX4 (simulated) takes them."""
+    options = FlightOptions(
+        autopilot="sim-px4",
+        world=OPEN_ROOM,
+        policy=write_constant_policy(tmp_path / "circle.onnx", 0.5, 0.4),
+        workdir=tmp_path,
+        autopilot_params={"COM_OBL_RC_ACT": 5},
+        signed=True,
+    )
+    with SitlFlight(options) as f:
+        f.take_off()
+        assert f.wait_engaged(25.0), f.companion_log()
+        wait_for(lambda: speed(f) > 0.6, 5.0, "the vehicle to fly")
+        assert f.server.autopilot.mode_name() == "OFFBOARD"
+        assert f.server.endpoint.counters.get("signature_rejected", 0) == 0
