@@ -157,6 +157,10 @@ def check_parameters(config: CompanionConfig) -> list[str]:
     try:
         conn = params.open_connection(url, baud)
         try:
+            if config.autopilot.signing_key:  # a signing autopilot ignores unsigned parameter requests
+                from companion.autopilot.signing import enable_signing, load_signing_key
+
+                enable_signing(conn.mav, load_signing_key(config.autopilot.signing_key))
             report = params.run_params(conn, config.autopilot.type, wanted, heartbeat_timeout=pc.timeout)
         finally:
             conn.close()

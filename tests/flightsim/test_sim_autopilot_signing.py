@@ -171,3 +171,36 @@ def test_px4_link_signs_mavsdk_frames_and_drops_unsigned_ones(vehicle, sim_key):
     finally:
         link.close()
         server.stop()
+
+
+@pytest.mark.parametrize("signed_check", [True, False])
+def test_start_up_parameter_check_signs_too(vehicle, tmp_path, signed_check):
+    """[params_check] at start-up talks to a signing autopilot with the companion's key: it reads
+    the real value (and refuses, naming it); unsigned, the autopilot never answers."""
+    from tests.companion.companion_process import run_to_exit, write_config
+    from tests.onnx_models import write_policy
+
+    port = free_udp_port()
+    key_file = tmp_path / "signing.key"
+    key_file.write_text(KEY.hex())
+    key_file.chmod(0o600)
+    (tmp_path / "copter.parm").write_text("PRX1_TYPE 2\n")
+    config = write_config(tmp_path, write_policy(tmp_path / "m.onnx"), free_udp_port(), port,
+                          extra='[params_check]\nmode = "refuse"\nfile = "copter.parm"\ntimeout = 3.0\n')
+    if signed_check:
+        text = config.read_text().replace("[autopilot]\n", '[autopilot]\nsigning_key = "signing.key"\n')
+        config.write_text(text)
+    server = SimAutopilotServer("ardupilot", [f"udpout:127.0.0.1:{port}"], vehicle=vehicle,
+                                signing_key=KEY).start()
+    try:
+        result = run_to_exit(["run", "--config", str(config)])
+    finally:
+        server.stop()
+    assert result.returncode == 2, result.stderr[-2000:]
+    last = result.stderr.strip().splitlines()[-1]
+    if signed_check:
+        assert "PRX1_TYPE: wanted 2, autopilot 0" in last
+        assert server.endpoint.counters.get("signature_rejected", 0) == 0
+    else:  # the requests were dropped: no value was read
+        assert "autopilot 0" not in last
+        assert server.endpoint.counters.get("signature_rejected", 0) > 0
