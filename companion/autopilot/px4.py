@@ -82,8 +82,8 @@ class Px4Link:
     :param clock: monotonic clock, seconds (heartbeat times are on it)
     :param source_system: MAVLink system id the companion sends as
     :param source_component: component id (191 = MAV_COMP_ID_ONBOARD_COMPUTER)
-    :param autopilot: (system id, component id) of the autopilot: other systems MAVSDK discovers
-        are counted (``foreign_systems``) and never used, whichever was heard first
+    :param autopilot: (system id, component id) of the autopilot: other systems' frames are
+        counted (``foreign_messages``) and never reach MAVSDK, whichever was heard first
     :param signing_key: MAVLink 2 signing secret (32 bytes): MAVSDK's frames are signed on their
         way out and unsigned or badly signed frames never reach MAVSDK; None = no signing
     :param stream_rate_hz: rate asked for position, velocity and landed-state telemetry
@@ -113,7 +113,6 @@ class Px4Link:
         log_subscribe(_forward_mavsdk_log)
         self._clock = clock
         self._autopilot = autopilot
-        self._foreign_systems: set[int] = set()
         self._next_discovery = -math.inf
         self._stream_rate_hz = stream_rate_hz
         self._min_cm = min_distance_cm
@@ -129,7 +128,6 @@ class Px4Link:
             "messages_without_autopilot": 0,
             "send_errors": 0,
             "stream_rate_refused": 0,
-            "foreign_systems": 0,
             "foreign_heartbeats": 0,
         }
         configuration = Configuration.create_with_component_type(ComponentType.COMPANION_COMPUTER)
@@ -171,25 +169,21 @@ class Px4Link:
     # ---- discovery and telemetry (callbacks run on MAVSDK's thread) -------------------------
 
     def _discover(self) -> None:
-        """Look among the systems MAVSDK has heard for the configured autopilot (main thread, 2 Hz).
+        """Set up the configured autopilot once MAVSDK knows it (main thread, checked at 2 Hz).
 
-        Not ``first_autopilot``: that takes whichever autopilot spoke first, an impostor included.
+        Not ``first_autopilot``: that takes whichever autopilot spoke first. (The transport passes
+        MAVSDK only the autopilot system's frames, so no other system should appear at all.)
         """
         now = self._clock()
         if now < self._next_discovery:
             return
         self._next_discovery = now + 0.5
         for system in self._mavsdk.get_systems():
-            system_id = system.get_system_id()
-            if self._system is None and system_id == self._autopilot[0] and system.has_autopilot():
+            wanted = system.get_system_id() == self._autopilot[0] and system.has_autopilot()
+            if self._system is None and wanted:
                 self._set_up(system)
-                continue
-            if system_id != self._autopilot[0] and system_id not in self._foreign_systems:
-                self._foreign_systems.add(system_id)
-                self.counters["foreign_systems"] = len(self._foreign_systems)
-                log.warning("ignoring MAVLink system %d: the autopilot is system %d", system_id,
-                            self._autopilot[0])
-            system.destroy()  # only this wrapper; MAVSDK keeps its own record of the system
+            else:
+                system.destroy()  # only this wrapper; MAVSDK keeps its own record of the system
 
     def _set_up(self, system: Any) -> None:
         """Create the plugins and subscriptions for the autopilot MAVSDK found (main thread)."""
