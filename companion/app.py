@@ -117,6 +117,10 @@ def open_link(config: CompanionConfig, clock: Callable[[], float]) -> AutopilotL
         "min_distance_cm": min_cm,
         "max_distance_cm": max_cm,
     }
+    from companion.autopilot.signing import load_signing_key
+
+    common["autopilot"] = (ap.system_id, ap.component_id)
+    common["signing_key"] = load_signing_key(ap.signing_key) if ap.signing_key else None
     if ap.type == "px4":
         from companion.autopilot.px4 import Px4Link
 
@@ -132,19 +136,9 @@ def pymavlink_connection(config: CompanionConfig) -> tuple[str, int]:
     PX4 connections are MAVSDK URLs: ``udpin://H:P`` → ``udpin:H:P``, ``serial:///dev/X:B`` →
     ``/dev/X`` at ``B`` baud, ``tcpout://H:P`` → ``tcp:H:P``.
     """
-    ap = config.autopilot
-    url = ap.connection
-    if "://" not in url:
-        return url, ap.baud
-    scheme, rest = url.split("://", 1)
-    if scheme in ("serial", "serial_flowcontrol"):
-        device, _, baud = rest.rpartition(":")
-        return (device, int(baud)) if baud.isdigit() else (rest, ap.baud)
-    mapping = {"udpin": "udpin", "udpout": "udpout", "udp": "udpin", "tcpout": "tcp", "tcp": "tcp",
-               "tcpin": "tcpin"}
-    if scheme not in mapping:
-        raise UserError(f"autopilot.connect: cannot check parameters over {url!r} (scheme {scheme})")
-    return f"{mapping[scheme]}:{rest}", ap.baud
+    from companion.autopilot.px4_transport import pymavlink_address
+
+    return pymavlink_address(config.autopilot.connection, config.autopilot.baud)
 
 
 def check_parameters(config: CompanionConfig) -> list[str]:
@@ -163,6 +157,10 @@ def check_parameters(config: CompanionConfig) -> list[str]:
     try:
         conn = params.open_connection(url, baud)
         try:
+            if config.autopilot.signing_key:  # a signing autopilot ignores unsigned parameter requests
+                from companion.autopilot.signing import enable_signing, load_signing_key
+
+                enable_signing(conn.mav, load_signing_key(config.autopilot.signing_key))
             report = params.run_params(conn, config.autopilot.type, wanted, heartbeat_timeout=pc.timeout)
         finally:
             conn.close()
@@ -350,6 +348,8 @@ class Companion:
         if lidar_counters is not None:
             parts += [f"lidar.{k}={v}" for k, v in sorted(vars(lidar_counters).items()) if v]
         parts += [f"shield.{k}={v}" for k, v in sorted(self.shield.interventions.items())]
+        sup = self.supervisor.counters
+        parts += [f"supervisor.{k.replace(' ', '_')}={v}" for k, v in sorted(sup.items())]
         return " ".join(parts)
 
     # ---- the whole run ---------------------------------------------------------------------

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+from companion.autopilot.signing import load_signing_key
 from companion.errors import UserError
 from companion.scan import ScanConfig
 from companion.shield import ShieldConfig
@@ -127,6 +128,10 @@ class AutopilotConfig:
     :param baud: serial baud rate for ArduPilot device paths (PX4 puts it in the URL)
     :param source_system: MAVLink system id the companion sends as (the vehicle's own, normally 1)
     :param source_component: MAVLink component id (191 = MAV_COMP_ID_ONBOARD_COMPUTER)
+    :param system_id: the autopilot's system id: the only system the companion listens to
+    :param component_id: the autopilot's component id (1 = MAV_COMP_ID_AUTOPILOT1)
+    :param signing_key: MAVLink 2 signing key file (64 hex digits, mode 0600; relative: to the
+        config file); empty = no signing
     :param stream_rate_hz: rate asked for the status messages the supervisor needs
     :param obstacle_distance: send OBSTACLE_DISTANCE every scan (the autopilot's own avoidance layer)
     """
@@ -136,6 +141,9 @@ class AutopilotConfig:
     baud: int = field(default=921600, metadata={"min": 1200, "max": 12_000_000})
     source_system: int = field(default=1, metadata={"min": 1, "max": 255})
     source_component: int = field(default=191, metadata={"min": 1, "max": 255})
+    system_id: int = field(default=1, metadata={"min": 1, "max": 255})
+    component_id: int = field(default=1, metadata={"min": 1, "max": 255})
+    signing_key: str = ""
     stream_rate_hz: float = field(default=10.0, metadata={"min": 0.5, "max": 50.0})
     obstacle_distance: bool = True
 
@@ -223,8 +231,12 @@ def load_config(path: str | Path, overrides: list[str] | None = None) -> Compani
         expanded = Path(p).expanduser()
         return str(expanded if expanded.is_absolute() else base / expanded)
 
+    signing_key = resolve(config.autopilot.signing_key)
+    if signing_key:
+        load_signing_key(signing_key)  # a bad key file stops start-up here, before the model loads
     return dataclasses.replace(
         config,
+        autopilot=dataclasses.replace(config.autopilot, signing_key=signing_key),
         policy=dataclasses.replace(
             config.policy,
             model=resolve(config.policy.model),

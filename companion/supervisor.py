@@ -13,6 +13,13 @@ autopilot's mode: the pilot (or the autopilot's own failsafes) own that.
     ACTIVE, HOLD ─disarmed / landed / landing→ STANDBY
     any (but STARTING) ─heartbeat lost→ WAITING_FOR_AUTOPILOT
 
+Flapping input (a mode switched back and forth, a link dropping in and out) is debounced: leaving
+ACTIVE/HOLD is always immediate (the pilot's override takes effect at the next tick), but once
+the companion has stopped commanding it engages again only after every engage condition has held
+for ``reengage_delay``. Announcements (log line + STATUSTEXT) are rate-limited to a burst of
+``announce_burst`` and one per ``announce_interval`` after it; the ones left out are counted and
+summed up in one "N transitions not announced" line that brings the pilot's view up to date.
+
 Engaging needs: armed, guided, airborne (landed_state IN_AIR where the autopilot reports it, never
 TAKEOFF), altitude ≥ ``min_engage_altitude``, the climb settled (|climb rate| <
 ``climb_settled_rate`` for ``climb_settled_time``), the lidar fresh with ``recover_scans``
@@ -23,6 +30,7 @@ during the climb would freeze the vehicle at whatever height it had reached: hen
 from __future__ import annotations
 
 import collections
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
@@ -69,6 +77,10 @@ class SupervisorConfig:
     :param min_engage_altitude: metres above home below which the companion never engages
     :param climb_settled_rate: |climb rate| below this counts as settled, m/s
     :param climb_settled_time: the climb must stay settled this long before engaging, s
+    :param reengage_delay: after the companion stopped commanding, every engage condition must hold
+        this long before it engages again, s (a mode flapping faster never re-engages)
+    :param announce_burst: transitions announced back to back before the rate limit applies
+    :param announce_interval: one more announcement per this many seconds once the burst is spent
     """
 
     lidar_timeout: float = field(default=0.3, metadata={"min": 0.05, "max": 5.0})
@@ -77,6 +89,9 @@ class SupervisorConfig:
     min_engage_altitude: float = field(default=1.0, metadata={"min": 0.0, "max": 1000.0})
     climb_settled_rate: float = field(default=0.3, metadata={"min": 0.01, "max": 10.0})
     climb_settled_time: float = field(default=1.0, metadata={"min": 0.0, "max": 60.0})
+    reengage_delay: float = field(default=1.0, metadata={"min": 0.0, "max": 60.0})
+    announce_burst: int = field(default=10, metadata={"min": 1, "max": 100})
+    announce_interval: float = field(default=1.0, metadata={"min": 0.0, "max": 60.0})
 
 
 @dataclass(frozen=True)
@@ -117,6 +132,12 @@ class Supervisor:
         self._good_scans = 0
         self._scan_problem: str | None = None  # a fault or gap since the last tick, not yet acted on
         self._settled_since: float | None = None
+        self._disengaged = False  # stopped commanding at least once: re-engaging is debounced
+        self._clear_since: float | None = None  # engage conditions held continuously since
+        self._announce_tokens = float(config.announce_burst)
+        self._announce_time = clock()
+        self._announced_state = self.state
+        self._not_announced = 0
 
     # ---- inputs -------------------------------------------------------------------------------
 
@@ -183,13 +204,45 @@ class Supervisor:
         return _COMMAND_FOR_STATE[self.state]
 
     def drain_transitions(self) -> list[Transition]:
-        """Transitions since the last call, oldest first (the app logs and STATUSTEXTs each)."""
-        out, self._transitions = self._transitions, []
+        """Transitions to announce since the last call, oldest first (the app logs and STATUSTEXTs each).
+
+        Rate-limited (a token bucket of ``announce_burst``, refilled one per ``announce_interval``):
+        once transitions had to be left out, the next announcement is one summary transition from
+        the last announced state to the current one, naming how many were left out.
+        """
+        now = self._clock()
+        cfg = self.config
+        if cfg.announce_interval > 0:
+            refill = (now - self._announce_time) / cfg.announce_interval
+        else:
+            refill = math.inf
+        self._announce_tokens = min(float(cfg.announce_burst), self._announce_tokens + refill)
+        self._announce_time = now
+        pending, self._transitions = self._transitions, []
+        out: list[Transition] = []
+        for transition in pending:
+            if self._not_announced == 0 and self._announce_tokens >= 1.0:
+                self._announce_tokens -= 1.0
+                self._announced_state = transition.new
+                out.append(transition)
+            else:
+                self._not_announced += 1
+                self.counters["transitions_not_announced"] += 1
+        if self._not_announced and self._announce_tokens >= 1.0:
+            self._announce_tokens -= 1.0
+            out.append(Transition(now, self._announced_state, self.state,
+                                  f"{self._not_announced} transitions not announced"))
+            self._announced_state = self.state
+            self._not_announced = 0
         return out
 
     def engage_blockers(self) -> list[str]:
         """Why STANDBY would not engage now (empty: it would); for logs and diagnostics."""
-        return self._engage_blockers(self._clock())
+        now = self._clock()
+        blockers = self._engage_blockers(now)
+        if not blockers and self._reengage_wait(now) > 0:
+            blockers.append("re-engage delay")
+        return blockers
 
     # ---- internals ----------------------------------------------------------------------------
 
@@ -223,9 +276,24 @@ class Supervisor:
             blockers.append(f"{self._good_scans}/{cfg.recover_scans} good scans")
         return blockers
 
+    def _reengage_wait(self, now: float) -> float:
+        """Seconds the engage conditions must still hold before re-engaging (0: may engage)."""
+        if not self._disengaged:
+            return 0.0
+        since = now if self._clear_since is None else self._clear_since
+        return max(0.0, self.config.reengage_delay - (now - since))
+
     def _try_engage(self, now: float) -> None:
-        if not self._engage_blockers(now):
-            self._go(SupervisorState.ACTIVE, "engaged")
+        if self._engage_blockers(now):
+            if self._clear_since is not None and self._disengaged:
+                self.counters["reengage_debounced"] += 1  # conditions broke again within reengage_delay
+            self._clear_since = None
+            return
+        if self._clear_since is None:
+            self._clear_since = now
+        if self._reengage_wait(now) > 0:
+            return
+        self._go(SupervisorState.ACTIVE, "engaged")
 
     def _while_commanding(self, now: float, problem: str | None) -> None:
         st = self._status
@@ -247,6 +315,10 @@ class Supervisor:
         """Record a transition; ``reason`` is a fixed phrase (counted), ``detail`` the variable part."""
         old = self.state
         self.state = new
+        commanding = (SupervisorState.ACTIVE, SupervisorState.HOLD)
+        if old in commanding and new not in commanding:
+            self._disengaged = True
+            self._clear_since = None
         text = f"{reason} ({detail})" if detail else reason
         self._transitions.append(Transition(self._clock(), old, new, text))
         self.counters[f"{old.value}->{new.value}"] += 1

@@ -133,6 +133,8 @@ class FlightOptions:
     :param companion_overrides: section -> {field: value} applied to the generated companion config
     :param autopilot_params: parameter overrides for the simulated autopilot
     :param engage_timeout: seconds to wait for the companion to go ACTIVE
+    :param signed: MAVLink 2 signing on every link (simulated autopilots): a fresh key in the
+        workdir for the autopilot, the ground station and the companion's ``autopilot.signing_key``
     """
 
     autopilot: str
@@ -145,6 +147,7 @@ class FlightOptions:
     companion_overrides: dict[str, Any] = field(default_factory=dict)
     autopilot_params: dict[str, float] = field(default_factory=dict)
     engage_timeout: float = 20.0
+    signed: bool = False
 
 
 @dataclass
@@ -302,6 +305,8 @@ class SitlFlight:
             raise UserError(f"--autopilot must be one of {', '.join(AUTOPILOTS)}, not {options.autopilot!r}")
         if not Path(options.policy).is_file():
             raise UserError(f"policy file not found: {options.policy}")
+        if options.signed and options.autopilot == "external":
+            raise UserError("--signed needs a simulated autopilot (--autopilot sim-ardupilot or sim-px4)")
         self.options = options
         self.world = options.world
         self.workdir = Path(options.workdir)
@@ -317,11 +322,13 @@ class SitlFlight:
         self.companion_port = free_udp_port()
         self.config_path = self.workdir / "companion.toml"
         self.log_path = self.workdir / "companion.log"
+        self.key_path = self.workdir / "mavlink-signing.key"
         self.engaged_at: float | None = None
         self._log_file: Any = None
         self._gcs_lock = threading.Lock()
         self._pump_thread: threading.Thread | None = None
         self._stop = threading.Event()
+        self.signing_key: bytes | None = None
 
     @property
     def personality(self) -> str:
@@ -361,12 +368,15 @@ class SitlFlight:
             if companion_type == "px4"
             else f"udpin:127.0.0.1:{self.companion_port}"
         )
+        overrides = dict(self.options.companion_overrides)
+        if self.signing_key is not None:
+            overrides["autopilot"] = {**overrides.get("autopilot", {}), "signing_key": str(self.key_path)}
         cfg = companion_config(
             autopilot_type=companion_type,
             connect=connect,
             lidar_port=self.lidar_port,
             policy=Path(self.options.policy).resolve(),
-            overrides=self.options.companion_overrides,
+            overrides=overrides,
         )
         self.config_path.write_text(toml_dumps(to_dict(cfg)))
         self.start_companion()
@@ -397,6 +407,11 @@ class SitlFlight:
         from flightsim.sim_autopilot.server import SimAutopilotServer
 
         start = np.array([self.world.start_position[0], self.world.start_position[1], 0.0])
+        if self.options.signed:
+            from companion.autopilot.signing import write_signing_key
+
+            self.key_path.unlink(missing_ok=True)
+            self.signing_key = write_signing_key(self.key_path)
         self.server = SimAutopilotServer(
             self.personality,
             ["udpin:127.0.0.1:0", f"udpout:127.0.0.1:{self.companion_port}"],
@@ -404,6 +419,7 @@ class SitlFlight:
             start_yaw=math.radians(self.world.start_yaw_deg),
             params=self.options.autopilot_params,
             vehicle=self.vehicle,
+            signing_key=self.signing_key,
         )
         self.recorder.t0 = self.server.t0
         self.server.message_hooks.append(self._on_autopilot_message)
@@ -411,6 +427,10 @@ class SitlFlight:
         self.server.start()
         gcs_port = self.server.endpoint.address(0)[1]
         self.gcs = GroundStation(f"udpout:127.0.0.1:{gcs_port}")
+        if self.signing_key is not None:
+            from companion.autopilot.signing import enable_signing
+
+            enable_signing(self.gcs.mav.mav, self.signing_key)
         self.gcs.wait_heartbeat()
 
     def _start_external(self) -> None:
@@ -783,6 +803,8 @@ def configure_parser(parser: Any) -> None:
         choices=(0.2, 1.0),
         help="ray-cast azimuth step in degrees: 0.2 like the VLP-16, 1.0 to save CPU",
     )
+    parser.add_argument("--signed", action="store_true",
+                        help="MAVLink 2 signing on every link: autopilot, GCS, companion (sim autopilots)")
     parser.add_argument("--json", help="write the flight report as JSON here")
     parser.add_argument("--plot", help="write a top-down PNG of the flight here")
     parser.add_argument("--workdir", help="where the companion's config and log go (default: a temp dir)")
@@ -804,6 +826,7 @@ def command(args: Any) -> int:
         connect=args.connect,
         lidar_step_deg=args.lidar_step,
         workdir=workdir,
+        signed=args.signed,
     )
     try:
         report = run_flight(options, plot=Path(args.plot) if args.plot else None)

@@ -59,8 +59,11 @@ def statustext_chunks(text: str) -> list[tuple[bytes, int, int]]:
 class ArduPilotLink:
     """The :class:`~companion.autopilot.link.AutopilotLink` for ArduPilot Copter in GUIDED.
 
-    The link locks onto the first autopilot whose HEARTBEAT it hears and addresses every command
-    to that system and component; heartbeats from other systems are counted and ignored.
+    The link listens to one autopilot only, the configured ``autopilot`` (system, component): its
+    HEARTBEATs set the status, every command is addressed to it and (on ``udpin``) every reply goes
+    to its address. Heartbeats from anyone else, whoever came first, are counted in
+    ``foreign_heartbeats`` and ignored; so are their other messages. COMMAND_ACKs addressed to
+    another system or component (a ground station's) are not the companion's and are not counted.
 
     :param connect: pymavlink connection string (``udpin:0.0.0.0:14550``, ``tcp:127.0.0.1:5760``,
         ``/dev/ttyTHS1``)
@@ -68,6 +71,9 @@ class ArduPilotLink:
     :param clock: monotonic clock, seconds (injected so tests and the supervisor share one)
     :param source_system: system id the companion sends as (normally the vehicle's own)
     :param source_component: component id (191 = MAV_COMP_ID_ONBOARD_COMPUTER)
+    :param autopilot: (system id, component id) of the autopilot to talk to
+    :param signing_key: MAVLink 2 signing secret (32 bytes): sign everything sent, drop every
+        unsigned or badly signed frame received; None = no signing
     :param stream_rate_hz: rate asked for each status stream
     :param min_distance_cm: OBSTACLE_DISTANCE ``min_distance``
     :param max_distance_cm: OBSTACLE_DISTANCE ``max_distance`` (a sector with no return holds this + 1)
@@ -80,11 +86,16 @@ class ArduPilotLink:
         clock: Callable[[], float] = time.monotonic,
         source_system: int = 1,
         source_component: int = 191,
+        autopilot: tuple[int, int] = (1, 1),
+        signing_key: bytes | None = None,
         stream_rate_hz: float = 10.0,
         min_distance_cm: int = 10,
         max_distance_cm: int = 1000,
     ) -> None:
-        self._endpoint = MavlinkEndpoint(connect, baud, source_system, source_component)
+        self._endpoint = MavlinkEndpoint(connect, baud, source_system, source_component, autopilot,
+                                         signing_key)
+        self._autopilot = autopilot
+        self._own_ids = (source_system, source_component)
         self._clock = clock
         self._start = clock()
         self._stream_interval_us = round(1e6 / stream_rate_hz)
@@ -101,6 +112,8 @@ class ArduPilotLink:
             "unknown_messages": 0,
             "read_errors": 0,
             "foreign_heartbeats": 0,
+            "signature_rejected": 0,
+            "acks_for_others": 0,
             "setpoints_sent": 0,
             "setpoints_without_target": 0,
             "obstacle_distance_sent": 0,
@@ -130,6 +143,7 @@ class ArduPilotLink:
         self.counters["bad_data"] = self._endpoint.bad_data
         self.counters["unknown_messages"] = self._endpoint.unknown
         self.counters["read_errors"] = self._endpoint.read_errors
+        self.counters["signature_rejected"] = self._endpoint.signature_rejected
         self._request_missing_streams()
         return dataclasses.replace(self._status)
 
@@ -161,7 +175,15 @@ class ArduPilotLink:
         elif kind == "VFR_HUD":
             # VFR_HUD.alt may be above sea level depending on firmware; only its climb rate is used.
             self._status.climb_rate = float(msg.climb)
-        elif kind == "COMMAND_ACK" and msg.result != mavlink.MAV_RESULT_ACCEPTED:
+        elif kind == "COMMAND_ACK":
+            self._on_command_ack(msg)
+
+    def _on_command_ack(self, msg: Any) -> None:
+        """Count the autopilot's refusals of the companion's own commands (not a ground station's)."""
+        if (msg.target_system, msg.target_component) != self._own_ids:
+            self.counters["acks_for_others"] += 1
+            return
+        if msg.result != mavlink.MAV_RESULT_ACCEPTED:
             self.counters["command_nacks"] += 1
             log.debug("command %d refused by the autopilot: result %d", msg.command, msg.result)
 
@@ -169,20 +191,19 @@ class ArduPilotLink:
         return now - self._last_seen.get(kind, -math.inf) < POSITION_FRESH_S
 
     def _on_heartbeat(self, msg: Any, src: tuple[int, int]) -> None:
-        if msg.autopilot == mavlink.MAV_AUTOPILOT_INVALID or msg.type in (
+        if src != self._autopilot or msg.autopilot == mavlink.MAV_AUTOPILOT_INVALID or msg.type in (
             mavlink.MAV_TYPE_GCS,
             mavlink.MAV_TYPE_ONBOARD_CONTROLLER,
             mavlink.MAV_TYPE_GIMBAL,
             mavlink.MAV_TYPE_ADSB,
         ):
-            return  # ground stations, other companions, peripherals
+            # ground stations, other companions, peripherals, other vehicles, impostors
+            self.counters["foreign_heartbeats"] += 1
+            return
         if self._target is None:
             self._target = src
             log.info("autopilot found: system %d component %d (%s)", src[0], src[1], mode_name(msg))
             self._last_stream_request = -math.inf
-        elif src != self._target:
-            self.counters["foreign_heartbeats"] += 1
-            return
         status = self._status
         status.heartbeat_time = self._clock()
         status.armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)

@@ -19,6 +19,7 @@ from pymavlink import mavutil
 if mavutil.mavlink.WIRE_PROTOCOL_VERSION != "2.0":
     mavutil.set_dialect("ardupilotmega")
 
+from companion.autopilot.signing import enable_signing
 from companion.errors import UserError
 
 #: The MAVLink 2 ``ardupilotmega`` dialect module: message ids, enums and message classes.
@@ -33,16 +34,35 @@ MAX_MESSAGES_PER_RECEIVE = 512
 class MavlinkEndpoint:
     """One MAVLink connection opened from a ``mavutil`` connection string.
 
-    ``udpin:0.0.0.0:14550`` listens (replies go to whoever sent last), ``tcp:127.0.0.1:5760``
-    connects, a device path such as ``/dev/ttyTHS1`` opens a serial port at ``baud``.
+    ``udpin:0.0.0.0:14550`` listens, ``tcp:127.0.0.1:5760`` connects, a device path such as
+    ``/dev/ttyTHS1`` opens a serial port at ``baud``.
+
+    On ``udpin`` pymavlink would write to every address that ever sent a datagram, and never forget
+    one: a stranger's single datagram would receive every setpoint, and thousands of spoofed source
+    addresses would multiply the cost of each send. Here replies go only to the address of the
+    newest datagram holding a HEARTBEAT from ``peer`` (signed, when signing is on); until one
+    arrives nothing is sent.
 
     :param connect: the connection string
     :param baud: serial baud rate (ignored for network links)
     :param source_system: MAVLink system id this end sends as
     :param source_component: MAVLink component id this end sends as
+    :param peer: (system, component) of the autopilot, whose address replies go to
+    :param signing_key: MAVLink 2 signing secret (32 bytes); None = no signing. With a key every
+        frame sent is signed and every frame received unsigned or badly signed is dropped.
+    :param label: how error messages name the connection (default: ``repr(connect)``)
     """
 
-    def __init__(self, connect: str, baud: int, source_system: int, source_component: int) -> None:
+    def __init__(
+        self,
+        connect: str,
+        baud: int,
+        source_system: int,
+        source_component: int,
+        peer: tuple[int, int] = (1, 1),
+        signing_key: bytes | None = None,
+        label: str | None = None,
+    ) -> None:
         try:
             self._conn = mavutil.mavlink_connection(
                 connect,
@@ -55,14 +75,24 @@ class MavlinkEndpoint:
                 dialect="ardupilotmega",  # pymavlink's dialect is global: others may have switched it
             )
         except (OSError, ValueError) as exc:  # refused TCP, busy port, missing device, bad syntax
-            raise UserError(f"autopilot.connect: cannot open {connect!r}: {exc}") from None
+            raise UserError(f"autopilot.connect: cannot open {label or repr(connect)}: {exc}") from None
         self.connect = connect
+        self.peer = peer
+        if signing_key is not None:
+            enable_signing(self._conn.mav, signing_key)
+        self._udp_server = isinstance(self._conn, mavutil.mavudp) and self._conn.udp_server
+        if self._udp_server:
+            self._conn.clients = set()  # pymavlink's reply list: kept to the autopilot's address
+        #: address replies go to (udpin only): where the autopilot's heartbeats come from
+        self.reply_address: tuple[str, int] | None = None
         #: garbage bytes and frames that failed length/CRC checks (pymavlink BAD_DATA)
         self.bad_data = 0
         #: well-formed frames of message ids this dialect does not know
         self.unknown = 0
         #: socket or device errors while reading (the link stays open)
         self.read_errors = 0
+        #: frames dropped because signing is on and they were unsigned or badly signed
+        self.signature_rejected = 0
 
     @property
     def mav(self) -> Any:
@@ -90,7 +120,10 @@ class MavlinkEndpoint:
     def _keep(self, msg: Any, out: list[Any]) -> None:
         kind = msg.get_type()
         if kind == "BAD_DATA":
-            self.bad_data += 1
+            if msg.reason == "Invalid signature":
+                self.signature_rejected += 1
+            else:
+                self.bad_data += 1
         elif kind.startswith("UNKNOWN_"):
             self.unknown += 1
         else:
@@ -111,16 +144,31 @@ class MavlinkEndpoint:
         """
         parser = self._conn.mav
         for _ in range(MAX_MESSAGES_PER_RECEIVE):
-            data = self._conn.recv()
-            if not data:
+            try:
+                data, address = self._conn.port.recvfrom(65535)
+            except (BlockingIOError, InterruptedError):
                 return
+            except ConnectionRefusedError:  # an ICMP "port unreachable" left by an earlier send
+                continue
             for msg in parser.parse_buffer(data) or ():
                 self._keep(msg, out)
+                if self._udp_server and self._from_peer_heartbeat(msg) and address != self.reply_address:
+                    self.reply_address = address
+                    self._conn.clients = {address}
+                    log.info("autopilot at %s:%d on %s", address[0], address[1], self.connect)
             if parser.buf_len() > 0:
                 self.bad_data += 1
                 parser.buf = bytearray()
                 parser.buf_index = 0
                 parser.expected_length = mavlink.HEADER_LEN_V1 + 2
+
+    def write(self, frame: bytes) -> None:
+        """Send an already encoded frame (on ``udpin``: to the autopilot's address only)."""
+        self._conn.write(frame)
+
+    def _from_peer_heartbeat(self, msg: Any) -> bool:
+        """A HEARTBEAT from the autopilot's ids (parsing already dropped any that failed signing)."""
+        return msg.get_type() == "HEARTBEAT" and (msg.get_srcSystem(), msg.get_srcComponent()) == self.peer
 
     def close(self) -> None:
         """Close the socket or serial port."""

@@ -12,6 +12,11 @@ setpoints are already streaming. MAVSDK's Offboard plugin repeats the last setpo
 its own thread for as long as the vehicle stays in OFFBOARD; that would hide a stalled companion
 from PX4's offboard-loss failsafe (COM_OF_LOSS_T), so this link stops the repetition whenever no
 fresh setpoint arrived within ``setpoint_timeout``.
+
+MAVSDK's bytes travel through :class:`~companion.autopilot.px4_transport.RawMavlinkTransport`
+(the companion's own endpoint): MAVSDK's ``udpin://`` would answer every address it has heard,
+and MAVSDK cannot sign. The transport replies to the autopilot's address only, passes MAVSDK only
+the autopilot system's frames, and signs and checks signatures when a key is given.
 """
 
 from __future__ import annotations
@@ -41,13 +46,13 @@ from mavsdk.plugins.telemetry.telemetry import FlightMode, Telemetry
 
 from companion.autopilot.ardupilot import SECTOR_INCREMENT_DEG, statustext_chunks
 from companion.autopilot.link import LandedState, VehicleStatus
+from companion.autopilot.px4_transport import RawMavlinkTransport
 from companion.errors import UserError
 from companion.obstacle_distance import sector_distances
 
 log = logging.getLogger(__name__)
 
 _MAV_TYPE_ONBOARD_CONTROLLER = 18
-_MAV_COMP_ID_AUTOPILOT1 = 1
 _MAV_DISTANCE_SENSOR_LASER = 0
 _MAV_FRAME_BODY_FRD = 12
 #: A position source older than this no longer counts as current, seconds.
@@ -77,6 +82,10 @@ class Px4Link:
     :param clock: monotonic clock, seconds (heartbeat times are on it)
     :param source_system: MAVLink system id the companion sends as
     :param source_component: component id (191 = MAV_COMP_ID_ONBOARD_COMPUTER)
+    :param autopilot: (system id, component id) of the autopilot: other systems' frames are
+        counted (``foreign_messages``) and never reach MAVSDK, whichever was heard first
+    :param signing_key: MAVLink 2 signing secret (32 bytes): MAVSDK's frames are signed on their
+        way out and unsigned or badly signed frames never reach MAVSDK; None = no signing
     :param stream_rate_hz: rate asked for position, velocity and landed-state telemetry
     :param min_distance_cm: OBSTACLE_DISTANCE ``min_distance``
     :param max_distance_cm: OBSTACLE_DISTANCE ``max_distance``
@@ -94,6 +103,8 @@ class Px4Link:
         clock: Callable[[], float] = time.monotonic,
         source_system: int = 1,
         source_component: int = 191,
+        autopilot: tuple[int, int] = (1, 1),
+        signing_key: bytes | None = None,
         stream_rate_hz: float = 10.0,
         min_distance_cm: int = 10,
         max_distance_cm: int = 1000,
@@ -101,6 +112,8 @@ class Px4Link:
     ) -> None:
         log_subscribe(_forward_mavsdk_log)
         self._clock = clock
+        self._autopilot = autopilot
+        self._next_discovery = -math.inf
         self._stream_rate_hz = stream_rate_hz
         self._min_cm = min_distance_cm
         self._max_cm = max_distance_cm
@@ -115,22 +128,30 @@ class Px4Link:
             "messages_without_autopilot": 0,
             "send_errors": 0,
             "stream_rate_refused": 0,
+            "foreign_heartbeats": 0,
         }
         configuration = Configuration.create_with_component_type(ComponentType.COMPANION_COMPUTER)
         configuration.system_id = source_system
         configuration.component_id = source_component
         self._configuration = configuration  # kept alive as long as MAVSDK runs
         self._mavsdk = Mavsdk(configuration)
-        result = self._mavsdk.add_any_connection(connect)
+        # MAVSDK gets its bytes through the companion's own endpoint (one autopilot, one address,
+        # signing), not through a socket of its own: see companion.autopilot.px4_transport.
+        result = self._mavsdk.add_any_connection("raw://")
         if result != ConnectionResult.SUCCESS:
             self._mavsdk.destroy()
-            raise UserError(f"autopilot.connect: cannot open {connect!r}: {result.name}")
+            raise UserError(f"autopilot.connect: MAVSDK refused its raw connection: {result.name}")
+        try:
+            self._transport = RawMavlinkTransport(self._mavsdk, connect, autopilot, source_system,
+                                                  source_component, signing_key)
+        except BaseException:
+            self._mavsdk.destroy()
+            raise
         self.connect = connect
 
         # Two locks, so MAVSDK's callback thread (status) never waits on a plugin teardown (offboard).
         self._status_lock = threading.Lock()
         self._offboard_lock = threading.Lock()
-        self._found: Any = None  # the System MAVSDK reported, not yet set up
         self._system: Any = None
         self._telemetry: Telemetry | None = None
         self._direct: MavlinkDirect | None = None
@@ -139,7 +160,6 @@ class Px4Link:
         self._status = VehicleStatus()
         self._seen: dict[str, float] = {}
         self._statustext_id = 0
-        self._autopilot_wait = self._mavsdk.first_autopilot_async(-1.0, self._on_autopilot)
 
         self._stop = threading.Event()
         self._guard = threading.Thread(target=self._guard_setpoint_repeat, name="px4-setpoint-guard",
@@ -148,9 +168,22 @@ class Px4Link:
 
     # ---- discovery and telemetry (callbacks run on MAVSDK's thread) -------------------------
 
-    def _on_autopilot(self, system: Any) -> None:
-        with self._status_lock:
-            self._found = system
+    def _discover(self) -> None:
+        """Set up the configured autopilot once MAVSDK knows it (main thread, checked at 2 Hz).
+
+        Not ``first_autopilot``: that takes whichever autopilot spoke first. (The transport passes
+        MAVSDK only the autopilot system's frames, so no other system should appear at all.)
+        """
+        now = self._clock()
+        if now < self._next_discovery:
+            return
+        self._next_discovery = now + 0.5
+        for system in self._mavsdk.get_systems():
+            wanted = system.get_system_id() == self._autopilot[0] and system.has_autopilot()
+            if self._system is None and wanted:
+                self._set_up(system)
+            else:
+                system.destroy()  # only this wrapper; MAVSDK keeps its own record of the system
 
     def _set_up(self, system: Any) -> None:
         """Create the plugins and subscriptions for the autopilot MAVSDK found (main thread)."""
@@ -176,9 +209,9 @@ class Px4Link:
             log.debug("PX4 refused a telemetry rate: %s", result.name)
 
     def _on_heartbeat(self, message: MavlinkMessage, _user_data: Any) -> None:
-        if message.component_id != _MAV_COMP_ID_AUTOPILOT1:
-            return
-        if self._system is None or message.system_id != self._system.get_system_id():
+        if (message.system_id, message.component_id) != self._autopilot:
+            with self._status_lock:
+                self.counters["foreign_heartbeats"] += 1
             return
         now = self._clock()
         with self._status_lock:
@@ -240,10 +273,10 @@ class Px4Link:
     def poll(self) -> VehicleStatus:
         """Set the plugins up once the autopilot has been found; return the latest status."""
         if self._system is None:
-            with self._status_lock:
-                found, self._found = self._found, None
-            if found is not None:
-                self._set_up(found)
+            self._discover()
+        self.counters.update(self._transport.endpoint_counters)
+        self.counters["foreign_messages"] = self._transport.counters["foreign_messages"]
+        self.counters["unsignable_frames"] = self._transport.counters["unsignable_frames"]
         with self._status_lock:
             return dataclasses.replace(self._status)
 
@@ -346,5 +379,6 @@ class Px4Link:
         self._guard.join(timeout=1.0)
         with self._offboard_lock:
             self._offboard = None
-        self._mavsdk.cancel_first_autopilot(self._autopilot_wait)
+        self._transport.stop_reading()
         self._mavsdk.destroy()
+        self._transport.close()

@@ -63,6 +63,9 @@ class ArduCopterAutopilot(SimAutopilot):
     """A simulated ArduCopter (custom modes, GUIDED, GUID_TIMEOUT, simple proximity avoidance)."""
 
     AUTOPILOT = mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
+    #: accepted unsigned while signing is on (GCS_Signing.cpp's accept list; USB, which takes
+    #: everything unsigned, is not simulated)
+    UNSIGNED_ACCEPTED = frozenset((mavlink.MAVLINK_MSG_ID_RADIO_STATUS, mavlink.MAVLINK_MSG_ID_RADIO))
     DEFAULT_INTERVALS: ClassVar[dict[str, float]] = {
         "HEARTBEAT": 1.0,
         "SYS_STATUS": 0.5,

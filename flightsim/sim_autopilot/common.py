@@ -245,6 +245,8 @@ class SimAutopilot:
     """
 
     AUTOPILOT: int = mavlink.MAV_AUTOPILOT_GENERIC
+    #: message ids the firmware accepts unsigned while MAVLink 2 signing is on
+    UNSIGNED_ACCEPTED: ClassVar[frozenset[int]] = frozenset()
     #: message name -> default stream interval (s) on every link
     DEFAULT_INTERVALS: ClassVar[dict[str, float]] = {}
     #: message names this autopilot can stream or send on request

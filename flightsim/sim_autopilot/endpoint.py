@@ -10,6 +10,12 @@ Each link is one socket, described like a pymavlink/MAVProxy connection string:
 
 Malformed input (garbage, bad CRC, truncated frames, unknown message ids) is counted per link and
 dropped; it never raises.
+
+MAVLink 2 signing, as the firmware does it: with a key (given at start, or installed by a
+SETUP_SIGNING message, which an all-zero key and timestamp turns off again) every frame sent is
+signed, and a frame that arrives unsigned or badly signed is counted (``signature_rejected``) and
+dropped unless its message id is in ``accept_unsigned`` (ArduPilot and PX4 both still take
+RADIO_STATUS from a telemetry radio).
 """
 
 from __future__ import annotations
@@ -23,6 +29,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from companion.autopilot.signing import disable_signing, enable_signing
 from companion.errors import UserError
 
 log = logging.getLogger(__name__)
@@ -70,12 +77,23 @@ class MavlinkEndpoint:
     :param links: connection strings (see module doc); the index in this list is the link number
     :param system_id: source system id of everything sent
     :param component_id: source component id of everything sent
+    :param signing_key: MAVLink 2 signing secret (32 bytes) to start with; None = unsigned
+    :param accept_unsigned: message ids accepted unsigned while signing is on
     """
 
-    def __init__(self, links: list[str], system_id: int = 1, component_id: int = 1) -> None:
+    def __init__(
+        self,
+        links: list[str],
+        system_id: int = 1,
+        component_id: int = 1,
+        signing_key: bytes | None = None,
+        accept_unsigned: frozenset[int] = frozenset(),
+    ) -> None:
         self.system_id = system_id
         self.component_id = component_id
         self.counters: dict[str, int] = {}
+        self.signing_key = signing_key
+        self.accept_unsigned = accept_unsigned
         self._links: list[_Link] = []
         try:
             for text in links:
@@ -84,10 +102,34 @@ class MavlinkEndpoint:
             self.close()
             raise UserError(f"autopilot link: cannot open {text!r}: {exc.strerror or exc}") from None
 
-    def _new_parser(self) -> Any:
+    def _new_parser(self, link_id: int = 0) -> Any:
         parser = mavlink.MAVLink(None, self.system_id, self.component_id)
         parser.robust_parsing = True
+        if self.signing_key is not None:
+            enable_signing(parser, self.signing_key, link_id, self.accept_unsigned)
         return parser
+
+    def set_signing_key(self, key: bytes | None, initial_timestamp: int | None = None) -> None:
+        """Sign with ``key`` from now on, on every link (None: stop signing, accept unsigned)."""
+        self.signing_key = key
+        for index, link in enumerate(self._links):
+            for mav in (link.parser, link.encoder, *link.parsers.values()):
+                if key is None:
+                    disable_signing(mav)
+                else:
+                    enable_signing(mav, key, index, self.accept_unsigned, initial_timestamp)
+
+    def _on_setup_signing(self, msg: Any) -> None:
+        """SETUP_SIGNING: take the key (as both firmwares do, on whichever link it arrived)."""
+        key = bytes(msg.secret_key)
+        if key == bytes(len(key)) and msg.initial_timestamp == 0:
+            self.set_signing_key(None)
+            self.count("signing_disabled")
+            log.info("signing disabled by SETUP_SIGNING")
+        else:
+            self.set_signing_key(key, msg.initial_timestamp or None)
+            self.count("signing_key_set")
+            log.info("signing key installed by SETUP_SIGNING")
 
     def _open(self, spec: LinkSpec) -> _Link:
         if spec.kind == "tcpin":
@@ -102,7 +144,8 @@ class MavlinkEndpoint:
             else:
                 sock.bind(("127.0.0.1" if spec.host in ("127.0.0.1", "localhost") else "", 0))
         sock.setblocking(False)
-        link = _Link(spec, sock, self._new_parser(), self._new_parser())
+        index = len(self._links)
+        link = _Link(spec, sock, self._new_parser(index), self._new_parser(index))
         if spec.kind == "udpout":
             link.peers[(spec.host, spec.port)] = float("inf")
         log.info("autopilot link %d: %s:%s:%d", len(self._links), spec.kind, spec.host, spec.port)
@@ -148,7 +191,7 @@ class MavlinkEndpoint:
                 return []
             client.setblocking(False)
             link.peers[client] = 0.0
-            link.parsers[client] = self._new_parser()
+            link.parsers[client] = self._new_parser(index)
             log.info("autopilot link %d: TCP client %s:%d", index, *addr[:2])
             return []
         out = []
@@ -168,7 +211,7 @@ class MavlinkEndpoint:
                 # a datagram carries whole frames: a leftover is a truncated frame, not the start of
                 # the next datagram's (resynchronising across datagrams would eat a good frame)
                 self.count("malformed")
-                link.parser = self._new_parser()
+                _drop_partial_frame(link.parser)
         return out
 
     def _read_tcp_client(
@@ -197,13 +240,17 @@ class MavlinkEndpoint:
         good = []
         for msg in msgs:
             kind = msg.get_type()
-            if kind == "BAD_DATA":
+            if kind == "BAD_DATA" and msg.reason == "Invalid signature":
+                self.count("signature_rejected")
+            elif kind == "BAD_DATA":
                 self.count("malformed")
             elif kind.startswith("UNKNOWN"):
                 self.count("unknown_message")
             else:
                 self.count("frames_in")
                 good.append(msg)
+                if kind == "SETUP_SIGNING":
+                    self._on_setup_signing(msg)
         return good
 
     # ----------------------------------------------------------------- send
@@ -247,3 +294,10 @@ class MavlinkEndpoint:
                     client.close()
             link.sock.close()
         self._links = []
+
+
+def _drop_partial_frame(parser: Any) -> None:
+    """Forget a truncated frame left in ``parser`` (keeps its signing state: replay protection)."""
+    parser.buf = bytearray()
+    parser.buf_index = 0
+    parser.expected_length = mavlink.HEADER_LEN_V1 + 2

@@ -97,6 +97,9 @@ class PX4Autopilot(SimAutopilot):
     """A simulated PX4 multicopter (custom modes, OFFBOARD, offboard-loss failsafe)."""
 
     AUTOPILOT = mavlink.MAV_AUTOPILOT_PX4
+    #: accepted unsigned while signing is on (mavlink_sign_control.cpp, MAV_SIGN_CFG = 2)
+    UNSIGNED_ACCEPTED = frozenset((mavlink.MAVLINK_MSG_ID_RADIO_STATUS, mavlink.MAVLINK_MSG_ID_ADSB_VEHICLE,
+                                   mavlink.MAVLINK_MSG_ID_COLLISION))
     MODE_REFUSED = mavlink.MAV_RESULT_TEMPORARILY_REJECTED  # commander: transition denied
     DEFAULT_INTERVALS: ClassVar[dict[str, float]] = {
         "HEARTBEAT": 1.0,

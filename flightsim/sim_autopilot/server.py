@@ -50,6 +50,8 @@ class SimAutopilotServer:
     :param start_yaw: rad, counter-clockwise from East
     :param params: parameter overrides applied before the first message (name -> value)
     :param vehicle: an existing vehicle to reuse (JSBSim load is the slow part); reset here
+    :param signing_key: MAVLink 2 signing secret the autopilot starts with (as if installed
+        earlier with SETUP_SIGNING); None = unsigned until a SETUP_SIGNING arrives
     """
 
     def __init__(
@@ -60,8 +62,10 @@ class SimAutopilotServer:
         start_yaw: float = 0.0,
         params: dict[str, float] | None = None,
         vehicle: Vehicle | None = None,
+        signing_key: bytes | None = None,
     ) -> None:
-        self.endpoint = MavlinkEndpoint(links)
+        self.endpoint = MavlinkEndpoint(links, signing_key=signing_key,
+                                        accept_unsigned=PERSONALITIES[personality].UNSIGNED_ACCEPTED)
         self.t0 = time.monotonic()
         self.autopilot = make_autopilot(personality, boot_time=0.0)
         for name, value in (params or {}).items():
@@ -178,6 +182,12 @@ def configure_parser(parser: Any) -> None:
         metavar="NAME=VALUE",
         help="set a parameter before start, e.g. COM_OBL_RC_ACT=5; repeatable",
     )
+    parser.add_argument(
+        "--signing-key",
+        metavar="FILE",
+        help="MAVLink 2 signing key file (64 hex digits, mode 0600, as the companion's "
+        "autopilot.signing_key): sign everything, drop unsigned input",
+    )
 
 
 def command(args: Any) -> int:
@@ -196,7 +206,11 @@ def command(args: Any) -> int:
     for name in params:
         if name not in known:
             raise UserError(f"--param {name}: not a parameter of the {args.personality} table")
-    server = SimAutopilotServer(args.personality, args.link or ["tcpin:127.0.0.1:5760"], params=params)
+    from companion.autopilot.signing import load_signing_key
+
+    key = load_signing_key(args.signing_key, "--signing-key") if args.signing_key else None
+    server = SimAutopilotServer(args.personality, args.link or ["tcpin:127.0.0.1:5760"], params=params,
+                                signing_key=key)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):  # Ctrl-C, or a supervisor's/test's SIGTERM
         signal.signal(sig, lambda *_: stop.set())

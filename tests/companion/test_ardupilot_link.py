@@ -29,7 +29,7 @@ def linked():
     """A link listening on UDP and a peer (system 7) that has sent it one heartbeat."""
     port = free_udp_port()
     clock = Clock()
-    link = ArduPilotLink(f"udpin:127.0.0.1:{port}", clock=clock, source_system=7)
+    link = ArduPilotLink(f"udpin:127.0.0.1:{port}", clock=clock, source_system=7, autopilot=(7, 1))
     peer = AutopilotPeer(f"udpout:127.0.0.1:{port}", sysid=7, compid=1)
     peer.heartbeat(armed=True)
     _poll_until(link, lambda s: s.heartbeat_time is not None)
@@ -180,8 +180,19 @@ def test_requests_status_streams_until_they_arrive(linked):
 
 def test_refused_command_is_counted(linked):
     link, peer, _ = linked
-    peer.mav.command_ack_send(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAV_RESULT_DENIED)
+    peer.mav.command_ack_send(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAV_RESULT_DENIED, 0, 0, 7, 191)
     _poll_until(link, lambda s: link.counters["command_nacks"] == 1)
+
+
+def test_acks_addressed_to_others_are_not_the_companions(linked):
+    """ArduPilot sends every COMMAND_ACK on every link: 20 NACKs meant for the GCS are not ours."""
+    link, peer, _ = linked
+    for _ in range(20):
+        peer.mav.command_ack_send(mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_RESULT_DENIED, 0, 0, 255, 190)
+    peer.mav.command_ack_send(mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_RESULT_DENIED, 0, 0, 7, 0)
+    peer.mav.command_ack_send(mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_RESULT_DENIED)  # no target
+    _poll_until(link, lambda s: link.counters["acks_for_others"] == 22)
+    assert link.counters["command_nacks"] == 0
 
 
 def test_other_systems_and_ground_stations_are_ignored(linked):
@@ -191,7 +202,7 @@ def test_other_systems_and_ground_stations_are_ignored(linked):
     gcs = AutopilotPeer(f"udpout:127.0.0.1:{port}", sysid=255, compid=190)
     other.heartbeat(armed=False)
     gcs.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
-    _poll_until(link, lambda s: link.counters["foreign_heartbeats"] == 1)
+    _poll_until(link, lambda s: link.counters["foreign_heartbeats"] == 2)
     assert link.target == (7, 1)
     assert link.poll().armed  # still the locked autopilot's state
     other.close()

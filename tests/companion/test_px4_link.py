@@ -155,3 +155,53 @@ def test_bad_connection_url_is_a_user_error():
         Px4Link("serial:///dev/nonexistent-tty:57600")
     with pytest.raises(UserError, match=r"autopilot\.connect"):
         Px4Link("bogus://what")
+
+
+def test_an_impostor_px4_that_speaks_first_is_never_used():
+    """first_autopilot() took whichever autopilot MAVSDK heard first (system 42, OFFBOARD, armed), and
+    MAVSDK's own udpin:// wrote everything to every address it had heard."""
+    port = free_udp_port()
+    link = Px4Link(f"udpin://127.0.0.1:{port}", autopilot=(1, 1))
+    impostor = SimulatedAutopilot(f"udpout:127.0.0.1:{port}", autopilot=mavlink.MAV_AUTOPILOT_PX4, sysid=42)
+    vehicle = None
+    try:
+        _wait(lambda: link.poll() and link.counters["foreign_messages"] >= 10)  # never reach MAVSDK
+        time.sleep(1.0)
+        status = link.poll()
+        assert not link.connected and status.heartbeat_time is None and not status.armed
+        link.send_velocity(1.0, 0.0)
+        assert link.counters["setpoints_without_autopilot"] == 1
+        vehicle = SimulatedAutopilot(f"udpout:127.0.0.1:{port}", autopilot=mavlink.MAV_AUTOPILOT_PX4, sysid=1)
+        _wait(lambda: link.poll().heartbeat_time is not None and link.connected)
+        assert link._system.get_system_id() == 1
+        t0 = time.monotonic()
+        link.send_velocity(0.5, 0.0)
+        msg = vehicle.wait_for("SET_POSITION_TARGET_LOCAL_NED", since=t0)
+        assert (msg.target_system, msg.target_component) == (1, 1)
+        time.sleep(0.3)
+        assert impostor.messages() == [], "MAVSDK's udpin:// wrote to every address it had heard"
+    finally:
+        link.close()
+        impostor.close()
+        if vehicle is not None:
+            vehicle.close()
+
+
+@pytest.mark.parametrize(
+    ("url", "expected"),
+    [
+        ("udpin://0.0.0.0:14540", ("udpin:0.0.0.0:14540", 921600)),
+        ("udp://:14540", ("udpin::14540", 921600)),
+        ("udpout://10.0.0.2:14580", ("udpout:10.0.0.2:14580", 921600)),
+        ("tcpout://127.0.0.1:5760", ("tcp:127.0.0.1:5760", 921600)),
+        ("serial:///dev/ttyTHS1:57600", ("/dev/ttyTHS1", 57600)),
+        ("serial:///dev/ttyTHS1", ("/dev/ttyTHS1", 921600)),
+        ("/dev/ttyUSB0", ("/dev/ttyUSB0", 921600)),
+    ],
+)
+def test_mavsdk_urls_as_pymavlink_addresses(url, expected):
+    from companion.autopilot.px4_transport import pymavlink_address
+
+    assert pymavlink_address(url, 921600) == expected
+    with pytest.raises(UserError, match=r"autopilot\.connect: 'bogus://x': scheme 'bogus' is not supported"):
+        pymavlink_address("bogus://x", 921600)

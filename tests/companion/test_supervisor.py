@@ -226,11 +226,12 @@ def test_pilot_mode_change_is_pilot_override_until_guided_again(from_hold: bool)
     assert rig.steps(100) is CommandKind.NONE
     assert rig.sup.state is S.PILOT_OVERRIDE
     rig.set(guided=True, mode="GUIDED")
-    assert rig.step() is CommandKind.POLICY
-    assert rig.transitions() == [
-        (S.PILOT_OVERRIDE, S.STANDBY, "mode back to guided (GUIDED)"),
-        (S.STANDBY, S.ACTIVE, "engaged"),
-    ]
+    assert rig.step() is CommandKind.NONE
+    assert rig.transitions() == [(S.PILOT_OVERRIDE, S.STANDBY, "mode back to guided (GUIDED)")]
+    assert rig.sup.engage_blockers() == ["re-engage delay"]
+    assert rig.steps(9) is CommandKind.NONE  # guided for 0.9 s: not yet
+    assert rig.steps(2) is CommandKind.POLICY  # reengage_delay (1 s) passed
+    assert rig.transitions() == [(S.STANDBY, S.ACTIVE, "engaged")]
 
 
 def test_back_to_guided_on_the_ground_waits_in_standby() -> None:
@@ -340,3 +341,62 @@ def test_config_from_toml_with_ranges() -> None:
         from_dict(SupervisorConfig, {"recover_scans": 0}, prefix="supervisor.")
     with pytest.raises(UserError, match=r"supervisor\.recover_scans: expected an integer"):
         from_dict(SupervisorConfig, {"recover_scans": 2.5}, prefix="supervisor.")
+
+
+def test_mode_flapping_at_20_hz_never_reengages_and_barely_announces() -> None:
+    """A sender flapping GUIDED/LOITER at 20 Hz for 10 s made 340 transitions; now: three."""
+    rig = Rig()
+    rig.to_active()
+    kinds = []
+    for i in range(200):  # 10 s of 50 ms loops, the mode changing every loop
+        rig.set(guided=i % 2 == 1, mode="GUIDED" if i % 2 else "LOITER")
+        kinds.append(rig.step(dt=0.05, scan=i % 2 == 0))
+        if i == 0:
+            assert kinds[0] is CommandKind.NONE, "the override must take effect at once"
+    assert set(kinds) == {CommandKind.NONE}
+    assert [t[:2] for t in rig.transitions()] == [(S.ACTIVE, S.PILOT_OVERRIDE), (S.PILOT_OVERRIDE, S.STANDBY)]
+    assert rig.sup.counters["engaged"] == 1
+    assert rig.sup.counters["reengage_debounced"] >= 95  # every GUIDED spell cut short, counted
+    # the flapping stops in GUIDED: engaged again once it has held for reengage_delay
+    rig.set(guided=True, mode="GUIDED")
+    assert rig.steps(8) is CommandKind.NONE
+    assert rig.steps(4) is CommandKind.POLICY
+
+
+@pytest.mark.parametrize(
+    "change", [{"armed": False}, {"landed_state": LandedState.LANDING}, {"guided": False, "mode": "BRAKE"}]
+)
+def test_any_disengage_then_reengage_is_debounced(change: dict[str, object]) -> None:
+    rig = Rig()
+    rig.to_active()
+    normal = dataclasses.replace(rig.vehicle)
+    for _ in range(20):  # the condition flips every loop for 2 s
+        rig.set(**change)
+        rig.step()
+        rig.vehicle = dataclasses.replace(normal)
+        assert rig.step() is CommandKind.NONE
+    assert rig.sup.counters["engaged"] == 1
+    assert len(rig.transitions()) <= 2
+
+
+def test_announcements_are_rate_limited_and_summed_up() -> None:
+    """Inference faults every other scan with reengage/recover at the minimum: many transitions,
+    a burst of announcements, then one a second, and a summary that ends in the current state."""
+    rig = Rig(SupervisorConfig(recover_scans=1, reengage_delay=0.0, announce_burst=4, announce_interval=1.0))
+    rig.sup.start()
+    rig.steps(12)
+    announced = rig.sup.drain_transitions()  # start, standby, engaged: 3 of the burst of 4
+    for i in range(100):  # 10 s: HOLD and back every two scans
+        rig.step(ok=i % 2 == 1)
+        announced += rig.sup.drain_transitions()
+    made = rig.sup.counters["ACTIVE->HOLD"] + rig.sup.counters["HOLD->ACTIVE"]
+    assert made >= 99
+    assert len(announced) <= 4 + 11  # the burst, then one per second
+    assert rig.sup.counters["transitions_not_announced"] >= made - len(announced)
+    summaries = [t for t in announced if t.reason.endswith("transitions not announced")]
+    assert summaries and all(int(t.reason.split()[0]) >= 1 for t in summaries)
+    rig.steps(20)  # quiet again: one last summary brings the announced state up to date
+    last = rig.sup.drain_transitions()
+    assert last == [] or last[-1].new is rig.sup.state
+    shown = (announced + last)[-1]
+    assert shown.new is rig.sup.state is S.ACTIVE
