@@ -23,6 +23,7 @@ class Recording:
     """One MCAP file, decoded.
 
     :param messages: topic -> [(log time s, message)], log-time order
+    :param sequences: topic -> the MCAP sequence number of each of those messages
     :param schemas: topic -> schema name
     :param metadata: metadata record name -> its key/value map
     :param truncated: the file ends before its footer (the rest was not written)
@@ -30,6 +31,7 @@ class Recording:
 
     path: Path
     messages: dict[str, list[tuple[float, dict[str, Any]]]] = field(default_factory=dict)
+    sequences: dict[str, list[int]] = field(default_factory=dict)
     schemas: dict[str, str] = field(default_factory=dict)
     schema_data: dict[str, bytes] = field(default_factory=dict)
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
@@ -45,7 +47,7 @@ def read_recording(path: str | Path) -> Recording:
     rec = Recording(path)
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
-    by_topic: dict[str, list[tuple[int, int, dict[str, Any]]]] = defaultdict(list)
+    by_topic: dict[str, list[tuple[int, int, int, dict[str, Any]]]] = defaultdict(list)
     order = 0
     try:
         with open(path, "rb") as f:
@@ -62,10 +64,11 @@ def read_recording(path: str | Path) -> Recording:
                         if channel.message_encoding != "json":
                             continue
                         order += 1
-                        by_topic[channel.topic].append((record.log_time, order, json.loads(record.data)))
+                        by_topic[channel.topic].append(
+                            (record.log_time, order, record.sequence, json.loads(record.data)))
             except Exception as exc:  # a cut-off or damaged tail: keep what came before
                 if not by_topic and not rec.metadata:
-                    raise UserError(f"{path}: not a readable MCAP recording ({type(exc).__name__}: {exc})") from None
+                    raise UserError(f"{path}: not a readable MCAP recording ({exc})") from None
                 rec.truncated = True
     except OSError as exc:
         raise UserError(f"cannot read {path}: {exc.strerror or exc}") from None
@@ -76,5 +79,6 @@ def read_recording(path: str | Path) -> Recording:
             rec.schema_data[channel.topic] = schema.data
     for topic, rows in by_topic.items():
         rows.sort(key=lambda r: (r[0], r[1]))
-        rec.messages[topic] = [(ns * 1e-9, msg) for ns, _, msg in rows]
+        rec.messages[topic] = [(ns * 1e-9, msg) for ns, _, _, msg in rows]
+        rec.sequences[topic] = [seq for _, _, seq, _ in rows]
     return rec

@@ -7,7 +7,7 @@ observation and cloud is a fresh array), so nothing is copied here.
 
 The parts report through the taps of :mod:`companion.recording.taps`; the goal and waypoints of
 the navigation work, and anything else worth recording, go through :meth:`FlightRecorder.record`
-(a topic with its own JSON schema: add it to ``schemas.OWN_SCHEMAS``).
+(a topic with its own JSON schema in ``schemas.OWN_SCHEMAS``).
 """
 
 from __future__ import annotations
@@ -76,8 +76,8 @@ class FlightRecorder:
     def record(self, channel: s.Channel, build: Callable[..., dict[str, Any]], *args: Any) -> None:
         """Any other record: ``build(t, *args)`` gives its JSON object (in the writer thread).
 
-        The extension point for goal and waypoints: a ``Channel`` with a schema in
-        ``schemas.OWN_SCHEMAS``, and a builder function next to those in :mod:`messages`.
+        The extension point for goal and waypoints: a ``Channel`` whose schema is in
+        ``schemas.OWN_SCHEMAS`` (or added with ``schemas.register_schema``), and a builder function.
         """
         if self.active:
             self.sink.submit(channel, self._clock(), build, *args)  # type: ignore[union-attr]

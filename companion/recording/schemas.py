@@ -148,6 +148,11 @@ TRUTH_POSE = Channel("/truth/pose", "foxglove.PoseInFrame")
 TRUTH_TF = Channel("/tf", "foxglove.FrameTransform")
 
 
+def register_schema(name: str, schema: dict[str, Any]) -> None:
+    """Add a schema for another channel (flightsim's ground truth; goal and waypoints, ...)."""
+    OWN_SCHEMAS[name] = schema
+
+
 def schema_json(name: str) -> dict[str, Any]:
     """The JSON Schema of ``name`` (Foxglove's or the project's own)."""
     if name in FOXGLOVE_SCHEMAS:

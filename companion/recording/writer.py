@@ -44,17 +44,19 @@ class McapSink:
     :param file_bytes: a file is finished and the next part started before it grows past this
     :param metadata: written into every file (each part can be read on its own)
     :param queue_size: records waiting; more are dropped and counted in :attr:`dropped`
+    :param metadata_name: name of the metadata record holding ``metadata``
     :raises OSError: the directory cannot be made, or the first file cannot be opened
     """
 
     def __init__(self, directory: str | Path, budget_bytes: int, file_bytes: int, metadata: dict[str, str],
-                 queue_size: int = 512) -> None:
+                 queue_size: int = 512, metadata_name: str = METADATA_NAME) -> None:
         if file_bytes < 4 * CHUNK_SIZE:
             raise ValueError(f"file size {file_bytes} B is below 4 chunks of {CHUNK_SIZE} B")
         self.directory = Path(directory)
         self.budget_bytes = int(budget_bytes)
         self.file_bytes = int(file_bytes)
         self.metadata = dict(metadata)
+        self.metadata_name = metadata_name
         self.dropped = 0
         self.written = 0
         self.deleted: list[Path] = []
@@ -144,7 +146,7 @@ class McapSink:
         self.files.append(path)
         writer = Writer(self._stream, chunk_size=CHUNK_SIZE, compression=CompressionType.ZSTD)
         writer.start(profile="", library="lidar-avoid")
-        writer.add_metadata(METADATA_NAME, self.metadata)
+        writer.add_metadata(self.metadata_name, self.metadata)
         self._writer = writer
         self._channels = {}
         self._last_flush = time.monotonic()
