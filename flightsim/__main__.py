@@ -11,6 +11,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "fly": ("flightsim.harness", "SITL flight: the real companion flying a simulated or external autopilot"),
     "autopilot": ("flightsim.sim_autopilot.server", "a simulated ArduCopter/PX4 on MAVLink sockets"),
     "demo": ("flightsim.demo", "a few short SITL flights in generated and example rooms (under 3 minutes)"),
+    "report": ("flightsim.recording_report", "picture of a flight from its MCAP recording: path, speed, "
+               "clearance, shield, states"),
 }
 
 
