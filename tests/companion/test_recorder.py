@@ -174,8 +174,9 @@ def test_the_companion_flies_on_when_its_recording_directory_cannot_be_made(tmp_
     assert code == 0, err[-3000:]
 
 
-def _record_companion(tmp_path: Path, seconds: float = 3.0) -> Path:
-    """A short recording of the real companion process (constant lidar, the 'steer' policy)."""
+def _record_companion(tmp_path: Path, setpoints: int = 25) -> Path:
+    """A short recording of the real companion process (constant lidar, the 'steer' policy), ended
+    once the autopilot has had ``setpoints`` setpoints."""
     lidar_port, mavlink_port = free_udp_port(), free_udp_port()
     model = write_policy(tmp_path / "steer.onnx", kind="steer")
     config = write_config(tmp_path, model, lidar_port, mavlink_port,
@@ -185,8 +186,10 @@ def _record_companion(tmp_path: Path, seconds: float = 3.0) -> Path:
     lidar = LidarSender(lidar_port)
     try:
         lidar.on = True
-        assert vehicle.wait_for("SET_POSITION_TARGET_LOCAL_NED", timeout=15) is not None
-        time.sleep(seconds)
+        deadline = time.monotonic() + 40
+        while len(vehicle.times("SET_POSITION_TARGET_LOCAL_NED")) < setpoints:
+            assert time.monotonic() < deadline, "too few setpoints from the companion"
+            time.sleep(0.1)
     finally:
         lidar.close()
         code, _, err = stop(proc)
