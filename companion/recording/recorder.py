@@ -166,7 +166,7 @@ class FlightRecorder:
         sink = self.sink
         if sink is not None and sink.failure is not None and not self._failure_reported:
             self._failure_reported = True
-            self._notices.append(f"recording stopped: {sink.failure}"[:200])
+            self._notices.append(f"recording stopped: {sink.failure_reason}"[:200])
         out, self._notices = self._notices, []
         return out
 
@@ -258,6 +258,7 @@ def open_recorder(
     except OSError as exc:
         reason = f"{exc.strerror or exc}: {exc.filename or rc.directory}"
         log.warning("flight recorder: recording off, %s", reason)
-        return FlightRecorder(None, clock, config.scan.max_range, mount, notice=f"recording off: {reason}")
+        return FlightRecorder(None, clock, config.scan.max_range, mount,
+                              notice=f"recording off: {exc.strerror or exc}")
     log.info("flight recorder: writing %s", sink.current)
     return FlightRecorder(sink, clock, config.scan.max_range, mount, rc.cloud_decimation)

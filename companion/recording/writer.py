@@ -61,7 +61,8 @@ class McapSink:
         self.written = 0
         self.deleted: list[Path] = []
         self.files: list[Path] = []
-        self.failure: str | None = None
+        self.failure: str | None = None  # why it stopped, with the file: for the log
+        self.failure_reason: str | None = None  # the same, short: for the pilot's STATUSTEXT
         self._queue: queue.Queue[Any] = queue.Queue(maxsize=queue_size)
         self._name = time.strftime("flight-%Y%m%d-%H%M%S", time.gmtime()) + f"-{os.getpid()}"
         self._stream: Any = None
@@ -119,6 +120,7 @@ class McapSink:
             self._finish()
         except Exception as exc:  # disk full, directory removed, ...: stop recording, never the flight
             self.failure = _describe(exc, self.current)
+            self.failure_reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else self.failure
             log.warning("flight recorder stopped: %s", self.failure)
             self._abandon()
 

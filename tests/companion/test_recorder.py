@@ -134,7 +134,7 @@ class FakeLink:
 
 
 def test_an_unusable_directory_is_told_to_the_pilot_once_the_autopilot_is_there():
-    recorder = FlightRecorder(None, time.monotonic, 10.0, POSE, notice="recording off: Not a directory: /x")
+    recorder = FlightRecorder(None, time.monotonic, 10.0, POSE, notice="recording off: Not a directory")
     link = FakeLink()
     tapped = tap_parts(recorder, link=link)["link"]
     tapped.poll()
@@ -142,7 +142,7 @@ def test_an_unusable_directory_is_told_to_the_pilot_once_the_autopilot_is_there(
     link.status.heartbeat_time = 1.0
     tapped.poll()
     tapped.poll()
-    assert link.texts == [("recording off: Not a directory: /x", 4)]
+    assert link.texts == [("recording off: Not a directory", 4)]
     tapped.send_velocity(1.0, 0.0)  # recording is off: the taps pass everything through
     assert not recorder.active
 
