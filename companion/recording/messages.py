@@ -98,7 +98,7 @@ def laser_scan(t: float, scan: np.ndarray, max_range: float) -> dict[str, Any]:
     return {
         "timestamp": stamp(t), "frame_id": BODY_FRAME, "pose": identity_pose(),
         "start_angle": _BIN_CENTRE, "end_angle": _BIN_CENTRE + step * (n - 1),
-        "ranges": (np.asarray(scan, dtype=np.float64) * max_range).tolist(), "intensities": [],
+        "ranges": np.round(np.asarray(scan, dtype=np.float64) * max_range, 4).tolist(), "intensities": [],
     }
 
 

@@ -104,6 +104,7 @@ class McapSink:
     # ---- the writer thread ---------------------------------------------------------------
 
     def _run(self) -> None:
+        _yield_to_the_loop()
         try:
             while True:
                 try:
@@ -178,6 +179,15 @@ class McapSink:
             total -= sizes[path]
             self.deleted.append(path)
             log.info("flight recorder: deleted %s (%d B) to stay within the budget", path.name, sizes[path])
+
+
+def _yield_to_the_loop() -> None:
+    """Run this thread at normal priority, niced: a thread inherits the loop's SCHED_FIFO (the
+    systemd unit's), and recording must never compete with the loop for a core."""
+    with contextlib.suppress(AttributeError, OSError):  # not Linux, or not allowed: carry on as is
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))  # 0: this thread (Linux)
+    with contextlib.suppress(AttributeError, OSError):
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 10)
 
 
 def _describe(exc: BaseException, path: Path | None) -> str:

@@ -275,3 +275,20 @@ def test_recorder_config_is_checked_and_its_directory_is_relative_to_the_config(
                            "recorder.budget_mb=100.0"])
     config = load_config(path, ['recorder.directory="flights"'])
     assert config.recorder.directory == str(tmp_path / "flights")
+
+
+def test_the_recorder_and_replay_need_neither_foxglove_nor_matplotlib(tmp_path):
+    """foxglove-sdk is an extra and matplotlib the simulator's: the companion's install has neither."""
+    script = tmp_path / "blocked.py"
+    script.write_text(
+        "import importlib.abc, sys\n"
+        "class Block(importlib.abc.MetaPathFinder):\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        "        if name.split('.')[0] in ('foxglove', 'matplotlib', 'jsonschema', 'flightsim'):\n"
+        "            raise ImportError(name + ' is blocked')\n"
+        "sys.meta_path.insert(0, Block())\n"
+        "import companion.app, companion.replay, companion.recording.reader\n"
+        "print('imported')\n"
+    )
+    done = subprocess.run([sys.executable, str(script)], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0 and "imported" in done.stdout, done.stderr
