@@ -221,7 +221,7 @@ def run_companion(args: argparse.Namespace, revolutions: int, recording: bool = 
     autopilot = Autopilot(mavlink_port)
     command = [sys.executable, "-m", "companion", "run", "--config", str(config)]
     if args.realtime:
-        command = ["chrt", "--fifo", "20", *command]
+        command = ["chrt", "--reset-on-fork", "--fifo", "20", *command]  # as the unit: ResetOnFork
     proc = subprocess.Popen(
         command,
         cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,

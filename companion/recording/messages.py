@@ -9,6 +9,7 @@ from __future__ import annotations
 import base64
 import dataclasses
 import enum
+import json
 import math
 from collections.abc import Mapping
 from typing import Any
@@ -37,9 +38,26 @@ def seconds(stamp_: Mapping[str, int]) -> float:
     return stamp_["sec"] + stamp_["nsec"] * 1e-9
 
 
-def pack_f32(values: np.ndarray) -> str:
+class Base64(bytes):
+    """A JSON string field given as its base64 bytes; :func:`to_json` writes it without the JSON
+    encoder (which would scan a 460 kB cloud character by character: 7 ms against 0.1 ms)."""
+
+
+def pack_f32(values: np.ndarray) -> Base64:
     """float32 little-endian, base64: exact, compact."""
-    return base64.b64encode(np.ascontiguousarray(values, dtype="<f4").tobytes()).decode()
+    return Base64(base64.b64encode(np.ascontiguousarray(values, dtype="<f4").tobytes()))
+
+
+def to_json(message: dict[str, Any]) -> bytes:
+    """``message`` as compact JSON bytes; :class:`Base64` fields (top level) are spliced in as strings."""
+    raw = {k: v for k, v in message.items() if isinstance(v, Base64)}
+    rest = {k: v for k, v in message.items() if not isinstance(v, Base64)} if raw else message
+    text = json.dumps(rest, separators=(",", ":")).encode()
+    if not raw:
+        return text
+    parts = [text[:-1]] + [b'%s"%s":"%s"' % (b"," if (i or rest) else b"", k.encode(), v)
+                           for i, (k, v) in enumerate(raw.items())]
+    return b"".join(parts) + b"}"
 
 
 def unpack_f32(text: str) -> np.ndarray:

@@ -1,9 +1,13 @@
 """The loop's side of the flight recorder: turn what the loop's parts saw into queued records.
 
 Every ``on_*`` method runs in the loop thread and does nearly nothing: it takes the clock (the
-loop's own, so recorded times line up with the loop's decisions) and hands references to
-:meth:`McapSink.submit`. The arrays it passes are never changed afterwards by the loop (each scan,
-observation and cloud is a fresh array), so nothing is copied here.
+loop's own, so recorded times line up with the loop's decisions) and holds the record, a tuple of
+references, until :meth:`FlightRecorder.flush` hands them to :meth:`McapSink.submit`. The taps
+flush once the iteration's time-critical messages are out (after the setpoint, OBSTACLE_DISTANCE,
+HEARTBEAT), so the writer thread encodes while the loop waits for the next revolution instead
+of competing with it for the interpreter lock between the last packet and the setpoint. The
+arrays held are never changed afterwards by the loop (each scan, observation and cloud is a fresh
+array), so nothing is copied here.
 
 The parts report through the taps of :mod:`companion.recording.taps`; the goal and waypoints of
 the navigation work, and anything else worth recording, go through :meth:`FlightRecorder.record`
@@ -36,6 +40,9 @@ STATUS_PERIOD = 0.1
 COUNTERS_PERIOD = 1.0
 #: Longest the loop waits for the interpreter lock while the writer thread runs, s.
 SWITCH_INTERVAL = 0.0005
+#: Records held between flushes at most (more are dropped and counted), and held at most this long, s.
+MAX_HELD = 256
+MAX_HOLD_TIME = 0.5
 _LOG_LEVEL = {0: 4, 1: 4, 2: 4, 3: 4, 4: 3, 5: 2, 6: 2, 7: 1}  # MAV_SEVERITY -> foxglove.LogLevel
 
 
@@ -67,10 +74,36 @@ class FlightRecorder:
         self._shield_reset = True
         self._last_status = -float("inf")
         self._last_counters = -float("inf")
+        self._held: list[tuple[Any, ...]] = []
+        self._held_since = 0.0
+        self.held_dropped = 0
 
     @property
     def active(self) -> bool:
         return self.sink is not None and self.sink.failure is None
+
+    def _hold(self, channel: s.Channel, t: float, build: Callable[..., dict[str, Any]], *args: Any,
+              seq: int = 0) -> None:
+        if len(self._held) >= MAX_HELD:
+            self.held_dropped += 1
+            return
+        if not self._held:
+            self._held_since = self._clock()
+        self._held.append((channel, t, build, args, seq))
+
+    def flush(self) -> None:
+        """Hand the held records to the writer thread (call when nothing time-critical is pending)."""
+        held, self._held = self._held, []
+        sink = self.sink
+        if sink is None:
+            return
+        for channel, t, build, args, seq in held:
+            sink.submit(channel, t, build, *args, seq=seq)
+
+    def flush_if_stale(self) -> None:
+        """Flush records held longer than :data:`MAX_HOLD_TIME` (an iteration that sent nothing)."""
+        if self._held and self._clock() - self._held_since >= MAX_HOLD_TIME:
+            self.flush()
 
     def watch_counters(self, **sources: Mapping[str, int]) -> None:
         """Counter dicts recorded once a second (copied in the loop thread, then queued)."""
@@ -83,7 +116,7 @@ class FlightRecorder:
         ``schemas.OWN_SCHEMAS`` (or added with ``schemas.register_schema``), and a builder function.
         """
         if self.active:
-            self.sink.submit(channel, self._clock(), build, *args)  # type: ignore[union-attr]
+            self._hold(channel, self._clock(), build, *args)
 
     # ---- what the taps report ----------------------------------------------------------------
 
@@ -95,7 +128,7 @@ class FlightRecorder:
             self._pending_clouds.append(self._cloud_seq)
             if self.cloud_decimation and self.active:
                 points = cloud if self.cloud_decimation == 1 else cloud[:: self.cloud_decimation]
-                self.sink.submit(s.CLOUD, self._clock(), m.point_cloud, points,  # type: ignore[union-attr]
+                self._hold(s.CLOUD, self._clock(), m.point_cloud, points,
                                  self.mount_pose, seq=self._cloud_seq)
 
     def on_stacked(self, scan: np.ndarray, obs: np.ndarray, reset: bool) -> None:
@@ -111,9 +144,8 @@ class FlightRecorder:
         if stacked is None or not self.active:
             return
         t, seq, cloud_seq, reset, scan, obs = stacked
-        sink = self.sink
-        sink.submit(s.SCAN, t, m.laser_scan, scan, self.max_range, seq=seq)  # type: ignore[union-attr]
-        sink.submit(s.POLICY, t, _policy_step, seq, cloud_seq, reset, obs, action, fault,  # type: ignore[union-attr]
+        self._hold(s.SCAN, t, m.laser_scan, scan, self.max_range, seq=seq)
+        self._hold(s.POLICY, t, _policy_step, seq, cloud_seq, reset, obs, action, fault,
                     seq=seq)
 
     def on_shield_reset(self) -> None:
@@ -124,21 +156,21 @@ class FlightRecorder:
         scan_seq = self._scan_seq if scan is self.last_scan else None
         reset, self._shield_reset = self._shield_reset, False
         if self.active:
-            self.sink.submit(s.SHIELD, self._clock(), _shield_step, scan_seq, float(dt),  # type: ignore[union-attr]
+            self._hold(s.SHIELD, self._clock(), _shield_step, scan_seq, float(dt),
                              reset, requested, output, limits, extra)
 
     def on_setpoint(self, forward: float, yaw_rate: float) -> None:
         if self.active:
-            self.sink.submit(s.SETPOINT, self._clock(), _setpoint, float(forward),  # type: ignore[union-attr]
+            self._hold(s.SETPOINT, self._clock(), _setpoint, float(forward),
                              float(yaw_rate))
 
     def on_statustext(self, text: str, severity: int) -> None:
         if self.active:
-            self.sink.submit(s.LOG, self._clock(), _log, text, severity)  # type: ignore[union-attr]
+            self._hold(s.LOG, self._clock(), _log, text, severity)
 
     def on_transition(self, transition: Any, counters: Mapping[str, int]) -> None:
         if self.active:
-            self.sink.submit(s.TRANSITION, transition.time, _transition, transition,  # type: ignore[union-attr]
+            self._hold(s.TRANSITION, transition.time, _transition, transition,
                              dict(counters))
 
     def on_status(self, status: Any) -> None:
@@ -148,12 +180,12 @@ class FlightRecorder:
             return
         if now - self._last_status >= STATUS_PERIOD:
             self._last_status = now
-            self.sink.submit(s.VEHICLE, now, _vehicle, m.plain(status))  # type: ignore[union-attr]
+            self._hold(s.VEHICLE, now, _vehicle, m.plain(status))
         if now - self._last_counters >= COUNTERS_PERIOD:
             self._last_counters = now
             counts = {k: dict(v) for k, v in self._counter_sources.items()}
             counts["recorder"] = self.stats()
-            self.sink.submit(s.COUNTERS, now, _counters, counts)  # type: ignore[union-attr]
+            self._hold(s.COUNTERS, now, _counters, counts)
 
     # ---- health ------------------------------------------------------------------------------
 
@@ -161,8 +193,8 @@ class FlightRecorder:
         sink = self.sink
         if sink is None:
             return {}
-        return {"written": sink.written, "dropped": sink.dropped, "files": len(sink.files),
-                "deleted": len(sink.deleted)}
+        return {"written": sink.written, "dropped": sink.dropped + self.held_dropped,
+                "files": len(sink.files), "deleted": len(sink.deleted)}
 
     def take_notices(self) -> list[str]:
         """Lines for the pilot (STATUSTEXT): recording could not start, or stopped. Each once."""
@@ -175,6 +207,7 @@ class FlightRecorder:
 
     def close(self) -> None:
         if self.sink is not None:
+            self.flush()
             self.sink.close()
             log.info("flight recorder: %s, files %s", " ".join(f"{k}={v}" for k, v in self.stats().items()),
                      ", ".join(str(p) for p in self.sink.files))

@@ -79,14 +79,25 @@ class LinkTap(_Tap):
     def poll(self) -> Any:
         status = self._inner.poll()
         self._recorder.on_status(status)
+        self._recorder.flush_if_stale()
         if getattr(status, "heartbeat_time", None) is not None:
             for line in self._recorder.take_notices():
                 self._inner.send_statustext(line, WARNING)
         return status
 
+    # After each of these the iteration's time-critical part is over: the writer may have the records.
     def send_velocity(self, forward: float, yaw_rate: float) -> None:
         self._inner.send_velocity(forward, yaw_rate)
         self._recorder.on_setpoint(forward, yaw_rate)
+        self._recorder.flush()
+
+    def send_obstacle_distance(self, sectors_cm: np.ndarray) -> None:
+        self._inner.send_obstacle_distance(sectors_cm)
+        self._recorder.flush()
+
+    def send_heartbeat(self) -> None:
+        self._inner.send_heartbeat()
+        self._recorder.flush()
 
     def send_statustext(self, text: str, severity: int) -> None:
         self._inner.send_statustext(text, severity)

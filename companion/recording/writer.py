@@ -10,7 +10,6 @@ says why, the loop side reports it once (log line and STATUSTEXT) and the flight
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import os
 import queue
@@ -22,7 +21,7 @@ from typing import Any
 
 from mcap.writer import CompressionType, Writer
 
-from companion.recording.messages import nanoseconds
+from companion.recording.messages import nanoseconds, to_json
 from companion.recording.schemas import METADATA_NAME, Channel, schema_bytes
 
 log = logging.getLogger(__name__)
@@ -104,7 +103,6 @@ class McapSink:
     # ---- the writer thread ---------------------------------------------------------------
 
     def _run(self) -> None:
-        _yield_to_the_loop()
         try:
             while True:
                 try:
@@ -134,7 +132,7 @@ class McapSink:
             schema_id = writer.register_schema(channel.schema, "jsonschema", schema_bytes(channel.schema))
             channel_id = writer.register_channel(channel.topic, "json", schema_id)
             self._channels[channel.topic] = channel_id
-        data = json.dumps(build(t, *args), separators=(",", ":")).encode()
+        data = to_json(build(t, *args))
         ns = nanoseconds(t)
         writer.add_message(channel_id, log_time=ns, publish_time=ns, data=data, sequence=seq)
         self.written += 1
@@ -179,15 +177,6 @@ class McapSink:
             total -= sizes[path]
             self.deleted.append(path)
             log.info("flight recorder: deleted %s (%d B) to stay within the budget", path.name, sizes[path])
-
-
-def _yield_to_the_loop() -> None:
-    """Run this thread at normal priority, niced: a thread inherits the loop's SCHED_FIFO (the
-    systemd unit's), and recording must never compete with the loop for a core."""
-    with contextlib.suppress(AttributeError, OSError):  # not Linux, or not allowed: carry on as is
-        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))  # 0: this thread (Linux)
-    with contextlib.suppress(AttributeError, OSError):
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 10)
 
 
 def _describe(exc: BaseException, path: Path | None) -> str:
