@@ -160,7 +160,7 @@ def test_the_companion_flies_on_when_its_recording_directory_cannot_be_made(tmp_
     lidar = LidarSender(lidar_port)
     try:
         lidar.on = True
-        text = vehicle.wait_for("STATUSTEXT", timeout=15,
+        text = vehicle.wait_for("STATUSTEXT", timeout=40,
                                 condition=lambda msg: "recording off" in msg.text)
         assert text is not None and "Not a directory" in text.text
         assert vehicle.wait_for("SET_POSITION_TARGET_LOCAL_NED", timeout=10) is not None
