@@ -315,7 +315,7 @@ class SitlFlight:
         self.companion: subprocess.Popen[bytes] | None = None
         self.external: ExternalPose | None = None
         self.recorder = Recorder(t0=time.monotonic())
-        self.recording = FlightRecording(self.workdir, self.world)  # MCAP: companion + ground truth
+        self.recording = FlightRecording(self.workdir, self.world, options.lidar_step_deg)  # MCAP + truth
         self.lidar_port = free_udp_port()
         self.companion_port = free_udp_port()
         self.config_path = self.workdir / "companion.toml"

@@ -1,7 +1,9 @@
 """The recording of a SITL flight: the companion's own MCAP plus the simulator's ground truth, in one file.
 
 The companion process records itself exactly as on the drone (``[recorder]``, switched on by
-:meth:`FlightRecording.companion_overrides`, with the whole cloud so a replay starts from it).
+:meth:`FlightRecording.companion_overrides`), plus about :data:`CLOUD_POINTS` points of each
+revolution: every point at 1° (so a replay starts from the clouds), every 5th at 0.2° (a whole
+0.2° cloud is ~3 MB/s of MCAP; the replay then starts from the recorded scans).
 Beside it this module records what only the simulator knows, from the harness's physics hook:
 the vehicle's true pose (``/truth/pose``, and ``/tf`` world → base_link so Foxglove's 3D panel
 places the scan in the room), its true velocity and clearance (``/truth/state``), and the world
@@ -40,6 +42,8 @@ s.register_schema("lidar_avoid.TruthState", {
                    "clearance": {"type": ["number", "null"]}},
     "required": ["timestamp", "position", "velocity", "speed", "yaw", "clearance"],
 })
+#: Points per revolution the companion records (at most; a divisor of the revolution's).
+CLOUD_POINTS = 6000
 #: Ground truth is recorded at most this often (the physics runs at 120 Hz), s.
 TRUTH_PERIOD = 0.05
 _BUDGET = 50 * 10**9  # the workdir holds one flight: no deletion
@@ -50,14 +54,17 @@ class FlightRecording:
 
     :param workdir: the flight's working directory; the result is ``workdir/flight.mcap``
     :param world: the room (stored in the recording, so a report needs nothing else)
+    :param lidar_step_deg: the lidar's azimuth step (16 channels × 360°/step points per revolution)
     """
 
-    def __init__(self, workdir: Path, world: World) -> None:
+    def __init__(self, workdir: Path, world: World, lidar_step_deg: float = 1.0) -> None:
         self.companion_dir = Path(workdir) / "recording"
         self.truth_dir = Path(workdir) / "truth"
         self.path = Path(workdir) / "flight.mcap"
         self.world = world
         self._last = -math.inf
+        self._merged: Path | None = None
+        self.cloud_decimation = max(1, math.ceil(16 * 360 / lidar_step_deg / CLOUD_POINTS))
         for d in (self.companion_dir, self.truth_dir):  # a reused workdir: this flight only
             shutil.rmtree(d, ignore_errors=True)
         self.sink = McapSink(self.truth_dir, _BUDGET, _BUDGET // 10,
@@ -66,7 +73,8 @@ class FlightRecording:
 
     def companion_overrides(self, overrides: dict[str, Any]) -> dict[str, Any]:
         """The companion config overrides with the recorder on (the caller's own recorder keys win)."""
-        recorder = {"enabled": True, "directory": str(self.companion_dir), "cloud_decimation": 1}
+        recorder = {"enabled": True, "directory": str(self.companion_dir),
+                    "cloud_decimation": self.cloud_decimation}
         return {**overrides, "recorder": {**recorder, **overrides.get("recorder", {})}}
 
     def on_state(self, t: float, state: Any) -> None:
@@ -84,14 +92,20 @@ class FlightRecording:
                          float(state.yaw), clearance)
 
     def close(self) -> Path | None:
-        """Finish the ground truth and merge it with the companion's files into :attr:`path`."""
+        """Finish the ground truth and merge it with the companion's files into :attr:`path` (the
+        parts are deleted once merged). Closing again does nothing."""
+        if self._merged is not None:
+            return self._merged
         self.sink.close()
         sources = sorted(self.companion_dir.glob(FILE_GLOB)) + list(self.sink.files)
         try:
             merge_recordings(sources, self.path)
-        except Exception as exc:  # a damaged part must not cost the flight's report
+        except Exception as exc:  # a damaged part must not cost the flight's report: keep the parts
             log.warning("could not merge the flight recording %s: %s", self.path, exc)
             return None
+        for source in sources:
+            source.unlink()
+        self._merged = self.path
         return self.path
 
 
@@ -114,11 +128,11 @@ def _truth_state(t: float, position: np.ndarray, velocity: np.ndarray, yaw: floa
 
 def merge_recordings(sources: list[Path], out: Path) -> None:
     """Interleave the messages of ``sources`` by log time into one MCAP file; keep every metadata record."""
+    handles = [open(p, "rb") for p in sources]  # noqa: SIM115 - closed below
     writer = Writer(str(out), compression=CompressionType.ZSTD)
     writer.start(profile="", library="lidar-avoid")
     schema_ids: dict[tuple[str, bytes], int] = {}
     channel_ids: dict[tuple[str, int], int] = {}
-    handles = [open(p, "rb") for p in sources]  # noqa: SIM115 - closed below
     try:
         readers = [make_reader(f) for f in handles]
         seen_metadata: set[str] = set()
