@@ -128,8 +128,8 @@ class FlightRecorder:
             self._pending_clouds.append(self._cloud_seq)
             if self.cloud_decimation and self.active:
                 points = cloud if self.cloud_decimation == 1 else cloud[:: self.cloud_decimation]
-                self._hold(s.CLOUD, self._clock(), m.point_cloud, points,
-                                 self.mount_pose, seq=self._cloud_seq)
+                self._hold(s.CLOUD, self._clock(), m.point_cloud, points, self.mount_pose,
+                           seq=self._cloud_seq)
 
     def on_stacked(self, scan: np.ndarray, obs: np.ndarray, reset: bool) -> None:
         """A scan went into the frame stack (``reset``: the stack started over with it)."""
@@ -145,8 +145,7 @@ class FlightRecorder:
             return
         t, seq, cloud_seq, reset, scan, obs = stacked
         self._hold(s.SCAN, t, m.laser_scan, scan, self.max_range, seq=seq)
-        self._hold(s.POLICY, t, _policy_step, seq, cloud_seq, reset, obs, action, fault,
-                    seq=seq)
+        self._hold(s.POLICY, t, _policy_step, seq, cloud_seq, reset, obs, action, fault, seq=seq)
 
     def on_shield_reset(self) -> None:
         self._shield_reset = True
@@ -156,13 +155,12 @@ class FlightRecorder:
         scan_seq = self._scan_seq if scan is self.last_scan else None
         reset, self._shield_reset = self._shield_reset, False
         if self.active:
-            self._hold(s.SHIELD, self._clock(), _shield_step, scan_seq, float(dt),
-                             reset, requested, output, limits, extra)
+            self._hold(s.SHIELD, self._clock(), _shield_step, scan_seq, float(dt), reset, requested,
+                       output, limits, extra)
 
     def on_setpoint(self, forward: float, yaw_rate: float) -> None:
         if self.active:
-            self._hold(s.SETPOINT, self._clock(), _setpoint, float(forward),
-                             float(yaw_rate))
+            self._hold(s.SETPOINT, self._clock(), _setpoint, float(forward), float(yaw_rate))
 
     def on_statustext(self, text: str, severity: int) -> None:
         if self.active:
@@ -170,8 +168,7 @@ class FlightRecorder:
 
     def on_transition(self, transition: Any, counters: Mapping[str, int]) -> None:
         if self.active:
-            self._hold(s.TRANSITION, transition.time, _transition, transition,
-                             dict(counters))
+            self._hold(s.TRANSITION, transition.time, _transition, transition, dict(counters))
 
     def on_status(self, status: Any) -> None:
         """The link's vehicle status (recorded at most every :data:`STATUS_PERIOD`), and the counters."""
@@ -180,7 +177,7 @@ class FlightRecorder:
             return
         if now - self._last_status >= STATUS_PERIOD:
             self._last_status = now
-            self._hold(s.VEHICLE, now, _vehicle, m.plain(status))
+            self._hold(s.VEHICLE, now, _vehicle, m.plain(status))  # now: the link updates it in place
         if now - self._last_counters >= COUNTERS_PERIOD:
             self._last_counters = now
             counts = {k: dict(v) for k, v in self._counter_sources.items()}
