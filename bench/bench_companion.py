@@ -16,16 +16,21 @@ Prints p50/p99/max over ``--revolutions`` (default 1,000), plus the companion's 
 memory (VmRSS, and the peak VmHWM) and its CPU time per revolution. ``--pacing sensor`` (default)
 spreads the 75 packets over the revolution as the sensor does (one every 1.33 ms at 10 Hz);
 ``--pacing burst`` sends them back to back, the worst case where all decoding follows the last one.
-Targets (issue 3): p99 ≤ 2 ms, resident memory ≤ 150 MB.
+Targets (issue 3): p99 ≤ 2 ms, resident memory ≤ 150 MB. ``--recording compare`` measures the
+flight recorder's cost in the same run: four alternating blocks of ``--revolutions``/4 without and
+with ``[recorder]`` on (as shipped: no point cloud; ``--cloud-decimation N`` adds one), then the
+ratio of the two p99s.
 
     /work/venv/bin/python bench/bench_companion.py [--revolutions 1000] [--rate 10]
         [--pacing sensor|burst] [--decoder numpy|velodyne-decoder] [--realtime]
+        [--recording off|on|compare] [--cloud-decimation N]
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import re
 import select
 import signal
 import socket
@@ -34,6 +39,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -150,23 +156,72 @@ def main() -> int:
         help="sensor: packets spread over the revolution as the VLP-16 sends them; "
              "burst: all 75 at once (worst case: everything is decoded after the last packet)",
     )
+    parser.add_argument(
+        "--recording", default="off", choices=("off", "on", "compare"),
+        help="the flight recorder ([recorder]) off, on, or compare: alternate blocks without and with "
+             "it in this run, and print the p99 ratio",
+    )
+    parser.add_argument("--cloud-decimation", type=int, default=0,
+                        help="recorder.cloud_decimation when recording (0: no cloud, as shipped)")
     args = parser.parse_args()
+    if args.recording != "compare":
+        result = run_companion(args, args.revolutions, recording=args.recording == "on")
+        print_result(args, result, f", recording {args.recording}")
+        return 0
+    # Alternate blocks, so load that comes and goes on the machine falls on both alike.
+    blocks = 4
+    results: dict[bool, list[Result]] = {False: [], True: []}
+    for i in range(blocks):
+        recording = i % 2 == 1
+        results[recording].append(run_companion(args, args.revolutions // blocks, recording))
+    merged = {k: Result.merge(v) for k, v in results.items()}
+    for recording in (False, True):
+        print_result(args, merged[recording], f", recording {'on' if recording else 'off'}")
+    off, on = (np.percentile(merged[k].from_last, 99) for k in (False, True))
+    print(f"recording overhead: p99 last packet -> setpoint {on:.3f} ms with / {off:.3f} ms without "
+          f"= {on / off:.2f}x; records dropped {merged[True].dropped}")
+    return 0
 
+
+@dataclass
+class Result:
+    """One companion run's measurements."""
+
+    from_last: list[float]
+    from_first: list[float]
+    missed: int
+    cpu: float
+    memory: dict[str, int]
+    dropped: int = 0
+
+    @staticmethod
+    def merge(parts: list[Result]) -> Result:
+        return Result(
+            [x for p in parts for x in p.from_last], [x for p in parts for x in p.from_first],
+            sum(p.missed for p in parts), sum(p.cpu for p in parts),
+            {k: max(p.memory[k] for p in parts) for k in parts[0].memory}, sum(p.dropped for p in parts),
+        )
+
+
+def run_companion(args: argparse.Namespace, revolutions: int, recording: bool = False) -> Result:
+    """Start the companion, engage it, measure ``revolutions`` revolutions, stop it."""
     tmp = Path(tempfile.mkdtemp(prefix="bench-companion-"))
     lidar_port, mavlink_port = free_port(), free_port()
     model = write_policy(tmp / "steer.onnx", kind="steer")
     config = tmp / "companion.toml"
+    recorder = (f'[recorder]\nenabled = true\ndirectory = "{tmp / "flights"}"\n'
+                f"cloud_decimation = {args.cloud_decimation}\n" if recording else "")
     config.write_text(
         f'[lidar.velodyne]\nhost = "127.0.0.1"\nport = {lidar_port}\ndecoder = "{args.decoder}"\n'
         f'[policy]\nmodel = "{model}"\n'
         "[supervisor]\nclimb_settled_time = 0.3\n"
         f'[autopilot]\nconnect = "udpin:127.0.0.1:{mavlink_port}"\n'
-        "[runtime]\nlog_interval = 3600.0\n"
+        "[runtime]\nlog_interval = 3600.0\n" + recorder
     )
     autopilot = Autopilot(mavlink_port)
     command = [sys.executable, "-m", "companion", "run", "--config", str(config)]
     if args.realtime:
-        command = ["chrt", "--fifo", "20", *command]
+        command = ["chrt", "--reset-on-fork", "--fifo", "20", *command]  # as the unit: ResetOnFork
     proc = subprocess.Popen(
         command,
         cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
@@ -183,7 +238,7 @@ def main() -> int:
     try:
         time.sleep(1.0)  # model load, sockets bound
         deadline = time.monotonic() + 30
-        while len(from_last) < args.revolutions:
+        while len(from_last) < revolutions:
             if proc.poll() is not None:
                 raise SystemExit(f"companion exited: {proc.communicate()[1][-2000:]}")
             packets = revolution(index)
@@ -206,7 +261,7 @@ def main() -> int:
                 if arrived is not None:
                     engaged = True
                     cpu_start = cpu_seconds(proc.pid)
-                    print(f"engaged after {index} revolutions; measuring {args.revolutions}", flush=True)
+                    print(f"engaged after {index} revolutions; measuring {revolutions}", flush=True)
                 elif time.monotonic() > deadline:
                     raise SystemExit("the companion never engaged: " + proc.stderr.read1()[-2000:])
             elif arrived is None:
@@ -221,23 +276,31 @@ def main() -> int:
     finally:
         proc.send_signal(signal.SIGTERM)
         try:
-            proc.wait(timeout=10)
+            _, log = proc.communicate(timeout=10)
         except subprocess.TimeoutExpired:
             proc.kill()
+            log = ""
         lidar.close()
+    dropped = re.findall(r"flight recorder: written=\d+ dropped=(\d+)", log)
+    return Result(from_last, from_first, missed, cpu, memory, int(dropped[-1]) if dropped else 0)
+
+
+def print_result(args: argparse.Namespace, result: Result, label: str = "") -> None:
+    from_last, from_first, missed, cpu, memory = (result.from_last, result.from_first, result.missed,
+                                                   result.cpu, result.memory)
 
     n = len(from_last)
     print(f"companion end to end, {n} revolutions of 28,800 points (75 VLP-16 packets), "
           f"{args.rate:g} Hz, {args.pacing} pacing, decoder {args.decoder}"
-          f"{', companion SCHED_FIFO 20' if args.realtime else ''}; load average {os.getloadavg()[0]:.1f} "
-          f"on {os.cpu_count()} CPUs:")
+          f"{', companion SCHED_FIFO 20' if args.realtime else ''}{label}; "
+          f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs:")
     print(f"  last packet -> setpoint:  {percentiles(from_last)}   (target p99 <= 2 ms)")
     print(f"  first packet -> setpoint: {percentiles(from_first)}")
     print(f"  setpoints missing: {missed}")
     print(f"  CPU time per revolution: {cpu / max(n + missed, 1) * 1e3:.2f} ms")
     print(f"  resident memory: {memory['VmRSS'] / 1024:.1f} MB (peak {memory['VmHWM'] / 1024:.1f} MB)"
           "   (target <= 150 MB)")
-    return 0
+
 
 
 if __name__ == "__main__":

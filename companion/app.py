@@ -40,9 +40,12 @@ from companion.framestack import FrameStack
 from companion.notify import SystemdNotifier
 from companion.obstacle_distance import obstacle_distance_from_scan
 from companion.policy import InferenceFault, OnnxPolicy, PolicySpec
+from companion.recording.recorder import FlightRecorder, open_recorder
+from companion.recording.taps import tap_parts
 from companion.scan import BIN_CONVENTION, N_BINS, scan_from_points
 from companion.shield import Command, SafetyShield, command_from_action
 from companion.supervisor import CommandKind, Supervisor, SupervisorState, Transition
+from companion.tomlconfig import to_dict
 
 log = logging.getLogger(__name__)
 
@@ -235,6 +238,19 @@ class Companion:
         self._last_watchdog = -math.inf
         self._last_log = clock()
         self._stopping = False
+        self.recorder = self._start_recorder()
+
+    def _start_recorder(self) -> FlightRecorder | None:
+        """The flight recorder (``[recorder]``): its taps wrap the parts, so the loop stays as it is."""
+        recorder = open_recorder(self.config, to_dict(self.config), self._clock)
+        if recorder is not None:
+            recorder.watch_counters(companion=self.counters, supervisor=self.supervisor.counters,
+                                    shield=self.shield.interventions, link=self.link.counters)
+            parts = tap_parts(recorder, lidar=self.lidar, stack=self.stack, policy=self.policy,
+                              shield=self.shield, link=self.link, supervisor=self.supervisor)
+            for name, tapped in parts.items():
+                setattr(self, name, tapped)
+        return recorder
 
     # ---- one iteration ---------------------------------------------------------------------
 
@@ -412,6 +428,8 @@ class Companion:
         finally:
             self.link.close()
             self.lidar.close()
+            if self.recorder is not None:
+                self.recorder.close()
             self.notifier.close()
 
 

@@ -198,6 +198,33 @@ class RuntimeConfig:
 
 
 @dataclass(frozen=True)
+class RecorderConfig:
+    """The flight recorder (:mod:`companion.recording`): every flight to MCAP files, viewable in Foxglove.
+
+    :param enabled: record (a recorder that cannot write turns itself off; the flight goes on)
+    :param directory: where the ``flight-*.mcap`` files go (relative: to the config file)
+    :param budget_mb: the recordings in ``directory`` never take more than this; the oldest go first
+    :param file_mb: a file is closed and a new one started at this size
+    :param cloud_decimation: 0 = no point cloud; N = every N-th point of each revolution (1 = all:
+        ``avoid-companion replay`` then starts from the clouds themselves)
+    :param queue_size: records waiting for the writer thread; beyond it they are dropped and counted
+    """
+
+    enabled: bool = False
+    directory: str = ""
+    budget_mb: float = field(default=2000.0, metadata={"min": 1.0, "max": 10_000_000.0})
+    file_mb: float = field(default=100.0, metadata={"min": 1.0, "max": 100_000.0})
+    cloud_decimation: int = field(default=0, metadata={"min": 0, "max": 100_000})
+    queue_size: int = field(default=512, metadata={"min": 8, "max": 1_000_000})
+
+    def __post_init__(self) -> None:
+        if self.enabled and not self.directory:
+            raise ValueError("enabled is true but no directory is given")
+        if self.file_mb > self.budget_mb:
+            raise ValueError(f"file_mb {self.file_mb:g} is larger than budget_mb {self.budget_mb:g}")
+
+
+@dataclass(frozen=True)
 class CompanionConfig:
     """Everything ``avoid-companion run`` needs; one table per field."""
 
@@ -209,6 +236,7 @@ class CompanionConfig:
     autopilot: AutopilotConfig = field(default_factory=AutopilotConfig)
     params_check: ParamsCheckConfig = field(default_factory=ParamsCheckConfig)
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
+    recorder: RecorderConfig = field(default_factory=RecorderConfig)
 
 
 def load_config(path: str | Path, overrides: list[str] | None = None) -> CompanionConfig:
@@ -243,4 +271,5 @@ def load_config(path: str | Path, overrides: list[str] | None = None) -> Compani
             trt_cache_dir=resolve(config.policy.trt_cache_dir),
         ),
         params_check=dataclasses.replace(config.params_check, file=resolve(config.params_check.file)),
+        recorder=dataclasses.replace(config.recorder, directory=resolve(config.recorder.directory)),
     )

@@ -12,6 +12,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "autopilot": ("flightsim.sim_autopilot.server", "a simulated ArduCopter/PX4 on MAVLink sockets"),
     "demo": ("flightsim.demo", "a few short SITL flights in generated and example rooms (under 3 minutes)"),
     "worlds": ("flightsim.gallery", "the world families: a PNG gallery (--gallery) and world files (--save)"),
+    "report": ("flightsim.recording_report", "picture of a flight from its MCAP recording: path, speed, "
+               "clearance, shield, states"),
 }
 
 

@@ -37,6 +37,7 @@ from companion.scan import ScanConfig
 from companion.tomlconfig import to_dict
 from flightsim.cosim import LidarCosim
 from flightsim.raycast import LidarConfig
+from flightsim.recording import FlightRecording
 from flightsim.sim_autopilot.gcs import GroundStation
 from flightsim.world import DEFAULT_VEHICLE_RADIUS, World
 
@@ -168,6 +169,7 @@ class FlightReport:
     malformed: dict[str, int]
     plot: str = ""
     error: str = ""
+    recording: str = ""
 
     def to_json(self) -> str:
         return json.dumps(dataclasses.asdict(self), indent=2)
@@ -318,6 +320,7 @@ class SitlFlight:
         self.companion: subprocess.Popen[bytes] | None = None
         self.external: ExternalPose | None = None
         self.recorder = Recorder(t0=time.monotonic())
+        self.recording = FlightRecording(self.workdir, self.world, options.lidar_step_deg)  # MCAP + truth
         self.lidar_port = free_udp_port()
         self.companion_port = free_udp_port()
         self.config_path = self.workdir / "companion.toml"
@@ -376,7 +379,7 @@ class SitlFlight:
             connect=connect,
             lidar_port=self.lidar_port,
             policy=Path(self.options.policy).resolve(),
-            overrides=overrides,
+            overrides=self.recording.companion_overrides(overrides),
         )
         self.config_path.write_text(toml_dumps(to_dict(cfg)))
         self.start_companion()
@@ -453,6 +456,7 @@ class SitlFlight:
                 state = external.state()
                 speed = float(np.linalg.norm(state.velocity[:2]))
                 self.recorder.on_pose(time.monotonic(), state.position, state.yaw, speed, self.world)
+                self.recording.on_state(time.monotonic(), state)
             relay.write(msg.get_msgbuf())
 
         gcs.on_message = forward_to_companion
@@ -508,6 +512,7 @@ class SitlFlight:
         if self._log_file is not None:
             self._log_file.close()
             self._log_file = None
+        self.recording.close()
 
     # ------------------------------------------------------------------ observation hooks
     def now(self) -> float:
@@ -521,6 +526,7 @@ class SitlFlight:
         self.recorder.on_pose(
             time.monotonic(), state.position, state.yaw, float(np.linalg.norm(state.velocity[:2])), self.world
         )
+        self.recording.on_state(time.monotonic(), state)
 
     def companion_alive(self) -> bool:
         return self.companion is not None and self.companion.poll() is None
@@ -680,6 +686,7 @@ class SitlFlight:
             ],
             malformed=malformed,
             error=error,
+            recording=str(self.recording.path),
         )
         if plot is not None:
             with rec.lock:
@@ -856,3 +863,5 @@ def print_report(r: FlightReport) -> None:
     print(f"  companion states: {' | '.join(r.transitions) or '-'}")
     if r.plot:
         print(f"  plot: {r.plot}")
+    if r.recording:
+        print(f"  recording: {r.recording} (avoid-sim report / avoid-companion replay / Foxglove)")

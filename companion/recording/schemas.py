@@ -1,0 +1,165 @@
+"""The recording's channels: topic, schema name and JSON Schema of each.
+
+Messages are JSON (MCAP message encoding ``json``, schema encoding ``jsonschema``), which
+Foxglove reads natively and the pure-Python ``mcap`` package writes without code generation.
+Where Foxglove has a standard message (LaserScan, PointCloud, PoseInFrame, FrameTransform, Log),
+the channel uses it under its Foxglove name, so Foxglove's 3D, Plot and Log panels understand it;
+the field names and types follow Foxglove's definitions (``tests/companion/test_recorder_schemas.py``
+checks them against the protobuf descriptors the ``foxglove-sdk`` package ships). The companion's
+own records (policy step, shield, setpoint, supervisor, vehicle status, counters) have
+``lidar_avoid.*`` schemas defined here.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from typing import Any
+
+#: MCAP metadata record name holding the recording's context (config, model digest, ...).
+METADATA_NAME = "lidar_avoid"
+#: Version of this recording layout (in the metadata); replay refuses others.
+FORMAT_VERSION = "1"
+#: Body frame (FLU) the scan and the setpoints refer to, and the sensor frame of the point cloud.
+BODY_FRAME = "base_link"
+#: World frame of ground truth (flightsim's ENU room frame).
+WORLD_FRAME = "world"
+
+
+def _num() -> dict[str, Any]:
+    return {"type": "number"}
+
+
+def _int(minimum: int | None = 0) -> dict[str, Any]:
+    return {"type": "integer"} if minimum is None else {"type": "integer", "minimum": minimum}
+
+
+def _str() -> dict[str, Any]:
+    return {"type": "string"}
+
+
+def _bool() -> dict[str, Any]:
+    return {"type": "boolean"}
+
+
+def _array(items: dict[str, Any]) -> dict[str, Any]:
+    return {"type": "array", "items": items}
+
+
+def _obj(title: str | None = None, nullable: bool = False, **properties: dict[str, Any]) -> dict[str, Any]:
+    schema: dict[str, Any] = {"type": ["object", "null"] if nullable else "object",
+                              "properties": properties, "required": sorted(properties)}
+    if title:
+        schema["title"] = title
+    return schema
+
+
+def _bytes() -> dict[str, Any]:
+    return {"type": "string", "contentEncoding": "base64"}
+
+
+def _nullable(schema: dict[str, Any]) -> dict[str, Any]:
+    return {"anyOf": [schema, {"type": "null"}]}
+
+
+# Foxglove's building blocks.
+TIME = _obj("time", sec=_int(), nsec={"type": "integer", "minimum": 0, "maximum": 999_999_999})
+VECTOR3 = _obj("foxglove.Vector3", x=_num(), y=_num(), z=_num())
+QUATERNION = _obj("foxglove.Quaternion", x=_num(), y=_num(), z=_num(), w=_num())
+POSE = _obj("foxglove.Pose", position=VECTOR3, orientation=QUATERNION)
+#: foxglove.NumericType: FLOAT32 is 7.
+NUMERIC_TYPE = {"type": "integer", "minimum": 0, "maximum": 8}
+FLOAT32 = 7
+#: foxglove.LogLevel: INFO 2, WARNING 3, ERROR 4.
+LOG_LEVEL = {"type": "integer", "minimum": 0, "maximum": 5}
+
+FOXGLOVE_SCHEMAS: dict[str, dict[str, Any]] = {
+    "foxglove.LaserScan": _obj(
+        "foxglove.LaserScan", timestamp=TIME, frame_id=_str(), pose=POSE, start_angle=_num(),
+        end_angle=_num(), ranges=_array(_num()), intensities=_array(_num()),
+    ),
+    "foxglove.PointCloud": _obj(
+        "foxglove.PointCloud", timestamp=TIME, frame_id=_str(), pose=POSE, point_stride=_int(),
+        fields=_array(_obj("foxglove.PackedElementField", name=_str(), offset=_int(), type=NUMERIC_TYPE)),
+        data=_bytes(),
+    ),
+    "foxglove.PoseInFrame": _obj("foxglove.PoseInFrame", timestamp=TIME, frame_id=_str(), pose=POSE),
+    "foxglove.FrameTransform": _obj(
+        "foxglove.FrameTransform", timestamp=TIME, parent_frame_id=_str(), child_frame_id=_str(),
+        translation=VECTOR3, rotation=QUATERNION,
+    ),
+    "foxglove.Log": _obj(
+        "foxglove.Log", timestamp=TIME, level=LOG_LEVEL, message=_str(), name=_str(), file=_str(),
+        line=_int(),
+    ),
+}
+
+COMMAND = _obj("lidar_avoid.Command", forward=_num(), yaw_rate=_num())
+_COUNTS = {"type": "object", "additionalProperties": _int()}
+
+OWN_SCHEMAS: dict[str, dict[str, Any]] = {
+    # One per scan: what the policy was fed and what it answered. ``observation`` is the stacked
+    # float32 scans (oldest first, little-endian, base64: exact, for a bit-for-bit replay).
+    "lidar_avoid.PolicyStep": _obj(
+        "lidar_avoid.PolicyStep", timestamp=TIME, seq=_int(), cloud_seq=_nullable(_int()),
+        reset=_bool(), observation=_bytes(), action=_nullable(_array(_num())),
+        fault=_nullable(_str()),
+    ),
+    # One per shielded policy setpoint: the shield's input, output and the limits that acted.
+    "lidar_avoid.ShieldStep": _obj(
+        "lidar_avoid.ShieldStep", timestamp=TIME, scan_seq=_nullable(_int()), dt=_num(),
+        reset_before=_bool(), requested=COMMAND, output=COMMAND, limits=_array(_str()),
+        extra=_nullable({"type": "object"}),
+    ),
+    # Every velocity setpoint that went to the autopilot (policy or zero).
+    "lidar_avoid.Setpoint": _obj("lidar_avoid.Setpoint", timestamp=TIME, forward=_num(), yaw_rate=_num()),
+    "lidar_avoid.Transition": _obj(
+        "lidar_avoid.Transition", timestamp=TIME, old=_str(), new=_str(), reason=_str(), counters=_COUNTS,
+    ),
+    # The link's VehicleStatus, every field as it is (None: not known).
+    "lidar_avoid.VehicleStatus": {"title": "lidar_avoid.VehicleStatus", "type": "object",
+                                  "properties": {"timestamp": TIME}, "required": ["timestamp"]},
+    "lidar_avoid.Counters": _obj(
+        "lidar_avoid.Counters", timestamp=TIME, companion=_COUNTS, supervisor=_COUNTS, shield=_COUNTS,
+        link=_COUNTS, recorder=_COUNTS,
+    ),
+}
+
+
+@dataclass(frozen=True)
+class Channel:
+    """One MCAP channel of the recording."""
+
+    topic: str
+    schema: str
+
+
+SCAN = Channel("/scan", "foxglove.LaserScan")
+CLOUD = Channel("/lidar/points", "foxglove.PointCloud")
+POLICY = Channel("/policy", "lidar_avoid.PolicyStep")
+SHIELD = Channel("/shield", "lidar_avoid.ShieldStep")
+SETPOINT = Channel("/setpoint", "lidar_avoid.Setpoint")
+TRANSITION = Channel("/supervisor/transition", "lidar_avoid.Transition")
+VEHICLE = Channel("/vehicle/status", "lidar_avoid.VehicleStatus")
+COUNTERS = Channel("/counters", "lidar_avoid.Counters")
+LOG = Channel("/log", "foxglove.Log")
+# Ground truth (flightsim only).
+TRUTH_POSE = Channel("/truth/pose", "foxglove.PoseInFrame")
+TRUTH_TF = Channel("/tf", "foxglove.FrameTransform")
+
+
+def register_schema(name: str, schema: dict[str, Any]) -> None:
+    """Add a schema for another channel (flightsim's ground truth; goal and waypoints, ...)."""
+    OWN_SCHEMAS[name] = schema
+
+
+def schema_json(name: str) -> dict[str, Any]:
+    """The JSON Schema of ``name`` (Foxglove's or the project's own)."""
+    if name in FOXGLOVE_SCHEMAS:
+        return FOXGLOVE_SCHEMAS[name]
+    return OWN_SCHEMAS[name]
+
+
+def schema_bytes(name: str) -> bytes:
+    """``name``'s JSON Schema as the bytes an MCAP schema record holds."""
+    return json.dumps(schema_json(name), separators=(",", ":")).encode()

@@ -1,0 +1,313 @@
+"""``avoid-companion replay FILE.mcap [--policy OTHER.onnx]``: run a recording through the pipeline again.
+
+The recorded inputs go through the companion's own code, with the recorded configuration: the
+clouds (when recorded whole, ``recorder.cloud_decimation = 1``) through :func:`scan_from_points`,
+otherwise the recorded scans; then the frame stack, the policy and the shield, with the recorded
+time steps and resets.
+
+- Same model (the file's sha256 matches the recording's): every scan, observation, action,
+  requested command and shield output must match the recording bit for bit; the first one that
+  does not is reported (exit status 1).
+- Another model: what it would have asked for and what the shield would have let through, scan by
+  scan on the recorded scans (open loop: the vehicle's path stays the recorded one), as a table
+  and a plot.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from companion.config import CompanionConfig
+from companion.errors import UserError
+from companion.framestack import FrameStack
+from companion.policy import InferenceFault, OnnxPolicy
+from companion.recording import schemas
+from companion.recording.messages import unpack_f32
+from companion.recording.reader import Recording, read_recording
+from companion.recording.recorder import file_digest
+from companion.scan import N_BINS, scan_from_points
+from companion.shield import Command, SafetyShield, command_from_action, sector_bins
+from companion.tomlconfig import from_dict
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Step:
+    """One shielded setpoint, as recorded and as replayed."""
+
+    t: float
+    recorded: tuple[float, float]
+    replayed: tuple[float, float]
+    front_clearance: float
+    recorded_limits: list[str]
+    replayed_limits: list[str]
+
+
+@dataclass
+class ReplayResult:
+    """What a replay found.
+
+    :param source: ``clouds`` or ``scans`` (what the pipeline started from)
+    :param first_difference: the first thing that did not match bit for bit ("" = none)
+    """
+
+    source: str
+    policy_steps: int = 0
+    shield_steps: int = 0
+    skipped_shield: int = 0
+    first_difference: str = ""
+    steps: list[Step] = field(default_factory=list)
+
+
+def recorded_config(rec: Recording) -> tuple[CompanionConfig, dict[str, str]]:
+    """The companion configuration the recording was made with, and the recording's metadata."""
+    meta = rec.metadata.get(schemas.METADATA_NAME)
+    if meta is None:
+        raise UserError(f"{rec.path}: not a lidar-avoid recording (no {schemas.METADATA_NAME} metadata)")
+    if meta.get("format") != schemas.FORMAT_VERSION:
+        raise UserError(f"{rec.path}: recording format {meta.get('format')!r}, this version reads "
+                        f"{schemas.FORMAT_VERSION!r}")
+    try:
+        return from_dict(CompanionConfig, json.loads(meta["config"]), "recorded config: "), meta
+    except (KeyError, ValueError) as exc:
+        raise UserError(f"{rec.path}: recorded config unreadable: {exc}") from None
+
+
+def replay(rec: Recording, config: CompanionConfig, policy: OnnxPolicy, *, compare: bool) -> ReplayResult:
+    """Run ``rec``'s inputs through scan, frame stack, ``policy`` and shield.
+
+    :param compare: check every intermediate against the recording (same model); otherwise only
+        collect the shield outputs side by side (what-if)
+    """
+    decimation = int(rec.metadata[schemas.METADATA_NAME].get("cloud_decimation", "0"))
+    clouds: dict[int, dict[str, Any]] = {}
+    if decimation == 1:
+        cloud_topic = schemas.CLOUD.topic
+        clouds = dict(zip(rec.sequences.get(cloud_topic, []), (msg for _, msg in rec.topic(cloud_topic)),
+                          strict=True))
+    result = ReplayResult(source="clouds" if clouds else "scans")
+    stack = FrameStack(config.policy.stack, N_BINS)
+    shield = SafetyShield(config.shield, config.scan.max_range)
+    forward_bins = sector_bins(0.0, config.shield.forward_sector_deg)
+    scans: dict[int, np.ndarray] = {}
+    requested: dict[int, Command] = {}
+    seeded_stack = False
+    seeded_shield = False
+    cfg = config.policy
+
+    def differ(what: str) -> None:
+        if not result.first_difference:
+            result.first_difference = what
+
+    events = [(t, 0, msg) for t, msg in rec.topic(schemas.POLICY.topic)]
+    events += [(t, 1, msg) for t, msg in rec.topic(schemas.SHIELD.topic)]
+    events.sort(key=lambda e: (e[0], e[1]))
+    t0 = events[0][0] if events else 0.0
+    for t, kind, msg in events:
+        when = f"t={t - t0:.3f} s"
+        if kind == 0:
+            result.policy_steps += 1
+            recorded_obs = unpack_f32(msg["observation"])
+            scan = recorded_obs[-N_BINS:]
+            if clouds:
+                cloud_msg = clouds.get(msg["cloud_seq"])
+                if cloud_msg is None:
+                    differ(f"{when}: scan {msg['seq']}: its cloud {msg['cloud_seq']} is not in the recording")
+                else:
+                    points = unpack_f32(cloud_msg["data"]).reshape(-1, 3)
+                    replayed_scan = scan_from_points(points, config.scan).astype(np.float32)
+                    if compare and not np.array_equal(replayed_scan.view(np.uint32), scan.view(np.uint32)):
+                        differ(f"{when}: scan {msg['seq']} from its cloud differs from the recorded scan "
+                               f"in {int(np.sum(replayed_scan != scan))} bins")
+                    scan = replayed_scan
+            if not msg["reset"] and not seeded_stack:  # the file starts mid-flight: take its stack
+                stack.reset(recorded_obs[:N_BINS])
+                for i in range(1, config.policy.stack - 1):
+                    stack.push(recorded_obs[i * N_BINS:(i + 1) * N_BINS])
+            seeded_stack = True
+            obs = stack.reset(scan) if msg["reset"] else stack.push(scan)
+            if compare and not np.array_equal(obs.view(np.uint32), recorded_obs.view(np.uint32)):
+                differ(f"{when}: observation {msg['seq']} differs from the recorded one")
+            try:
+                action: np.ndarray | None = policy.act(obs)
+            except InferenceFault as exc:
+                action = None
+                fault = str(exc)
+            else:
+                fault = None
+            recorded_action = msg["action"]
+            if compare:
+                if (action is None) != (recorded_action is None):
+                    differ(f"{when}: scan {msg['seq']}: recorded {recorded_action or msg['fault']}, "
+                           f"replayed {action.tolist() if action is not None else fault}")
+                elif action is not None and not np.array_equal(
+                        action.view(np.uint32), np.asarray(recorded_action, np.float32).view(np.uint32)):
+                    differ(f"{when}: action {msg['seq']}: recorded {recorded_action}, replayed "
+                           f"{[float(a) for a in action]}")
+            scans[msg["seq"]] = scan
+            requested[msg["seq"]] = (command_from_action(action, cfg.max_speed, cfg.max_yaw_rate)
+                                     if action is not None else Command(0.0, 0.0))
+        else:
+            seq = msg["scan_seq"]
+            if msg["reset_before"]:
+                shield.reset()
+                seeded_shield = True
+            if seq not in scans or not seeded_shield:  # the shield's state before the file is unknown
+                result.skipped_shield += 1
+                continue
+            result.shield_steps += 1
+            command = requested[seq]
+            rec_req = msg["requested"]
+            if compare and (command.forward, command.yaw_rate) != (rec_req["forward"], rec_req["yaw_rate"]):
+                differ(f"{when}: requested command recorded {rec_req}, replayed {command}")
+            before = dict(shield.interventions)
+            out = shield.filter(command, scans[seq], msg["dt"], *_extra_args(msg.get("extra")),
+                                **_extra_kwargs(msg.get("extra")))
+            limits = [k for k, v in shield.interventions.items() if v != before.get(k, 0)]
+            rec_out = msg["output"]
+            if compare and (out.forward, out.yaw_rate) != (rec_out["forward"], rec_out["yaw_rate"]):
+                differ(f"{when}: shield output recorded {rec_out}, replayed "
+                       f"{{'forward': {out.forward!r}, 'yaw_rate': {out.yaw_rate!r}}}")
+            front = float(np.min(scans[seq][forward_bins])) * config.scan.max_range
+            result.steps.append(Step(t - t0, (rec_out["forward"], rec_out["yaw_rate"]),
+                                     (out.forward, out.yaw_rate), front, msg["limits"], limits))
+    return result
+
+
+def _extra_args(extra: dict[str, Any] | None) -> list[Any]:
+    if not extra:
+        return []
+    return [extra[k] for k in sorted((k for k in extra if k.startswith("arg")), key=lambda k: int(k[3:]))]
+
+
+def _extra_kwargs(extra: dict[str, Any] | None) -> dict[str, Any]:
+    return {k: v for k, v in (extra or {}).items() if not k.startswith("arg")}
+
+
+# ---- what-if output ----------------------------------------------------------------------------
+
+
+def what_if_table(result: ReplayResult, top: int = 10) -> str:
+    """Summary of recorded vs other model, then the scans where they differ most."""
+    steps = result.steps
+    if not steps:
+        return "no shielded setpoints in the recording: nothing to compare"
+    rec = np.array([s.recorded for s in steps])
+    alt = np.array([s.replayed for s in steps])
+    d = np.abs(alt - rec)
+
+    def count(limits: list[list[str]]) -> str:
+        c: dict[str, int] = {}
+        for names in limits:
+            for n in names:
+                c[n] = c.get(n, 0) + 1
+        return ", ".join(f"{k} {v}" for k, v in sorted(c.items())) or "-"
+
+    lines = [
+        f"{len(steps)} shielded setpoints compared ({result.source}; open loop: the recorded path)",
+        f"{'':34}{'recorded':>14}{'other model':>14}",
+        f"{'mean forward speed, m/s':34}{rec[:, 0].mean():14.3f}{alt[:, 0].mean():14.3f}",
+        f"{'mean |yaw rate|, rad/s':34}{np.abs(rec[:, 1]).mean():14.3f}{np.abs(alt[:, 1]).mean():14.3f}",
+        f"{'setpoints with a shield limit':34}{sum(bool(s.recorded_limits) for s in steps):14d}"
+        f"{sum(bool(s.replayed_limits) for s in steps):14d}",
+        f"shield limits, recorded: {count([s.recorded_limits for s in steps])}",
+        f"shield limits, other:    {count([s.replayed_limits for s in steps])}",
+        f"|Δ forward| mean {d[:, 0].mean():.3f} max {d[:, 0].max():.3f} m/s; "
+        f"|Δ yaw rate| mean {d[:, 1].mean():.3f} max {d[:, 1].max():.3f} rad/s",
+        "",
+        f"largest differences{'':4}{'t s':>8}{'front m':>9}{'fwd rec':>9}{'fwd oth':>9}"
+        f"{'yaw rec':>9}{'yaw oth':>9}",
+    ]
+    order = np.argsort(-(d[:, 0] + d[:, 1]))[:top]
+    for i in sorted(order, key=lambda i: steps[i].t):
+        s = steps[i]
+        lines.append(f"{'':23}{s.t:8.2f}{s.front_clearance:9.2f}{s.recorded[0]:9.3f}{s.replayed[0]:9.3f}"
+                     f"{s.recorded[1]:9.3f}{s.replayed[1]:9.3f}")
+    return "\n".join(lines)
+
+
+def what_if_plot(result: ReplayResult, path: Path, title: str) -> None:
+    """Forward speed, yaw rate and forward clearance over time: recorded vs the other model."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    steps = result.steps
+    t = np.array([s.t for s in steps])
+    rec = np.array([s.recorded for s in steps]).reshape(-1, 2)
+    alt = np.array([s.replayed for s in steps]).reshape(-1, 2)
+    fig = Figure(figsize=(9, 7))
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(3, 1, sharex=True)
+    for ax, col, label in ((axes[0], 0, "forward speed, m/s"), (axes[1], 1, "yaw rate, rad/s")):
+        ax.plot(t, rec[:, col], label="recorded", color="tab:blue")
+        ax.plot(t, alt[:, col], label="other model", color="tab:orange", alpha=0.85)
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    axes[0].legend(loc="upper right")
+    axes[2].plot(t, [s.front_clearance for s in steps], color="tab:gray")
+    axes[2].set_ylabel("front clearance, m")
+    axes[2].set_xlabel("time since the first scan, s")
+    axes[2].grid(alpha=0.3)
+    axes[0].set_title(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+
+
+# ---- CLI -----------------------------------------------------------------------------------------
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    """``replay FILE.mcap [--policy OTHER.onnx] [--plot OUT.png]``."""
+    parser.add_argument("recording", metavar="FILE.mcap", help="a recording of the companion ([recorder])")
+    parser.add_argument("--policy", metavar="OTHER.onnx",
+                        help="run this model instead of the recorded one (what-if)")
+    parser.add_argument("--plot", metavar="OUT.png",
+                        help="what-if plot (default: next to the recording, <name>.whatif.png)")
+
+
+def command(args: argparse.Namespace) -> int:
+    from companion.app import policy_spec
+
+    path = Path(args.recording)
+    rec = read_recording(path)
+    config, meta = recorded_config(rec)
+    model = Path(args.policy) if args.policy else Path(config.policy.model)
+    if not model.is_file():
+        raise UserError(f"model {model} not found" + ("" if args.policy else
+                                                    " (the recorded one): pass --policy FILE.onnx"))
+    same = file_digest(model) == meta.get("model_sha256")
+    policy = OnnxPolicy(model, policy_spec(config), config.policy.providers or None)
+    if rec.truncated:
+        print(f"note: {path} ends early (not closed); replaying what it holds")
+    result = replay(rec, config, policy, compare=same)
+    if result.policy_steps == 0:
+        raise UserError(f"{path}: no policy steps recorded (the companion saw no scan)")
+    counts = (f"{result.policy_steps} scans, {result.shield_steps} shielded setpoints"
+              + (f" ({result.skipped_shield} before the file's first shield reset not checked)"
+                 if result.skipped_shield else ""))
+    if same:
+        if result.first_difference:
+            print(f"replay of {path} from the recorded {result.source} with {model.name}: {counts}")
+            print(f"DIFFERENT: first difference at {result.first_difference}")
+            return 1
+        print(f"replay of {path} from the recorded {result.source} with {model.name}: {counts}; "
+              "every scan, observation, action and shield output matches bit for bit")
+        return 0
+    print(f"what-if: {model.name} instead of the recorded model, {counts}")
+    print(what_if_table(result))
+    plot = Path(args.plot) if args.plot else path.with_suffix(".whatif.png")
+    try:
+        what_if_plot(result, plot, f"{path.name}: recorded model vs {model.name}")
+    except ImportError:
+        print("plot skipped: matplotlib is not installed (pip install 'lidar-avoid[sim]')")
+    else:
+        print(f"plot: {plot}")
+    return 0

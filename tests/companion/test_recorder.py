@@ -1,0 +1,309 @@
+"""The flight recorder's writer: rotation, the size budget, drops, a full disk, an unwritable
+directory; the loop's side (taps, the pilot's notice); replay finding the first difference.
+
+Real files, a real tmpfs for the full disk (mounted when the tests run as root, as they do here and
+in CI), the real companion process for the unwritable directory.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap.writer import Writer
+
+from companion.recording import schemas as s
+from companion.recording.messages import point_cloud
+from companion.recording.reader import read_recording
+from companion.recording.recorder import FlightRecorder
+from companion.recording.taps import tap_parts
+from companion.recording.writer import CHUNK_SIZE, FILE_GLOB, McapSink
+from tests.companion.companion_process import LidarSender, free_udp_port, start_companion, stop, write_config
+from tests.companion.mavlink_peer import SimulatedAutopilot
+from tests.onnx_models import write_policy
+
+REPO = Path(__file__).resolve().parents[2]
+POSE = {"position": {"x": 0.0, "y": 0.0, "z": 0.0}, "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}
+
+
+def noise_cloud(seed: int, n: int = 4000) -> np.ndarray:
+    """Incompressible points: file sizes then follow the data, not zstd's luck."""
+    return np.random.default_rng(seed).normal(size=(n, 3)).astype(np.float32)
+
+
+@contextlib.contextmanager
+def tiny_tmpfs(path: Path, size_kb: int) -> Iterator[Path]:
+    """A real, small filesystem that fills up (needs root to mount)."""
+    path.mkdir(parents=True, exist_ok=True)
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size_kb}k", "tmpfs", str(path)],
+                          capture_output=True, text=True)
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here ({done.stderr.strip() or 'not root'})")
+    try:
+        yield path
+    finally:
+        subprocess.run(["umount", "-l", str(path)], check=False)
+
+
+def test_files_rotate_and_the_directory_stays_within_the_budget(tmp_path):
+    old = tmp_path / "flight-20200101-000000-1-000.mcap"  # an earlier flight's recording
+    old.write_bytes(b"x" * 900_000)
+    os.utime(old, (1, 1))
+    keep = tmp_path / "notes.txt"  # not a recording: never deleted
+    keep.write_text("pilot notes")
+    budget, file_bytes = 3_000_000, 4 * CHUNK_SIZE + 100_000
+    sink = McapSink(tmp_path, budget, file_bytes, {"format": "1"}, queue_size=10_000)
+    for i in range(150):  # ~7 MB of clouds: more than twice the budget
+        sink.submit(s.CLOUD, 100.0 + i * 0.1, point_cloud, noise_cloud(i), POSE, seq=i + 1)
+    sink.close()
+    assert sink.failure is None and sink.dropped == 0 and sink.written == 150
+    assert len(sink.files) >= 5, "rotation did not happen"
+    assert old in sink.deleted and not old.exists() and keep.exists()
+    remaining = sorted(tmp_path.glob(FILE_GLOB))
+    assert sum(p.stat().st_size for p in remaining) <= budget
+    assert all(p.stat().st_size <= file_bytes + 20_000 for p in remaining)  # + the summary section
+    # each remaining part is a whole MCAP file on its own, with the metadata
+    seqs = []
+    for p in remaining:
+        with open(p, "rb") as f:
+            reader = make_reader(f)
+            assert [md.name for md in reader.iter_metadata()] == [s.METADATA_NAME]
+            seqs += [msg.sequence for _, _, msg in reader.iter_messages()]
+    assert seqs == list(range(seqs[0], 151)), "the newest records are kept, in order, without a gap"
+
+
+def test_a_full_queue_drops_and_counts_and_never_blocks(tmp_path):
+    release = threading.Event()
+
+    def slow(t, i):  # the writer thread stalls (a slow disk)
+        release.wait(5)
+        return {"timestamp": {"sec": 0, "nsec": 0}, "forward": float(i), "yaw_rate": 0.0}
+
+    sink = McapSink(tmp_path, 10**8, 10**7, {}, queue_size=8)
+    for i in range(200):
+        sink.submit(s.SETPOINT, float(i), slow, i)  # would hang here if submit waited
+    release.set()
+    sink.close()
+    assert sink.dropped >= 200 - 8 - 1
+    assert sink.dropped + sink.written == 200
+
+
+def test_a_full_disk_stops_recording_with_its_reason_and_keeps_what_was_written(tmp_path):
+    with tiny_tmpfs(tmp_path / "disk", 600) as disk:
+        sink = McapSink(disk, 10**9, 10**8, {"format": "1"}, queue_size=10_000)
+        for i in range(400):
+            sink.submit(s.CLOUD, 1.0 + i * 0.1, point_cloud, noise_cloud(i, 1000), POSE, seq=i + 1)
+        deadline = time.monotonic() + 20
+        while sink.failure is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert sink.failure is not None and "No space left on device" in sink.failure
+        written = sink.written
+        sink.submit(s.CLOUD, 99.0, point_cloud, noise_cloud(0), POSE)  # after the failure: ignored
+        sink.close()
+        assert sink.written == written
+        rec = read_recording(sink.files[0])
+        assert rec.truncated and 0 < len(rec.topic(s.CLOUD.topic)) < 400
+
+
+class FakeLink:
+    """Stands in for the autopilot link in this unit test of the taps' pure bookkeeping."""
+
+    def __init__(self):
+        self.texts = []
+        self.counters = {}
+        self.status = type("Status", (), {"heartbeat_time": None})()
+
+    def poll(self):
+        return self.status
+
+    def send_statustext(self, text, severity):
+        self.texts.append((text, severity))
+
+    def send_velocity(self, forward, yaw_rate):
+        pass
+
+
+def test_an_unusable_directory_is_told_to_the_pilot_once_the_autopilot_is_there():
+    recorder = FlightRecorder(None, time.monotonic, 10.0, POSE, notice="recording off: Not a directory")
+    link = FakeLink()
+    tapped = tap_parts(recorder, link=link)["link"]
+    tapped.poll()
+    assert link.texts == [], "no autopilot yet: nobody to tell"
+    link.status.heartbeat_time = 1.0
+    tapped.poll()
+    tapped.poll()
+    assert link.texts == [("recording off: Not a directory", 4)]
+    tapped.send_velocity(1.0, 0.0)  # recording is off: the taps pass everything through
+    assert not recorder.active
+
+
+def test_the_companion_flies_on_when_its_recording_directory_cannot_be_made(tmp_path):
+    """The real process: the directory's parent is a file, so nothing can be written, even as root."""
+    blocker = tmp_path / "not-a-dir"
+    blocker.write_text("")
+    lidar_port, mavlink_port = free_udp_port(), free_udp_port()
+    model = write_policy(tmp_path / "forward.onnx", kind="forward")
+    config = write_config(tmp_path, model, lidar_port, mavlink_port,
+                          extra=f'[recorder]\nenabled = true\ndirectory = "{blocker}/flights"\n')
+    vehicle = SimulatedAutopilot(f"udpout:127.0.0.1:{mavlink_port}")
+    proc = start_companion(config)
+    lidar = LidarSender(lidar_port)
+    try:
+        lidar.on = True
+        text = vehicle.wait_for("STATUSTEXT", timeout=40,
+                                condition=lambda msg: "recording off" in msg.text)
+        assert text is not None and "Not a directory" in text.text
+        assert vehicle.wait_for("SET_POSITION_TARGET_LOCAL_NED", timeout=10) is not None
+        t = time.monotonic()
+        time.sleep(1.5)
+        assert len(vehicle.times("SET_POSITION_TARGET_LOCAL_NED", since=t)) >= 10
+    finally:
+        lidar.close()
+        code, _, err = stop(proc)
+        vehicle.close()
+    assert code == 0, err[-3000:]
+
+
+def _record_companion(tmp_path: Path, setpoints: int = 25, recorder: str = "") -> list[Path]:
+    """A short recording of the real companion process (constant lidar, the 'steer' policy), ended
+    once the autopilot has had ``setpoints`` setpoints; its files, oldest first."""
+    lidar_port, mavlink_port = free_udp_port(), free_udp_port()
+    model = write_policy(tmp_path / "steer.onnx", kind="steer")
+    config = write_config(tmp_path, model, lidar_port, mavlink_port,
+                          extra=f'[recorder]\nenabled = true\ndirectory = "{tmp_path}/rec"\n{recorder}')
+    vehicle = SimulatedAutopilot(f"udpout:127.0.0.1:{mavlink_port}")
+    proc = start_companion(config)
+    lidar = LidarSender(lidar_port)
+    try:
+        lidar.on = True
+        deadline = time.monotonic() + 40
+        while len(vehicle.times("SET_POSITION_TARGET_LOCAL_NED")) < setpoints:
+            assert time.monotonic() < deadline, "too few setpoints from the companion"
+            time.sleep(0.1)
+    finally:
+        lidar.close()
+        code, _, err = stop(proc)
+        vehicle.close()
+    assert code == 0, err[-3000:]
+    return sorted((tmp_path / "rec").glob(FILE_GLOB))
+
+
+def _with_one_action_changed(src: Path, dst: Path, index: int) -> None:
+    """Copy a recording, the ``index``-th policy action moved by one float32 ulp."""
+    with open(src, "rb") as f, open(dst, "wb") as out:
+        reader = make_reader(f)
+        writer = Writer(out)
+        writer.start()
+        for md in reader.iter_metadata():
+            writer.add_metadata(md.name, dict(md.metadata))
+        ids: dict[str, int] = {}
+        n = 0
+        for schema, channel, msg in reader.iter_messages():
+            if channel.topic not in ids:
+                sid = writer.register_schema(schema.name, schema.encoding, schema.data)
+                ids[channel.topic] = writer.register_channel(channel.topic, channel.message_encoding, sid)
+            data = msg.data
+            if channel.topic == s.POLICY.topic:
+                n += 1
+                if n == index:
+                    step = json.loads(data)
+                    a = np.float32(step["action"][0])
+                    step["action"][0] = float(np.nextafter(a, np.float32(2)))
+                    data = json.dumps(step).encode()
+            writer.add_message(ids[channel.topic], msg.log_time, data, msg.publish_time, msg.sequence)
+        writer.finish()
+
+
+def test_replay_matches_bit_for_bit_and_finds_a_one_ulp_difference(tmp_path):
+    (path,) = _record_companion(tmp_path)
+    rec = read_recording(path)
+    assert not rec.truncated
+    assert len(rec.topic(s.POLICY.topic)) >= 20 and len(rec.topic(s.SHIELD.topic)) >= 10
+    # the scans the replay starts from (no cloud recorded) are the recorded observations' newest
+    same = subprocess.run([sys.executable, "-m", "companion", "replay", str(path)], cwd=REPO,
+                          capture_output=True, text=True, timeout=120)
+    assert same.returncode == 0, same.stdout + same.stderr
+    assert "matches bit for bit" in same.stdout and "from the recorded scans" in same.stdout
+
+    tampered = tmp_path / "tampered.mcap"
+    _with_one_action_changed(path, tampered, index=7)
+    diff = subprocess.run([sys.executable, "-m", "companion", "replay", str(tampered)], cwd=REPO,
+                          capture_output=True, text=True, timeout=120)
+    assert diff.returncode == 1, diff.stdout + diff.stderr
+    assert "first difference" in diff.stdout and "action 7:" in diff.stdout
+
+    other = write_policy(tmp_path / "forward.onnx", kind="forward")
+    plot = tmp_path / "whatif.png"
+    what_if = subprocess.run([sys.executable, "-m", "companion", "replay", str(path), "--policy", str(other),
+                              "--plot", str(plot)], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert what_if.returncode == 0, what_if.stdout + what_if.stderr
+    assert "what-if: forward.onnx" in what_if.stdout and "largest differences" in what_if.stdout
+    assert plot.stat().st_size > 10_000
+
+
+def test_replay_of_a_file_that_is_not_a_recording_is_one_line_and_exit_2(tmp_path):
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"not an mcap file at all")
+    done = subprocess.run([sys.executable, "-m", "companion", "replay", str(junk)], cwd=REPO,
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2
+    assert done.stderr.strip().count("\n") == 0 and "junk.mcap" in done.stderr
+
+
+def test_recorder_config_is_checked_and_its_directory_is_relative_to_the_config(tmp_path):
+    from companion.config import load_config
+    from companion.errors import UserError
+
+    model = write_policy(tmp_path / "forward.onnx", kind="forward")
+    path = tmp_path / "c.toml"
+    path.write_text(f'[policy]\nmodel = "{model}"\n[recorder]\nenabled = true\n')
+    with pytest.raises(UserError, match=r"recorder.*no directory"):
+        load_config(path)
+    with pytest.raises(UserError, match=r"recorder.*file_mb"):
+        load_config(path, ['recorder.directory="flights"', "recorder.file_mb=500.0",
+                           "recorder.budget_mb=100.0"])
+    config = load_config(path, ['recorder.directory="flights"'])
+    assert config.recorder.directory == str(tmp_path / "flights")
+
+
+def test_the_recorder_and_replay_need_neither_foxglove_nor_matplotlib(tmp_path):
+    """foxglove-sdk is an extra and matplotlib the simulator's: the companion's install has neither."""
+    script = tmp_path / "blocked.py"
+    script.write_text(
+        "import importlib.abc, sys\n"
+        "class Block(importlib.abc.MetaPathFinder):\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        "        if name.split('.')[0] in ('foxglove', 'matplotlib', 'jsonschema', 'flightsim'):\n"
+        "            raise ImportError(name + ' is blocked')\n"
+        "sys.meta_path.insert(0, Block())\n"
+        "import companion.app, companion.replay, companion.recording.reader\n"
+        "print('imported')\n"
+    )
+    done = subprocess.run([sys.executable, str(script)], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0 and "imported" in done.stdout, done.stderr
+
+
+def test_a_later_part_of_a_rotated_recording_replays_on_its_own(tmp_path):
+    """A part that starts mid-flight: the frame stack is taken from its first observation, and
+    shield steps are checked from the shield's first reset in the part on (its state before the
+    part is not in it)."""
+    parts = _record_companion(tmp_path, setpoints=60, recorder="file_mb = 1.0\ncloud_decimation = 1\n")
+    assert len(parts) >= 3
+    middle = read_recording(parts[1])
+    steps = middle.topic(s.POLICY.topic)
+    assert steps and not steps[0][1]["reset"], "the middle part starts mid-flight"
+    done = subprocess.run([sys.executable, "-m", "companion", "replay", str(parts[1])], cwd=REPO,
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "from the recorded clouds" in done.stdout and "matches bit for bit" in done.stdout
+    assert "not checked" in done.stdout
