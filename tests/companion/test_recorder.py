@@ -174,9 +174,10 @@ def test_the_companion_flies_on_when_its_recording_directory_cannot_be_made(tmp_
     assert code == 0, err[-3000:]
 
 
-def _record_companion(tmp_path: Path, setpoints: int = 25, recorder: str = "") -> list[Path]:
+def _record_companion(tmp_path: Path, setpoints: int = 25, recorder: str = "", parts: int = 1) -> list[Path]:
     """A short recording of the real companion process (constant lidar, the 'steer' policy), ended
-    once the autopilot has had ``setpoints`` setpoints; its files, oldest first."""
+    once the autopilot has had ``setpoints`` setpoints and the recorder has begun ``parts`` files
+    (how fast a part fills depends on how well the cloud compresses); its files, oldest first."""
     lidar_port, mavlink_port = free_udp_port(), free_udp_port()
     model = write_policy(tmp_path / "steer.onnx", kind="steer")
     config = write_config(tmp_path, model, lidar_port, mavlink_port,
@@ -187,8 +188,9 @@ def _record_companion(tmp_path: Path, setpoints: int = 25, recorder: str = "") -
     try:
         lidar.on = True
         deadline = time.monotonic() + 40
-        while len(vehicle.times("SET_POSITION_TARGET_LOCAL_NED")) < setpoints:
-            assert time.monotonic() < deadline, "too few setpoints from the companion"
+        while (len(vehicle.times("SET_POSITION_TARGET_LOCAL_NED")) < setpoints
+               or len(list((tmp_path / "rec").glob(FILE_GLOB))) < parts):
+            assert time.monotonic() < deadline, "too few setpoints or recording parts from the companion"
             time.sleep(0.1)
     finally:
         lidar.close()
@@ -297,7 +299,8 @@ def test_a_later_part_of_a_rotated_recording_replays_on_its_own(tmp_path):
     """A part that starts mid-flight: the frame stack is taken from its first observation, and
     shield steps are checked from the shield's first reset in the part on (its state before the
     part is not in it)."""
-    parts = _record_companion(tmp_path, setpoints=60, recorder="file_mb = 1.0\ncloud_decimation = 1\n")
+    parts = _record_companion(tmp_path, setpoints=60, recorder="file_mb = 1.0\ncloud_decimation = 1\n",
+                              parts=3)
     assert len(parts) >= 3
     middle = read_recording(parts[1])
     steps = middle.topic(s.POLICY.topic)
