@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from dataclasses import dataclass
 from typing import Any
 
 from pymavlink import mavutil
@@ -197,5 +198,59 @@ class GroundStation:
             raise RuntimeError(f"ground station: take-off refused (MAV_RESULT {result})")
         self.wait(lambda: self.altitude >= altitude - 0.15, timeout, f"altitude {altitude} m")
 
+    def upload_mission(self, items: list[MissionItemSpec], timeout: float = 10.0) -> None:
+        """Upload ``items`` as the mission, as a ground station does; RuntimeError unless accepted.
+
+        MISSION_COUNT, then each item the autopilot asks for (MISSION_REQUEST_INT, or the legacy
+        MISSION_REQUEST) as MISSION_ITEM_INT, until its MISSION_ACK. On ArduPilot a placeholder
+        home is sent as item 0 first (the firmware keeps its own home there).
+        """
+        items = list(items)
+        if not self.is_px4:
+            items = [MissionItemSpec(mavutil.mavlink.MAV_FRAME_GLOBAL, 0, 0, 0.0), *items]
+        target = (self.target_system, mavutil.mavlink.MAV_COMP_ID_AUTOPILOT1)
+        self.last.pop("MISSION_ACK", None)
+        self.mav.mav.mission_count_send(*target, len(items), mavutil.mavlink.MAV_MISSION_TYPE_MISSION)
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            msg = self.mav.recv_match(type=["MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_ACK"],
+                                      blocking=True, timeout=0.1)
+            self.pump(0.0)
+            if msg is None:
+                continue
+            self._note(msg)
+            if msg.get_type() == "MISSION_ACK":
+                if msg.type != mavutil.mavlink.MAV_MISSION_ACCEPTED:
+                    raise RuntimeError(f"ground station: mission refused (MAV_MISSION_RESULT {msg.type})")
+                log.info("mission of %d items uploaded", len(items))
+                return
+            if 0 <= msg.seq < len(items):
+                it = items[msg.seq]
+                self.mav.mav.mission_item_int_send(
+                    *target, msg.seq, it.frame, it.command, int(msg.seq == 0), 1,
+                    0.0, it.acceptance_radius, 0.0, math.nan, it.x, it.y, it.z,
+                    mavutil.mavlink.MAV_MISSION_TYPE_MISSION)
+        raise RuntimeError("ground station: no MISSION_ACK for the mission upload")
+
     def close(self) -> None:
         self.mav.close()
+
+
+@dataclass(frozen=True)
+class MissionItemSpec:
+    """One mission item a ground station uploads (MISSION_ITEM_INT fields).
+
+    :param frame: MAV_FRAME (global frames: x, y are degrees × 1e7)
+    :param x: latitude × 1e7 (global) or metres × 1e4 (local)
+    :param y: longitude × 1e7 (global) or metres × 1e4 (local)
+    :param z: altitude, metres (its reference is the frame's)
+    :param command: MAV_CMD (NAV_WAYPOINT by default)
+    :param acceptance_radius: NAV_WAYPOINT param2, metres (0: the vehicle's default)
+    """
+
+    frame: int
+    x: int
+    y: int
+    z: float
+    command: int = mavutil.mavlink.MAV_CMD_NAV_WAYPOINT
+    acceptance_radius: float = 0.0
