@@ -285,7 +285,9 @@ class Companion:
             log.info("%s", text)
             self.link.send_statustext(f"avoid {text}", _INFO)
         if out.hold_reason != self._goal_output.hold_reason:
-            log.info("goal: %s", f"hold ({out.hold_reason})" if out.hold_reason else "tracking")
+            text = f"goal: hold ({out.hold_reason})" if out.hold_reason else "goal: tracking"
+            log.info("%s", text)
+            self.link.send_statustext(f"avoid {text}", 4 if out.hold_reason else _INFO)
             self.counters["goal_changes"] += 1
         self._goal_output = out
         g = self.config.goal
