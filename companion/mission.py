@@ -191,7 +191,7 @@ class MissionDownloader:
         self._deadline = math.inf
         self._tries = 0
         self._opaque_id = 0
-        self._current_total: int | None = None  # MISSION_CURRENT.total when the download finished
+        self._reference: tuple[int, int] | None = None  # (plan id, total) of the mission held
         self._start_at: float | None = None  # a (re)download is due at this time
 
     # ---- inputs ------------------------------------------------------------------------------
@@ -243,15 +243,22 @@ class MissionDownloader:
         return []
 
     def _on_current(self, msg: Any, now: float) -> list[Request]:
-        mission_id = extension_u32(msg, MISSION_CURRENT_MISSION_ID_OFFSET)
+        """Compare MISSION_CURRENT's plan id and total with those of the mission held.
+
+        The reference is the plan id MISSION_COUNT gave, else the first MISSION_CURRENT after the
+        download; a plan id of 0 means "not supported" (then only the total tells).
+        """
         if self.phase is not Phase.DONE or self.mission is None:
             return []
-        if mission_id and self.mission.mission_id and mission_id != self.mission.mission_id:
+        mission_id = extension_u32(msg, MISSION_CURRENT_MISSION_ID_OFFSET)
+        total = int(msg.total)
+        if self._reference is None:
+            self._reference = (self.mission.mission_id or mission_id, total)
+        ref_id, ref_total = self._reference
+        if mission_id and mission_id != ref_id:
             self._schedule(now, f"mission id {mission_id}")
-        elif self._current_total is None:
-            self._current_total = int(msg.total)
-        elif int(msg.total) != self._current_total:
-            self._schedule(now, f"{msg.total} items")
+        elif total != ref_total:
+            self._schedule(now, f"{total} items")
         return []
 
     def _on_count(self, msg: Any, now: float) -> list[Request]:
@@ -280,7 +287,7 @@ class MissionDownloader:
         self.mission = Mission(items, self._opaque_id)
         self.phase = Phase.DONE
         self._deadline = math.inf
-        self._current_total = None
+        self._reference = None
         self.counters["downloads"] += 1
         self.events.append(f"mission downloaded: {len(items)} items")
         self.events += [f"mission {p}" for p in self.mission.problems()]

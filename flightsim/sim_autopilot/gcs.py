@@ -198,6 +198,14 @@ class GroundStation:
             raise RuntimeError(f"ground station: take-off refused (MAV_RESULT {result})")
         self.wait(lambda: self.altitude >= altitude - 0.15, timeout, f"altitude {altitude} m")
 
+    def home_position(self, timeout: float = 5.0) -> tuple[int, int]:
+        """Home's (latitude, longitude) × 1e7, asked for with MAV_CMD_GET_HOME_POSITION."""
+        self.last.pop("HOME_POSITION", None)
+        self.command(mavutil.mavlink.MAV_CMD_GET_HOME_POSITION)
+        self.wait(lambda: "HOME_POSITION" in self.last, timeout, "HOME_POSITION")
+        home = self.last["HOME_POSITION"]
+        return int(home.latitude), int(home.longitude)
+
     def upload_mission(self, items: list[MissionItemSpec], timeout: float = 10.0) -> None:
         """Upload ``items`` as the mission, as a ground station does; RuntimeError unless accepted.
 

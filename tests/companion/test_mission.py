@@ -151,6 +151,24 @@ def test_mission_change_starts_a_new_download(sign):
     assert d.counters["changes"] == 1
 
 
+def test_empty_mission_then_an_upload_with_a_plan_id():
+    """The companion started before the pilot uploaded: the empty mission's plan id is 0."""
+    d = MissionDownloader(OWN, skip_home=True, change_settle=0.5)
+    download(d, [item(0, frame=mavlink.MAV_FRAME_GLOBAL)])  # ArduPilot: only home
+    assert d.mission.items == ()
+    d.on_message(current(0, 0, 0), 1.0)
+    d.on_message(current(1, 2, 1234), 2.0)
+    assert d.tick(2.5) == [Request("MISSION_REQUEST_LIST")]
+
+
+def test_plan_id_from_count_is_the_reference():
+    """A mission changed between the download and the first MISSION_CURRENT is still noticed."""
+    d = MissionDownloader(OWN, skip_home=False, change_settle=0.0)
+    download(d, [item(0)], opaque_id=5)
+    d.on_message(current(0, 1, 6), 1.0)
+    assert d.tick(1.0) == [Request("MISSION_REQUEST_LIST")]
+
+
 def test_unsupported_items_named():
     d = MissionDownloader(OWN, skip_home=False)
     download(d, [item(0), item(1, command=mavlink.MAV_CMD_NAV_LOITER_TIME),
