@@ -191,7 +191,9 @@ class MissionDownloader:
         self._deadline = math.inf
         self._tries = 0
         self._opaque_id = 0
-        self._reference: tuple[int, int] | None = None  # (plan id, total) of the mission held
+        self._latest_current: tuple[int, int] | None = None  # (plan id, total) of the last MISSION_CURRENT
+        self._current_at_start: tuple[int, int] | None = None  # ... when the download began
+        self._reference: tuple[int, int] | None = None  # ... of the mission held
         self._start_at: float | None = None  # a (re)download is due at this time
 
     # ---- inputs ------------------------------------------------------------------------------
@@ -199,6 +201,7 @@ class MissionDownloader:
     def start(self, now: float) -> list[Request]:
         """Begin a download now (again, if one is running)."""
         self._start_at = None
+        self._current_at_start = self._latest_current
         self._items = {}
         self._tries = 0
         self.phase = Phase.LISTING
@@ -243,22 +246,25 @@ class MissionDownloader:
         return []
 
     def _on_current(self, msg: Any, now: float) -> list[Request]:
-        """Compare MISSION_CURRENT's plan id and total with those of the mission held.
+        """Compare MISSION_CURRENT's (plan id, total) with those the mission held was downloaded under.
 
-        The reference is the plan id MISSION_COUNT gave, else the first MISSION_CURRENT after the
-        download; a plan id of 0 means "not supported" (then only the total tells).
+        The reference is the last MISSION_CURRENT before the download began, so an upload that lands
+        while downloading shows as a change (at worst one download too many, never one too few).
+        Without one (the first download), the first MISSION_CURRENT after it is the reference, checked
+        against the items downloaded.
         """
+        seen = (extension_u32(msg, MISSION_CURRENT_MISSION_ID_OFFSET), int(msg.total))
+        self._latest_current = seen
         if self.phase is not Phase.DONE or self.mission is None:
             return []
-        mission_id = extension_u32(msg, MISSION_CURRENT_MISSION_ID_OFFSET)
-        total = int(msg.total)
         if self._reference is None:
-            self._reference = (self.mission.mission_id or mission_id, total)
-        ref_id, ref_total = self._reference
-        if mission_id and mission_id != ref_id:
-            self._schedule(now, f"mission id {mission_id}")
-        elif total != ref_total:
-            self._schedule(now, f"{total} items")
+            self._reference = seen
+            if seen[1] != len(self.mission.items):
+                self._schedule(now, f"{seen[1]} items")
+        elif seen[0] != self._reference[0]:
+            self._schedule(now, f"mission id {seen[0]}")
+        elif seen[1] != self._reference[1]:
+            self._schedule(now, f"{seen[1]} items")
         return []
 
     def _on_count(self, msg: Any, now: float) -> list[Request]:
@@ -287,7 +293,7 @@ class MissionDownloader:
         self.mission = Mission(items, self._opaque_id)
         self.phase = Phase.DONE
         self._deadline = math.inf
-        self._reference = None
+        self._reference = self._current_at_start
         self.counters["downloads"] += 1
         self.events.append(f"mission downloaded: {len(items)} items")
         self.events += [f"mission {p}" for p in self.mission.problems()]

@@ -131,6 +131,7 @@ def test_autopilot_refusal_fails_the_download():
 @pytest.mark.parametrize("sign", ["mission_id", "total", "upload_ack", "foreign_count"])
 def test_mission_change_starts_a_new_download(sign):
     d = MissionDownloader(OWN, skip_home=False, change_settle=0.5)
+    d.on_message(current(0, 2, 5), 0.0)
     download(d, [item(0), item(1)], opaque_id=5)
     d.on_message(current(0, 2, 5), 1.0)  # the same mission: nothing
     assert d.tick(2.0) == []
@@ -141,7 +142,7 @@ def test_mission_change_starts_a_new_download(sign):
         "foreign_count": count(3, target=AP),
     }[sign]
     if sign == "total":
-        d2 = MissionDownloader(OWN, skip_home=False)
+        d2 = MissionDownloader(OWN, skip_home=False, change_settle=0.5)
         download(d2, [item(0), item(1)])  # no plan ids: the total tells
         d2.on_message(current(0, 2, 0), 1.0)
         d = d2
@@ -151,21 +152,24 @@ def test_mission_change_starts_a_new_download(sign):
     assert d.counters["changes"] == 1
 
 
-def test_empty_mission_then_an_upload_with_a_plan_id():
-    """The companion started before the pilot uploaded: the empty mission's plan id is 0."""
-    d = MissionDownloader(OWN, skip_home=True, change_settle=0.5)
-    download(d, [item(0, frame=mavlink.MAV_FRAME_GLOBAL)])  # ArduPilot: only home
+def test_upload_between_download_and_first_mission_current():
+    """The companion started before the pilot uploaded; the first MISSION_CURRENT after the download
+    already shows the new mission (the race `avoid-sim fly --mission` met): still noticed."""
+    d = MissionDownloader(OWN, skip_home=True, change_settle=0.0)
+    d.on_message(current(0, 0, 0), 0.0)
+    download(d, [item(0, frame=mavlink.MAV_FRAME_GLOBAL)], now=0.1)  # ArduPilot: only home
     assert d.mission.items == ()
-    d.on_message(current(0, 0, 0), 1.0)
-    d.on_message(current(1, 2, 1234), 2.0)
-    assert d.tick(2.5) == [Request("MISSION_REQUEST_LIST")]
+    d.on_message(current(1, 2, 1234), 1.0)
+    assert d.tick(1.0) == [Request("MISSION_REQUEST_LIST")]
+    download(d, [item(0, frame=mavlink.MAV_FRAME_GLOBAL), item(1), item(2)], now=1.1)
+    d.on_message(current(1, 2, 1234), 2.0)  # the same mission from now on: no more downloads
+    assert d.tick(3.0) == [] and d.counters["downloads"] == 2
 
 
-def test_plan_id_from_count_is_the_reference():
-    """A mission changed between the download and the first MISSION_CURRENT is still noticed."""
+def test_first_download_checked_against_the_first_mission_current():
     d = MissionDownloader(OWN, skip_home=False, change_settle=0.0)
-    download(d, [item(0)], opaque_id=5)
-    d.on_message(current(0, 1, 6), 1.0)
+    download(d, [item(0)])
+    d.on_message(current(0, 3, 0), 1.0)  # three items, one downloaded: changed meanwhile
     assert d.tick(1.0) == [Request("MISSION_REQUEST_LIST")]
 
 

@@ -131,3 +131,22 @@ def test_against_a_pymavlink_peer_with_a_lost_request():
     finally:
         link.close()
         peer.close()
+
+
+@pytest.mark.parametrize("personality", ["ardupilot", "px4"])
+def test_mission_uploaded_after_the_companion_started(personality):
+    """The usual order on a field: the companion finds an empty mission, then the pilot uploads one."""
+    port = free_udp_port()
+    with SimAutopilotServer(personality, [f"udpout:127.0.0.1:{port}", "udpin:127.0.0.1:0"]) as server:
+        gcs = GroundStation("udpout:{}:{}".format(*server.endpoint.address(1)))
+        link = open_link(personality, port)
+        try:
+            goal = open_goal(config(personality), link, time.monotonic)
+            run_until(link, goal, lambda o: o.hold_reason == "mission empty")
+            gcs.wait_heartbeat()
+            gcs.upload_mission([spec(4.0, 0.0, 2.0)])
+            out = run_until(link, goal, lambda o: o.hold_reason is None)
+            assert out.goal_body == pytest.approx((0.0, 4.0, 2.0), abs=0.15)
+        finally:
+            link.close()
+            gcs.close()
