@@ -133,18 +133,18 @@ class GoalTracker:
 
     def set_waypoints(self, waypoints: tuple[Waypoint, ...] | list[Waypoint],
                       position: tuple[float, float, float] | None) -> None:
-        """A new list (a changed mission): resume at the nearest waypoint not yet reached.
-
-        A waypoint counts as reached when it lies within its radius of one reached before. Without
-        a position the list starts from its first waypoint not yet reached.
+        """A new list. The first one starts at its first waypoint; a changed one resumes at the
+        nearest waypoint not yet reached (within its radius of one reached before), or without a
+        position at the first not yet reached.
         """
+        first = not self.waypoints and not self._reached
         self.waypoints = tuple(waypoints)
         self._completed_announced = False
         todo = [i for i, wp in enumerate(self.waypoints)
                 if not any(wp.distance(p) <= self.radius(wp) for p in self._reached)]
         if not todo:
             self.index = len(self.waypoints)
-        elif position is None:
+        elif position is None or first:
             self.index = todo[0]
         else:
             self.index = min(todo, key=lambda i: (self.waypoints[i].distance(position), i))

@@ -260,6 +260,12 @@ def test_position_loss_holds():
     assert tr.update(NavInputs(), 0.0).hold_reason == "no position"
 
 
+def test_first_mission_starts_at_its_first_waypoint():
+    tr = GoalTracker(1.0, 0.5)
+    tr.set_waypoints([Waypoint(17, 0, -2), Waypoint(0, -2, -2)], (0, 0, -2))  # the second is nearer
+    assert tr.index == 0
+
+
 def test_changed_mission_resumes_at_nearest_not_reached():
     tr = GoalTracker(1.0, 0.5)
     a, b, c, d = Waypoint(5, 0, -2), Waypoint(10, 0, -2), Waypoint(15, 0, -2), Waypoint(20, 0, -2)
