@@ -80,3 +80,28 @@ def test_fixed_goal_position_loss_and_completion_hold(tmp_path):
         if proc.poll() is None:
             print(stop(proc)[2][-5000:])
         vehicle.close()
+
+
+def test_on_complete_rtl_requested_once(tmp_path):
+    lidar_port, mavlink_port = free_udp_port(), free_udp_port()
+    model = write_policy(tmp_path / "forward.onnx", kind="forward")
+    config = write_config(tmp_path, model, lidar_port, mavlink_port,
+                          extra=GOAL.replace('source = "fixed"', 'source = "fixed"\non_complete = "rtl"'))
+    vehicle = SimulatedAutopilot(f"udpout:127.0.0.1:{mavlink_port}")
+    vehicle.local_position = (0.0, 0.0, -1.5)
+    proc = start_companion(config)
+    lidar = LidarSender(lidar_port)
+    try:
+        lidar.on = True
+        _wait(lambda: any(m.vx > 0 for m in vehicle.messages(SETPOINT)), 20.0, "the policy flying")
+        vehicle.local_position = (5.0, 0.0, -1.5)
+        _wait(lambda: any("requesting RTL" in t for t in _texts(vehicle, 0.0)), what="the RTL request")
+        time.sleep(1.0)
+        modes = [m for m in vehicle.messages("COMMAND_LONG") if m.command == 176]  # MAV_CMD_DO_SET_MODE
+        assert len(modes) == 1 and modes[0].param2 == 6  # ArduCopter RTL
+        assert (modes[0].target_system, modes[0].target_component) == (1, 1)
+    finally:
+        lidar.close()
+        if proc.poll() is None:
+            print(stop(proc)[2][-5000:])
+        vehicle.close()
