@@ -99,6 +99,23 @@ class GroundStation:
         elif kind == "STATUSTEXT":
             self.statustexts.append(msg.text)
 
+    def _drain(self, timeout: float = 0.05) -> list[Any]:
+        """Pump once (heartbeat when due) and return every message read, each already noted."""
+        now = time.monotonic()
+        if now >= self._next_hb:
+            self.mav.mav.heartbeat_send(
+                mavutil.mavlink.MAV_TYPE_GCS, mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0
+            )
+            self._next_hb = now + 1.0
+        out = []
+        msg = self.mav.recv_match(blocking=True, timeout=timeout)
+        while msg is not None:
+            if msg.get_type() != "BAD_DATA":
+                self._note(msg)
+                out.append(msg)
+            msg = self.mav.recv_match(blocking=False)
+        return out
+
     def wait(self, predicate: Any, timeout: float, what: str) -> None:
         """Pump until ``predicate()`` holds; RuntimeError naming ``what`` on timeout."""
         end = time.monotonic() + timeout
@@ -221,23 +238,21 @@ class GroundStation:
         self.mav.mav.mission_count_send(*target, len(items), mavutil.mavlink.MAV_MISSION_TYPE_MISSION)
         end = time.monotonic() + timeout
         while time.monotonic() < end:
-            msg = self.mav.recv_match(type=["MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_ACK"],
-                                      blocking=True, timeout=0.1)
-            self.pump(0.0)
-            if msg is None:
-                continue
-            self._note(msg)
-            if msg.get_type() == "MISSION_ACK":
-                if msg.type != mavutil.mavlink.MAV_MISSION_ACCEPTED:
-                    raise RuntimeError(f"ground station: mission refused (MAV_MISSION_RESULT {msg.type})")
-                log.info("mission of %d items uploaded", len(items))
-                return
-            if 0 <= msg.seq < len(items):
-                it = items[msg.seq]
-                self.mav.mav.mission_item_int_send(
-                    *target, msg.seq, it.frame, it.command, int(msg.seq == 0), 1,
-                    0.0, it.acceptance_radius, 0.0, math.nan, it.x, it.y, it.z,
-                    mavutil.mavlink.MAV_MISSION_TYPE_MISSION)
+            for msg in self._drain():  # every message is noted (and relayed, with an external SITL)
+                kind = msg.get_type()
+                if getattr(msg, "target_system", None) != self.mav.source_system:
+                    continue  # not the ground station's transfer (the companion's, relayed)
+                if kind == "MISSION_ACK":
+                    if msg.type != mavutil.mavlink.MAV_MISSION_ACCEPTED:
+                        raise RuntimeError(f"ground station: mission refused (MAV_MISSION_RESULT {msg.type})")
+                    log.info("mission of %d items uploaded", len(items))
+                    return
+                if kind in ("MISSION_REQUEST_INT", "MISSION_REQUEST") and 0 <= msg.seq < len(items):
+                    it = items[msg.seq]
+                    self.mav.mav.mission_item_int_send(
+                        *target, msg.seq, it.frame, it.command, int(msg.seq == 0), 1,
+                        0.0, it.acceptance_radius, 0.0, math.nan, it.x, it.y, it.z,
+                        mavutil.mavlink.MAV_MISSION_TYPE_MISSION)
         raise RuntimeError("ground station: no MISSION_ACK for the mission upload")
 
     def close(self) -> None:
