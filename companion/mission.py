@@ -91,6 +91,9 @@ class MissionItem:
             return f"item {self.seq}: frame {FRAME_NAMES.get(self.frame, self.frame)} not supported"
         if not math.isfinite(self.z) or not math.isfinite(self.param2):
             return f"item {self.seq}: not a number"
+        on_earth = abs(self.x) <= 900_000_000 and abs(self.y) <= 1_800_000_000
+        if self.frame not in LOCAL_FRAMES and not on_earth:
+            return f"item {self.seq}: latitude/longitude out of range"
         return None
 
 

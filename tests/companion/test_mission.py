@@ -184,6 +184,19 @@ def test_unsupported_items_named():
         mission_waypoints(d.mission, ORIGIN, 488.0)
 
 
+@pytest.mark.parametrize(("bad", "why"), [
+    ({"z": math.nan}, "not a number"),
+    ({"radius": math.inf}, "not a number"),
+    ({"x": 950_000_000}, "latitude/longitude out of range"),
+    ({"y": -1_900_000_000}, "latitude/longitude out of range"),
+])
+def test_malformed_items_are_not_flown(bad, why):
+    m = _mission(item(1, **bad))
+    assert m.problems() == [f"item 1: {why}"]
+    with pytest.raises(ValueError, match=why):
+        mission_waypoints(m, ORIGIN, 488.0)
+
+
 def _mission(*items):
     return Mission(tuple(MissionItem.of(i) for i in items))
 
