@@ -121,3 +121,26 @@ def test_unsupported_command_kept_for_the_companion_to_report():
     upload(ap, [wp(0), wp(1, command=mavlink.MAV_CMD_NAV_LOITER_TIME)])
     d = companion_download(ap, skip_home=False)
     assert "mission item 1: NAV_LOITER_TIME not supported" in d.drain_events()
+
+
+def test_world_waypoints_as_mission_items_and_reached_in_order():
+    import numpy as np
+
+    from companion.goal_frames import GlobalOrigin, global_to_local_ne
+    from flightsim.harness import mission_items, waypoints_reached
+    from flightsim.world import load_world
+
+    world = load_world("flightsim/worlds/slalom.json")  # start (-8.5, 0); waypoints (8.5, 0), (-8.5, -2)
+    items = mission_items(world, (LAT, LON))
+    assert [i.frame for i in items] == [mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT] * 2
+    home = GlobalOrigin(LAT, LON, 0.0)
+    assert global_to_local_ne(items[0].x, items[0].y, home) == (pytest.approx(0.0, abs=0.01),
+                                                                 pytest.approx(17.0, abs=0.01))
+    assert global_to_local_ne(items[1].x, items[1].y, home) == (pytest.approx(-2.0, abs=0.01),
+                                                                 pytest.approx(0.0, abs=0.01))
+    assert items[0].z == 1.5
+    # (t, x, y, z, yaw, speed): the second waypoint first (not counted: out of order), the first, the second
+    traj = np.array([[10.0, -8.5, -2.0, 1.5, 0, 0], [14.0, 8.0, 0.2, 1.5, 0, 0],
+                     [20.0, -8.2, -2.3, 1.5, 0, 0]])
+    assert waypoints_reached(world, traj, engaged_at=9.0) == [(0, 5.0), (1, 11.0)]
+    assert waypoints_reached(world, traj[:2], engaged_at=9.0) == [(0, 5.0)]
