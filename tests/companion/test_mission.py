@@ -306,3 +306,31 @@ def test_origin_from_global_and_local_position():
     assert nav.heading == pytest.approx(math.pi / 2)
     nav.on_message(wire(mavlink.MAVLink_gps_global_origin_message(1, 2, 3_000, 0)), 0.1)
     assert nav.origin == GlobalOrigin(1, 2, 3.0)  # GPS_GLOBAL_ORIGIN wins
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    ('[goal]\nsource = "fixed"\n', r"goal: source is 'fixed' but waypoints lists none"),
+    ('[goal]\nsource = "gps"\n', r"goal\.source: must be one of 'none', 'fixed', 'mission'"),
+    ('[goal]\non_complete = "loiter"\n', r"goal\.on_complete: must be one of"),
+    ('[goal]\nacceptance_radius = 0.0\n', r"goal\.acceptance_radius: 0\.0 is below the minimum"),
+    ('[[goal.waypoints]]\nnorth = "far"\n', r"goal\.waypoints\[0\]\.north"),
+])
+def test_goal_config_errors_name_the_key(tmp_path, text, message):
+    from companion.config import load_config
+    from companion.errors import UserError
+
+    path = tmp_path / "c.toml"
+    path.write_text(f'[policy]\nmodel = "m.onnx"\n{text}')
+    with pytest.raises(UserError, match=message):
+        load_config(path)
+
+
+def test_fixed_goal_config(tmp_path):
+    from companion.config import load_config
+
+    path = tmp_path / "c.toml"
+    path.write_text('[policy]\nmodel = "m.onnx"\n[goal]\nsource = "fixed"\n'
+                    '[[goal.waypoints]]\nnorth = 4.0\ndown = -2.0\nacceptance_radius = 0.5\n')
+    goal = load_config(path).goal
+    assert goal.source == "fixed" and goal.waypoints[0].north == 4.0
+    assert goal.waypoints[0].acceptance_radius == 0.5
