@@ -137,6 +137,8 @@ class GoalTracker:
         nearest waypoint not yet reached (within its radius of one reached before), or without a
         position at the first not yet reached.
         """
+        if tuple(waypoints) == self.waypoints:
+            return  # downloaded again but unchanged: carry on where we are
         first = not self.waypoints and not self._reached
         self.waypoints = tuple(waypoints)
         self._completed_announced = False

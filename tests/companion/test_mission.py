@@ -292,6 +292,15 @@ def test_changed_mission_resumes_at_nearest_not_reached():
     assert tr.index == 1  # everything reached: complete
 
 
+def test_same_mission_again_keeps_the_current_waypoint():
+    tr = GoalTracker(1.0, 0.5)
+    wps = [Waypoint(5, 0, -2), Waypoint(10, 0, -2), Waypoint(15, 0, -2)]
+    tr.set_waypoints(wps, None)
+    tr.update(_nav((5, 0, -2), 0.0), 0.0)
+    tr.set_waypoints(list(wps), (14, 0, -2))  # nearer the third, but the list is the same
+    assert tr.index == 1
+
+
 def test_origin_from_global_and_local_position():
     nav = NavInputs()
     lat, lon = offset_global(ORIGIN.lat_e7, ORIGIN.lon_e7, 3.0, 4.0)
