@@ -37,6 +37,8 @@ from companion.autopilot.link import AutopilotLink, VehicleStatus
 from companion.config import CompanionConfig, load_config
 from companion.errors import UserError
 from companion.framestack import FrameStack
+from companion.goal import GoalOutput
+from companion.goal_source import GOAL_STREAMS, GoalSource, completion_mode_command, request_message
 from companion.notify import SystemdNotifier
 from companion.obstacle_distance import obstacle_distance_from_scan
 from companion.policy import InferenceFault, OnnxPolicy, PolicySpec
@@ -131,6 +133,18 @@ def open_link(config: CompanionConfig, clock: Callable[[], float]) -> AutopilotL
     from companion.autopilot.ardupilot import ArduPilotLink
 
     return ArduPilotLink(ap.connection, baud=ap.baud, **common)
+
+
+def open_goal(config: CompanionConfig, link: Any, clock: Callable[[], float]) -> GoalSource | None:
+    """The configured goal source, listening to the link (None: ``goal.source = "none"``)."""
+    if config.goal.source == "none":
+        return None
+    ap = config.autopilot
+    target = (ap.system_id, ap.component_id)
+    goal = GoalSource(config.goal, (ap.source_system, ap.source_component), ap.type == "ardupilot", clock,
+                      lambda request: link.send_message(request_message(request, target)))
+    link.add_message_listener(goal.on_message, GOAL_STREAMS)
+    return goal
 
 
 def pymavlink_connection(config: CompanionConfig) -> tuple[str, int]:
@@ -238,6 +252,9 @@ class Companion:
         self._last_watchdog = -math.inf
         self._last_log = clock()
         self._stopping = False
+        self.goal = open_goal(config, self.link, clock)
+        self._goal_output = GoalOutput(None)
+        self._completion_requested = False
         self.recorder = self._start_recorder()
 
     def _start_recorder(self) -> FlightRecorder | None:
@@ -264,6 +281,7 @@ class Companion:
         clouds = self.lidar.read_available()
         self._status = self.link.poll()
         self.supervisor.on_vehicle(self._status)
+        self._step_goal()
         for cloud in clouds:
             self._on_cloud(cloud)
         kind = self.supervisor.tick()
@@ -273,6 +291,29 @@ class Companion:
         for transition in self.supervisor.drain_transitions():
             self._announce(transition)
         self._periodic()
+
+    def _step_goal(self) -> None:
+        """Goal: progress announced; a goal that says hold gates the policy (see :meth:`_send`)."""
+        if self.goal is None:
+            return
+        out = self.goal.step(self._status.heartbeat_time is not None)
+        for text in self.goal.drain_announcements():
+            log.info("%s", text)
+            self.link.send_statustext(f"avoid {text}", _INFO)
+        if out.hold_reason != self._goal_output.hold_reason:
+            text = f"goal: hold ({out.hold_reason})" if out.hold_reason else "goal: tracking"
+            log.info("%s", text)
+            self.link.send_statustext(f"avoid {text}", 4 if out.hold_reason else _INFO)
+            self.counters["goal_changes"] += 1
+        self._goal_output = out
+        g = self.config.goal
+        if (out.complete and g.on_complete != "hold" and not self._completion_requested
+                and self.supervisor.state in (SupervisorState.ACTIVE, SupervisorState.HOLD)):
+            self._completion_requested = True
+            ap = self.config.autopilot
+            target = (ap.system_id, ap.component_id)
+            self.link.send_message(completion_mode_command(ap.type, g.on_complete, target))
+            self.link.send_statustext(f"avoid goal complete: requesting {g.on_complete.upper()}", _INFO)
 
     def _link_fileno(self) -> int | None:
         fileno = getattr(self.link, "fileno", None)
@@ -311,6 +352,9 @@ class Companion:
 
     def _send(self, kind: CommandKind, new_scan: bool) -> None:
         now = self._clock()
+        if kind is CommandKind.POLICY and self._goal_output.hold_reason is not None:
+            self.counters["goal_holds"] += 1  # the goal says hold (complete, no position, ...)
+            kind = CommandKind.ZERO
         if kind is CommandKind.POLICY:
             if new_scan and self._latest is not None:
                 scan, requested = self._latest

@@ -225,6 +225,47 @@ class RecorderConfig:
 
 
 @dataclass(frozen=True)
+class FixedWaypointConfig:
+    """One configured waypoint, local NED metres from the autopilot's origin (EKF origin).
+
+    :param acceptance_radius: reached within this, metres (0: ``goal.acceptance_radius``)
+    """
+
+    north: float = field(default=0.0, metadata={"min": -100_000.0, "max": 100_000.0})
+    east: float = field(default=0.0, metadata={"min": -100_000.0, "max": 100_000.0})
+    down: float = field(default=0.0, metadata={"min": -10_000.0, "max": 10_000.0})
+    acceptance_radius: float = field(default=0.0, metadata={"min": 0.0, "max": 100.0})
+
+
+@dataclass(frozen=True)
+class GoalConfig:
+    """Where the goal-directed policy's goal comes from (``[goal]``).
+
+    :param source: ``none`` (no goal), ``fixed`` (``waypoints`` below) or ``mission`` (the mission
+        uploaded to the autopilot, downloaded over MAVLink)
+    :param waypoints: the ``fixed`` waypoints, in order
+    :param acceptance_radius: a waypoint without its own radius is reached within this, metres
+    :param max_vertical_speed: bound of the climb/descent toward a waypoint's height, m/s
+    :param on_complete: after the last waypoint: ``hold`` (zero velocity; the companion never
+        changes the mode), or request ``land`` / ``rtl`` once
+    :param download_timeout: wait for each mission-protocol reply, s
+    :param download_retries: repeats of an unanswered mission request before the download fails
+    """
+
+    source: Literal["none", "fixed", "mission"] = "none"
+    waypoints: tuple[FixedWaypointConfig, ...] = ()
+    acceptance_radius: float = field(default=1.0, metadata={"min": 0.1, "max": 100.0})
+    max_vertical_speed: float = field(default=0.5, metadata={"min": 0.05, "max": 5.0})
+    on_complete: Literal["hold", "land", "rtl"] = "hold"
+    download_timeout: float = field(default=1.0, metadata={"min": 0.1, "max": 10.0})
+    download_retries: int = field(default=5, metadata={"min": 0, "max": 50})
+
+    def __post_init__(self) -> None:
+        if self.source == "fixed" and not self.waypoints:
+            raise ValueError("source is 'fixed' but waypoints lists none")
+
+
+@dataclass(frozen=True)
 class CompanionConfig:
     """Everything ``avoid-companion run`` needs; one table per field."""
 
@@ -237,6 +278,7 @@ class CompanionConfig:
     params_check: ParamsCheckConfig = field(default_factory=ParamsCheckConfig)
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
     recorder: RecorderConfig = field(default_factory=RecorderConfig)
+    goal: GoalConfig = field(default_factory=GoalConfig)
 
 
 def load_config(path: str | Path, overrides: list[str] | None = None) -> CompanionConfig:

@@ -45,6 +45,8 @@ log = logging.getLogger(__name__)
 
 AUTOPILOTS = ("sim-ardupilot", "sim-px4", "external")
 TAKEOFF_ALTITUDE = 1.5
+#: Acceptance radius of the waypoints ``--mission`` uploads, m.
+MISSION_ACCEPTANCE_RADIUS = 1.0
 #: the companion's STATUSTEXT on entering ACTIVE starts with this (supervisor state names)
 ACTIVE_MARK = "->ACTIVE"
 
@@ -136,6 +138,8 @@ class FlightOptions:
     :param engage_timeout: seconds to wait for the companion to go ACTIVE
     :param signed: MAVLink 2 signing on every link (simulated autopilots): a fresh key in the
         workdir for the autopilot, the ground station and the companion's ``autopilot.signing_key``
+    :param mission: upload the world's waypoints as a mission through the ground station and set
+        the companion's ``goal.source = "mission"``
     """
 
     autopilot: str
@@ -149,6 +153,7 @@ class FlightOptions:
     autopilot_params: dict[str, float] = field(default_factory=dict)
     engage_timeout: float = 20.0
     signed: bool = False
+    mission: bool = False
 
 
 @dataclass
@@ -170,6 +175,10 @@ class FlightReport:
     plot: str = ""
     error: str = ""
     recording: str = ""
+    waypoints_reached: list[tuple[int, float]] = field(default_factory=list)
+    mission_complete: bool = False
+    mission_time_s: float = -1.0
+    goal_events: list[str] = field(default_factory=list)
 
     def to_json(self) -> str:
         return json.dumps(dataclasses.asdict(self), indent=2)
@@ -372,6 +381,8 @@ class SitlFlight:
             else f"udpin:127.0.0.1:{self.companion_port}"
         )
         overrides = dict(self.options.companion_overrides)
+        if self.options.mission:
+            overrides["goal"] = {**overrides.get("goal", {}), "source": "mission"}
         if self.signing_key is not None:
             overrides["autopilot"] = {**overrides.get("autopilot", {}), "signing_key": str(self.key_path)}
         cfg = companion_config(
@@ -574,6 +585,20 @@ class SitlFlight:
                 raise RuntimeError(f"no companion HEARTBEAT in {timeout:.0f} s (see {self.log_path})")
             time.sleep(0.05)
 
+    def upload_mission(self) -> None:
+        """Upload the world's waypoints as a mission, as a ground station does (before arming).
+
+        The world's start is the autopilot's home: waypoint (x, y, z) is (y − start y) m north and
+        (x − start x) m east of home, z m above it (MAV_FRAME_GLOBAL_RELATIVE_ALT_INT).
+        """
+        if not self.world.waypoints:
+            raise UserError(f"--mission: world {self.world.name!r} has no waypoints")
+
+        def upload(gcs: GroundStation) -> None:
+            gcs.upload_mission(mission_items(self.world, gcs.home_position()))
+
+        self.pilot(upload)
+
     def take_off(self) -> None:
         """GUIDED (ArduPilot) / Hold (PX4), arm, take off to 1.5 m; PX4: proof of life, then OFFBOARD."""
         gcs = self.gcs
@@ -688,12 +713,51 @@ class SitlFlight:
             error=error,
             recording=str(self.recording.path),
         )
+        if self.options.mission:
+            reached = waypoints_reached(self.world, traj, self.engaged_at)
+            result.waypoints_reached = reached
+            result.mission_complete = len(reached) == len(self.world.waypoints)
+            result.mission_time_s = reached[-1][1] if result.mission_complete else -1.0
+            result.goal_events = [t for t in texts if "goal" in t or "mission" in t]
         if plot is not None:
             with rec.lock:
                 full = np.array(rec.trajectory)
             plot_flight(self.world, full, self.engaged_at, rec.collision_time, plot, title=_title(result))
             result.plot = str(plot)
         return result
+
+
+def mission_items(world: World, home: tuple[int, int]) -> list[Any]:
+    """The world's waypoints as NAV_WAYPOINTs relative to ``home`` (lat, lon × 1e7) at the world's start."""
+    from pymavlink import mavutil
+
+    from companion.goal_frames import offset_global
+    from flightsim.sim_autopilot.gcs import MissionItemSpec
+
+    sx, sy, _ = world.start_position
+    items = []
+    for x, y, z in world.waypoints:
+        lat, lon = offset_global(*home, y - sy, x - sx)
+        frame = mavutil.mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT
+        items.append(MissionItemSpec(frame, round(lat), round(lon), float(z),
+                                     acceptance_radius=MISSION_ACCEPTANCE_RADIUS))
+    return items
+
+
+def waypoints_reached(world: World, traj: np.ndarray, engaged_at: float | None) -> list[tuple[int, float]]:
+    """(waypoint index, seconds after engagement) of each waypoint reached in order (horizontally,
+    within :data:`MISSION_ACCEPTANCE_RADIUS`), from the simulated vehicle's own trajectory."""
+    out: list[tuple[int, float]] = []
+    if engaged_at is None or not len(traj):
+        return out
+    i = 0
+    for row in traj:
+        if i == len(world.waypoints):
+            break
+        if math.dist(row[1:3], world.waypoints[i][:2]) <= MISSION_ACCEPTANCE_RADIUS:
+            out.append((i, round(float(row[0] - engaged_at), 2)))
+            i += 1
+    return out
 
 
 def _title(r: FlightReport) -> str:
@@ -742,6 +806,8 @@ def run_flight(options: FlightOptions, plot: Path | None = None, vehicle: Any = 
         error = ""
         try:
             flight.wait_companion_up()
+            if options.mission:
+                flight.upload_mission()
             flight.take_off()
             if flight.wait_engaged(options.engage_timeout):
                 error = flight.fly(options.duration)
@@ -812,6 +878,9 @@ def configure_parser(parser: Any) -> None:
     )
     parser.add_argument("--signed", action="store_true",
                         help="MAVLink 2 signing on every link: autopilot, GCS, companion (sim autopilots)")
+    parser.add_argument("--mission", action="store_true",
+                        help="upload the world's waypoints as a mission (GCS) and fly it "
+                        "(goal.source = mission)")
     parser.add_argument("--json", help="write the flight report as JSON here")
     parser.add_argument("--plot", help="write a top-down PNG of the flight here")
     parser.add_argument("--workdir", help="where the companion's config and log go (default: a temp dir)")
@@ -834,6 +903,7 @@ def command(args: Any) -> int:
         lidar_step_deg=args.lidar_step,
         workdir=workdir,
         signed=args.signed,
+        mission=args.mission,
     )
     try:
         report = run_flight(options, plot=Path(args.plot) if args.plot else None)
@@ -861,6 +931,11 @@ def print_report(r: FlightReport) -> None:
         f"p50 {r.latency_p50_ms:.1f} ms, p99 {r.latency_p99_ms:.1f} ms"
     )
     print(f"  companion states: {' | '.join(r.transitions) or '-'}")
+    if r.goal_events or r.waypoints_reached:
+        reached = ", ".join(f"#{i + 1} at {t:.1f} s" for i, t in r.waypoints_reached) or "none"
+        done = f"complete in {r.mission_time_s:.1f} s" if r.mission_complete else "not complete"
+        print(f"  mission: waypoints reached {reached}; {done}")
+        print(f"  companion goal: {' | '.join(r.goal_events) or '-'}")
     if r.plot:
         print(f"  plot: {r.plot}")
     if r.recording:

@@ -106,6 +106,8 @@ class ArduPilotLink:
         self._last_seen: dict[str, float] = {}
         self._last_stream_request = -math.inf
         self._statustext_id = 0
+        self._streams: tuple[str, ...] = STATUS_STREAMS
+        self._listeners: list[Callable[[Any], None]] = []
         self.counters: dict[str, int] = {
             "received": 0,
             "bad_data": 0,
@@ -122,6 +124,7 @@ class ArduPilotLink:
             "stream_requests": 0,
             "command_nacks": 0,
             "send_errors": 0,
+            "mission_messages_sent": 0,
         }
 
     # ---- receiving -------------------------------------------------------------------------
@@ -157,6 +160,8 @@ class ArduPilotLink:
             return
         now = self._clock()
         self._last_seen[kind] = now
+        for listener in self._listeners:
+            listener(msg)
         if kind == "EXTENDED_SYS_STATE":
             try:
                 self._status.landed_state = LandedState(msg.landed_state)
@@ -220,7 +225,7 @@ class ArduPilotLink:
         if now - self._last_stream_request < 5.0:
             return
         self._last_stream_request = now
-        for name in STATUS_STREAMS:
+        for name in self._streams:
             if now - self._last_seen.get(name, -math.inf) < 5.0:
                 continue
             msg_id = getattr(mavlink, f"MAVLINK_MSG_ID_{name}")
@@ -235,7 +240,18 @@ class ArduPilotLink:
                 0, 0, 0, 0, 0,
             )
 
+    def add_message_listener(self, listener: Callable[[Any], None], streams: tuple[str, ...] = ()) -> None:
+        """Call ``listener`` with every message from the autopilot; also keep ``streams`` requested."""
+        self._listeners.append(listener)
+        self._streams = tuple(dict.fromkeys(self._streams + streams))
+
     # ---- sending ---------------------------------------------------------------------------
+
+    def send_message(self, msg: Any) -> None:
+        """Send a pymavlink message built by the caller (the mission protocol's requests)."""
+        if self._target is None:
+            return
+        self._send("mission_messages_sent", self._endpoint.mav.send, msg)
 
     def _send(self, counter: str, send: Callable[..., None], *args: Any) -> bool:
         try:

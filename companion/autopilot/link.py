@@ -6,9 +6,10 @@ application loop can be written (and tested) against one shape whichever autopil
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import IntEnum
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -79,6 +80,15 @@ class AutopilotLink(Protocol):
 
     def send_statustext(self, text: str, severity: int) -> None:
         """Send a STATUSTEXT (``severity`` is MAV_SEVERITY) so the pilot's GCS shows it."""
+        ...
+
+    def add_message_listener(self, listener: Callable[[Any], None], streams: tuple[str, ...] = ()) -> None:
+        """Also hand every message from the autopilot to ``listener`` (maybe from another thread)
+        and keep ``streams`` requested (the goal source: positions, the mission protocol)."""
+        ...
+
+    def send_message(self, msg: Any) -> None:
+        """Send a pymavlink message built by the caller to the autopilot (mission requests, DO_SET_MODE)."""
         ...
 
     def close(self) -> None:

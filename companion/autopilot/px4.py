@@ -46,6 +46,7 @@ from mavsdk.plugins.telemetry.telemetry import FlightMode, Telemetry
 
 from companion.autopilot.ardupilot import SECTOR_INCREMENT_DEG, statustext_chunks
 from companion.autopilot.link import LandedState, VehicleStatus
+from companion.autopilot.mavlink_adapter import mavlink
 from companion.autopilot.px4_transport import RawMavlinkTransport
 from companion.errors import UserError
 from companion.obstacle_distance import sector_distances
@@ -160,6 +161,7 @@ class Px4Link:
         self._status = VehicleStatus()
         self._seen: dict[str, float] = {}
         self._statustext_id = 0
+        self._extra_streams: tuple[str, ...] = ()
 
         self._stop = threading.Event()
         self._guard = threading.Thread(target=self._guard_setpoint_repeat, name="px4-setpoint-guard",
@@ -201,6 +203,7 @@ class Px4Link:
         direct = MavlinkDirect(system)
         direct.subscribe_message("HEARTBEAT", self._on_heartbeat)
         self._telemetry, self._direct = telemetry, direct
+        self._request_extra_streams()
 
     def _on_rate_result(self, result: Any, _user_data: Any) -> None:
         if result.name != "SUCCESS":
@@ -350,6 +353,38 @@ class Px4Link:
                 "frame": _MAV_FRAME_BODY_FRD,
             },
         )
+
+    def add_message_listener(self, listener: Callable[[Any], None], streams: tuple[str, ...] = ()) -> None:
+        """Call ``listener`` (from the reader thread) with every message from the autopilot.
+
+        ``streams`` are asked for with MAV_CMD_SET_MESSAGE_INTERVAL once the autopilot is found.
+        The mission protocol goes this way rather than through MAVSDK's MissionRaw: one download
+        state machine for both firmwares, with MISSION_CURRENT's plan id seen on the same stream.
+        """
+        autopilot = self._autopilot
+
+        def from_autopilot(msg: Any) -> None:
+            if (msg.get_srcSystem(), msg.get_srcComponent()) == autopilot:
+                listener(msg)
+
+        self._transport.listeners.append(from_autopilot)
+        self._extra_streams = tuple(dict.fromkeys(self._extra_streams + streams))
+
+    def send_message(self, msg: Any) -> None:
+        """Send a pymavlink message of the companion's own (the mission protocol's requests)."""
+        if self._system is None:
+            self.counters["messages_without_autopilot"] += 1
+            return
+        self._transport.send_message(msg)
+        self.counters["mission_messages_sent"] = self.counters.get("mission_messages_sent", 0) + 1
+
+    def _request_extra_streams(self) -> None:
+        interval_us = round(1e6 / self._stream_rate_hz)
+        for name in self._extra_streams:
+            msg_id = getattr(mavlink, f"MAVLINK_MSG_ID_{name}")
+            self._transport.send_message(mavlink.MAVLink_command_long_message(
+                *self._autopilot, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0, msg_id, interval_us,
+                0, 0, 0, 0, 0))
 
     def send_heartbeat(self) -> None:
         """Nothing to do: MAVSDK sends the companion's HEARTBEAT (ONBOARD_CONTROLLER, 1 Hz) itself."""

@@ -68,6 +68,9 @@ class RawMavlinkTransport:
         self._signer = FrameSigner(signing_key) if signing_key is not None else None
         self._out_parser = mavlink.MAVLink(None)
         self._out_parser.robust_parsing = True
+        self._out_encoder = mavlink.MAVLink(None, source_system, source_component)
+        #: called (reader thread) with every message from the autopilot's system
+        self.listeners: list[Any] = []
         self._lock = threading.Lock()
         self.counters: dict[str, int] = {"foreign_messages": 0, "frames_out": 0, "unsignable_frames": 0,
                                           "send_errors": 0}
@@ -99,6 +102,15 @@ class RawMavlinkTransport:
                         self.counters["foreign_messages"] += 1
                     continue
                 self._mavsdk.pass_received_raw_bytes(bytes(msg.get_msgbuf()))
+                for listener in self.listeners:
+                    listener(msg)
+
+    def send_message(self, msg: Any) -> None:
+        """Send a pymavlink message of the companion's own beside MAVSDK's (same ids, same signer)."""
+        with self._lock:
+            frame = bytes(msg.pack(self._out_encoder))
+            self._out_encoder.seq = (self._out_encoder.seq + 1) % 256
+        self._on_outgoing(frame)
 
     def _on_outgoing(self, data: bytes) -> None:
         """MAVSDK's thread: frames to send, re-signed when signing is on."""

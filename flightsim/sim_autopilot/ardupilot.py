@@ -74,8 +74,10 @@ class ArduCopterAutopilot(SimAutopilot):
         "GLOBAL_POSITION_INT": 0.1,
         "EXTENDED_SYS_STATE": 0.25,
         "VFR_HUD": 0.25,
+        "MISSION_CURRENT": 1.0,
     }
     CAPABILITIES = SimAutopilot.CAPABILITIES | mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT
+    MISSION_HOME_ITEM = True  # AP_Mission: item 0 is home
 
     def __init__(self, params: Any, *, system_id: int = 1, boot_time: float = 0.0) -> None:
         super().__init__(params, system_id=system_id, boot_time=boot_time)

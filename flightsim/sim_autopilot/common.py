@@ -23,6 +23,7 @@ import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from flightsim.control import Setpoint
+from flightsim.sim_autopilot.mission import MissionStore, StoredItem
 
 log = logging.getLogger(__name__)
 
@@ -260,7 +261,15 @@ class SimAutopilot:
         "HOME_POSITION",
         "AUTOPILOT_VERSION",
         "VFR_HUD",
+        "MISSION_CURRENT",
     )
+    #: mission-protocol messages, handled by :class:`~flightsim.sim_autopilot.mission.MissionStore`
+    MISSION_MESSAGES = frozenset((
+        "MISSION_REQUEST_LIST", "MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_COUNT",
+        "MISSION_ITEM_INT", "MISSION_ITEM", "MISSION_ACK", "MISSION_CLEAR_ALL",
+    ))
+    #: the firmware keeps home as mission item 0 (ArduPilot)
+    MISSION_HOME_ITEM = False
     #: COMMAND_ACK result of a refused DO_SET_MODE
     MODE_REFUSED: int = mavlink.MAV_RESULT_FAILED
     #: MAV_PROTOCOL_CAPABILITY bits of AUTOPILOT_VERSION (plus the parameter table's encoding bit)
@@ -296,6 +305,13 @@ class SimAutopilot:
         self.heartbeat_enabled = True
         self.ground_since: float | None = None
         self.pending: list[Outgoing] = []
+        self.mission = MissionStore(self._mission_home if self.MISSION_HOME_ITEM else None)
+
+    def _mission_home(self) -> StoredItem:
+        """Home as ArduPilot reports it in mission item 0 (absolute altitude)."""
+        lat, lon = self.lat_lon(np.zeros(3))
+        return StoredItem(mavlink.MAV_FRAME_GLOBAL, mavlink.MAV_CMD_NAV_WAYPOINT, (0.0, 0.0, 0.0, 0.0),
+                          lat, lon, HOME_ALT_AMSL_M)
 
     # ----------------------------------------------------------------- helpers for subclasses
     def count(self, name: str, n: int = 1) -> None:
@@ -433,6 +449,8 @@ class SimAutopilot:
                 int((self.now - self.boot_time) * 1e6), msg.seq, msg.get_srcSystem(), msg.get_srcComponent()
             )
             return [Outgoing(reply, link)]
+        if kind in self.MISSION_MESSAGES:
+            return [Outgoing(reply, to) for reply, to in self.mission.handle(msg, link, now)]
         return self.handle_other(msg, link)
 
     def handle_other(self, msg: Any, link: int) -> list[Outgoing]:
@@ -622,6 +640,7 @@ class SimAutopilot:
         elif not self.snap.on_ground:
             self.ground_since = now
         out += self.personality_tick()
+        out += [Outgoing(reply, to) for reply, to in self.mission.tick(now)]
         out += self.take_pending()
         out += self._streams()
         return out
@@ -792,6 +811,8 @@ class SimAutopilot:
                 0,
                 0x5349_4D00 + self.system_id,
             )
+        if name == "MISSION_CURRENT":
+            return self.mission.current_message()
         if name == "VFR_HUD":
             speed = float(np.linalg.norm(s.velocity[:2]))
             hdg = int(math.degrees(yaw_enu_to_ned(s.yaw)) % 360.0)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from dataclasses import dataclass
 from typing import Any
 
 from pymavlink import mavutil
@@ -97,6 +98,23 @@ class GroundStation:
             self.target_system = msg.get_srcSystem()
         elif kind == "STATUSTEXT":
             self.statustexts.append(msg.text)
+
+    def _drain(self, timeout: float = 0.05) -> list[Any]:
+        """Pump once (heartbeat when due) and return every message read, each already noted."""
+        now = time.monotonic()
+        if now >= self._next_hb:
+            self.mav.mav.heartbeat_send(
+                mavutil.mavlink.MAV_TYPE_GCS, mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0
+            )
+            self._next_hb = now + 1.0
+        out = []
+        msg = self.mav.recv_match(blocking=True, timeout=timeout)
+        while msg is not None:
+            if msg.get_type() != "BAD_DATA":
+                self._note(msg)
+                out.append(msg)
+            msg = self.mav.recv_match(blocking=False)
+        return out
 
     def wait(self, predicate: Any, timeout: float, what: str) -> None:
         """Pump until ``predicate()`` holds; RuntimeError naming ``what`` on timeout."""
@@ -197,5 +215,65 @@ class GroundStation:
             raise RuntimeError(f"ground station: take-off refused (MAV_RESULT {result})")
         self.wait(lambda: self.altitude >= altitude - 0.15, timeout, f"altitude {altitude} m")
 
+    def home_position(self, timeout: float = 5.0) -> tuple[int, int]:
+        """Home's (latitude, longitude) × 1e7, asked for with MAV_CMD_GET_HOME_POSITION."""
+        self.last.pop("HOME_POSITION", None)
+        self.command(mavutil.mavlink.MAV_CMD_GET_HOME_POSITION)
+        self.wait(lambda: "HOME_POSITION" in self.last, timeout, "HOME_POSITION")
+        home = self.last["HOME_POSITION"]
+        return int(home.latitude), int(home.longitude)
+
+    def upload_mission(self, items: list[MissionItemSpec], timeout: float = 10.0) -> None:
+        """Upload ``items`` as the mission, as a ground station does; RuntimeError unless accepted.
+
+        MISSION_COUNT, then each item the autopilot asks for (MISSION_REQUEST_INT, or the legacy
+        MISSION_REQUEST) as MISSION_ITEM_INT, until its MISSION_ACK. On ArduPilot a placeholder
+        home is sent as item 0 first (the firmware keeps its own home there).
+        """
+        items = list(items)
+        if not self.is_px4:
+            items = [MissionItemSpec(mavutil.mavlink.MAV_FRAME_GLOBAL, 0, 0, 0.0), *items]
+        target = (self.target_system, mavutil.mavlink.MAV_COMP_ID_AUTOPILOT1)
+        self.last.pop("MISSION_ACK", None)
+        self.mav.mav.mission_count_send(*target, len(items), mavutil.mavlink.MAV_MISSION_TYPE_MISSION)
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            for msg in self._drain():  # every message is noted (and relayed, with an external SITL)
+                kind = msg.get_type()
+                if getattr(msg, "target_system", None) != self.mav.source_system:
+                    continue  # not the ground station's transfer (the companion's, relayed)
+                if kind == "MISSION_ACK":
+                    if msg.type != mavutil.mavlink.MAV_MISSION_ACCEPTED:
+                        raise RuntimeError(f"ground station: mission refused (MAV_MISSION_RESULT {msg.type})")
+                    log.info("mission of %d items uploaded", len(items))
+                    return
+                if kind in ("MISSION_REQUEST_INT", "MISSION_REQUEST") and 0 <= msg.seq < len(items):
+                    it = items[msg.seq]
+                    self.mav.mav.mission_item_int_send(
+                        *target, msg.seq, it.frame, it.command, int(msg.seq == 0), 1,
+                        0.0, it.acceptance_radius, 0.0, math.nan, it.x, it.y, it.z,
+                        mavutil.mavlink.MAV_MISSION_TYPE_MISSION)
+        raise RuntimeError("ground station: no MISSION_ACK for the mission upload")
+
     def close(self) -> None:
         self.mav.close()
+
+
+@dataclass(frozen=True)
+class MissionItemSpec:
+    """One mission item a ground station uploads (MISSION_ITEM_INT fields).
+
+    :param frame: MAV_FRAME (global frames: x, y are degrees × 1e7)
+    :param x: latitude × 1e7 (global) or metres × 1e4 (local)
+    :param y: longitude × 1e7 (global) or metres × 1e4 (local)
+    :param z: altitude, metres (its reference is the frame's)
+    :param command: MAV_CMD (NAV_WAYPOINT by default)
+    :param acceptance_radius: NAV_WAYPOINT param2, metres (0: the vehicle's default)
+    """
+
+    frame: int
+    x: int
+    y: int
+    z: float
+    command: int = mavutil.mavlink.MAV_CMD_NAV_WAYPOINT
+    acceptance_radius: float = 0.0

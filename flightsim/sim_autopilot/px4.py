@@ -110,6 +110,7 @@ class PX4Autopilot(SimAutopilot):
         "EXTENDED_SYS_STATE": 0.2,
         "HOME_POSITION": 2.0,
         "VFR_HUD": 0.25,
+        "MISSION_CURRENT": 1.0,
     }
     CAPABILITIES = (
         SimAutopilot.CAPABILITIES

@@ -136,6 +136,9 @@ class SimulatedAutopilot:
         self.altitude = 1.5
         self.climb = 0.0
         self.landed = mavlink.MAV_LANDED_STATE_IN_AIR
+        #: (north, east, down) m and heading rad streamed as LOCAL_POSITION_NED and ATTITUDE (None: not sent)
+        self.local_position: tuple[float, float, float] | None = None
+        self.heading = 0.0
         self.sending = True  # False: go silent (heartbeat loss)
         self.params: dict[str, float] = {}  # answered to PARAM_REQUEST_READ (REAL32, C-cast)
         self._period = 1.0 / rate_hz
@@ -154,6 +157,9 @@ class SimulatedAutopilot:
                 if self.sending:
                     self.peer.heartbeat(armed=self.armed, custom_mode=self.custom_mode)
                     self.peer.flying(self.altitude, self.climb, self.landed)
+                    if self.local_position is not None:
+                        self.peer.mav.local_position_ned_send(0, *self.local_position, 0.0, 0.0, 0.0)
+                        self.peer.mav.attitude_send(0, 0.0, 0.0, self.heading, 0.0, 0.0, 0.0)
             got = False
             while True:
                 msg = self.peer.conn.recv_msg()

@@ -1,0 +1,50 @@
+"""SITL: missions through both simulated autopilots, the real companion process, a mission changed in flight.
+
+No goal-conditioned policy exists yet (issue 12): a constant policy flies a circle of ~1.7 m radius
+about the room's centre, and the in-flight mission puts its waypoints on that circle. What is
+tested is the plumbing: the ground station's uploads, the companion's downloads (the second one in
+flight), its progress announcements, and the hold at completion that stops the vehicle.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from flightsim.harness import FlightOptions, SitlFlight, mission_items
+from tests.sitl.helpers import OPEN_ROOM, speed, wait_for, write_constant_policy
+
+pytestmark = pytest.mark.sitl
+
+FAR = dataclasses.replace(OPEN_ROOM, waypoints=((5.0, 5.0, 1.5),))  # never reached by the circle
+ON_CIRCLE = dataclasses.replace(OPEN_ROOM, waypoints=((1.7, 0.0, 1.5), (0.0, 1.7, 1.5)))
+
+
+def _said(f: SitlFlight, mark: str) -> bool:
+    return any(mark in t for t in f.recorder.texts())
+
+
+@pytest.mark.parametrize("autopilot", ["sim-ardupilot", "sim-px4"])
+def test_mission_changed_in_flight_tracked_to_completion(tmp_path, autopilot):
+    options = FlightOptions(autopilot=autopilot, world=FAR, workdir=tmp_path, mission=True,
+                            policy=write_constant_policy(tmp_path / "circle.onnx", 0.5, 0.4))
+    with SitlFlight(options) as f:
+        f.wait_companion_up()
+        f.upload_mission()
+        f.take_off()
+        assert f.wait_engaged(25.0), f.companion_log()
+        wait_for(lambda: _said(f, "goal: tracking"), 10.0, "the companion tracking the first mission")
+        assert _said(f, "mission downloaded: 1 items")
+        wait_for(lambda: speed(f) > 0.6, 5.0, "the vehicle flying its circle")
+
+        f.pilot(lambda gcs: gcs.upload_mission(mission_items(ON_CIRCLE, gcs.home_position())))
+        wait_for(lambda: _said(f, "mission downloaded: 2 items"), 10.0, "the download in flight")
+        assert _said(f, "mission changed")
+        wait_for(lambda: _said(f, "goal: complete, holding"), 30.0, "the mission's completion")
+        assert _said(f, "goal: reached item")
+        wait_for(lambda: speed(f) < 0.15, 8.0, "the vehicle held at completion")
+        assert f.server.autopilot.mode_name() in ("GUIDED", "OFFBOARD")  # on_complete = hold: mode untouched
+        report = f.report()
+        assert report.engaged and not report.collision
+        assert any("complete" in t for t in report.goal_events)
