@@ -17,7 +17,8 @@ Spec (the whole API; pure numpy/math, no I/O, no JSBSim):
 * :class:`AutopilotResponse`: the stateful model. ``reset(yaw, velocity_xy)`` at the start of a
   flight (or when velocity control begins); ``command(forward, lateral, yaw_rate, yaw)`` each time
   a setpoint message arrives (body FLU m/s and rad/s CCW; rotated into the world by the heading at
-  that moment, as MAV_FRAME_BODY_NED/BODY_OFFSET_NED do); and every physics chunk
+  that moment, as MAV_FRAME_BODY_NED/BODY_OFFSET_NED do; ``command_world(vx, vy, yaw_rate)`` if
+  it is already rotated); and every physics chunk
   (:data:`CHUNK_S`, 3/120 s) ``setpoint(state, dt, altitude=..)`` returns the
   :class:`flightsim.control.Setpoint` the vehicle's cascaded controller should fly now: the
   firmware's shaped world-frame velocity reference with its acceleration as feedforward, and a
@@ -276,10 +277,17 @@ class AutopilotResponse:
         :param yaw: the vehicle's heading as the autopilot knows it, rad CCW from East
         """
         c, s = math.cos(yaw), math.sin(yaw)
-        self._pending.append(
-            (self._time + self.params.command_delay_s, forward * c - lateral * s, forward * s + lateral * c,
-             float(yaw_rate))
-        )  # fmt: skip
+        self.command_world(forward * c - lateral * s, forward * s + lateral * c, yaw_rate)
+
+    def command_world(self, vx: float, vy: float, yaw_rate: float) -> None:
+        """A setpoint already rotated into the world (ENU m/s, yaw rate rad/s CCW) arrives now.
+
+        :param vx: velocity East, m/s
+        :param vy: velocity North, m/s
+        :param yaw_rate: rad/s CCW
+        """
+        due = self._time + self.params.command_delay_s
+        self._pending.append((due, float(vx), float(vy), float(yaw_rate)))
 
     def setpoint(self, state: Any, dt: float = CHUNK_S, *, altitude: float | None = None,
                  vz: float | None = None) -> Setpoint:  # fmt: skip
@@ -313,6 +321,11 @@ class AutopilotResponse:
         vy = float(state.velocity[1]) + self._bias[1]
         c, s = math.cos(state.yaw), math.sin(state.yaw)
         return np.array([c * vx + s * vy, -s * vx + c * vy])
+
+    @property
+    def estimate_error(self) -> np.ndarray:
+        """(2,) the velocity estimate's error now, world ENU m/s (reported = true + this)."""
+        return np.array(self._bias)
 
     @property
     def reference_velocity(self) -> tuple[float, float]:
