@@ -277,3 +277,22 @@ def test_sim_ardupilot_flies_its_firmware_response_by_default(vehicle, response)
     np.testing.assert_allclose([local.vx, local.vy], reported[:2], atol=1e-6)
     truth = enu_to_ned(vehicle.state.velocity)
     assert (np.linalg.norm(reported[:2] - truth[:2]) > 0.0) == response
+
+
+def test_the_servers_and_the_command_lines_choose_the_response():
+    import argparse
+
+    from flightsim import demo, harness
+    from flightsim.sim_autopilot import server
+
+    for personality, params in (("px4", PX4), ("ardupilot", ARDUPILOT)):
+        with server.SimAutopilotServer(personality, ["udpin:127.0.0.1:0"]) as s:
+            assert s.autopilot.response.params is params
+        with server.SimAutopilotServer(personality, ["udpin:127.0.0.1:0"], response=False) as s:
+            assert s.autopilot.response is None
+    for module in (server, harness, demo):
+        parser = argparse.ArgumentParser()
+        module.configure_parser(parser)
+        assert parser.parse_args(["--ideal-response"]).ideal_response is True
+        assert parser.parse_args([]).ideal_response is False
+    assert harness.FlightOptions(autopilot="sim-px4", world=OPEN_ROOM, policy=None).ideal_response is False
