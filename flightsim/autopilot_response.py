@@ -116,6 +116,9 @@ class ResponseParams:
         return replace(self, est_vel_sigma=0.0)
 
 
+# Fitted to the recordings (tests/fixtures/autopilot-response, bench/bench_response.py): the delays,
+# lags and drag. The rest are the defaults the SITLs reported (px4-sih-params.txt,
+# ardupilot-sitl-params.txt in the shared fixture set), except where a comment says otherwise.
 PX4 = ResponseParams(
     name="px4",
     command_delay_s=0.05,
@@ -124,11 +127,14 @@ PX4 = ResponseParams(
     vel_p=1.8,  # MPC_XY_VEL_P_ACC
     vel_i=0.4,  # MPC_XY_VEL_I_ACC
     vel_d=0.2,  # MPC_XY_VEL_D_ACC
-    accel_max=5.0,  # MPC_ACC_HOR_MAX
+    accel_max=5.0,  # MPC_ACC_HOR_MAX (MPC_ACC_HOR 3 and MPC_JERK_AUTO 4 shape auto modes, not offboard)
     tilt_lag_s=0.20,
     drag_per_s=1.5,
     yaw_rate_gain=0.91,  # the recordings hold 94 %; the JSBSim vehicle adds 3 %
-    yaw_rate_max=math.radians(200.0),  # MC_YAWRATE_MAX; MPC_YAWRAUTO_MAX is not applied in offboard
+    # MC_YAWRATE_MAX. The auto-mode limits do not act on an offboard yaw rate: the recording holds
+    # 1.40 rad/s (MPC_YAWRAUTO_MAX is 60 deg/s = 1.05) and is at 90 % of it in 1.1 s (MPC_YAWRAUTO_ACC
+    # 20 deg/s^2 would take 4 s); MC_YAW_P acts on a heading error, and offboard rate-only control has none.
+    yaw_rate_max=math.radians(200.0),
     yaw_accel_max=10.0,
     yaw_input_tc=0.0,
     yaw_angle_p=0.0,  # offboard yaw rate only: the yaw setpoint follows the heading
