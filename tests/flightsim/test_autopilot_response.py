@@ -296,3 +296,19 @@ def test_the_servers_and_the_command_lines_choose_the_response():
         assert parser.parse_args(["--ideal-response"]).ideal_response is True
         assert parser.parse_args([]).ideal_response is False
     assert harness.FlightOptions(autopilot="sim-px4", world=OPEN_ROOM, policy=None).ideal_response is False
+
+
+def test_every_random_draw_flies_a_random_command_sequence_stably():
+    """Whatever response training draws, its reference stays finite and within what was asked."""
+    rng = np.random.default_rng(11)
+    for _ in range(30):
+        model = AutopilotResponse(random_params(rng), rng)
+        state = _State()
+        for k in range(400):  # 10 s, a new command every 0.1 s
+            if k % 4 == 0:
+                model.command(rng.uniform(-2.0, 2.0), 0.0, rng.uniform(-1.5, 1.5), state.yaw)
+            sp = model.setpoint(state)
+            state.yaw = math.remainder(state.yaw + sp.yaw_rate * CHUNK_S, 2.0 * math.pi)
+            state.velocity[:2] = (sp.vx, sp.vy)
+            assert all(math.isfinite(v) for v in (sp.vx, sp.vy, sp.ax, sp.ay, sp.yaw_rate))
+            assert math.hypot(sp.vx, sp.vy) < 2.6 and abs(sp.yaw_rate) < 2.0
