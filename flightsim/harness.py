@@ -140,6 +140,8 @@ class FlightOptions:
         workdir for the autopilot, the ground station and the companion's ``autopilot.signing_key``
     :param mission: upload the world's waypoints as a mission through the ground station and set
         the companion's ``goal.source = "mission"``
+    :param ideal_response: simulated autopilots only: fly setpoints as given instead of through the
+        firmware's calibrated response (:mod:`flightsim.autopilot_response`)
     """
 
     autopilot: str
@@ -154,6 +156,7 @@ class FlightOptions:
     engage_timeout: float = 20.0
     signed: bool = False
     mission: bool = False
+    ideal_response: bool = False
 
 
 @dataclass
@@ -434,6 +437,7 @@ class SitlFlight:
             params=self.options.autopilot_params,
             vehicle=self.vehicle,
             signing_key=self.signing_key,
+            response=not self.options.ideal_response,
         )
         self.recorder.t0 = self.server.t0
         self.server.message_hooks.append(self._on_autopilot_message)
@@ -881,6 +885,11 @@ def configure_parser(parser: Any) -> None:
     parser.add_argument("--mission", action="store_true",
                         help="upload the world's waypoints as a mission (GCS) and fly it "
                         "(goal.source = mission)")
+    parser.add_argument(
+        "--ideal-response",
+        action="store_true",
+        help="simulated autopilots: fly setpoints as given, not with the firmware's calibrated response",
+    )
     parser.add_argument("--json", help="write the flight report as JSON here")
     parser.add_argument("--plot", help="write a top-down PNG of the flight here")
     parser.add_argument("--workdir", help="where the companion's config and log go (default: a temp dir)")
@@ -904,6 +913,7 @@ def command(args: Any) -> int:
         workdir=workdir,
         signed=args.signed,
         mission=args.mission,
+        ideal_response=args.ideal_response,
     )
     try:
         report = run_flight(options, plot=Path(args.plot) if args.plot else None)

@@ -62,6 +62,7 @@ STREAM_GROUPS = {
 class ArduCopterAutopilot(SimAutopilot):
     """A simulated ArduCopter (custom modes, GUIDED, GUID_TIMEOUT, simple proximity avoidance)."""
 
+    RESPONSE = "ardupilot"
     AUTOPILOT = mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
     #: accepted unsigned while signing is on (GCS_Signing.cpp's accept list; USB, which takes
     #: everything unsigned, is not simulated)
@@ -79,8 +80,9 @@ class ArduCopterAutopilot(SimAutopilot):
     CAPABILITIES = SimAutopilot.CAPABILITIES | mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT
     MISSION_HOME_ITEM = True  # AP_Mission: item 0 is home
 
-    def __init__(self, params: Any, *, system_id: int = 1, boot_time: float = 0.0) -> None:
-        super().__init__(params, system_id=system_id, boot_time=boot_time)
+    def __init__(self, params: Any, **kw: Any) -> None:
+        """:param params: the parameter table; ``kw``: see :class:`SimAutopilot`."""
+        super().__init__(params, **kw)
         self.mode = CopterMode.STABILIZE
         self.obstacles: np.ndarray | None = None  # (K, 3): unit direction (ENU x, y) and distance m
         self.obstacles_time = -math.inf

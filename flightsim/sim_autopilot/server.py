@@ -36,9 +36,10 @@ MessageHook = Callable[[int, Any, float], None]
 StepHook = Callable[[VehicleState], None]
 
 
-def make_autopilot(personality: str, boot_time: float) -> SimAutopilot:
-    """A personality (``"ardupilot"`` or ``"px4"``) with its firmware's default parameter table."""
-    return PERSONALITIES[personality](default_table(personality), boot_time=boot_time)
+def make_autopilot(personality: str, boot_time: float, response: bool = True) -> SimAutopilot:
+    """A personality (``"ardupilot"`` or ``"px4"``) with its firmware's default parameter table;
+    ``response`` False flies setpoints as given (the ideal autopilot) instead of the firmware's response."""
+    return PERSONALITIES[personality](default_table(personality), boot_time=boot_time, response=response)
 
 
 class SimAutopilotServer:
@@ -52,6 +53,7 @@ class SimAutopilotServer:
     :param vehicle: an existing vehicle to reuse (JSBSim load is the slow part); reset here
     :param signing_key: MAVLink 2 signing secret the autopilot starts with (as if installed
         earlier with SETUP_SIGNING); None = unsigned until a SETUP_SIGNING arrives
+    :param response: fly the firmware's calibrated response (False: the ideal autopilot)
     """
 
     def __init__(
@@ -63,11 +65,12 @@ class SimAutopilotServer:
         params: dict[str, float] | None = None,
         vehicle: Vehicle | None = None,
         signing_key: bytes | None = None,
+        response: bool = True,
     ) -> None:
         self.endpoint = MavlinkEndpoint(links, signing_key=signing_key,
                                         accept_unsigned=PERSONALITIES[personality].UNSIGNED_ACCEPTED)
         self.t0 = time.monotonic()
-        self.autopilot = make_autopilot(personality, boot_time=0.0)
+        self.autopilot = make_autopilot(personality, boot_time=0.0, response=response)
         for name, value in (params or {}).items():
             self.autopilot.params.set(name, value)
         self.vehicle = vehicle or Vehicle(VehicleConfig())
@@ -188,6 +191,11 @@ def configure_parser(parser: Any) -> None:
         help="MAVLink 2 signing key file (64 hex digits, mode 0600, as the companion's "
         "autopilot.signing_key): sign everything, drop unsigned input",
     )
+    parser.add_argument(
+        "--ideal-response",
+        action="store_true",
+        help="fly velocity setpoints as given, not with the firmware's calibrated (slower) response",
+    )
 
 
 def command(args: Any) -> int:
@@ -209,8 +217,13 @@ def command(args: Any) -> int:
     from companion.autopilot.signing import load_signing_key
 
     key = load_signing_key(args.signing_key, "--signing-key") if args.signing_key else None
-    server = SimAutopilotServer(args.personality, args.link or ["tcpin:127.0.0.1:5760"], params=params,
-                                signing_key=key)
+    server = SimAutopilotServer(
+        args.personality,
+        args.link or ["tcpin:127.0.0.1:5760"],
+        params=params,
+        signing_key=key,
+        response=not args.ideal_response,
+    )
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):  # Ctrl-C, or a supervisor's/test's SIGTERM
         signal.signal(sig, lambda *_: stop.set())
