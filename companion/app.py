@@ -35,6 +35,7 @@ import numpy as np
 
 from companion.autopilot.link import AutopilotLink, VehicleStatus
 from companion.config import CompanionConfig, load_config
+from companion.connection import ensure_port_free
 from companion.errors import UserError
 from companion.framestack import FrameStack
 from companion.notify import SystemdNotifier
@@ -106,8 +107,13 @@ def obstacle_distance_limits(config: CompanionConfig) -> tuple[int, int]:
 
 
 def open_link(config: CompanionConfig, clock: Callable[[], float]) -> AutopilotLink:
-    """The configured autopilot link (ArduPilot via pymavlink, PX4 via MAVSDK)."""
+    """The configured autopilot link (ArduPilot via pymavlink, PX4 via MAVSDK).
+
+    :raises UserError: the link's listening port is held by another process (a second companion)
+    """
     ap = config.autopilot
+    link = ap.link
+    ensure_port_free(link)
     min_cm, max_cm = obstacle_distance_limits(config)
     common: dict[str, Any] = {
         "clock": clock,
@@ -118,33 +124,20 @@ def open_link(config: CompanionConfig, clock: Callable[[], float]) -> AutopilotL
         "max_distance_cm": max_cm,
     }
     if ap.type == "px4":
-        from companion.autopilot.px4 import Px4Link
+        try:
+            from companion.autopilot.px4 import Px4Link
+        except ModuleNotFoundError as exc:
+            if (exc.name or "").split(".")[0] != "mavsdk":
+                raise
+            raise UserError(
+                "autopilot.type = px4 needs mavsdk >= 4, which is not installed: pip install 'mavsdk>=4' "
+                "(it comes with the base install: pip install -e . or systemd/install.sh)"
+            ) from None
 
-        return Px4Link(ap.connection, **common)
+        return Px4Link(link.mavsdk, **common)
     from companion.autopilot.ardupilot import ArduPilotLink
 
-    return ArduPilotLink(ap.connection, baud=ap.baud, **common)
-
-
-def pymavlink_connection(config: CompanionConfig) -> tuple[str, int]:
-    """The autopilot connection as a pymavlink string and baud (the parameter check speaks pymavlink).
-
-    PX4 connections are MAVSDK URLs: ``udpin://H:P`` → ``udpin:H:P``, ``serial:///dev/X:B`` →
-    ``/dev/X`` at ``B`` baud, ``tcpout://H:P`` → ``tcp:H:P``.
-    """
-    ap = config.autopilot
-    url = ap.connection
-    if "://" not in url:
-        return url, ap.baud
-    scheme, rest = url.split("://", 1)
-    if scheme in ("serial", "serial_flowcontrol"):
-        device, _, baud = rest.rpartition(":")
-        return (device, int(baud)) if baud.isdigit() else (rest, ap.baud)
-    mapping = {"udpin": "udpin", "udpout": "udpout", "udp": "udpin", "tcpout": "tcp", "tcp": "tcp",
-               "tcpin": "tcpin"}
-    if scheme not in mapping:
-        raise UserError(f"autopilot.connect: cannot check parameters over {url!r} (scheme {scheme})")
-    return f"{mapping[scheme]}:{rest}", ap.baud
+    return ArduPilotLink(link.pymavlink, baud=link.baud or ap.baud, **common)
 
 
 def check_parameters(config: CompanionConfig) -> list[str]:
@@ -159,9 +152,10 @@ def check_parameters(config: CompanionConfig) -> list[str]:
     from companion import params
 
     wanted = params.load_param_file(pc.file, config.autopilot.type)
-    url, baud = pymavlink_connection(config)
+    link = config.autopilot.link
     try:
-        conn = params.open_connection(url, baud)
+        ensure_port_free(link)
+        conn = params.open_connection(link.pymavlink, link.baud or config.autopilot.baud)
         try:
             report = params.run_params(conn, config.autopilot.type, wanted, heartbeat_timeout=pc.timeout)
         finally:
