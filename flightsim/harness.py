@@ -689,8 +689,9 @@ def plot_flight(
     collision_at: float | None,
     path: Path,
     title: str,
-) -> None:
-    """A top-down PNG (:func:`flightsim.render.draw_top_down`): the take-off and the companion's path.
+) -> Any:
+    """A top-down PNG (:func:`flightsim.render.draw_top_down`): the take-off and the companion's path,
+    with a legend; returns the figure.
 
     :param traj: ``(N, 6)`` rows of (time, x, y, z, yaw, speed)
     """
@@ -710,9 +711,18 @@ def plot_flight(
     fig = Figure(figsize=(7, 7 * world.room_size[1] / world.room_size[0] + 0.6))
     FigureCanvasAgg(fig)
     ax = fig.add_subplot()
-    draw_top_down(world, parts, ax=ax, pose=pose, collided=collision_at is not None, title=title)
+    draw_top_down(
+        world,
+        parts,
+        ax=ax,
+        pose=pose,
+        collided=collision_at is not None,
+        title=title,
+        labels=("take-off and hold (ground station)", "companion flying"),
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=90)
+    return fig
 
 
 def run_flight(options: FlightOptions, plot: Path | None = None, vehicle: Any = None) -> FlightReport:

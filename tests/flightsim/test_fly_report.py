@@ -14,6 +14,8 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 from flightsim.demo import _row
 from flightsim.harness import FlightReport, print_report
 
@@ -60,3 +62,18 @@ def test_ctrl_c_during_a_flight_exits_130(tmp_path):
     assert proc.returncode == 130, out + err
     assert "Traceback" not in out + err
     assert "error: interrupted" in out
+
+
+def test_the_flight_png_has_a_legend(tmp_path):
+    from flightsim.harness import plot_flight
+    from flightsim.world import load_world
+
+    world = load_world(REPO / "flightsim" / "worlds" / "two-pillars.json")
+    t = np.linspace(0.0, 10.0, 50)
+    traj = np.column_stack(
+        [t, -4.5 + 0.3 * t, 0.1 * t, np.full_like(t, 1.5), np.zeros_like(t), np.ones_like(t)]
+    )
+    fig = plot_flight(world, traj, engaged_at=4.0, collision_at=None, path=tmp_path / "f.png", title="t")
+    names = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert "take-off and hold (ground station)" in names and "companion flying" in names
+    assert (tmp_path / "f.png").read_bytes()[:4] == b"\x89PNG"
