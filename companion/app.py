@@ -157,7 +157,13 @@ def check_parameters(config: CompanionConfig) -> list[str]:
         ensure_port_free(link)
         conn = params.open_connection(link.pymavlink, link.baud or config.autopilot.baud)
         try:
-            report = params.run_params(conn, config.autopilot.type, wanted, heartbeat_timeout=pc.timeout)
+            report = params.run_params(
+                conn,
+                config.autopilot.type,
+                wanted,
+                heartbeat_timeout=pc.timeout,
+                allow_missing=frozenset(pc.allow_missing),
+            )
         finally:
             conn.close()
     except UserError as exc:

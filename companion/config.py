@@ -165,11 +165,14 @@ class ParamsCheckConfig:
     :param mode: ``off``; ``warn`` (log + STATUSTEXT each mismatch, carry on); ``refuse`` (exit)
     :param file: ``.parm`` (ArduPilot) or ``.params`` (PX4) file (relative: to the config file)
     :param timeout: how long to wait for the autopilot's parameters, s
+    :param allow_missing: parameters this autopilot may lack (``params --allow-missing``: a SITL
+        has no TELEM2, so ``["MAV_1_CONFIG", "SER_TEL2_BAUD"]`` on PX4 SITL); empty = all must exist
     """
 
     mode: Literal["off", "warn", "refuse"] = "off"
     file: str = ""
     timeout: float = field(default=30.0, metadata={"min": 1.0, "max": 600.0})
+    allow_missing: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if self.mode != "off" and not self.file:
