@@ -29,6 +29,9 @@ def main(argv: list[str] | None = None) -> int:
             SUBCOMMANDS,
             argv,
         )
+    except KeyboardInterrupt:  # outside learn (start-up, evaluation, export): nothing to save
+        print("avoid-train: interrupted", file=sys.stderr)
+        return 130
     except ModuleNotFoundError as exc:
         if (exc.name or "").split(".")[0] not in TRAIN_EXTRA_MODULES:
             raise

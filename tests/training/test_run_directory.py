@@ -201,3 +201,15 @@ def test_without_the_train_extra_one_line_says_what_to_install(tmp_path, blocked
     err = done.stderr.strip()
     assert "Traceback" not in err
     assert err.splitlines()[-1].startswith("avoid-train: error: ") and ".[train]" in err.splitlines()[-1]
+
+
+def test_ctrl_c_before_training_starts_is_one_line_130(monkeypatch, capsys, tmp_path):
+    """Ctrl-C while the config loads or the simulators start: nothing to save, still no traceback."""
+    import training.train
+
+    def interrupted(*_args, **_kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(training.train, "load_train_config", interrupted)
+    assert main(["train", "--config", str(tmp_path / "tiny.toml")]) == 130
+    assert capsys.readouterr().err.strip() == "avoid-train: interrupted"
