@@ -10,8 +10,11 @@ JSBSim plus the compiled cascaded controller), ray cast and point cloud (apart, 
 the env makes), the companion's ``scan_from_points``, clearance/collision, and the rest (reward,
 info, bookkeeping, resets). Actions are a
 fixed random sequence (forward-biased); episodes that end are reset (a new generated world each
-time), and the resets are counted in the figures. The machine's load average is printed: the
-figures are only comparable on an idle machine.
+time), and the resets are counted in the figures. Each figure stands beside references measured in
+the same run: real time (a step is 0.1 s of flight, so steps/s ÷ 10 = × real time), the bare
+vehicle alone (the floor no env can beat), and, for the ray cast, the previous two-call
+implementation (``cast`` then ``grid_to_points``, still the path with lidar noise or dropout)
+against ``cast_points``. The load average is printed: compare ratios, not absolute rates.
 
     /work/venv/bin/python bench/bench_env.py [--steps 3000] [--difficulty 0.5] [--skip-subproc]
 """
@@ -31,7 +34,7 @@ sys.path.insert(0, str(REPO))
 
 from companion.scan import scan_from_points  # noqa: E402
 from flightsim.control import Setpoint  # noqa: E402
-from flightsim.env import EnvConfig, LidarAvoidEnv  # noqa: E402
+from flightsim.env import CONTROL_HZ, EnvConfig, LidarAvoidEnv  # noqa: E402
 from flightsim.raycast import LidarConfig, grid_to_points  # noqa: E402
 
 TARGET_PER_CORE = 5000.0
@@ -169,12 +172,18 @@ def main() -> int:
             rows.append((f"SubprocVecEnv x2, {step_deg} deg ({rays} rays)", total, total / 2, None, None))
     print("steps/s by wall clock; 'per CPU-s' = steps per second of this process's own CPU time (less")
     print("sensitive to other load; not available for the subprocess workers)")
-    print(f"{'configuration':44s} {'steps/s':>9s} {'per core':>9s} {'per CPU-s':>9s} {'vs target':>9s}")
+    print(
+        f"{'configuration':44s} {'x real time':>11s} {'steps/s':>9s} {'per core':>9s} {'per CPU-s':>9s} "
+        f"{'vs target':>9s}"
+    )
     for name, rate, per_core, cpu_rate, resets in rows:
         note = f"   ({resets} resets incl.)" if resets is not None else ""
         best = cpu_rate if cpu_rate is not None else per_core
         cpu = f"{cpu_rate:9.0f}" if cpu_rate is not None else f"{'-':>9s}"
-        print(f"{name:44s} {rate:9.0f} {per_core:9.0f} {cpu} {best / TARGET_PER_CORE:8.0%}{note}")
+        print(
+            f"{name:44s} {rate / CONTROL_HZ:10.0f}x {rate:9.0f} {per_core:9.0f} {cpu} "
+            f"{best / TARGET_PER_CORE:8.0%}{note}"
+        )
 
     print("\nwhere a step's CPU time goes (1 deg azimuth, same flight, each part timed on its own):")
     parts = breakdown(EnvConfig(difficulty=args.difficulty), min(args.steps, 2000))
@@ -186,6 +195,13 @@ def main() -> int:
             print(f"  {name:50s} {value * 1e6:8.1f} us  {value / total:6.1%}")
     print("  (the env's share of a step = vehicle + cast_points + scan + clearance + the rest; cast and")
     print("   grid_to_points are shown apart for reference; parts timed alone run warmer than in the loop)")
+    vehicle = parts["JSBSim vehicle (12 physics steps + controller)"]
+    two_calls = parts["lidar ray cast (cast)"] + parts["point cloud (grid_to_points)"]
+    one_call = parts["both in one call, as the env does (cast_points)"]
+    print("ratios, same run:")
+    print(f"  whole env.step / bare vehicle step:              {total / vehicle:5.2f}x")
+    print(f"  previous cast + grid_to_points / cast_points:     {two_calls / one_call:5.2f}x")
+    print(f"  env.step CPU time vs real time (0.1 s a step):   {0.1 / total:5.0f}x faster")
     print(f"\nload average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     return 0
 

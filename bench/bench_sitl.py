@@ -15,12 +15,14 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+REVOLUTION_MS = 100.0  # the VLP-16 at 10 Hz: one scan, one setpoint, per 100 ms
 sys.path.insert(0, str(ROOT))
 
 from flightsim.harness import FlightOptions, run_flight  # noqa: E402
@@ -49,7 +51,8 @@ def main() -> None:
     world = load_world(ROOT / "flightsim" / "worlds" / "two-pillars.json")
     print(f"policy {policy}, world {world.name}, {args.duration:g} s of companion flight per autopilot")
     print(
-        f"{'autopilot':<14} {'setpoints/s':>11} {'latency p50':>12} {'p99':>8}   (revolution period 100 ms)"
+        f"{'autopilot':<14} {'setpoints/s':>11} {'latency p50':>12} {'p99':>8} {'p99/period':>10}   "
+        f"(against the {REVOLUTION_MS:.0f} ms revolution period)"
     )
     for autopilot in ("sim-ardupilot", "sim-px4"):
         t0 = time.monotonic()
@@ -63,9 +66,14 @@ def main() -> None:
             )
         )
         note = f"  error: {report.error}" if report.error else ""
+        p50, p99 = report.latency_p50_ms, report.latency_p99_ms
+        if p50 is None or p99 is None:
+            print(f"{autopilot:<14} {report.setpoint_rate_hz:>11.1f}   no latency measured{note}")
+            continue
         print(
-            f"{autopilot:<14} {report.setpoint_rate_hz:>11.1f} {report.latency_p50_ms:>9.1f} ms "
-            f"{report.latency_p99_ms:>5.1f} ms   (flight wall time {time.monotonic() - t0:.0f} s){note}"
+            f"{autopilot:<14} {report.setpoint_rate_hz:>11.1f} {p50:>9.1f} ms {p99:>5.1f} ms "
+            f"{p99 / REVOLUTION_MS:>9.1%}   (flight wall time {time.monotonic() - t0:.0f} s, "
+            f"load average {os.getloadavg()[0]:.1f}){note}"
         )
 
 

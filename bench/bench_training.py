@@ -6,8 +6,10 @@ Usage::
 
 1. Throughput: a short PPO run with the config's environments and hyperparameters (checkpoints and
    evaluation off), timed around ``model.learn``: environment steps per second including the
-   policy updates. Compared with the seed tutorial's real-time simulator (about 28 hours per
-   million steps, i.e. ~10 steps/s).
+   policy updates. Against a reference measured in the same run: the same vector environment
+   stepped with random actions and no learning (what ``learn`` would reach if inference and PPO
+   updates cost nothing), as a ratio; and against the seed tutorial's real-time simulator (about
+   28 hours per million steps, i.e. ~10 steps/s). The load average is printed.
 2. Time to success: from the run directory's ``eval.csv`` (written by ``avoid-train train``), the
    first held-out evaluation at the target difficulty with success rate >= 95 %: its wall-clock
    seconds since the run started and its step count. Compared with the 30-minute target.
@@ -48,6 +50,27 @@ def throughput(config_path: Path, steps: int) -> float:
     return steps / elapsed
 
 
+def env_only(config_path: Path, steps: int) -> float:
+    """Steps/s of the same vector env with random actions: no inference, no updates."""
+    import numpy as np
+
+    with tempfile.TemporaryDirectory() as tmp:
+        config = load_train_config(config_path, [f"run_root={tmp}"])
+        n = config.resolved_n_envs
+        venv = make_vec_env(config, n, config.seed)
+        try:
+            venv.reset()
+            rng = np.random.default_rng(0)
+            actions = rng.uniform(-1.0, 1.0, (steps // n + 1, n, 2)).astype(np.float32)
+            start = time.perf_counter()
+            for a in actions:
+                venv.step(a)
+            elapsed = time.perf_counter() - start
+        finally:
+            venv.close()
+    return len(actions) * n / elapsed
+
+
 def time_to_success(run_dir: Path, target_difficulty: float, threshold: float = 0.95) -> dict | None:
     for row in read_eval_log(run_dir / "eval.csv"):
         if row["difficulty"] >= target_difficulty - 1e-9 and row["success_rate"] >= threshold:
@@ -64,12 +87,15 @@ def main() -> None:
 
     config = load_train_config(args.config)
     print(f"config {args.config}: {config.resolved_n_envs} envs on {os.cpu_count()} cores")
+    print(f"load average {os.getloadavg()[0]:.1f}")
     rate = throughput(args.config, args.steps)
+    bare = env_only(args.config, args.steps)
     print(
-        f"training throughput: {rate:.0f} env steps/s during learn (incl. PPO updates); "
-        f"seed tutorial real-time: {TUTORIAL_STEPS_PER_S:.0f} steps/s "
-        f"({rate / TUTORIAL_STEPS_PER_S:.0f}x); "
-        f"1M steps take {1e6 / rate / 60:.0f} min"
+        f"training throughput: {rate:.0f} env steps/s during learn (incl. PPO updates) = "
+        f"{rate / bare:.0%} of the same envs stepped alone ({bare:.0f} steps/s, same run); "
+        f"{rate / TUTORIAL_STEPS_PER_S:.0f}x the seed tutorial's real time "
+        f"({TUTORIAL_STEPS_PER_S:.0f} steps/s); "
+        f"1M steps take {1e6 / rate / 60:.0f} min (load average {os.getloadavg()[0]:.1f})"
     )
     run_dir = args.run_dir or config.run_dir
     row = time_to_success(run_dir, config.eval.difficulty)

@@ -35,6 +35,7 @@ import numpy as np
 
 from companion.autopilot.link import AutopilotLink, VehicleStatus
 from companion.config import CompanionConfig, load_config
+from companion.connection import ensure_port_free
 from companion.errors import UserError
 from companion.framestack import FrameStack
 from companion.goal import GoalOutput
@@ -111,8 +112,13 @@ def obstacle_distance_limits(config: CompanionConfig) -> tuple[int, int]:
 
 
 def open_link(config: CompanionConfig, clock: Callable[[], float]) -> AutopilotLink:
-    """The configured autopilot link (ArduPilot via pymavlink, PX4 via MAVSDK)."""
+    """The configured autopilot link (ArduPilot via pymavlink, PX4 via MAVSDK).
+
+    :raises UserError: the link's listening port is held by another process (a second companion)
+    """
     ap = config.autopilot
+    link = ap.link
+    ensure_port_free(link)
     min_cm, max_cm = obstacle_distance_limits(config)
     common: dict[str, Any] = {
         "clock": clock,
@@ -127,12 +133,20 @@ def open_link(config: CompanionConfig, clock: Callable[[], float]) -> AutopilotL
     common["autopilot"] = (ap.system_id, ap.component_id)
     common["signing_key"] = load_signing_key(ap.signing_key) if ap.signing_key else None
     if ap.type == "px4":
-        from companion.autopilot.px4 import Px4Link
+        try:
+            from companion.autopilot.px4 import Px4Link
+        except ModuleNotFoundError as exc:
+            if (exc.name or "").split(".")[0] != "mavsdk":
+                raise
+            raise UserError(
+                "autopilot.type = px4 needs mavsdk >= 4, which is not installed: pip install 'mavsdk>=4' "
+                "(it comes with the base install: pip install -e . or systemd/install.sh)"
+            ) from None
 
-        return Px4Link(ap.connection, **common)
+        return Px4Link(link.mavsdk, **common)
     from companion.autopilot.ardupilot import ArduPilotLink
 
-    return ArduPilotLink(ap.connection, baud=ap.baud, **common)
+    return ArduPilotLink(link.pymavlink, baud=link.baud or ap.baud, **common)
 
 
 def open_goal(config: CompanionConfig, link: Any, clock: Callable[[], float]) -> GoalSource | None:
@@ -147,17 +161,6 @@ def open_goal(config: CompanionConfig, link: Any, clock: Callable[[], float]) ->
     return goal
 
 
-def pymavlink_connection(config: CompanionConfig) -> tuple[str, int]:
-    """The autopilot connection as a pymavlink string and baud (the parameter check speaks pymavlink).
-
-    PX4 connections are MAVSDK URLs: ``udpin://H:P`` → ``udpin:H:P``, ``serial:///dev/X:B`` →
-    ``/dev/X`` at ``B`` baud, ``tcpout://H:P`` → ``tcp:H:P``.
-    """
-    from companion.autopilot.px4_transport import pymavlink_address
-
-    return pymavlink_address(config.autopilot.connection, config.autopilot.baud)
-
-
 def check_parameters(config: CompanionConfig) -> list[str]:
     """Run the configured autopilot parameter check before the link takes the port.
 
@@ -170,15 +173,22 @@ def check_parameters(config: CompanionConfig) -> list[str]:
     from companion import params
 
     wanted = params.load_param_file(pc.file, config.autopilot.type)
-    url, baud = pymavlink_connection(config)
+    link = config.autopilot.link
     try:
-        conn = params.open_connection(url, baud)
+        ensure_port_free(link)
+        conn = params.open_connection(link.pymavlink, link.baud or config.autopilot.baud)
         try:
             if config.autopilot.signing_key:  # a signing autopilot ignores unsigned parameter requests
                 from companion.autopilot.signing import enable_signing, load_signing_key
 
                 enable_signing(conn.mav, load_signing_key(config.autopilot.signing_key))
-            report = params.run_params(conn, config.autopilot.type, wanted, heartbeat_timeout=pc.timeout)
+            report = params.run_params(
+                conn,
+                config.autopilot.type,
+                wanted,
+                heartbeat_timeout=pc.timeout,
+                allow_missing=frozenset(pc.allow_missing),
+            )
         finally:
             conn.close()
     except UserError as exc:

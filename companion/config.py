@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Literal
 
 from companion.autopilot.signing import load_signing_key
+from companion.connection import Connection, parse_connection
 from companion.errors import UserError
 from companion.scan import ScanConfig
 from companion.shield import ShieldConfig
@@ -122,10 +123,10 @@ class AutopilotConfig:
     """The autopilot connection.
 
     :param type: ``ardupilot`` (pymavlink, GUIDED) or ``px4`` (MAVSDK, OFFBOARD)
-    :param connect: ArduPilot: pymavlink string (``udpin:0.0.0.0:14550``, ``tcp:127.0.0.1:5760``,
-        ``/dev/ttyTHS1``); PX4: MAVSDK URL (``udpin://0.0.0.0:14540``, ``serial:///dev/ttyTHS1:921600``);
-        empty = the type's default
-    :param baud: serial baud rate for ArduPilot device paths (PX4 puts it in the URL)
+    :param connect: a pymavlink string (``udpin:0.0.0.0:14550``, ``tcp:127.0.0.1:5760``, ``/dev/ttyTHS1``)
+        or a MAVSDK URL (``udpin://0.0.0.0:14540``, ``serial:///dev/ttyTHS1:921600``), for either
+        autopilot (:mod:`companion.connection`); empty = the type's default
+    :param baud: serial baud rate of a device path written without one
     :param source_system: MAVLink system id the companion sends as (the vehicle's own, normally 1)
     :param source_component: MAVLink component id (191 = MAV_COMP_ID_ONBOARD_COMPUTER)
     :param system_id: the autopilot's system id: the only system the companion listens to
@@ -148,21 +149,21 @@ class AutopilotConfig:
     obstacle_distance: bool = True
 
     def __post_init__(self) -> None:
-        if self.connect and self.type == "px4" and "://" not in self.connect:
-            raise ValueError(
-                f"connect: {self.connect!r} is not a MAVSDK URL; PX4 links look like "
-                "udpin://0.0.0.0:14540 or serial:///dev/ttyTHS1:921600"
-            )
-        if self.connect and self.type == "ardupilot" and "://" in self.connect:
-            raise ValueError(
-                f"connect: {self.connect!r} is a MAVSDK URL; ArduPilot links are pymavlink strings "
-                "like udpin:0.0.0.0:14550, tcp:127.0.0.1:5760 or /dev/ttyTHS1"
-            )
+        # parse now: a bad string is a config error naming the key, not a failure at start-up
+        _ = self.link
 
     @property
     def connection(self) -> str:
         """``connect``, or the type's default when empty."""
         return self.connect or DEFAULT_CONNECT[self.type]
+
+    @property
+    def link(self) -> Connection:
+        """The connection parsed (pymavlink string or MAVSDK URL, for either autopilot)."""
+        try:
+            return parse_connection(self.connection, self.baud)
+        except UserError as exc:
+            raise ValueError(f"connect: {exc}") from None
 
 
 @dataclass(frozen=True)
@@ -172,11 +173,14 @@ class ParamsCheckConfig:
     :param mode: ``off``; ``warn`` (log + STATUSTEXT each mismatch, carry on); ``refuse`` (exit)
     :param file: ``.parm`` (ArduPilot) or ``.params`` (PX4) file (relative: to the config file)
     :param timeout: how long to wait for the autopilot's parameters, s
+    :param allow_missing: parameters this autopilot may lack (``params --allow-missing``: a SITL
+        has no TELEM2, so ``["MAV_1_CONFIG", "SER_TEL2_BAUD"]`` on PX4 SITL); empty = all must exist
     """
 
     mode: Literal["off", "warn", "refuse"] = "off"
     file: str = ""
     timeout: float = field(default=30.0, metadata={"min": 1.0, "max": 600.0})
+    allow_missing: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if self.mode != "off" and not self.file:

@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from companion.connection import ensure_port_free, parse_connection
 from companion.errors import UserError
 from companion.param_codec import INT_TYPES, REAL32, decode_param_value, encode_param_value
 
@@ -92,7 +93,9 @@ class Status(enum.Enum):
 
     OK = "ok"
     DIFFERS = "differs"
-    UNKNOWN = "unknown to the autopilot"
+    UNKNOWN = "unknown to the autopilot"  # silent for this name while it answers others
+    NO_REPLY = "no reply, link lost"  # silent for everything: no verdict on the parameter
+    ABSENT_ALLOWED = "absent, allowed"  # unknown, and listed in --allow-missing
     TYPE_MISMATCH = "type mismatch"
     CHANGED = "changed"
     FAILED = "set failed"
@@ -121,8 +124,8 @@ class ParamResult:
 
     @property
     def ok(self) -> bool:
-        """The autopilot now holds the wanted value."""
-        return self.status in (Status.OK, Status.CHANGED)
+        """The autopilot now holds the wanted value (or lacks it, and the user allowed that)."""
+        return self.status in (Status.OK, Status.CHANGED, Status.ABSENT_ALLOWED)
 
 
 # ---------------------------------------------------------------------------------------- files
@@ -386,6 +389,20 @@ class MavlinkParamClient:
             self.stats.timeouts += 1
         return None
 
+    def link_alive(self) -> bool:
+        """Does the autopilot answer at all? Asks for its first parameter by index.
+
+        Both firmwares stay silent for a name they do not know, exactly as a dead link does; an
+        answer to this request tells the two apart.
+        """
+        for attempt in range(self.retries + 1):
+            self._count_attempt(attempt)
+            self.conn.mav.param_request_read_send(self.target_system, self.target_component, b"", 0)
+            if self._recv(["PARAM_VALUE"], time.monotonic() + self.timeout) is not None:
+                return True
+            self.stats.timeouts += 1
+        return False
+
     def write(self, name: str, value: float, param_type: int) -> tuple[float, int] | None:
         """Send PARAM_SET and wait for the PARAM_VALUE echo; None when none comes (or PX4 says unknown).
 
@@ -439,13 +456,30 @@ def _mavlink_module() -> Any:
     return common
 
 
-def check_parameters(client: MavlinkParamClient, wanted: list[WantedParam]) -> list[ParamResult]:
+def read_and_compare(
+    client: MavlinkParamClient, wanted: WantedParam, allow_missing: frozenset[str]
+) -> ParamResult:
+    """Read one parameter and judge it; an unanswered name is told apart from a lost link."""
+    actual = client.read(wanted.name)
+    if actual is not None:
+        return compare_parameter(wanted, actual)
+    if not client.link_alive():
+        return ParamResult(wanted, Status.NO_REPLY)
+    return ParamResult(wanted, Status.ABSENT_ALLOWED if wanted.name in allow_missing else Status.UNKNOWN)
+
+
+def check_parameters(
+    client: MavlinkParamClient, wanted: list[WantedParam], allow_missing: frozenset[str] = frozenset()
+) -> list[ParamResult]:
     """Read every wanted parameter and compare it (nothing is written)."""
-    return [compare_parameter(w, client.read(w.name)) for w in wanted]
+    return [read_and_compare(client, w, allow_missing) for w in wanted]
 
 
 def apply_parameters(
-    client: MavlinkParamClient, wanted: list[WantedParam], autopilot: str
+    client: MavlinkParamClient,
+    wanted: list[WantedParam],
+    autopilot: str,
+    allow_missing: frozenset[str] = frozenset(),
 ) -> list[ParamResult]:
     """Set every parameter that differs, then read it back to verify.
 
@@ -454,7 +488,7 @@ def apply_parameters(
     """
     results = []
     for w in wanted:
-        before = compare_parameter(w, client.read(w.name))
+        before = read_and_compare(client, w, allow_missing)
         if before.status is not Status.DIFFERS:
             results.append(before)
             continue
@@ -545,18 +579,24 @@ def run_params(
     timeout: float = 1.0,
     retries: int = 2,
     heartbeat_timeout: float = 10.0,
+    allow_missing: frozenset[str] = frozenset(),
 ) -> CheckReport:
     """Check (or apply) ``wanted`` on the autopilot at the other end of ``conn``.
 
     This is what the companion's start-up check calls, before its own link takes the port.
 
     :param autopilot: ``"ardupilot"`` or ``"px4"``: which firmware the file was written for
+    :param allow_missing: names this autopilot may lack (a SITL has no TELEM2): absent is fine
     """
     info = wait_for_autopilot(conn, heartbeat_timeout)
     _check_firmware_family(autopilot, info.autopilot)
     client = MavlinkParamClient(conn, info.system_id, info.component_id, timeout, retries)
     client.detect_bytewise(info.autopilot)
-    results = apply_parameters(client, wanted, autopilot) if apply else check_parameters(client, wanted)
+    results = (
+        apply_parameters(client, wanted, autopilot, allow_missing)
+        if apply
+        else check_parameters(client, wanted, allow_missing)
+    )
     return CheckReport(results, client.bytewise, client.encoding_source, client.stats)
 
 
@@ -588,6 +628,14 @@ def _retries(text: str) -> int:
     return int(text)
 
 
+def _names(text: str) -> frozenset[str]:
+    names = frozenset(n.strip() for n in text.split(",") if n.strip())
+    bad = sorted(n for n in names if not _NAME.fullmatch(n))
+    if bad or not names:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a comma-separated list of parameter names")
+    return names
+
+
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     """``params check|apply``."""
     parser.add_argument(
@@ -605,7 +653,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "--connect",
         required=True,
         metavar="URL",
-        help="MAVLink connection: /dev/ttyTHS1, udpin:0.0.0.0:14550, tcp:127.0.0.1:5760, ...",
+        help="MAVLink connection, pymavlink or MAVSDK form: /dev/ttyTHS1, udpin:0.0.0.0:14550, "
+        "udpin://0.0.0.0:14540, tcp:127.0.0.1:5760, serial:///dev/ttyTHS1:921600, ...",
     )
     parser.add_argument(
         "--file",
@@ -613,6 +662,14 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         help="parameter file (default: firmware_params/ardupilot-copter.parm or px4.params)",
     )
     parser.add_argument("--baud", type=int, default=921600, help="serial baud rate (default 921600)")
+    parser.add_argument(
+        "--allow-missing",
+        type=_names,
+        default=frozenset(),
+        metavar="NAME,...",
+        help="parameters this autopilot may lack, e.g. MAV_1_CONFIG,SER_TEL2_BAUD on a PX4 SITL "
+        "(which has no TELEM2); without it every parameter of the file must exist",
+    )
     parser.add_argument(
         "--timeout",
         type=_positive_seconds,
@@ -639,7 +696,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 def command(args: argparse.Namespace) -> int:
     path = Path(args.file) if args.file else default_param_file(args.autopilot)
     wanted = load_param_file(path, args.autopilot)
-    conn = open_connection(args.connect, args.baud)
+    link = parse_connection(args.connect, args.baud)
+    ensure_port_free(link)
+    conn = open_connection(link.pymavlink, link.baud or args.baud)
     try:
         report = run_params(
             conn,
@@ -649,6 +708,7 @@ def command(args: argparse.Namespace) -> int:
             timeout=args.timeout,
             retries=args.retries,
             heartbeat_timeout=args.heartbeat_timeout,
+            allow_missing=args.allow_missing,
         )
     finally:
         conn.close()
@@ -695,9 +755,23 @@ def format_report(report: CheckReport, action: str, source: str) -> str:
         reboot = [r.name for r in changed if r.needs_reboot]
         if reboot:
             lines.append(f"reboot the autopilot for {', '.join(reboot)} to take effect")
+    differ = [
+        r.name for r in report.results if r.status in (Status.DIFFERS, Status.TYPE_MISMATCH, Status.FAILED)
+    ]
+    if differ:
+        lines.append(f"differ from the file: {', '.join(differ)}")
     unknown = [r.name for r in report.results if r.status is Status.UNKNOWN]
     if unknown:
-        lines.append(f"not answered (unknown to this firmware, or link loss): {', '.join(unknown)}")
+        lines.append(
+            f"unknown to this autopilot (it answers other names): {', '.join(unknown)}; a SITL or a board "
+            f"without that port lacks them: --allow-missing {','.join(unknown)} accepts that"
+        )
+    allowed = [r.name for r in report.results if r.status is Status.ABSENT_ALLOWED]
+    if allowed:
+        lines.append(f"absent, allowed by --allow-missing: {', '.join(allowed)}")
+    lost = [r.name for r in report.results if r.status is Status.NO_REPLY]
+    if lost:
+        lines.append(f"no reply, and none to a request by index either (link lost?): {', '.join(lost)}")
     s = report.stats
     lines.append(f"link: {s.requests} requests, {s.retries} retries, {s.timeouts} timeouts")
     return "\n".join(lines)

@@ -15,7 +15,7 @@ from importlib import resources
 from pathlib import Path
 
 from companion.errors import UserError
-from flightsim.harness import FlightOptions, FlightReport, default_policy, run_flight
+from flightsim.harness import INTERRUPTED, FlightOptions, FlightReport, default_policy, run_flight
 from flightsim.world import World, generate_world, load_world
 
 #: (seed, difficulty) of the generated rooms
@@ -87,7 +87,7 @@ def command(args: argparse.Namespace) -> int:
             report = FlightReport.failed(world.name, args.autopilot, str(exc))
         reports.append(report)
         print(_row(report), flush=True)
-        if report.error == "interrupted":  # Ctrl-C: that flight was cleaned up; skip the rest
+        if report.error == INTERRUPTED:  # Ctrl-C: that flight was cleaned up; skip the rest
             break
     wall = time.monotonic() - start
     (out / "summary.json").write_text(
@@ -95,6 +95,8 @@ def command(args: argparse.Namespace) -> int:
     )
     print(_table(reports))
     print(f"wall time {wall:.0f} s; plots, companion logs and summary.json in {out.resolve()}")
+    if reports and reports[-1].error == INTERRUPTED:
+        return 130
     return 0 if all(not r.error for r in reports) else 1
 
 
@@ -104,11 +106,16 @@ HEADER = (
 )
 
 
+def _cell(value: float | None, width: int, fmt: str) -> str:
+    """A figure right-aligned in its column, "n/a" where the flight measured none."""
+    return f"{'n/a' if value is None else format(value, fmt):>{width}}"
+
+
 def _row(r: FlightReport) -> str:
     line = (
         f"{r.world:<18} {'yes' if r.engaged else 'NO':>7} {'YES' if r.collision else 'no':>9} "
-        f"{r.distance_m:>7.1f} {r.min_clearance_m:>9.2f} {r.setpoint_rate_hz:>6.1f} "
-        f"{r.latency_p50_ms:>10.1f} {r.latency_p99_ms:>7.1f}"
+        f"{r.distance_m:>7.1f} {_cell(r.min_clearance_m, 9, '.2f')} {r.setpoint_rate_hz:>6.1f} "
+        f"{_cell(r.latency_p50_ms, 10, '.1f')} {_cell(r.latency_p99_ms, 7, '.1f')}"
     )
     return line + (f"  ({r.error})" if r.error else "")
 

@@ -49,6 +49,8 @@ TAKEOFF_ALTITUDE = 1.5
 MISSION_ACCEPTANCE_RADIUS = 1.0
 #: the companion's STATUSTEXT on entering ACTIVE starts with this (supervisor state names)
 ACTIVE_MARK = "->ACTIVE"
+#: ``FlightReport.error`` of a flight stopped by Ctrl-C (``avoid-sim fly`` then exits 130)
+INTERRUPTED = "interrupted"
 
 
 # ------------------------------------------------------------------------------------ config file
@@ -169,10 +171,10 @@ class FlightReport:
     collision: bool
     flight_time_s: float
     distance_m: float
-    min_clearance_m: float
+    min_clearance_m: float | None  # None: nothing measured (the companion never flew)
     setpoint_rate_hz: float
-    latency_p50_ms: float
-    latency_p99_ms: float
+    latency_p50_ms: float | None
+    latency_p99_ms: float | None
     transitions: list[str]
     malformed: dict[str, int]
     plot: str = ""
@@ -189,7 +191,7 @@ class FlightReport:
     @classmethod
     def failed(cls, world: str, autopilot: str, error: str) -> FlightReport:
         """The report of a flight that could not start."""
-        return cls(world, autopilot, False, False, 0.0, 0.0, -1.0, 0.0, -1.0, -1.0, [], {}, error=error)
+        return cls(world, autopilot, False, False, 0.0, 0.0, None, 0.0, None, None, [], {}, error=error)
 
 
 @dataclass
@@ -706,10 +708,10 @@ class SitlFlight:
             collision=rec.collision_time is not None,
             flight_time_s=round(flight_time, 2),
             distance_m=round(distance, 2),
-            min_clearance_m=round(float(rec.min_clearance), 3) if math.isfinite(rec.min_clearance) else -1.0,
+            min_clearance_m=round(float(rec.min_clearance), 3) if math.isfinite(rec.min_clearance) else None,
             setpoint_rate_hz=round(rate, 2),
-            latency_p50_ms=round(float(np.percentile(lat, 50)), 1) if lat else -1.0,
-            latency_p99_ms=round(float(np.percentile(lat, 99)), 1) if lat else -1.0,
+            latency_p50_ms=round(float(np.percentile(lat, 50)), 1) if lat else None,
+            latency_p99_ms=round(float(np.percentile(lat, 99)), 1) if lat else None,
             transitions=[
                 t for t in texts if any(s in t for s in ("ACTIVE", "HOLD", "STANDBY", "OVERRIDE", "WAIT"))
             ],
@@ -764,11 +766,15 @@ def waypoints_reached(world: World, traj: np.ndarray, engaged_at: float | None) 
     return out
 
 
+def measured(value: float | None, fmt: str, unit: str) -> str:
+    """A report figure, or "n/a" when the flight measured none (never a -1 sentinel)."""
+    return "n/a" if value is None else f"{value:{fmt}} {unit}"
+
+
 def _title(r: FlightReport) -> str:
     outcome = "COLLISION" if r.collision else "no collision"
-    return (
-        f"{r.world} / {r.autopilot}: {outcome}, {r.distance_m:.1f} m, min clearance {r.min_clearance_m:.2f} m"
-    )
+    clearance = measured(r.min_clearance_m, ".2f", "m")
+    return f"{r.world} / {r.autopilot}: {outcome}, {r.distance_m:.1f} m, min clearance {clearance}"
 
 
 def plot_flight(
@@ -778,8 +784,9 @@ def plot_flight(
     collision_at: float | None,
     path: Path,
     title: str,
-) -> None:
-    """A top-down PNG (:func:`flightsim.render.draw_top_down`): the take-off and the companion's path.
+) -> Any:
+    """A top-down PNG (:func:`flightsim.render.draw_top_down`): the take-off and the companion's path,
+    with a legend; returns the figure.
 
     :param traj: ``(N, 6)`` rows of (time, x, y, z, yaw, speed)
     """
@@ -799,9 +806,18 @@ def plot_flight(
     fig = Figure(figsize=(7, 7 * world.room_size[1] / world.room_size[0] + 0.6))
     FigureCanvasAgg(fig)
     ax = fig.add_subplot()
-    draw_top_down(world, parts, ax=ax, pose=pose, collided=collision_at is not None, title=title)
+    draw_top_down(
+        world,
+        parts,
+        ax=ax,
+        pose=pose,
+        collided=collision_at is not None,
+        title=title,
+        labels=("take-off and hold (ground station)", "companion flying"),
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=90)
+    return fig
 
 
 def run_flight(options: FlightOptions, plot: Path | None = None, vehicle: Any = None) -> FlightReport:
@@ -820,7 +836,7 @@ def run_flight(options: FlightOptions, plot: Path | None = None, vehicle: Any = 
             else:
                 error = f"the companion never engaged (see {flight.log_path})"
         except KeyboardInterrupt:
-            error = "interrupted"
+            error = INTERRUPTED
         except RuntimeError as exc:
             error = str(exc)
         return flight.report(plot, error)
@@ -927,6 +943,8 @@ def command(args: Any) -> int:
     print(f"companion log: {workdir / 'companion.log'}")
     if args.json:
         Path(args.json).write_text(report.to_json())
+    if report.error == INTERRUPTED:
+        return 130  # as a shell reports a command Ctrl-C stopped
     return 0 if not report.error else 1
 
 
@@ -935,10 +953,12 @@ def print_report(r: FlightReport) -> None:
     if r.error:
         print(f"  error: {r.error}")
     print(f"  engaged: {r.engaged}   collision: {r.collision}   flight {r.flight_time_s:.1f} s")
-    print(f"  distance flown {r.distance_m:.1f} m, minimum clearance {r.min_clearance_m:.2f} m")
+    print(
+        f"  distance flown {r.distance_m:.1f} m, minimum clearance {measured(r.min_clearance_m, '.2f', 'm')}"
+    )
     print(
         f"  setpoints {r.setpoint_rate_hz:.1f} Hz, latency revolution end → setpoint "
-        f"p50 {r.latency_p50_ms:.1f} ms, p99 {r.latency_p99_ms:.1f} ms"
+        f"p50 {measured(r.latency_p50_ms, '.1f', 'ms')}, p99 {measured(r.latency_p99_ms, '.1f', 'ms')}"
     )
     print(f"  companion states: {' | '.join(r.transitions) or '-'}")
     if r.goal_events or r.waypoints_reached:

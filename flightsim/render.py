@@ -55,6 +55,7 @@ def draw_top_down(
     title: str | None = None,
     active_waypoint: int | None = None,
     planned: np.ndarray | None = None,
+    labels: Sequence[str] | None = None,
 ) -> Axes:
     """Draw a world seen from above: walls, obstacles, start, waypoints, trajectories, vehicle, scan.
 
@@ -77,6 +78,8 @@ def draw_top_down(
         (waypoints before it faded: already reached)
     :param planned: ``(N, 2)`` planned path (e.g. :attr:`flightsim.planner.PlannedPath.points`),
         drawn dashed
+    :param labels: one name per trajectory; given, the Axes gets a legend (start, each trajectory,
+        the vehicle, a collision) so the picture reads on its own
     :return: the Axes drawn on
     """
     if ax is None:
@@ -101,7 +104,8 @@ def draw_top_down(
         ax.add_patch(patch)
     sx, sy, _ = world.start_position
     yaw0 = math.radians(world.start_yaw_deg)
-    ax.plot([sx], [sy], marker="o", markersize=5, markerfacecolor="none", color="black", zorder=3)
+    start_style = {"marker": "o", "markersize": 5, "markerfacecolor": "none", "linestyle": "none"}
+    ax.plot([sx], [sy], color="black", zorder=3, label="start (arrow: heading)", **start_style)
     ax.annotate(
         "", xy=(sx + 0.8 * math.cos(yaw0), sy + 0.8 * math.sin(yaw0)), xytext=(sx, sy),
         arrowprops={"arrowstyle": "->", "color": "black", "lw": 1.0}, zorder=3,
@@ -119,7 +123,8 @@ def draw_top_down(
         if traj.ndim != 2 or traj.shape[0] == 0:
             continue
         colour = _TRAJECTORY_COLOURS[i % len(_TRAJECTORY_COLOURS)]
-        ax.plot(traj[:, 0], traj[:, 1], color=colour, linewidth=1.4, zorder=4)
+        label = labels[i] if labels is not None and i < len(labels) else None
+        ax.plot(traj[:, 0], traj[:, 1], color=colour, linewidth=1.4, zorder=4, label=label)
         ax.plot(traj[-1:, 0], traj[-1:, 1], marker="o", markersize=3.5, color=colour, zorder=4)
 
     if pose is not None:
@@ -128,12 +133,24 @@ def draw_top_down(
         if scan is not None:
             _draw_scan(ax, np.asarray(scan, dtype=float), px, py, yaw, scan_max_range)
         colour = "#d62728" if collided else _VEHICLE
-        ax.add_patch(Circle((px, py), vehicle_radius, facecolor=colour, edgecolor="black", lw=0.8, zorder=6))
+        ax.add_patch(
+            Circle(
+                (px, py),
+                vehicle_radius,
+                facecolor=colour,
+                edgecolor="black",
+                lw=0.8,
+                zorder=6,
+                label="vehicle",
+            )
+        )
         nose = max(3.0 * vehicle_radius, 0.5)
         tip = (px + nose * math.cos(yaw), py + nose * math.sin(yaw))
         ax.plot([px, tip[0]], [py, tip[1]], color="black", lw=2.0, zorder=7)
         if collided:
-            ax.plot([px], [py], marker="x", markersize=14, mew=3, color="#d62728", zorder=8)
+            ax.plot(
+                [px], [py], marker="x", markersize=14, mew=3, color="#d62728", zorder=8, label="collision"
+            )
 
     ax.set_xlim(-hx - 0.5, hx + 0.5)
     ax.set_ylim(-hy - 0.5, hy + 0.5)
@@ -143,6 +160,8 @@ def draw_top_down(
     ax.tick_params(labelsize=7)
     if title:
         ax.set_title(title, fontsize=9)
+    if labels is not None:
+        ax.legend(loc="upper right", fontsize=7, framealpha=0.85)
     return ax
 
 

@@ -4,7 +4,7 @@
 #   sudo systemd/install.sh [--model policy.onnx] [--ort-wheel onnxruntime_gpu-....whl] [--now]
 #
 # Steps: service user (systemd-sysusers), virtual environment in /opt/lidar-avoid/venv with the
-# base install only (the companion's runtime: no torch), config in /etc/lidar-avoid (an existing
+# base install only (the companion's runtime, ArduPilot and PX4 (mavsdk) alike: no torch), config in /etc/lidar-avoid (an existing
 # companion.toml is never overwritten), the unit in /etc/systemd/system, enable it.
 #
 # --root DIR   install below DIR instead of / (staging an image, tests): users are created with
@@ -110,6 +110,9 @@ if [ "$VENV" = 1 ]; then
     run "$VENV_DIR/bin/python" -c \
         "import importlib.util, sys; sys.exit('torch is installed in the companion venv' if importlib.util.find_spec('torch') else 0)"
     run "$VENV_DIR/bin/avoid-companion" --help
+    # PX4's link (mavsdk, in the base install) must load here, not at the first flight: a wheel
+    # built for a newer glibc than the Jetson's fails on import.
+    run "$VENV_DIR/bin/python" -c "import companion.autopilot.px4"
 fi
 
 echo "== configuration $CONF_DIR"

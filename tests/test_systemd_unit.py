@@ -192,6 +192,8 @@ def test_dry_run_prints_the_plan_and_changes_nothing(tmp_path):
     # the base install: the checkout itself, no extras, so no torch
     assert f"+ {root}/opt/lidar-avoid/venv/bin/pip install {REPO}\n" in out
     assert "torch is installed in the companion venv" in out  # the guard runs after the install
+    # PX4's link (mavsdk, in the base install) is proven to load at install time
+    assert f'+ {root}/opt/lidar-avoid/venv/bin/python -c import companion.autopilot.px4' in out
     assert f"+ install -m 0644 {UNIT} {root}/etc/lidar-avoid/policy.onnx" in out
     assert f"+ systemctl --root={root} enable lidar-avoid-companion.service" in out
     assert "(dry run: nothing was changed)" in out

@@ -405,22 +405,48 @@ def format_table(summary: dict[str, Any], per_world: bool) -> str:
     return "\n".join(lines)
 
 
+#: the usual colour of each controller; a "+shield" variant keeps it unless its unshielded self is
+#: in the same picture, and any other controller takes the next free colour of the palette
+CONTROLLER_COLOURS = {"policy": "tab:blue", "gap_follower": "tab:orange", "random": "tab:gray"}
+PALETTE = ("tab:green", "tab:purple", "tab:brown", "tab:pink", "tab:olive", "tab:cyan", "navy", "black")
+
+
+def controller_colours(names: Iterable[str]) -> dict[str, str]:
+    """A distinct colour for every controller label (``policy``, ``policy+shield``, custom names)."""
+    labels = sorted(set(names), key=lambda n: (n.endswith("+shield"), n))  # unshielded ones choose first
+    colours: dict[str, str] = {}
+    for label in labels:
+        preferred = CONTROLLER_COLOURS.get(label.removesuffix("+shield"))
+        free = [c for c in (preferred, *PALETTE) if c is not None and c not in colours.values()]
+        colours[label] = free[0] if free else f"C{len(colours) % 10}"
+    return colours
+
+
 def plot_trajectories(
     results: Sequence[EpisodeResult], worlds: Sequence[WorldSpec], out: Path, env_config: Any
 ) -> None:
+    """Write :func:`trajectory_figure` as a PNG."""
+    fig = trajectory_figure(results, worlds, env_config)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(str(out), dpi=100 if len(worlds) <= 16 else 50)  # a 100-world grid stays ~1 MB
+
+
+def trajectory_figure(results: Sequence[EpisodeResult], worlds: Sequence[WorldSpec], env_config: Any) -> Any:
     """One panel per world (drawn by :func:`flightsim.render.draw_top_down`), each controller's first
-    episode over it; a red cross marks a collision."""
+    episode over it in its own colour (:func:`controller_colours`), one legend for all; a red cross
+    marks a collision."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
     from flightsim.render import draw_top_down
     from flightsim.world import generate_world, load_world
 
-    colours = {"policy": "tab:blue", "gap_follower": "tab:orange", "random": "tab:gray"}
+    colours = controller_colours(r.controller for r in results)
     cols = min(len(worlds), 10 if len(worlds) > 16 else 4)
     rows = math.ceil(len(worlds) / cols)
     fig = Figure(figsize=(2.8 * cols, 2.4 * rows + 0.6))
     FigureCanvasAgg(fig)  # attaches itself to the figure: no pyplot state in worker processes
+    legend: dict[str, Any] = {}
     for i, w in enumerate(worlds):
         ax = fig.add_subplot(rows, cols, i + 1)
         radius = env_config.vehicle_radius
@@ -434,19 +460,18 @@ def plot_trajectories(
             if r.world != w.name or r.episode != 0:
                 continue
             xy = np.asarray(r.trajectory)
-            colour = colours.get(r.controller, "tab:green")
-            ax.plot(xy[:, 0], xy[:, 1], lw=0.9, color=colour, label=r.controller, zorder=5)
+            (line,) = ax.plot(xy[:, 0], xy[:, 1], lw=0.9, color=colours[r.controller], zorder=5)
+            legend.setdefault(r.controller, line)
             if r.collision:
                 ax.plot(xy[-1, 0], xy[-1, 1], "x", color="red", ms=7, mew=2, zorder=6)
         ax.set_title(w.name, fontsize=8)
         ax.set_xlabel("")
         ax.set_ylabel("")
         ax.tick_params(labelsize=5)
-    handles, labels = fig.axes[0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="lower center", ncol=max(len(handles), 1), fontsize=9)
+    labels = sorted(legend)
+    fig.legend([legend[n] for n in labels], labels, loc="lower center", ncol=max(len(labels), 1), fontsize=9)
     fig.tight_layout(rect=(0, 0.6 / fig.get_figheight(), 1, 1))
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(str(out), dpi=100 if len(worlds) <= 16 else 50)  # a 100-world grid stays ~1 MB
+    return fig
 
 
 # --- command line ----------------------------------------------------------------------------------

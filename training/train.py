@@ -11,15 +11,27 @@ A run lives in ``<run_root>/<config name>-s<seed>/``::
     tb/                    TensorBoard logs (``tensorboard --logdir runs``)
     eval.csv               one row per evaluation: steps, wall-clock seconds, difficulty, success rate...
     best_model.zip         best evaluation at the target difficulty
+    eval_model.zip         the model the last held-out evaluation flew (overwritten at each one)
     final_model.zip
+    interrupted.zip        the model at the moment of a Ctrl-C (``--resume`` picks it up)
+
+A directory that already holds a run is never reused silently: ``--resume`` continues it from its
+newest checkpoint, ``--overwrite`` deletes it first, and anything else is refused.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import json
 import logging
+import multiprocessing
+import shutil
+import signal
+import sys
 import time
+import zipfile
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +40,7 @@ import numpy as np
 
 from companion.errors import UserError
 from training.config import TrainConfig, config_to_toml, load_train_config
-from training.evaluate import ControllerSpec, WorldSpec, make_executor, make_tasks, run_tasks, summarise
+from training.evaluate import ControllerSpec, WorldSpec, make_tasks, run_tasks, summarise
 
 log = logging.getLogger(__name__)
 
@@ -92,6 +104,8 @@ def make_env(config: TrainConfig, difficulty: float):
     def thunk() -> gym.Env:
         from flightsim.env import LidarAvoidEnv
 
+        ignore_sigint_in_worker()
+
         return TrainingWorlds(
             LidarAvoidEnv(env_config),
             difficulty,
@@ -118,12 +132,94 @@ def make_vec_env(
     return VecFrameStack(VecMonitor(venv), n_stack=config.n_stack)
 
 
+def ignore_sigint_in_worker() -> None:
+    """In a worker process, leave Ctrl-C to the main process.
+
+    A terminal's Ctrl-C reaches every process of the foreground group: without this each
+    simulator and evaluation worker would print its own KeyboardInterrupt traceback while the main
+    process saves ``interrupted.zip`` and closes them in order. In the main process (one env runs
+    there with ``n_envs = 1``) Ctrl-C stays as it is.
+    """
+    if multiprocessing.parent_process() is not None:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def read_eval_log(path: Path) -> list[dict[str, float]]:
     """The rows of a run's ``eval.csv`` (empty when there is none yet)."""
     if not path.is_file():
         return []
     with path.open() as f:
         return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(f)]
+
+
+def write_eval_log(path: Path, rows: list[dict[str, float]]) -> None:
+    """Rewrite ``eval.csv`` with ``rows`` (a resume drops the rows of the abandoned continuation)."""
+    with path.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=EVAL_FIELDS)
+        writer.writeheader()
+        for row in rows:
+            writer.writerow(
+                {k: int(v) if k in ("timesteps", "collisions", "episodes") else v for k, v in row.items()}
+            )
+
+
+def checkpoint_steps(path: Path) -> int:
+    """The step count saved in an SB3 model zip (its ``data`` JSON), without loading torch."""
+    try:
+        with zipfile.ZipFile(path) as z:
+            return int(json.loads(z.read("data"))["num_timesteps"])
+    except (OSError, KeyError, ValueError, zipfile.BadZipFile) as exc:
+        raise UserError(f"{path}: not a stable-baselines3 model ({exc})") from None
+
+
+def latest_checkpoint(run_dir: Path) -> Path:
+    """The checkpoint of ``run_dir`` with the most steps: ``checkpoints/ppo_<N>_steps.zip`` or
+    ``interrupted.zip``."""
+    candidates = [*sorted((run_dir / "checkpoints").glob("ppo_*_steps.zip"))]
+    if (run_dir / "interrupted.zip").is_file():
+        candidates.append(run_dir / "interrupted.zip")
+    if not candidates:
+        raise UserError(f"--resume: {run_dir} has no checkpoint to continue from")
+    return max(candidates, key=checkpoint_steps)
+
+
+def prepare_run_dir(config: TrainConfig, resume: bool, overwrite: bool) -> None:
+    """Refuse to reuse a run directory unless told how: ``resume`` it or ``overwrite`` it."""
+    run_dir = config.run_dir
+    used = run_dir.is_dir() and any(run_dir.iterdir())
+    if used and overwrite:
+        log.info("--overwrite: deleting the previous run in %s", run_dir)
+        shutil.rmtree(run_dir)
+    elif used and not resume:
+        raise UserError(
+            f"{run_dir} already holds a run: --resume to continue it, --overwrite to replace it, "
+            "or choose another name, seed or run_root"
+        )
+
+
+def truncate_eval_log(run_dir: Path, steps: int, target_difficulty: float) -> None:
+    """Keep only the evaluations up to the resumed checkpoint's ``steps``.
+
+    Rows after it belong to a continuation the resume abandons: the timesteps would run backwards
+    and the best model would be judged against a future that no longer exists. If the current
+    ``best_model.zip`` came from such a row it is deleted too, so the resumed run judges anew.
+    """
+    path = run_dir / "eval.csv"
+    rows = read_eval_log(path)
+    kept = [r for r in rows if r["timesteps"] <= steps]
+    if len(kept) == len(rows):
+        return
+    dropped = rows[len(kept) :]
+    log.info("--resume at %d steps: dropping %d later evaluation(s) from %s", steps, len(dropped), path)
+    write_eval_log(path, kept)
+
+    def best(rs: list[dict[str, float]]) -> float:
+        return max(
+            (r["success_rate"] for r in rs if r["difficulty"] >= target_difficulty - 1e-9), default=-1.0
+        )
+
+    if best(dropped) > -1.0 and best(dropped) >= best(kept):
+        (run_dir / "best_model.zip").unlink(missing_ok=True)
 
 
 def make_callbacks(config: TrainConfig, run_dir: Path, n_envs: int, executor: Any, start_difficulty: float):
@@ -150,8 +246,11 @@ def make_callbacks(config: TrainConfig, run_dir: Path, n_envs: int, executor: An
             self.log_path = run_dir / "eval.csv"
             previous = read_eval_log(self.log_path)
             self.wall_offset = previous[-1]["wall_s"] if previous else 0.0
-            self.best = max(
-                (r["success_rate"] for r in previous if self._at_target(r["difficulty"])), default=-1.0
+            # judged against the best model on disk: none (a new run, or a resume dropped it) → any
+            self.best = (
+                max((r["success_rate"] for r in previous if self._at_target(r["difficulty"])), default=-1.0)
+                if (run_dir / "best_model.zip").is_file()
+                else -1.0
             )
             self.started = time.monotonic()
             self.last_eval = 0
@@ -271,11 +370,21 @@ def build_model(config: TrainConfig, venv: Any, run_dir: Path, resume: Path | No
     )
 
 
+class TrainingInterrupted(Exception):
+    """Ctrl-C during ``learn``: the model was saved as ``path`` after ``steps`` steps."""
+
+    def __init__(self, path: Path, steps: int) -> None:
+        super().__init__(f"interrupted after {steps} steps; saved {path} (continue with --resume)")
+        self.path = path
+        self.steps = steps
+
+
 def train(config: TrainConfig, resume: Path | None = None) -> Path:
     """Run (or resume) training; returns the final model's path.
 
     :param config: the checked training config
     :param resume: an SB3 checkpoint of this run to continue from (timesteps continue its count)
+    :raises TrainingInterrupted: Ctrl-C; the model at that moment is in ``interrupted.zip``
     """
     import torch
 
@@ -284,13 +393,23 @@ def train(config: TrainConfig, resume: Path | None = None) -> Path:
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "config.toml").write_text(config_to_toml(config))
     n_envs = config.resolved_n_envs
+    if resume:
+        truncate_eval_log(run_dir, checkpoint_steps(resume), config.eval.difficulty)
     previous = read_eval_log(run_dir / "eval.csv") if resume else []
     difficulty = config.env_config().difficulty
     if config.curriculum.enabled:
         difficulty = previous[-1]["difficulty"] if previous else config.curriculum.start_difficulty
     venv = make_vec_env(config, n_envs, config.seed, difficulty=difficulty)
     eval_workers = config.eval.workers or n_envs
-    executor = make_executor(eval_workers) if eval_workers > 1 else None
+    executor = (
+        ProcessPoolExecutor(
+            eval_workers,
+            mp_context=multiprocessing.get_context("forkserver"),
+            initializer=ignore_sigint_in_worker,
+        )
+        if eval_workers > 1
+        else None
+    )
     try:
         model = build_model(config, venv, run_dir, resume)
         remaining = config.total_timesteps - (model.num_timesteps if resume else 0)
@@ -299,13 +418,22 @@ def train(config: TrainConfig, resume: Path | None = None) -> Path:
         log.info(
             "training %s: %d steps on %d envs, run directory %s", config.name, remaining, n_envs, run_dir
         )
-        model.learn(
-            total_timesteps=remaining,
-            callback=make_callbacks(config, run_dir, n_envs, executor, difficulty),
-            progress_bar=config.progress_bar,
-            reset_num_timesteps=resume is None,
-            tb_log_name="ppo",
-        )
+        try:
+            model.learn(
+                total_timesteps=remaining,
+                callback=make_callbacks(config, run_dir, n_envs, executor, difficulty),
+                progress_bar=config.progress_bar,
+                reset_num_timesteps=resume is None,
+                tb_log_name="ppo",
+            )
+        except KeyboardInterrupt:
+            interrupted = run_dir / "interrupted.zip"
+            model.save(interrupted)
+            # SubprocVecEnv.close() would first wait for the step results of every worker, some of
+            # which Ctrl-C's step_wait already read: forever. The workers ignore SIGINT, so they
+            # read the close command right after the result nobody collects.
+            venv.unwrapped.waiting = False
+            raise TrainingInterrupted(interrupted, model.num_timesteps) from None
         final = run_dir / "final_model.zip"
         model.save(final)
         log.info("saved %s after %d steps", final, model.num_timesteps)
@@ -316,18 +444,50 @@ def train(config: TrainConfig, resume: Path | None = None) -> Path:
         venv.close()
 
 
+#: ``--resume`` without a file: the run's newest checkpoint.
+LATEST = "latest"
+
+
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", type=Path, required=True, help="training config (TOML)")
-    parser.add_argument("--resume", type=Path, help="continue from this checkpoint (.zip)")
+    parser.add_argument(
+        "--resume",
+        nargs="?",
+        const=LATEST,
+        metavar="CKPT.zip",
+        help="continue the run: from its newest checkpoint (or interrupted.zip), or from CKPT.zip",
+    )
+    parser.add_argument(
+        "--overwrite", action="store_true", help="delete the run directory's previous run and start afresh"
+    )
     parser.add_argument(
         "overrides", nargs="*", metavar="KEY=VALUE", help="config overrides, e.g. ppo.n_steps=256"
     )
 
 
+def resume_checkpoint(value: str | None, run_dir: Path) -> Path | None:
+    """The checkpoint ``--resume`` names (None: a new run)."""
+    if value is None:
+        return None
+    if value == LATEST:
+        return latest_checkpoint(run_dir)
+    path = Path(value)
+    if not path.is_file():
+        hint = "; put KEY=VALUE overrides before --resume" if "=" in value else ""
+        raise UserError(f"--resume {value}: file not found{hint}")
+    return path
+
+
 def command(args: argparse.Namespace) -> int:
     config = load_train_config(args.config, args.overrides)
-    if args.resume is not None and not args.resume.is_file():
-        raise UserError(f"--resume {args.resume}: file not found")
-    final = train(config, args.resume)
+    if args.resume is not None and args.overwrite:
+        raise UserError("--resume and --overwrite exclude each other")
+    resume = resume_checkpoint(args.resume, config.run_dir)
+    prepare_run_dir(config, resume is not None, args.overwrite)
+    try:
+        final = train(config, resume)
+    except TrainingInterrupted as exc:
+        print(f"avoid-train: {exc}", file=sys.stderr)
+        return 130
     print(f"final model: {final}")
     return 0

@@ -172,11 +172,14 @@ class SimulatedAutopilot:
                     self._received.append((time.monotonic(), msg))
                 if msg.get_type() == "COMMAND_LONG":
                     self._answer(msg)
-                elif msg.get_type() == "PARAM_REQUEST_READ" and msg.param_id in self.params:
+                elif msg.get_type() == "PARAM_REQUEST_READ":
                     names = sorted(self.params)
-                    self.peer.mav.param_value_send(msg.param_id.encode(), self.params[msg.param_id],
-                                                   mavlink.MAV_PARAM_TYPE_REAL32, len(names),
-                                                   names.index(msg.param_id))
+                    by_index = not msg.param_id and 0 <= msg.param_index < len(names)
+                    name = names[msg.param_index] if by_index else msg.param_id
+                    if name in self.params:  # an unknown name gets no answer, as on both firmwares
+                        self.peer.mav.param_value_send(name.encode(), self.params[name],
+                                                       mavlink.MAV_PARAM_TYPE_REAL32, len(names),
+                                                       names.index(name))
             if not got:
                 time.sleep(0.001)
 

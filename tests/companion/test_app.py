@@ -13,6 +13,7 @@ import time
 import pytest
 
 from companion.autopilot.mavlink_adapter import mavlink
+from companion.errors import UserError
 from companion.policy import PolicySpec
 from tests.companion.companion_process import (
     LidarSender,
@@ -257,6 +258,26 @@ def test_parameter_check_refuse_exits_naming_the_parameter(tmp_path):
     last = result.stderr.strip().splitlines()[-1]
     assert last.startswith("avoid-companion: error: params_check: 1 autopilot parameter(s) differ")
     assert "PRX1_TYPE: wanted 2, autopilot 0" in last
+
+
+@pytest.mark.parametrize("allow", [False, True])
+def test_parameter_check_at_start_accepts_only_the_allowed_missing_names(tmp_path, allow):
+    """``[params_check] allow_missing``: what ``params --allow-missing`` does, for the start-up check."""
+    from companion.app import check_parameters
+    from companion.config import load_config
+
+    config_path, vehicle = _params_rig(tmp_path, "refuse")
+    (tmp_path / "copter.parm").write_text("PRX1_TYPE 0\nSERIAL2_PROTOCOL 2\n")  # a SITL lacks SERIAL2
+    allowed = ['params_check.allow_missing=["SERIAL2_PROTOCOL"]'] if allow else []
+    try:
+        config = load_config(config_path, allowed)
+        if allow:
+            assert check_parameters(config) == []
+        else:
+            with pytest.raises(UserError, match=r"SERIAL2_PROTOCOL: wanted 2, autopilot - \(unknown to the"):
+                check_parameters(config)
+    finally:
+        vehicle.close()
 
 
 def test_parameter_check_warn_tells_the_pilot_and_flies_on(tmp_path):

@@ -87,9 +87,9 @@ def test_defaults_and_overrides(tmp_path):
          r"lidar\.can: sensors: CAN id 0x3 is used more than once"),
         ("[[lidar.can.sensors]]\ncan_id = 3\nyaw = 4.0\n",
          r"lidar\.can\.sensors\[0\]\.yaw: unknown config key"),
-        ("[autopilot]\ntype = \"px4\"\nconnect = \"udpin:0.0.0.0:14540\"\n",
-         r"autopilot: connect: 'udpin:0\.0\.0\.0:14540' is not a MAVSDK URL"),
-        ("[autopilot]\nconnect = \"udpin://0.0.0.0:14550\"\n", r"autopilot: connect: .* is a MAVSDK URL"),
+        ("[autopilot]\ntype = \"px4\"\nconnect = \"udpin:0.0.0.0:99999\"\n",
+         r"autopilot: connect: .*'udpin:0\.0\.0\.0:99999': port '99999' is not a port number 1-65535"),
+        ("[autopilot]\nconnect = \"udpin//0.0.0.0:14550\"\n", r"autopilot: connect: .*unknown scheme"),
         ("[params_check]\nmode = \"refuse\"\n", r"params_check: mode is 'refuse' but no file is given"),
     ],
 )

@@ -29,6 +29,7 @@ from companion.params import (
     load_param_file,
     needs_reboot,
     open_connection,
+    read_and_compare,
     run_params,
     values_match,
     wait_for_autopilot,
@@ -281,11 +282,12 @@ def test_unknown_parameter_is_reported_by_name_with_bounded_retries(peer_factory
     elapsed = time.monotonic() - started
     out = capsys.readouterr().out
     assert "NO_SUCH_PARAM" in out and "NO (unknown to the autopilot)" in out
-    assert "not answered (unknown to this firmware, or link loss): NO_SUCH_PARAM" in out
+    assert "unknown to this autopilot (it answers other names): NO_SUCH_PARAM;" in out
     assert "1/2 parameters as wanted" in out
-    # 1 version request + 2 attempts (retries 1) for the unknown name + 1 read of CP_DIST
-    assert "link: 4 requests, 1 retries, 2 timeouts" in out
-    assert peer.received.count("PARAM_REQUEST_READ") == 3
+    # 1 version request + 2 attempts (retries 1) for the unknown name + 1 read by index (answered:
+    # the link is alive, so the name is unknown) + 1 read of CP_DIST
+    assert "link: 5 requests, 1 retries, 2 timeouts" in out
+    assert peer.received.count("PARAM_REQUEST_READ") == 4
     assert "PARAM_SET" not in peer.received  # an unknown name is never written
     assert elapsed < 3
 
@@ -361,3 +363,90 @@ def test_against_the_simulated_autopilot(capsys, personality, link, scheme):
         for p in load_param_file(REPO / "firmware_params" / wanted_file, personality):
             assert server.autopilot.params.get(p.name) == pytest.approx(p.value), p.name
     assert "value encoding: " + ("bytewise" if personality == "px4" else "C cast") in capsys.readouterr().out
+
+
+# ------------------------------------------------------- unknown names, lost links, --allow-missing
+
+
+def _px4_sitl_table() -> ParameterTable:
+    """PX4 at defaults without the TELEM2 parameters, as a PX4 SITL (no such serial port) has it."""
+    from flightsim.sim_autopilot.params import PX4_DEFAULTS
+
+    sitl = {k: v for k, v in PX4_DEFAULTS.items() if k not in ("MAV_1_CONFIG", "SER_TEL2_BAUD")}
+    return ParameterTable(sitl, bytewise=True)
+
+
+def test_a_sitl_without_telem2_fails_strictly_and_passes_with_allow_missing(peer_factory, capsys):
+    peer = peer_factory("px4", table=_px4_sitl_table())
+    assert main(cli("apply", "px4", peer.url)) == 1  # strict by default: a real board must have them
+    out = capsys.readouterr().out
+    assert "MAV_1_CONFIG" in out and "NO (unknown to the autopilot)" in out
+    assert "unknown to this autopilot (it answers other names): MAV_1_CONFIG, SER_TEL2_BAUD;" in out
+    assert "--allow-missing MAV_1_CONFIG,SER_TEL2_BAUD accepts that" in out
+    assert "differ from the file" not in out  # apply set everything else
+
+    assert main(cli("check", "px4", peer.url, "--allow-missing", "MAV_1_CONFIG,SER_TEL2_BAUD")) == 0
+    out = capsys.readouterr().out
+    assert "absent, allowed by --allow-missing: MAV_1_CONFIG, SER_TEL2_BAUD" in out
+    assert "unknown to this autopilot" not in out
+
+
+def test_a_differing_value_and_an_unknown_name_are_told_apart(peer_factory, tmp_path, capsys):
+    peer = peer_factory("px4", table=_px4_sitl_table())
+    path = write(tmp_path, "x.params", "1\t1\tMAV_1_CONFIG\t102\t6\n1\t1\tCP_DIST\t2.0\t9\n")
+    assert main(cli("check", "px4", peer.url, "--file", str(path))) == 1
+    out = capsys.readouterr().out
+    assert "differ from the file: CP_DIST" in out
+    assert "unknown to this autopilot (it answers other names): MAV_1_CONFIG;" in out
+    # an allowance covers a missing name only, never a wrong value
+    assert (
+        main(cli("check", "px4", peer.url, "--file", str(path), "--allow-missing", "MAV_1_CONFIG,CP_DIST"))
+        == 1
+    )
+    assert "differ from the file: CP_DIST" in capsys.readouterr().out
+
+
+def test_silence_from_a_lost_link_is_not_called_unknown(peer_factory):
+    peer = peer_factory("px4")
+    conn = open_connection(peer.url, 921600)
+    try:
+        info = wait_for_autopilot(conn, 5)
+        client = MavlinkParamClient(
+            conn, info.system_id, info.component_id, timeout=0.2, retries=0, bytewise=True
+        )
+        wanted_cp = wanted("CP_DIST", -1.0)
+        assert read_and_compare(client, wanted("NO_SUCH_PARAM", 1), frozenset()).status is Status.UNKNOWN
+        assert read_and_compare(client, wanted_cp, frozenset()).status is Status.OK
+        peer.stop()  # the autopilot goes silent
+        assert read_and_compare(client, wanted_cp, frozenset()).status is Status.NO_REPLY
+        assert read_and_compare(client, wanted("NO_SUCH_PARAM", 1), frozenset({"NO_SUCH_PARAM"})).status is (
+            Status.NO_REPLY
+        )
+    finally:
+        conn.close()
+
+
+@pytest.mark.parametrize("text", ["", "MAV 1", "A,,B=1"])
+def test_allow_missing_takes_parameter_names_only(capsys, text):
+    with pytest.raises(SystemExit):
+        main(
+            [
+                "params",
+                "check",
+                "--autopilot",
+                "px4",
+                "--connect",
+                "udpin:127.0.0.1:14550",
+                "--allow-missing",
+                text,
+            ]
+        )
+    assert "is not a comma-separated list of parameter names" in capsys.readouterr().err
+
+
+def test_params_take_the_mavsdk_spelling_too(peer_factory, capsys):
+    """The PX4 companion's ``autopilot.connect`` (a MAVSDK URL) works as ``params --connect`` as is."""
+    peer = peer_factory("px4")
+    mavsdk_url = peer.url.replace("udpout:", "udpout://")
+    assert main(cli("apply", "px4", mavsdk_url)) == 0
+    assert "parameters as wanted" in capsys.readouterr().out

@@ -77,3 +77,17 @@ def test_draw_top_down_on_given_axes() -> None:
     assert draw_top_down(WORLD, np.array([[0.0, 0.0], [1.0, 0.0]]), ax=ax, title="x") is ax
     assert ax.get_title() == "x"
     assert ax.get_xlim() == pytest.approx((-5.5, 5.5))
+
+
+def test_labelled_trajectories_get_a_legend_that_names_everything_drawn() -> None:
+    from matplotlib.figure import Figure
+
+    ax = Figure().add_subplot()
+    paths = [np.array([[0.0, 0.0], [1.0, 0.0]]), np.array([[1.0, 0.0], [2.0, 1.0]])]
+    pose = (np.array([2.0, 1.0, 1.5]), 0.0)
+    draw_top_down(WORLD, paths, ax=ax, pose=pose, collided=True, labels=("take-off", "companion"))
+    names = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert names == ["start (arrow: heading)", "take-off", "companion", "vehicle", "collision"]
+    plain = Figure().add_subplot()
+    draw_top_down(WORLD, paths, ax=plain)
+    assert plain.get_legend() is None  # panels of a grid share one legend of their own

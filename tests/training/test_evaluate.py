@@ -150,3 +150,28 @@ def test_shield_ramps_forward_speed_at_its_acceleration_limit_in_action_units():
 def test_shielded_rows_are_labelled_as_such():
     assert ControllerSpec("gap_follower", shield=True).label == "gap_follower+shield"
     assert ControllerSpec("policy", "p.onnx", "policy").label == "policy"
+
+
+def test_every_controller_has_its_own_colour_and_the_legend_names_them_all():
+    """With --shield every label ends in "+shield": each still gets its own colour."""
+    from flightsim.env import EnvConfig
+    from training.evaluate import EpisodeResult, WorldSpec, controller_colours, trajectory_figure
+
+    shielded = ["policy+shield", "gap_follower+shield", "random+shield"]
+    colours = controller_colours(shielded)
+    assert len(set(colours.values())) == 3 and colours["policy+shield"] == "tab:blue"
+    both = controller_colours(["policy", "policy+shield", "mine", "gap_follower"])
+    assert len(set(both.values())) == 4 and both["policy"] == "tab:blue"
+
+    worlds = [WorldSpec("seed-1", seed=1, difficulty=0.5), WorldSpec("seed-2", seed=2, difficulty=0.5)]
+    results = [
+        EpisodeResult(name, w.name, 0, 10, 10, False, 1.0, 1.0, 1.0, 0, True,
+                      trajectory=[(0.0, 0.0), (1.0, 0.5 * k)])
+        for w in worlds
+        for k, name in enumerate(shielded)
+    ]  # fmt: skip
+    fig = trajectory_figure(results, worlds, EnvConfig())
+    (legend,) = fig.legends
+    assert sorted(t.get_text() for t in legend.get_texts()) == sorted(shielded)
+    drawn = {line.get_color() for ax in fig.axes for line in ax.get_lines() if len(line.get_xdata()) == 2}
+    assert drawn == {colours[n] for n in shielded}

@@ -1,0 +1,79 @@
+"""``avoid-sim fly``'s report never shows a -1 sentinel, and Ctrl-C during a flight exits 130.
+
+The Ctrl-C test runs the real command (simulated ArduPilot, the companion as its own process) and
+sends SIGINT to the whole process group, as a terminal does.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from flightsim.demo import _row
+from flightsim.harness import FlightReport, print_report
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def test_a_flight_that_measured_nothing_says_n_a(capsys):
+    report = FlightReport.failed("two-pillars", "sim-px4", "the companion exited (status 2): ...")
+    print_report(report)
+    out = capsys.readouterr().out
+    assert "minimum clearance n/a" in out and "p50 n/a, p99 n/a" in out
+    assert "-1" not in out
+    data = json.loads(report.to_json())
+    assert data["min_clearance_m"] is None and data["latency_p50_ms"] is None
+    assert "n/a" in _row(report) and "-1" not in _row(report)
+
+
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)  # background jobs start with SIGINT ignored
+
+
+def test_ctrl_c_during_a_flight_exits_130(tmp_path):
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "flightsim", "fly", "--seed", "3", "--duration", "60", "--lidar-step", "1.0",
+         "--workdir", str(tmp_path)],
+        cwd=REPO,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=_default_sigint,
+        start_new_session=True,
+    )  # fmt: skip
+    log = tmp_path / "companion.log"
+    deadline = time.monotonic() + 90
+    while proc.poll() is None and time.monotonic() < deadline:
+        if log.is_file() and "companion running" in log.read_text():
+            break
+        time.sleep(0.2)
+    assert proc.poll() is None, proc.communicate()
+    time.sleep(2.0)  # taking off
+    os.killpg(proc.pid, signal.SIGINT)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, out + err
+    assert "Traceback" not in out + err
+    assert "error: interrupted" in out
+
+
+def test_the_flight_png_has_a_legend(tmp_path):
+    from flightsim.harness import plot_flight
+    from flightsim.world import load_world
+
+    world = load_world(REPO / "flightsim" / "worlds" / "two-pillars.json")
+    t = np.linspace(0.0, 10.0, 50)
+    traj = np.column_stack(
+        [t, -4.5 + 0.3 * t, 0.1 * t, np.full_like(t, 1.5), np.zeros_like(t), np.ones_like(t)]
+    )
+    fig = plot_flight(world, traj, engaged_at=4.0, collision_at=None, path=tmp_path / "f.png", title="t")
+    names = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert "take-off and hold (ground station)" in names and "companion flying" in names
+    assert (tmp_path / "f.png").read_bytes()[:4] == b"\x89PNG"

@@ -1,0 +1,215 @@
+"""A run directory is never reused silently; Ctrl-C saves ``interrupted.zip`` and ``--resume`` goes on.
+
+The Ctrl-C test is a real ``avoid-train train`` process (SB3 PPO, JSBSim simulators in forkserver
+workers, an evaluation pool) sent SIGINT to its whole process group, as a terminal's Ctrl-C does.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+from training.__main__ import main
+from training.train import EVAL_FIELDS, checkpoint_steps, truncate_eval_log, write_eval_log
+
+REPO = Path(__file__).resolve().parents[2]
+
+TINY = """
+name = "tiny"
+seed = 1
+total_timesteps = 100000
+n_envs = 2
+checkpoint_every = 128
+progress_bar = true
+
+[env]
+max_steps = 40
+
+[ppo]
+n_steps = 64
+batch_size = 64
+n_epochs = 1
+net_arch = [16, 16]
+
+[eval]
+every_steps = 256
+n_worlds = 2
+workers = 2
+"""
+
+
+def _rows(path: Path) -> list[dict[str, float]]:
+    with path.open() as f:
+        return [{k: float(v) for k, v in r.items()} for r in csv.DictReader(f)]
+
+
+def _row(steps: int, success: float, difficulty: float = 0.5) -> dict[str, float]:
+    return dict(zip(EVAL_FIELDS, (steps, steps / 10, difficulty, success, 1.0, 0, 4), strict=True))
+
+
+def _child_with_default_sigint() -> None:
+    # a shell's background jobs start with SIGINT ignored, and children inherit it: undo that
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def _start_training(config: Path, runs: Path, *extra: str) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", "training", "train", "--config", str(config), f"run_root={runs}", *extra],
+        cwd=REPO,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=_child_with_default_sigint,
+        start_new_session=True,  # its own process group, like a terminal's foreground job
+    )
+
+
+def test_ctrl_c_saves_interrupted_zip_exits_130_in_one_line_and_resume_continues(tmp_path):
+    config = tmp_path / "tiny.toml"
+    config.write_text(TINY)
+    runs = tmp_path / "runs"
+    run_dir = runs / "tiny-s1"
+    proc = _start_training(config, runs)
+    deadline = time.monotonic() + 240
+    while not (run_dir / "eval.csv").is_file() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert proc.poll() is None, proc.communicate()[1]
+    time.sleep(1.0)  # into the next rollout: simulators stepping in their workers
+    os.killpg(proc.pid, signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130
+    assert "Traceback" not in out + err and "KeyboardInterrupt" not in out + err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("avoid-train: interrupted after ") and "interrupted.zip" in last
+    steps = checkpoint_steps(run_dir / "interrupted.zip")
+    assert steps > 0 and f"after {steps} steps" in last
+
+    # the same name again: refused, nothing touched
+    before = (run_dir / "eval.csv").read_text()
+    assert main(["train", "--config", str(config), f"run_root={runs}"]) == 2
+    assert (run_dir / "eval.csv").read_text() == before
+
+    # --resume without a file: from interrupted.zip (the newest), the step count and the log go on
+    target = steps + 256
+    assert main(["train", "--config", str(config), f"run_root={runs}", "progress_bar=false",
+                 f"total_timesteps={target}", "--resume"]) == 0  # fmt: skip
+    from stable_baselines3 import PPO
+
+    assert PPO.load(run_dir / "final_model.zip", device="cpu").num_timesteps >= target
+    rows = _rows(run_dir / "eval.csv")
+    timesteps = [r["timesteps"] for r in rows]
+    assert timesteps == sorted(set(timesteps)), "timesteps never restart"
+    assert timesteps[-1] >= target and any(t > steps for t in timesteps)
+    walls = [r["wall_s"] for r in rows]
+    assert walls == sorted(walls)
+
+
+def test_overwrite_starts_afresh_and_the_two_options_exclude_each_other(tmp_path, capsys):
+    config = tmp_path / "tiny.toml"
+    config.write_text(TINY)
+    runs = tmp_path / "runs"
+    run_dir = runs / "tiny-s1"
+    (run_dir / "checkpoints").mkdir(parents=True)
+    write_eval_log(run_dir / "eval.csv", [_row(1024, 0.5), _row(2048, 0.9)])
+    (run_dir / "checkpoints" / "ppo_2048_steps.zip").write_bytes(b"old")
+    argv = ["train", "--config", str(config)]
+
+    assert main([*argv, "--resume", "--overwrite", f"run_root={runs}"]) == 2
+    assert "--overwrite" in capsys.readouterr().err
+    assert main([*argv, f"run_root={runs}", "--resume", "total_timesteps=9"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "overrides before --resume" in err
+
+    assert main([*argv, "--overwrite", f"run_root={runs}", "progress_bar=false", "total_timesteps=256"]) == 0
+    assert not (run_dir / "checkpoints" / "ppo_2048_steps.zip").exists()
+    assert [r["timesteps"] for r in _rows(run_dir / "eval.csv")] == [256]
+
+
+def test_a_used_run_directory_is_refused_in_one_line(tmp_path, capsys):
+    config = tmp_path / "tiny.toml"
+    config.write_text(TINY)
+    (tmp_path / "runs" / "tiny-s1").mkdir(parents=True)
+    (tmp_path / "runs" / "tiny-s1" / "eval.csv").write_text("timesteps\n")
+    assert main(["train", "--config", str(config), f"run_root={tmp_path / 'runs'}"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("avoid-train: error: ") and "\n" not in err
+    assert "--resume" in err and "--overwrite" in err
+    # --resume with nothing to resume from says so
+    assert main(["train", "--config", str(config), f"run_root={tmp_path / 'runs'}", "--resume"]) == 2
+    assert "no checkpoint" in capsys.readouterr().err
+
+
+def test_resume_drops_the_evaluations_of_the_abandoned_continuation(tmp_path):
+    (tmp_path / "best_model.zip").write_bytes(b"from the 3072-step evaluation")
+    write_eval_log(tmp_path / "eval.csv", [_row(1024, 0.5), _row(2048, 0.6), _row(3072, 0.9)])
+    truncate_eval_log(tmp_path, 2048, target_difficulty=0.5)
+    assert [r["timesteps"] for r in _rows(tmp_path / "eval.csv")] == [1024, 2048]
+    # the best model came from the dropped row: it is gone, so the resumed run judges anew
+    assert not (tmp_path / "best_model.zip").exists()
+
+
+def test_resume_keeps_a_best_model_from_before_the_checkpoint(tmp_path):
+    (tmp_path / "best_model.zip").write_bytes(b"from the 1024-step evaluation")
+    write_eval_log(tmp_path / "eval.csv", [_row(1024, 0.9), _row(2048, 0.6), _row(3072, 0.7)])
+    truncate_eval_log(tmp_path, 2048, target_difficulty=0.5)
+    assert [r["timesteps"] for r in _rows(tmp_path / "eval.csv")] == [1024, 2048]
+    assert (tmp_path / "best_model.zip").is_file()
+
+
+BLOCK_TRAIN_EXTRA = """
+import importlib.abc, sys
+
+class Missing(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in {blocked!r}:
+            raise ModuleNotFoundError(f"No module named {{name!r}}", name=name)
+        return None
+
+sys.meta_path.insert(0, Missing())
+from training.__main__ import main
+sys.exit(main(["train", "--config", {config!r}, "run_root={runs}"]))
+"""
+
+
+@pytest.mark.parametrize("blocked", [("torch", "stable_baselines3"), ("gymnasium", "jsbsim", "torch")])
+def test_without_the_train_extra_one_line_says_what_to_install(tmp_path, blocked):
+    """Installed with ``[sim]`` only (torch missing), or with the base install only."""
+    config = tmp_path / "tiny.toml"
+    config.write_text(TINY)
+    script = tmp_path / "no_train_extra.py"
+    script.write_text(
+        textwrap.dedent(BLOCK_TRAIN_EXTRA).format(blocked=set(blocked), config=str(config), runs=tmp_path)
+    )
+    done = subprocess.run(
+        [sys.executable, str(script)],
+        cwd=REPO,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 2, done.stderr
+    err = done.stderr.strip()
+    assert "Traceback" not in err
+    assert err.splitlines()[-1].startswith("avoid-train: error: ") and ".[train]" in err.splitlines()[-1]
+
+
+def test_ctrl_c_before_training_starts_is_one_line_130(monkeypatch, capsys, tmp_path):
+    """Ctrl-C while the config loads or the simulators start: nothing to save, still no traceback."""
+    import training.train
+
+    def interrupted(*_args, **_kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(training.train, "load_train_config", interrupted)
+    assert main(["train", "--config", str(tmp_path / "tiny.toml")]) == 130
+    assert capsys.readouterr().err.strip() == "avoid-train: interrupted"
