@@ -21,33 +21,9 @@ from typing import Any
 
 from companion.autopilot.mavlink_adapter import MavlinkEndpoint, mavlink
 from companion.autopilot.signing import FrameSigner
-from companion.errors import UserError
+from companion.connection import parse_connection
 
 log = logging.getLogger(__name__)
-
-#: MAVSDK URL scheme → pymavlink connection string prefix
-_SCHEMES = {"udpin": "udpin", "udp": "udpin", "udpout": "udpout", "tcpout": "tcp", "tcp": "tcp",
-            "tcpin": "tcpin"}
-
-
-def pymavlink_address(url: str, baud: int) -> tuple[str, int]:
-    """A MAVSDK URL as a pymavlink connection string and baud.
-
-    ``udpin://H:P`` → ``udpin:H:P``, ``serial:///dev/X:B`` → ``/dev/X`` at ``B`` baud,
-    ``tcpout://H:P`` → ``tcp:H:P``; a string without ``://`` is returned as it is.
-
-    :raises UserError: a scheme pymavlink cannot open
-    """
-    if "://" not in url:
-        return url, baud
-    scheme, rest = url.split("://", 1)
-    if scheme in ("serial", "serial_flowcontrol"):
-        device, _, rate = rest.rpartition(":")
-        return (device, int(rate)) if rate.isdigit() else (rest, baud)
-    if scheme not in _SCHEMES:
-        raise UserError(f"autopilot.connect: {url!r}: scheme {scheme!r} is not supported")
-    return f"{_SCHEMES[scheme]}:{rest}", baud
-
 
 class RawMavlinkTransport:
     """Pump MAVLink between a MAVSDK ``raw://`` connection and a :class:`MavlinkEndpoint`.
@@ -60,7 +36,8 @@ class RawMavlinkTransport:
 
     def __init__(self, mavsdk: Any, url: str, autopilot: tuple[int, int], source_system: int,
                  source_component: int, signing_key: bytes | None = None, baud: int = 921600) -> None:
-        connect, baud = pymavlink_address(url, baud)
+        link = parse_connection(url, baud)  # the MAVSDK URL, as pymavlink opens it
+        connect, baud = link.pymavlink, link.baud or baud
         self._endpoint = MavlinkEndpoint(connect, baud, source_system, source_component, autopilot,
                                          signing_key, label=repr(url))
         self._mavsdk = mavsdk

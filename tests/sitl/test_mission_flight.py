@@ -27,8 +27,11 @@ def _said(f: SitlFlight, mark: str) -> bool:
 
 @pytest.mark.parametrize("autopilot", ["sim-ardupilot", "sim-px4"])
 def test_mission_changed_in_flight_tracked_to_completion(tmp_path, autopilot):
+    # the circle's radius depends on how the autopilot answers; this tests the mission plumbing, so it
+    # flies the ideal response (the calibrated one is flown by test_px4_flight, test_faults_ardupilot)
     options = FlightOptions(autopilot=autopilot, world=FAR, workdir=tmp_path, mission=True,
-                            policy=write_constant_policy(tmp_path / "circle.onnx", 0.5, 0.4))
+                            policy=write_constant_policy(tmp_path / "circle.onnx", 0.5, 0.4),
+                            ideal_response=True)
     with SitlFlight(options) as f:
         f.wait_companion_up()
         f.upload_mission()

@@ -43,6 +43,8 @@ def test_companion_flies_px4_in_offboard(flight):
     assert all(
         vx == pytest.approx(1.0, abs=0.05) and yr == pytest.approx(-0.6, abs=0.05) for _, vx, yr in recent
     )
+    # PX4's calibrated response is slow (0.75 m/s of 1 m/s after 4 s): give it the time to cover 2 m
+    wait_for(lambda: f.report().distance_m > 2.0, 5.0, "the vehicle to cover 2 m")
     report = f.report()
     assert report.engaged and not report.collision and report.distance_m > 2.0
 
@@ -53,7 +55,9 @@ def test_companion_sigkill_offboard_loss_holds_after_com_of_loss_t(flight):
     t_kill = time.monotonic()
     f.kill_companion(signal.SIGKILL)
     time.sleep(0.6)
-    assert ap.mode_name() == "OFFBOARD" and speed(f) > 0.5  # within COM_OF_LOSS_T: still flying
+    # within COM_OF_LOSS_T: still flying (PX4's calibrated response flies this circle at 0.4-0.7 m/s;
+    # stopped is < 0.1)
+    assert ap.mode_name() == "OFFBOARD" and speed(f) > 0.3
     wait_for(lambda: ap.mode_name() == "AUTO.LOITER", 3.0, "the offboard-loss failsafe", poll=0.005)
     with f.recorder.lock:
         last_setpoint = f.recorder.setpoint_times[-1]
