@@ -58,6 +58,23 @@ US_PER_HOUR = 3_600_000_000
 #: a forward jump of the sensor's timestamp longer than this (two revolutions at 600 rpm) means the
 #: stream went silent: the revolution in progress is older than the gap and is dropped.
 SILENCE_US = 200_000
+#: The VLP-16 turns at 300–1200 rpm (manual §8.1); revolutions outside that, with 5 % slack for
+#: motor jitter, are not whole turns of this sensor.
+MIN_RPM = 300 * 0.95
+MAX_RPM = 1200 * 1.05
+PACKETS_PER_SECOND = 1e6 / PACKET_DURATION_US
+#: A revolution must cover at least this much azimuth (a hole of a lost packet or two is tolerated).
+MIN_COVERAGE_DEG = 350.0
+#: No single hole in a revolution may be wider than this many packets' worth of firings.
+MAX_HOLE_PACKETS = 3
+#: Firing sequences in one whole revolution: from the fastest turn less the tolerated loss to the slowest.
+MIN_FIRINGS_PER_REVOLUTION = math.floor(
+    PACKETS_PER_SECOND * 60.0 / MAX_RPM * (MIN_COVERAGE_DEG / 360.0) * 24
+)
+MAX_FIRINGS_PER_REVOLUTION = math.ceil(PACKETS_PER_SECOND * 60.0 / MIN_RPM * 24)
+#: The sensor makes at most 20 revolutions per second (1200 rpm); more whole revolutions than this
+#: within any second are not the sensor's (a replayed or forged stream).
+MAX_REVOLUTIONS_PER_SECOND = 22
 RETURN_STRONGEST = 0x37
 RETURN_LAST = 0x38
 RETURN_DUAL = 0x39  # refused: two returns per firing
@@ -70,6 +87,15 @@ MALFORMED_REASONS = (
     "azimuth_out_of_range",
     "unsupported_return_mode",
     "unknown_product_id",
+)
+
+#: Why a completed revolution was dropped; the keys of the ``partial`` counter.
+PARTIAL_REASONS = (
+    "start_not_seen",
+    "firing_count",
+    "azimuth_backwards",
+    "coverage",
+    "hole",
 )
 
 _RETURN_DTYPE = np.dtype([("distance", "<u2"), ("reflectivity", "u1")])
@@ -194,6 +220,37 @@ def _firing_azimuths_array(block_azimuths: np.ndarray) -> np.ndarray:
     return firing.reshape(-1)
 
 
+def revolution_problem(azimuth_centideg: np.ndarray) -> str | None:
+    """Say why the firings of one revolution are not a whole turn of a VLP-16, or None when they are.
+
+    A whole turn rises monotonically from the wrap to the next one, covers at least
+    MIN_COVERAGE_DEG of azimuth, has no hole wider than MAX_HOLE_PACKETS packets and as many firing
+    sequences as a VLP-16 makes in one turn at 300–1200 rpm. A single corrupt packet (every azimuth
+    0.00°, say) cuts the turn around it into pieces that each fail one of these, where a check of the
+    wrap alone would pass a "revolution" of 40° whose other 320° read as clear.
+
+    :param azimuth_centideg: (F,) azimuth of each firing sequence, 0.01°, in firing order, cut at the
+        wraps (as RevolutionAssembler cuts them).
+    :return: one of PARTIAL_REASONS[1:], or None.
+    """
+    n = len(azimuth_centideg)
+    if not MIN_FIRINGS_PER_REVOLUTION <= n <= MAX_FIRINGS_PER_REVOLUTION:
+        return "firing_count"
+    # the gap after each firing; the last one closes the turn back to the first firing
+    gaps = np.empty(n, dtype=np.float64)
+    np.subtract(azimuth_centideg[1:], azimuth_centideg[:-1], out=gaps[:-1])
+    gaps[-1] = azimuth_centideg[0] + 36000.0 - azimuth_centideg[-1]
+    if not gaps.min() > 0.0:
+        return "azimuth_backwards"
+    step = float(np.median(gaps))
+    holes = gaps[gaps > 2.5 * step]
+    if 36000.0 - float((holes - step).sum()) < MIN_COVERAGE_DEG * 100.0:
+        return "coverage"
+    if len(holes) and holes.max() > (MAX_HOLE_PACKETS * FIRINGS_PER_PACKET + 1) * step:
+        return "hole"
+    return None
+
+
 class DecodedPackets(NamedTuple):
     """Points of a run of consecutive packets."""
 
@@ -284,9 +341,11 @@ class VelodyneCounters:
     malformed: dict[str, int] = field(default_factory=dict)
     #: revolutions completed and returned.
     revolutions: int = 0
-    #: revolutions dropped because their start was not seen (before the first wrap, or after an
-    #: overflow).
+    #: revolutions dropped because they were not one whole turn (see revolution_problem), or their
+    #: start was not seen (before the first wrap, after an overflow or a silence).
     partial_revolutions: int = 0
+    #: partial_revolutions by reason (keys from PARTIAL_REASONS).
+    partial: dict[str, int] = field(default_factory=dict)
     #: revolutions abandoned because the azimuth never wrapped within max_packets_per_revolution.
     overflows: int = 0
     #: consecutive packets whose timestamps are more than 1.5 packet durations apart or go backwards
@@ -315,16 +374,22 @@ class RevolutionAssembler:
     decoded in vectorised runs: at every wrap (so a revolution is ready as soon as its last packet
     is in) and whenever ``decode_every`` packets wait (so that run stays short). The firings before
     the wrap close the revolution, the rest start the next one; the part before the first wrap is
-    dropped (its start was not seen).
+    dropped (its start was not seen), and so is every revolution that is not one whole turn of the
+    sensor (revolution_problem: coverage, holes, firing count): a piece of a turn would read as clear
+    wherever its missing sectors are.
 
     :param backend: "numpy" (default) or "velodyne-decoder"; see the module docstring.
     :param decode_every: decode waiting packets once this many have arrived without a wrap.
     :param max_packets_per_revolution: abandon a revolution that never wraps after this many packets
-        (the VLP-16's slowest 300 rpm needs about 151).
+        (the VLP-16's slowest 300 rpm needs about 151; longer ones would be dropped anyway).
     """
 
     def __init__(
-        self, backend: Backend = "numpy", *, decode_every: int = 8, max_packets_per_revolution: int = 512
+        self,
+        backend: Backend = "numpy",
+        *,
+        decode_every: int = 8,
+        max_packets_per_revolution: int = MAX_FIRINGS_PER_REVOLUTION // FIRINGS_PER_PACKET + 2,
     ) -> None:
         if backend not in ("numpy", "velodyne-decoder"):
             raise ValueError(f"unknown VLP-16 decoder backend {backend!r} (numpy or velodyne-decoder)")
@@ -338,6 +403,7 @@ class RevolutionAssembler:
         self._pending: list[bytes] = []  # well-formed packets not decoded yet
         self._pending_wraps: list[int] = []  # firing index (within _pending) where a revolution starts
         self._parts: list[np.ndarray] = []  # decoded points of the revolution being built
+        self._azimuths: list[np.ndarray] = []  # its firings' azimuths, 0.01°
         self._packets_in_revolution = 0
         self._started = False  # a wrap has been seen: the revolution being built is whole
         self._last_azimuth: float | None = None
@@ -449,24 +515,39 @@ class RevolutionAssembler:
         """Decode the waiting packets; return each revolution completed with its wrap's firing index."""
         data = np.frombuffer(b"".join(self._pending), dtype=np.uint8).reshape(-1, PACKET_SIZE)
         decoded = self._decode(data, self._pending)
+        block_azimuths = data.view(PACKET_DTYPE)[:, 0]["blocks"]["azimuth"]
+        azimuth = _firing_azimuths_array(block_azimuths.astype(np.float64))
         bounds = np.concatenate(([0], np.cumsum(decoded.points_per_firing)))
         revolutions = []
-        start = 0
+        start = first = 0
         for wrap in self._pending_wraps:
             end = int(bounds[wrap])
             self._parts.append(decoded.points[start:end])
-            start = end
-            if self._started:
+            self._azimuths.append(azimuth[first:wrap])
+            start, first = end, wrap
+            problem = self._judge()
+            if problem is None:
                 revolutions.append((np.concatenate(self._parts), wrap))
                 self.counters.revolutions += 1
             else:
-                self.counters.partial_revolutions += 1
+                self._count_partial(problem)
             self._started = True
             self._parts = []
+            self._azimuths = []
         self._parts.append(decoded.points[start:])
+        self._azimuths.append(azimuth[first:])
         self._pending = []
         self._pending_wraps = []
         return revolutions
+
+    def _judge(self) -> str | None:
+        """Why the revolution just closed is not whole (revolution_problem), or None."""
+        if not self._started:
+            return "start_not_seen"
+        n = sum(map(len, self._azimuths))
+        if not MIN_FIRINGS_PER_REVOLUTION <= n <= MAX_FIRINGS_PER_REVOLUTION:
+            return "firing_count"  # cheaply, without joining the pieces: what a flood of wraps makes
+        return revolution_problem(np.concatenate(self._azimuths))
 
     def _overflow(self) -> None:
         log.warning("VLP-16: no azimuth wrap in %d packets, dropping them", self._packets_in_revolution)
@@ -479,6 +560,7 @@ class RevolutionAssembler:
         self._pending = []
         self._pending_wraps = []
         self._parts = []
+        self._azimuths = []
         self._packets_in_revolution = 0
         self._started = False
 
@@ -502,6 +584,14 @@ class RevolutionAssembler:
                 log.debug("VLP-16: timestamp gap %d → %d µs, packets lost or reordered", previous, stamp)
             previous = stamp
         self._last_timestamp = previous
+
+    def _count_partial(self, reason: str) -> None:
+        self.counters.partial_revolutions += 1
+        partial = self.counters.partial
+        if reason not in partial and reason != "start_not_seen":
+            log.warning("VLP-16: dropping a revolution that is not one whole turn (%s); further ones are "
+                        "only counted", reason)
+        partial[reason] = partial.get(reason, 0) + 1
 
     def _count_malformed(self, reason: str) -> None:
         malformed = self.counters.malformed
