@@ -1,7 +1,8 @@
 """Load a (nested) dataclass from TOML with strict checking.
 
-Every program has one config dataclass. An unknown key, a wrong type or a value outside the
-range declared in the field's metadata (``metadata={"min": 0, "max": 10}``) raises
+Every program has one config dataclass. An unknown key, a wrong type, a float that is NaN or
+infinite, or a value outside the range declared in the field's metadata
+(``metadata={"min": 0, "max": 10}``, on a list: for every item) raises
 :class:`UserError` naming the dotted key, so a typo in a config file stops start-up instead of
 silently falling back to a default.
 """
@@ -9,6 +10,7 @@ silently falling back to a default.
 from __future__ import annotations
 
 import dataclasses
+import math
 import sys
 import types
 import typing
@@ -81,6 +83,8 @@ def _check_value(key: str, value: Any, tp: Any) -> Any:
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise UserError(f"{key}: expected a number, got {type(value).__name__} {value!r}")
+        if not math.isfinite(value):  # NaN compares false with every bound, inf passes one side
+            raise UserError(f"{key}: expected a finite number, got {value}")
         return float(value)
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
@@ -100,8 +104,12 @@ def _check_value(key: str, value: Any, tp: Any) -> Any:
 
 
 def _check_range(key: str, value: Any, meta: typing.Mapping[str, Any]) -> None:
+    """The field's ``min``/``max``; on a list or tuple they bound every item."""
     lo, hi = meta.get("min"), meta.get("max")
-    if isinstance(value, (int, float)) and not isinstance(value, bool):
+    if isinstance(value, (list, tuple)):
+        for i, item in enumerate(value):
+            _check_range(f"{key}[{i}]", item, meta)
+    elif isinstance(value, (int, float)) and not isinstance(value, bool):
         if lo is not None and value < lo:
             raise UserError(f"{key}: {value} is below the minimum {lo}")
         if hi is not None and value > hi:

@@ -25,6 +25,7 @@ import operator
 import socket
 import struct
 import time
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Literal, NamedTuple
@@ -354,6 +355,11 @@ class VelodyneCounters:
     #: silences (timestamp jumps over SILENCE_US): the revolution in progress was dropped, so the
     #: first revolution after a lidar outage holds no points from before it.
     silences: int = 0
+    #: datagrams from an address other than the configured sensor_ip, dropped unread (UDP source).
+    foreign_packets: int = 0
+    #: whole revolutions withheld because more arrived within a second than the sensor can make
+    #: (MAX_REVOLUTIONS_PER_SECOND): a forged or replayed stream (UDP source).
+    implausible_revolutions: int = 0
 
 
 class Revolution(NamedTuple):
@@ -667,17 +673,30 @@ def encode_packets(
     return [raw[i : i + PACKET_SIZE] for i in range(0, len(raw), PACKET_SIZE)]
 
 
+#: Datagrams read per assembler feed while draining the socket: small enough that the read budget is
+#: checked often, large enough for the vectorised checks.
+_READ_CHUNK = 64
+
+
 class VelodyneUdpSource:
     """A VLP-16 on UDP: a non-blocking socket for the main loop's select, feeding a RevolutionAssembler.
+
+    Hostile input is bounded here. Only datagrams from ``sensor_ip`` are decoded (as the ROS velodyne
+    driver's ``device_ip``); others are counted and dropped. One read drains at most
+    ``max_datagrams_per_read`` datagrams and stops once ``max_read_seconds`` are spent reading and
+    decoding, so a flood cannot starve the main loop (the kernel drops what the socket cannot hold).
+    More whole revolutions within a second than the sensor can make are withheld and flagged
+    (``implausible``), for the companion to hold.
 
     :param host: address to bind (0.0.0.0 = all interfaces).
     :param port: the sensor's data port (2368 by default).
     :param backend: decoder backend, see RevolutionAssembler.
-    :param clock: time source for ``last_revolution_end`` (monotonic by default, to compare with the
-        companion's own clock).
+    :param clock: time source for ``last_revolution_end`` and the revolution rate (monotonic by
+        default, to compare with the companion's own clock).
     :param receive_buffer_bytes: socket receive buffer; a revolution is about 90 KiB.
-    :param max_datagrams_per_read: drain at most this many datagrams per read_available call, so a
-        flood cannot starve the main loop.
+    :param sensor_ip: the sensor's IPv4 address; None or "" accepts datagrams from anyone.
+    :param max_datagrams_per_read: drain at most this many datagrams per read_available call.
+    :param max_read_seconds: stop draining once a read_available call has taken this long.
     :raises UserError: when the socket cannot be bound (address in use, bad host).
     """
 
@@ -689,13 +708,20 @@ class VelodyneUdpSource:
         backend: Backend = "numpy",
         clock: Callable[[], float] = time.monotonic,
         receive_buffer_bytes: int = 1 << 21,
+        sensor_ip: str | None = None,
         max_datagrams_per_read: int = 1024,
+        max_read_seconds: float = 0.01,
     ) -> None:
         self.assembler = RevolutionAssembler(backend)
         self._clock = clock
+        self._sensor_ip = sensor_ip or None
         self._max_datagrams = max_datagrams_per_read
+        self._max_read_seconds = max_read_seconds
+        self._recent: deque[float] = deque()  # clock() of the whole revolutions of the last second
         #: clock() when the packet completing the last returned revolution was read; None before.
         self.last_revolution_end: float | None = None
+        #: the last read_available withheld revolutions: they came faster than the sensor turns.
+        self.implausible = False
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, receive_buffer_bytes)
@@ -707,8 +733,9 @@ class VelodyneUdpSource:
         self._sock = sock
         # Linux caps the buffer at net.core.rmem_max; say what we got (a revolution is ~90 KiB).
         log.info(
-            "VLP-16: listening on %s:%d (decoder %s, receive buffer %d bytes)",
+            "VLP-16: listening on %s:%d for %s (decoder %s, receive buffer %d bytes)",
             *sock.getsockname()[:2],
+            self._sensor_ip or "any sender",
             backend,
             sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF),
         )
@@ -729,27 +756,75 @@ class VelodyneUdpSource:
         return self._sock.fileno()
 
     def read_available(self) -> list[np.ndarray]:
-        """Drain the datagrams waiting (never blocks) and return the revolutions they completed.
+        """Drain the datagrams waiting (never blocks, bounded in count and time) and return the
+        revolutions they completed.
 
-        :return: (N, 3) float32 FLU clouds, oldest first; usually none or one.
+        :return: (N, 3) float32 FLU clouds, oldest first; usually none or one; none while the
+            revolutions come faster than the sensor can make them (then ``implausible`` is set).
         """
+        deadline = time.perf_counter() + self._max_read_seconds
+        budget = self._max_datagrams
+        revolutions: list[Revolution] = []
+        stamps: list[float] = []
+        while budget > 0:
+            payloads, chunk_stamps, received, drained = self._receive(min(_READ_CHUNK, budget))
+            budget -= received
+            if payloads:
+                for rev in self.assembler.feed_batch(payloads):
+                    revolutions.append(rev)
+                    stamps.append(chunk_stamps[rev.completed_by])
+            if drained or time.perf_counter() >= deadline:
+                break
+        self.implausible = self._too_fast(stamps)
+        if self.implausible:
+            self.counters.implausible_revolutions += len(revolutions)
+            return []
+        if revolutions:
+            self.last_revolution_end = stamps[-1]
+        return [rev.points for rev in revolutions]
+
+    def _receive(self, limit: int) -> tuple[list[bytes], list[float], int, bool]:
+        """Up to ``limit`` datagrams: (the sensor's payloads, their clock() stamps, datagrams read,
+        whether the socket ran empty)."""
         payloads: list[bytes] = []
         stamps: list[float] = []
-        for _ in range(self._max_datagrams):
+        sensor = self._sensor_ip
+        for received in range(limit):
             try:
-                payloads.append(self._sock.recv(2048))
+                payload, sender = self._sock.recvfrom(2048)
             except (BlockingIOError, InterruptedError):
-                break
+                return payloads, stamps, received, True
             except OSError as exc:  # e.g. ICMP errors surfacing on a UDP socket: not ours to die of
                 log.warning("VLP-16: receive error %s", exc)
-                break
+                return payloads, stamps, received, True
+            if sensor is not None and sender[0] != sensor:
+                self._count_foreign(sender[0])
+                continue
+            payloads.append(payload)
             stamps.append(self._clock())
-        if not payloads:
-            return []
-        revolutions = self.assembler.feed_batch(payloads)
-        if revolutions:
-            self.last_revolution_end = stamps[revolutions[-1].completed_by]
-        return [rev.points for rev in revolutions]
+        return payloads, stamps, limit, False
+
+    def _count_foreign(self, address: str) -> None:
+        counters = self.counters
+        if not counters.foreign_packets:
+            log.warning("VLP-16: dropping a datagram from %s (not sensor_ip %s); further ones are only "
+                        "counted", address, self._sensor_ip)
+        counters.foreign_packets += 1
+
+    def _too_fast(self, stamps: list[float]) -> bool:
+        """Record whole revolutions completed at ``stamps``; True when the last second held more than
+        the sensor can make."""
+        recent = self._recent
+        recent.extend(stamps)
+        if not recent:
+            return False
+        while recent[0] < recent[-1] - 1.0:
+            recent.popleft()
+        too_fast = bool(stamps) and len(recent) > MAX_REVOLUTIONS_PER_SECOND
+        if too_fast and not self.counters.implausible_revolutions:
+            log.warning("VLP-16: %d whole revolutions within a second, more than the sensor makes; "
+                        "withholding them", len(recent))
+        return too_fast
 
     def close(self) -> None:
         """Close the socket."""

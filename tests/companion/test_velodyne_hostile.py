@@ -1,13 +1,19 @@
-"""Only whole revolutions leave the assembler: corrupt, replayed, lost or forged packets cut the turn
-into pieces, and a piece of a turn must never reach the scan (its missing sectors would read as clear).
+"""Hostile VLP-16 input. Only whole revolutions leave the assembler: corrupt, replayed, lost or
+forged packets cut the turn into pieces, and a piece of a turn must never reach the scan (its missing
+sectors would read as clear).
 
 The defect this guards against (issue 14): one packet of the real recording with every azimuth set to
-0.00° closed a "revolution" of 1,955 points covering 40°, so 320 of 360 bins read as clear.
+0.00° closed a "revolution" of 1,955 points covering 40°, so 320 of 360 bins read as clear. And the
+UDP source takes packets only from the sensor, reads a bounded amount per call and withholds turns
+that come faster than the sensor can make them.
 """
 
 from __future__ import annotations
 
+import select
+import socket
 import struct
+import time
 
 import numpy as np
 import pytest
@@ -16,9 +22,11 @@ from hypothesis import strategies as st
 
 from companion.lidar.velodyne import (
     MAX_FIRINGS_PER_REVOLUTION,
+    MAX_REVOLUTIONS_PER_SECOND,
     MIN_FIRINGS_PER_REVOLUTION,
     PACKET_SIZE,
     RevolutionAssembler,
+    VelodyneUdpSource,
     encode_packets,
     revolution_problem,
 )
@@ -146,3 +154,88 @@ def test_no_single_forged_azimuth_packet_makes_a_scan_with_a_missing_sector(
     assert len(clouds) >= 12 - 2  # at most the turns around the forged packet are lost
     for cloud in clouds:  # the recorded room has returns in 322–326 one-degree sectors per turn
         assert sectors_with_returns(cloud) >= 300
+
+
+# --- the UDP source: one sensor, bounded reads, no more turns than the sensor makes --------------
+
+
+def _drain(source: VelodyneUdpSource, until: float = 0.3) -> list[np.ndarray]:
+    clouds: list[np.ndarray] = []
+    deadline = time.monotonic() + until
+    while time.monotonic() < deadline:
+        if select.select([source], [], [], 0.02)[0]:
+            clouds += source.read_available()
+    return clouds
+
+
+def _sender(host: str) -> socket.socket:
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind((host, 0))
+    return sock
+
+
+def test_udp_source_takes_packets_only_from_the_sensor_ip(recording: list[bytes]) -> None:
+    """A spoofer on 127.0.0.2 sends all-clear turns with their wraps, two for each real packet."""
+    _, forged = _turns(0.2, turns=1, start=0.0)  # a whole turn of 5 m returns
+    with VelodyneUdpSource("127.0.0.1", 0, sensor_ip="127.0.0.1") as source:
+        sensor, spoofer = _sender("127.0.0.1"), _sender("127.0.0.2")
+        clouds: list[np.ndarray] = []
+        for start in range(0, 400, 25):  # in chunks, so the loopback queue never overflows
+            for i, packet in enumerate(recording[start : start + 25]):
+                sensor.sendto(packet, source.address)
+                for k in range(2):
+                    spoofer.sendto(forged[(2 * (start + i) + k) % len(forged)], source.address)
+            clouds += _drain(source, 0.05)
+        clouds += _drain(source)
+        sensor.close()
+        spoofer.close()
+        counters = source.counters
+    expected = [rev.points for rev in RevolutionAssembler().feed_batch(recording[:400])]
+    assert len(clouds) == len(expected) == 4
+    assert all(np.array_equal(a, b) for a, b in zip(clouds, expected, strict=True))
+    assert counters.foreign_packets == 800 and counters.packets == 400
+
+
+def test_udp_source_reads_are_bounded_in_time_and_count() -> None:
+    _, packets = _turns(0.2, turns=4)
+    with VelodyneUdpSource("127.0.0.1", 0, max_read_seconds=0.0) as hurried, VelodyneUdpSource(
+        "127.0.0.1", 0, max_datagrams_per_read=100
+    ) as counted:
+        sender = _sender("127.0.0.1")
+        for packet in packets[:200]:
+            sender.sendto(packet, hurried.address)
+            sender.sendto(packet, counted.address)
+        sender.close()
+        hurried.read_available()
+        counted.read_available()
+        assert hurried.counters.packets == 64  # one chunk, then the time was up
+        assert counted.counters.packets == 100
+        hurried.read_available()
+        assert hurried.counters.packets == 128  # the rest waits in the socket for the next reads
+
+
+def test_more_turns_a_second_than_the_sensor_makes_are_withheld() -> None:
+    now = [0.0]
+    _, turns = _turns(0.375, turns=40, start=0.0)  # 40 packets a turn: 1,125 rpm, plausible
+    with VelodyneUdpSource("127.0.0.1", 0, clock=lambda: now[0]) as source:
+        sender = _sender("127.0.0.1")
+
+        def play(first: int, n: int) -> list[np.ndarray]:
+            clouds: list[np.ndarray] = []
+            for t in range(first, first + n):
+                for packet in turns[40 * t : 40 * (t + 1)]:
+                    sender.sendto(packet, source.address)
+                clouds += _drain(source, 0.03)
+                now[0] += 1.0 / 30  # 30 turns a second: a replay, or a forger
+            return clouds
+
+        fast = play(0, 30)  # 28 whole turns (the first wrap only starts one)
+        assert len(fast) == MAX_REVOLUTIONS_PER_SECOND  # then a second holds more than the sensor makes
+        assert source.implausible and source.counters.implausible_revolutions == 28 - len(fast)
+        now[0] += 1.0  # the sensor at its own pace again: a second later the turns come through
+        slow: list[np.ndarray] = []
+        for first in range(30, 38):
+            slow += play(first, 1)
+            now[0] += 0.1 - 1.0 / 30
+        sender.close()
+    assert not source.implausible and len(slow) == 8
