@@ -6,10 +6,16 @@ the optional autopilot parameter check, then the autopilot link; READY=1 to syst
 The loop (one thread, ``select()`` on the lidar socket with a short timeout so the link is
 serviced even when the lidar is silent):
 
-- every finished revolution: scan → frame stack → policy → supervisor.on_scan
+- the newest finished revolution of the iteration: scan → frame stack → policy → supervisor.on_scan
+  (older ones that arrived in the same read are counted as skipped: the work per iteration stays
+  one scan, however much arrived; the lidar source bounds its own reading in time and count). A
+  source that saw more revolutions than the sensor can make reports ``implausible``: a fault for
+  the supervisor ("lidar implausible" → HOLD).
 - the link's vehicle status → supervisor.on_vehicle; supervisor.tick() says what to send:
-  POLICY → the shielded policy setpoint (every scan), ZERO → zero velocity (every scan, and at
-  10 Hz without scans), NONE → no setpoint; then OBSTACLE_DISTANCE for the newest scan
+  POLICY → the shielded policy setpoint (every scan; zero velocity when no scan came for
+  LATE_SCAN_AFTER, so the stream never pauses while the lidar is late), ZERO → zero velocity
+  (every scan, and at 10 Hz without scans), NONE → no setpoint; then OBSTACLE_DISTANCE for the
+  newest scan
 - HEARTBEAT at 1 Hz; every supervisor transition: one log line, one STATUSTEXT
 - WATCHDOG=1 after every iteration that completed; a periodic counters log line
 
@@ -48,6 +54,9 @@ log = logging.getLogger(__name__)
 
 #: Zero setpoints (HOLD, and PX4's pre-OFFBOARD stream) go out at least this often without scans, s.
 ZERO_SETPOINT_PERIOD = 0.1
+#: While ACTIVE, a setpoint later than this after the previous one (the scan is late: lost, partial or
+#: withheld) is sent as zero velocity instead of waiting for the scan, s.
+LATE_SCAN_AFTER = 0.12
 #: Watchdog ping period when systemd does not say (WATCHDOG_USEC unset), s.
 DEFAULT_WATCHDOG_PERIOD = 1.0
 
@@ -94,7 +103,9 @@ def open_lidar(config: CompanionConfig, clock: Callable[[], float]) -> LidarSour
         from companion.lidar.velodyne import VelodyneUdpSource
 
         v = lidar.velodyne
-        return VelodyneUdpSource(v.host, v.port, backend=v.decoder, clock=clock)
+        if not v.sensor_ip:
+            log.warning("lidar.velodyne.sensor_ip is not set: VLP-16 packets from any sender are decoded")
+        return VelodyneUdpSource(v.host, v.port, backend=v.decoder, clock=clock, sensor_ip=v.sensor_ip)
     from companion.lidar.can_ring import open_can_ring
 
     return open_can_ring(lidar.can, clock)
@@ -233,6 +244,7 @@ class Companion:
         self._unsent_scan: np.ndarray | None = None  # newest scan not yet sent as OBSTACLE_DISTANCE
         self._last_filter: float | None = None
         self._last_zero = -math.inf
+        self._last_setpoint = -math.inf
         self._last_heartbeat = -math.inf
         self._last_watchdog = -math.inf
         self._last_log = clock()
@@ -250,8 +262,12 @@ class Companion:
         clouds = self.lidar.read_available()
         self._status = self.link.poll()
         self.supervisor.on_vehicle(self._status)
-        for cloud in clouds:
-            self._on_cloud(cloud)
+        if getattr(self.lidar, "implausible", False):
+            self.counters["reads_implausible"] += 1
+            self.supervisor.on_scan(False, "lidar implausible")
+        elif clouds:
+            self.counters["revolutions_skipped"] += len(clouds) - 1
+            self._on_cloud(clouds[-1])
         kind = self.supervisor.tick()
         self._send(kind, new_scan=bool(clouds))  # the setpoint first: it is the time-critical message
         self._kind = kind
@@ -305,7 +321,12 @@ class Companion:
                 command = self.shield.filter(requested, scan, dt)
                 self._last_filter = now
                 self.link.send_velocity(command.forward, command.yaw_rate)
+                self._last_setpoint = now
                 self.counters["setpoints_policy"] += 1
+            elif now - self._last_setpoint > LATE_SCAN_AFTER:
+                self.link.send_velocity(0.0, 0.0)
+                self._last_setpoint = now
+                self.counters["setpoints_late_scan"] += 1
         else:
             # Leaving ACTIVE: the next engagement ramps up from standstill, with a fresh stack.
             self.shield.reset()
@@ -317,7 +338,7 @@ class Companion:
             )
             if stream and (new_scan or now - self._last_zero >= ZERO_SETPOINT_PERIOD):
                 self.link.send_velocity(0.0, 0.0)
-                self._last_zero = now
+                self._last_zero = self._last_setpoint = now
                 self.counters["setpoints_zero"] += 1
         if self.supervisor.state is not SupervisorState.ACTIVE:
             self._reset_stack = True

@@ -81,6 +81,32 @@ RETURN_LAST = 0x38
 RETURN_DUAL = 0x39  # refused: two returns per firing
 PRODUCT_ID_VLP16 = 0x22  # shared with the Puck LITE (same elevations); the Puck Hi-Res is 0x24
 
+class _ThrottledLog:
+    """Logs at most one line per ``period`` seconds; the lines held back are counted into the next.
+
+    Events a sender can trigger at will (silences, overflows, receive errors) must not become a log
+    flood: writing thousands of lines a second to a slow journal would stall the main loop.
+    """
+
+    def __init__(self, level: int, period: float = 10.0) -> None:
+        self.level = level
+        self.period = period
+        self._next = -math.inf
+        self._held = 0
+
+    def __call__(self, message: str, *args: object) -> None:
+        now = time.monotonic()
+        if now < self._next:
+            self._held += 1
+            return
+        if self._held:
+            message += " (and %d more in the last %g s)"
+            args = (*args, self._held, self.period)
+        log.log(self.level, message, *args)
+        self._next = now + self.period
+        self._held = 0
+
+
 #: Why a packet was dropped, in the order they are checked; the keys of the ``malformed`` counter.
 MALFORMED_REASONS = (
     "wrong_length",
@@ -414,6 +440,8 @@ class RevolutionAssembler:
         self._started = False  # a wrap has been seen: the revolution being built is whole
         self._last_azimuth: float | None = None
         self._last_timestamp: int | None = None
+        self._log_overflow = _ThrottledLog(logging.WARNING)
+        self._log_silence = _ThrottledLog(logging.INFO)
 
     def feed(self, packet: bytes) -> list[np.ndarray]:
         """Add one packet; return the revolutions it completed (usually none, sometimes one).
@@ -523,28 +551,46 @@ class RevolutionAssembler:
         decoded = self._decode(data, self._pending)
         block_azimuths = data.view(PACKET_DTYPE)[:, 0]["blocks"]["azimuth"]
         azimuth = _firing_azimuths_array(block_azimuths.astype(np.float64))
-        bounds = np.concatenate(([0], np.cumsum(decoded.points_per_firing)))
-        revolutions = []
-        start = first = 0
-        for wrap in self._pending_wraps:
-            end = int(bounds[wrap])
-            self._parts.append(decoded.points[start:end])
-            self._azimuths.append(azimuth[first:wrap])
-            start, first = end, wrap
-            problem = self._judge()
-            if problem is None:
-                revolutions.append((np.concatenate(self._parts), wrap))
-                self.counters.revolutions += 1
-            else:
-                self._count_partial(problem)
-            self._started = True
-            self._parts = []
-            self._azimuths = []
-        self._parts.append(decoded.points[start:])
-        self._azimuths.append(azimuth[first:])
+        bounds = np.concatenate(([0], np.cumsum(decoded.points_per_firing))).tolist()
+        points = decoded.points
+        revolutions: list[tuple[np.ndarray, int]] = []
+        wraps = self._pending_wraps
+        if wraps:
+            # the first piece closes the revolution carried over from earlier packets
+            self._parts.append(points[: bounds[wraps[0]]])
+            self._azimuths.append(azimuth[: wraps[0]])
+            self._close(wraps[0], revolutions)
+            # the pieces between two wraps of this run stand alone: those with a firing count no
+            # VLP-16 makes (what a flood of wraps brings) are counted at once, never sliced
+            counts = np.diff(wraps)
+            plausible = (counts >= MIN_FIRINGS_PER_REVOLUTION) & (counts <= MAX_FIRINGS_PER_REVOLUTION)
+            if len(counts) and not plausible.all():
+                self._count_partial("firing_count", len(counts) - int(np.count_nonzero(plausible)))
+            for k in np.flatnonzero(plausible).tolist():
+                first, wrap = wraps[k], wraps[k + 1]
+                self._parts = [points[bounds[first] : bounds[wrap]]]
+                self._azimuths = [azimuth[first:wrap]]
+                self._close(wrap, revolutions)
+            self._parts = [points[bounds[wraps[-1]] :]]
+            self._azimuths = [azimuth[wraps[-1] :]]
+        else:
+            self._parts.append(points)
+            self._azimuths.append(azimuth)
         self._pending = []
         self._pending_wraps = []
         return revolutions
+
+    def _close(self, wrap: int, revolutions: list[tuple[np.ndarray, int]]) -> None:
+        """The revolution in _parts ended at firing ``wrap``: keep it when whole, count it when not."""
+        problem = self._judge()
+        if problem is None:
+            revolutions.append((np.concatenate(self._parts), wrap))
+            self.counters.revolutions += 1
+        else:
+            self._count_partial(problem)
+        self._started = True
+        self._parts = []
+        self._azimuths = []
 
     def _judge(self) -> str | None:
         """Why the revolution just closed is not whole (revolution_problem), or None."""
@@ -556,7 +602,7 @@ class RevolutionAssembler:
         return revolution_problem(np.concatenate(self._azimuths))
 
     def _overflow(self) -> None:
-        log.warning("VLP-16: no azimuth wrap in %d packets, dropping them", self._packets_in_revolution)
+        self._log_overflow("VLP-16: no wrap in %d packets; dropping them", self._packets_in_revolution)
         self.counters.overflows += 1
         self._restart()
 
@@ -579,7 +625,7 @@ class RevolutionAssembler:
             and SILENCE_US < (stamps[0] - previous) % US_PER_HOUR < US_PER_HOUR / 2
         ):
             self.counters.silences += 1
-            log.info(
+            self._log_silence(
                 "VLP-16: stream silent for %.2f s; dropping the revolution in progress",
                 ((stamps[0] - previous) % US_PER_HOUR) / 1e6,
             )
@@ -591,13 +637,13 @@ class RevolutionAssembler:
             previous = stamp
         self._last_timestamp = previous
 
-    def _count_partial(self, reason: str) -> None:
-        self.counters.partial_revolutions += 1
+    def _count_partial(self, reason: str, n: int = 1) -> None:
+        self.counters.partial_revolutions += n
         partial = self.counters.partial
         if reason not in partial and reason != "start_not_seen":
             log.warning("VLP-16: dropping a revolution that is not one whole turn (%s); further ones are "
                         "only counted", reason)
-        partial[reason] = partial.get(reason, 0) + 1
+        partial[reason] = partial.get(reason, 0) + n
 
     def _count_malformed(self, reason: str) -> None:
         malformed = self.counters.malformed
@@ -710,7 +756,7 @@ class VelodyneUdpSource:
         receive_buffer_bytes: int = 1 << 21,
         sensor_ip: str | None = None,
         max_datagrams_per_read: int = 1024,
-        max_read_seconds: float = 0.01,
+        max_read_seconds: float = 0.005,
     ) -> None:
         self.assembler = RevolutionAssembler(backend)
         self._clock = clock
@@ -722,6 +768,8 @@ class VelodyneUdpSource:
         self.last_revolution_end: float | None = None
         #: the last read_available withheld revolutions: they came faster than the sensor turns.
         self.implausible = False
+        self._log_receive_error = _ThrottledLog(logging.WARNING)
+        self._log_implausible = _ThrottledLog(logging.WARNING)
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, receive_buffer_bytes)
@@ -795,7 +843,7 @@ class VelodyneUdpSource:
             except (BlockingIOError, InterruptedError):
                 return payloads, stamps, received, True
             except OSError as exc:  # e.g. ICMP errors surfacing on a UDP socket: not ours to die of
-                log.warning("VLP-16: receive error %s", exc)
+                self._log_receive_error("VLP-16: receive error %s", exc)
                 return payloads, stamps, received, True
             if sensor is not None and sender[0] != sensor:
                 self._count_foreign(sender[0])
@@ -821,9 +869,9 @@ class VelodyneUdpSource:
         while recent[0] < recent[-1] - 1.0:
             recent.popleft()
         too_fast = bool(stamps) and len(recent) > MAX_REVOLUTIONS_PER_SECOND
-        if too_fast and not self.counters.implausible_revolutions:
-            log.warning("VLP-16: %d whole revolutions within a second, more than the sensor makes; "
-                        "withholding them", len(recent))
+        if too_fast:
+            self._log_implausible("VLP-16: %d whole revolutions within a second, more than the sensor "
+                                  "makes; withholding them", len(recent))
         return too_fast
 
     def close(self) -> None:
