@@ -83,3 +83,30 @@ def test_setpoints_keep_their_rate_under_a_flood_of_every_kind(rig):
     assert not [t for k in ("garbage", "foreign") for t in figures[k][3] if "HOLD" in t]
     # forged packets from the sensor's own address leave no whole turn: it holds (zero setpoints)
     assert any("ACTIVE->HOLD" in t for t in figures["forged"][3])
+
+
+def test_more_turns_a_second_than_the_sensor_makes_hold_until_the_pace_is_real_again(tmp_path):
+    """The real recording replayed at 2.5× (25 whole turns a second, a VLP-16 makes 20 at most)."""
+    lidar_port, mavlink_port = free_udp_port(), free_udp_port()
+    model = write_policy(tmp_path / "forward.onnx", kind="forward")
+    config = write_config(tmp_path, model, lidar_port, mavlink_port, sensor_ip="127.0.0.1")
+    autopilot = StampingAutopilot(f"udpout:127.0.0.1:{mavlink_port}")
+    proc = start_companion(config, realtime=True)
+    player = None
+    try:
+        autopilot.run(3.0, realtime=True)  # the companion starts up and hears the autopilot
+        player = start_lidar_traffic(lidar_port, "--play", "1:5,2.5:3,1:6", realtime=True)
+        autopilot.run(14.5, realtime=True)
+        player.communicate(timeout=10)
+    finally:
+        if player is not None and player.poll() is None:
+            player.kill()
+        _, _, log = stop(proc)
+        autopilot.close()
+    texts = [m.text.removeprefix("avoid ") for _, m in autopilot.messages("STATUSTEXT")]
+    changes = [t for t in texts if "->" in t]
+    assert "ACTIVE->HOLD: lidar implausible" in changes, (changes, log[-3000:])
+    held = changes.index("ACTIVE->HOLD: lidar implausible")
+    assert changes[held - 1] == "STANDBY->ACTIVE: engaged"  # on the real pace, before the replay
+    assert changes[held + 1 :] == ["HOLD->ACTIVE: recovered (5 good scans)"]
+    assert "lidar.implausible_revolutions=" in log
