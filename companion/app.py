@@ -222,6 +222,7 @@ class Companion:
             policy_spec(config),
             config.policy.providers or None,
             trt_cache_dir=config.policy.trt_cache_dir or None,
+            sha256=config.policy.sha256 or None,
         )
         self._param_messages = check_parameters(config)
         self.lidar = open_lidar(config, clock)

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from companion.errors import UserError
+from companion.userfile import load_user_file
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -28,15 +29,9 @@ T = TypeVar("T")
 
 
 def load_toml(path: str | Path) -> dict[str, Any]:
-    """Read a TOML file; a missing or malformed file is a :class:`UserError`."""
-    path = Path(path)
-    try:
-        with path.open("rb") as f:
-            return tomllib.load(f)
-    except FileNotFoundError:
-        raise UserError(f"config file not found: {path}") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise UserError(f"config file {path} is not valid TOML: {exc}") from None
+    """Read a TOML file; a file that cannot be read or parsed, whatever the reason, is a
+    :class:`UserError` naming it (:func:`companion.userfile.load_user_file`)."""
+    return load_user_file(path, "config file", tomllib.loads)
 
 
 def _check_value(key: str, value: Any, tp: Any) -> Any:

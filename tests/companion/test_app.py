@@ -170,7 +170,7 @@ def test_model_trained_for_another_range_is_refused(tmp_path):
 def test_missing_model_and_busy_lidar_port(tmp_path):
     config = write_config(tmp_path, tmp_path / "nope.onnx", free_udp_port(), free_udp_port())
     result = run_to_exit(["run", "--config", str(config)])
-    assert result.returncode == 2 and "policy model not found" in result.stderr
+    assert result.returncode == 2 and "policy model" in result.stderr and "file not found" in result.stderr
     assert len(result.stderr.strip().splitlines()) == 1
 
     busy = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)

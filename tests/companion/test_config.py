@@ -114,7 +114,7 @@ def test_bad_override_names_the_key(tmp_path):
 
 
 def test_missing_file(tmp_path):
-    with pytest.raises(UserError, match="config file not found"):
+    with pytest.raises(UserError, match=r"^config file .*nope\.toml: file not found$"):
         load_config(tmp_path / "nope.toml")
 
 
