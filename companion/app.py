@@ -12,10 +12,10 @@ serviced even when the lidar is silent):
   source that saw more revolutions than the sensor can make reports ``implausible``: a fault for
   the supervisor ("lidar implausible" → HOLD).
 - the link's vehicle status → supervisor.on_vehicle; supervisor.tick() says what to send:
-  POLICY → the shielded policy setpoint (every scan; zero velocity when no scan came for
-  LATE_SCAN_AFTER, so the stream never pauses while the lidar is late), ZERO → zero velocity
-  (every scan, and at 10 Hz without scans), NONE → no setpoint; then OBSTACLE_DISTANCE for the
-  newest scan
+  POLICY → the shielded policy setpoint (every scan; the last one again when no scan came for
+  LATE_SCAN_AFTER, so the stream never pauses while a scan is late: the autopilot would keep
+  flying it anyway, and the lidar-stale timeout still holds), ZERO → zero velocity (every scan,
+  and at 10 Hz without scans), NONE → no setpoint; then OBSTACLE_DISTANCE for the newest scan
 - HEARTBEAT at 1 Hz; every supervisor transition: one log line, one STATUSTEXT
 - WATCHDOG=1 after every iteration that completed; a periodic counters log line
 
@@ -54,8 +54,10 @@ log = logging.getLogger(__name__)
 
 #: Zero setpoints (HOLD, and PX4's pre-OFFBOARD stream) go out at least this often without scans, s.
 ZERO_SETPOINT_PERIOD = 0.1
-#: While ACTIVE, a setpoint later than this after the previous one (the scan is late: lost, partial or
-#: withheld) is sent as zero velocity instead of waiting for the scan, s.
+#: While ACTIVE and no scan came for this long after the last setpoint (the scan is lost, partial or
+#: withheld), the last setpoint goes out again rather than none, s. Not a new decision on an old
+#: picture: the autopilot keeps flying the last setpoint it got, and supervisor.lidar_timeout (0.3 s)
+#: still ends it with HOLD.
 LATE_SCAN_AFTER = 0.12
 #: Watchdog ping period when systemd does not say (WATCHDOG_USEC unset), s.
 DEFAULT_WATCHDOG_PERIOD = 1.0
@@ -246,6 +248,7 @@ class Companion:
         self._last_filter: float | None = None
         self._last_zero = -math.inf
         self._last_setpoint = -math.inf
+        self._last_command = Command(0.0, 0.0)  # the last setpoint sent, repeated while a scan is late
         self._last_heartbeat = -math.inf
         self._last_watchdog = -math.inf
         self._last_log = clock()
@@ -322,10 +325,11 @@ class Companion:
                 command = self.shield.filter(requested, scan, dt)
                 self._last_filter = now
                 self.link.send_velocity(command.forward, command.yaw_rate)
-                self._last_setpoint = now
+                self._last_setpoint, self._last_command = now, command
                 self.counters["setpoints_policy"] += 1
             elif now - self._last_setpoint > LATE_SCAN_AFTER:
-                self.link.send_velocity(0.0, 0.0)
+                command = self._last_command
+                self.link.send_velocity(command.forward, command.yaw_rate)
                 self._last_setpoint = now
                 self.counters["setpoints_late_scan"] += 1
         else:
@@ -340,6 +344,7 @@ class Companion:
             if stream and (new_scan or now - self._last_zero >= ZERO_SETPOINT_PERIOD):
                 self.link.send_velocity(0.0, 0.0)
                 self._last_zero = self._last_setpoint = now
+                self._last_command = Command(0.0, 0.0)
                 self.counters["setpoints_zero"] += 1
         if self.supervisor.state is not SupervisorState.ACTIVE:
             self._reset_stack = True

@@ -354,6 +354,9 @@ class _VelodyneDecoderBackend:
 
 Backend = Literal["numpy", "velodyne-decoder"]
 
+_NO_POINTS = np.zeros((0, 3), dtype=np.float32)
+_NO_POINTS.setflags(write=False)
+
 #: Batches at least this long are checked with numpy rather than packet by packet.
 _VECTORISE_FROM = 4
 
@@ -546,27 +549,41 @@ class RevolutionAssembler:
         return wraps
 
     def _decode_pending(self) -> list[tuple[np.ndarray, int]]:
-        """Decode the waiting packets; return each revolution completed with its wrap's firing index."""
+        """Decode the waiting packets; return each revolution completed with its wrap's firing index.
+
+        The wraps cut the waiting firings into pieces: the first closes the revolution carried over
+        from earlier packets, the last starts the next one, those between stand alone. Only the
+        packets of pieces that can still be part of a whole turn are decoded; the others (start not
+        seen, a firing count no VLP-16 makes: what a flood of wraps brings) are judged and counted
+        from their azimuths alone, so such a flood costs header checks, not decoding.
+        """
         data = np.frombuffer(b"".join(self._pending), dtype=np.uint8).reshape(-1, PACKET_SIZE)
-        decoded = self._decode(data, self._pending)
         block_azimuths = data.view(PACKET_DTYPE)[:, 0]["blocks"]["azimuth"]
         azimuth = _firing_azimuths_array(block_azimuths.astype(np.float64))
-        bounds = np.concatenate(([0], np.cumsum(decoded.points_per_firing))).tolist()
-        points = decoded.points
-        revolutions: list[tuple[np.ndarray, int]] = []
         wraps = self._pending_wraps
+        edges = [0, *wraps, len(azimuth)]  # piece k: firings edges[k] .. edges[k + 1]
+        counts = np.diff(edges)
+        plausible = (counts >= MIN_FIRINGS_PER_REVOLUTION) & (counts <= MAX_FIRINGS_PER_REVOLUTION)
+        wanted = plausible.copy()
+        carried = sum(map(len, self._azimuths))
+        first_total = carried + edges[1]
+        wanted[0] = self._started and (  # closes (or extends) the carried revolution
+            MIN_FIRINGS_PER_REVOLUTION <= first_total <= MAX_FIRINGS_PER_REVOLUTION
+            if wraps
+            else first_total <= MAX_FIRINGS_PER_REVOLUTION
+        )
         if wraps:
-            # the first piece closes the revolution carried over from earlier packets
+            wanted[-1] = True  # starts the next revolution: its end is not here yet
+        points, bounds = self._decode_pieces(data, edges, wanted)
+        revolutions: list[tuple[np.ndarray, int]] = []
+        if wraps:
             self._parts.append(points[: bounds[wraps[0]]])
             self._azimuths.append(azimuth[: wraps[0]])
             self._close(wraps[0], revolutions)
-            # the pieces between two wraps of this run stand alone: those with a firing count no
-            # VLP-16 makes (what a flood of wraps brings) are counted at once, never sliced
-            counts = np.diff(wraps)
-            plausible = (counts >= MIN_FIRINGS_PER_REVOLUTION) & (counts <= MAX_FIRINGS_PER_REVOLUTION)
-            if len(counts) and not plausible.all():
-                self._count_partial("firing_count", len(counts) - int(np.count_nonzero(plausible)))
-            for k in np.flatnonzero(plausible).tolist():
+            middle = plausible[1:-1]
+            if len(middle) and not middle.all():
+                self._count_partial("firing_count", len(middle) - int(np.count_nonzero(middle)))
+            for k in np.flatnonzero(middle).tolist():
                 first, wrap = wraps[k], wraps[k + 1]
                 self._parts = [points[bounds[first] : bounds[wrap]]]
                 self._azimuths = [azimuth[first:wrap]]
@@ -579,6 +596,32 @@ class RevolutionAssembler:
         self._pending = []
         self._pending_wraps = []
         return revolutions
+
+    def _decode_pieces(
+        self, data: np.ndarray, edges: list[int], wanted: np.ndarray
+    ) -> tuple[np.ndarray, list[int]]:
+        """Decode the packets holding a firing of a wanted piece.
+
+        :return: the points, and for each firing index f of the waiting packets where its points
+            start in them (firings of packets not decoded have none).
+        """
+        n_packets = len(data)
+        need = np.zeros(n_packets, dtype=bool)
+        for k in np.flatnonzero(wanted).tolist():
+            first, end = edges[k], edges[k + 1]
+            if end > first:
+                need[first // FIRINGS_PER_PACKET : (end - 1) // FIRINGS_PER_PACKET + 1] = True
+        if need.all():
+            decoded = self._decode(data, self._pending)
+            per_firing = decoded.points_per_firing
+        elif not need.any():
+            return _NO_POINTS, [0] * (n_packets * FIRINGS_PER_PACKET + 1)
+        else:
+            index = np.flatnonzero(need)
+            decoded = self._decode(data[index], [self._pending[i] for i in index.tolist()])
+            per_firing = np.zeros(n_packets * FIRINGS_PER_PACKET, dtype=np.int64)
+            per_firing[np.repeat(need, FIRINGS_PER_PACKET)] = decoded.points_per_firing
+        return decoded.points, np.concatenate(([0], np.cumsum(per_firing))).tolist()
 
     def _close(self, wrap: int, revolutions: list[tuple[np.ndarray, int]]) -> None:
         """The revolution in _parts ended at firing ``wrap``: keep it when whole, count it when not."""

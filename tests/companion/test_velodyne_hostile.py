@@ -199,7 +199,7 @@ def test_udp_source_takes_packets_only_from_the_sensor_ip(recording: list[bytes]
 def test_udp_source_reads_are_bounded_in_time_and_count() -> None:
     _, packets = _turns(0.2, turns=4)
     with VelodyneUdpSource("127.0.0.1", 0, max_read_seconds=0.0) as hurried, VelodyneUdpSource(
-        "127.0.0.1", 0, max_datagrams_per_read=100
+        "127.0.0.1", 0, max_datagrams_per_read=100, max_read_seconds=60.0
     ) as counted:
         sender = _sender("127.0.0.1")
         for packet in packets[:200]:
