@@ -62,7 +62,7 @@ def main() -> int:
     parser.add_argument("--kinds", default=",".join(FLOOD_KINDS))
     parser.add_argument("--realtime", action="store_true",
                         help="run the companion SCHED_FIFO 20 as its systemd unit does, the traffic and "
-                             "the autopilot SCHED_FIFO too (needs root; keeps other load out of the figures)")
+                             "the autopilot at nice -10 (needs root; keeps other load out of the figures)")
     args = parser.parse_args()
     kinds = [k for k in args.kinds.split(",") if k]
     unknown = set(kinds) - set(FLOOD_KINDS)
@@ -77,23 +77,23 @@ def main() -> int:
     proc = start_companion(config, realtime=args.realtime)
     total = (len(kinds) + 1) * (args.seconds + 1.5) + 30
     rt = args.realtime
-    player = start_lidar_traffic(lidar_port, "--play", f"1:{total}", realtime=rt)
+    player = start_lidar_traffic(lidar_port, "--play", f"1:{total}", favoured=rt)
     rows = []
     try:
-        autopilot.run(30.0, until=lambda m: m.get_type() == SETPOINT, realtime=rt)
+        autopilot.run(30.0, until=lambda m: m.get_type() == SETPOINT, favoured=rt)
         if not autopilot.messages(SETPOINT):
             raise SystemExit("the companion never engaged")
-        autopilot.run(1.0, realtime=rt)
+        autopilot.run(1.0, favoured=rt)
         for kind in ["none", *kinds]:
             cpu_start = cpu_seconds(proc.pid)
             if kind == "none":
                 start = time.monotonic()
-                autopilot.run(args.seconds, realtime=rt)
+                autopilot.run(args.seconds, favoured=rt)
                 end, sent = time.monotonic(), 0
             else:
                 flood = start_lidar_traffic(lidar_port, "--flood", kind, "--rate", str(args.rate),
-                                            "--seconds", str(args.seconds), realtime=rt)
-                autopilot.run(args.seconds + 1.0, realtime=rt)
+                                            "--seconds", str(args.seconds), favoured=rt)
+                autopilot.run(args.seconds + 1.0, favoured=rt)
                 report = json.loads(flood.communicate(timeout=30)[0])
                 start, end, sent = report["start"], report["end"], report["sent"]
             cpu = cpu_seconds(proc.pid) - cpu_start
@@ -102,7 +102,7 @@ def main() -> int:
             texts = [m.text.removeprefix("avoid ") for _, m in autopilot.messages("STATUSTEXT", start, end)]
             rows.append((kind, sent / (end - start), len(stamps) / (end - start), gaps.max() * 1e3,
                          np.percentile(gaps, 99) * 1e3, cpu / (end - start), texts))
-            autopilot.run(0.5, realtime=rt)
+            autopilot.run(0.5, favoured=rt)
     finally:
         player.kill()
         player.communicate()

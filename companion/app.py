@@ -59,6 +59,11 @@ ZERO_SETPOINT_PERIOD = 0.1
 #: picture: the autopilot keeps flying the last setpoint it got, and supervisor.lidar_timeout (0.3 s)
 #: still ends it with HOLD.
 LATE_SCAN_AFTER = 0.12
+#: After an iteration whose lidar read stopped at its bounds with datagrams still waiting (a flood),
+#: the loop pauses this long, s: it reads at most about half the time instead of spinning, so a
+#: flood cannot take the whole processor (run SCHED_FIFO, the companion would starve the kernel's
+#: own threads, ksoftirqd among them, and its own datagrams with them). The kernel drops the excess.
+BACKLOG_PAUSE = 0.005
 #: Watchdog ping period when systemd does not say (WATCHDOG_USEC unset), s.
 DEFAULT_WATCHDOG_PERIOD = 1.0
 
@@ -279,6 +284,9 @@ class Companion:
         for transition in self.supervisor.drain_transitions():
             self._announce(transition)
         self._periodic()
+        if getattr(self.lidar, "backlogged", False):
+            self.counters["backlog_pauses"] += 1
+            time.sleep(BACKLOG_PAUSE)
 
     def _link_fileno(self) -> int | None:
         fileno = getattr(self.link, "fileno", None)

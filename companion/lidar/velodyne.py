@@ -811,6 +811,8 @@ class VelodyneUdpSource:
         self.last_revolution_end: float | None = None
         #: the last read_available withheld revolutions: they came faster than the sensor turns.
         self.implausible = False
+        #: the last read_available stopped at its bounds with datagrams still waiting (a flood).
+        self.backlogged = False
         self._log_receive_error = _ThrottledLog(logging.WARNING)
         self._log_implausible = _ThrottledLog(logging.WARNING)
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -857,15 +859,17 @@ class VelodyneUdpSource:
         budget = self._max_datagrams
         revolutions: list[Revolution] = []
         stamps: list[float] = []
-        while budget > 0:
+        drained = False
+        while budget > 0 and not drained:
             payloads, chunk_stamps, received, drained = self._receive(min(_READ_CHUNK, budget))
             budget -= received
             if payloads:
                 for rev in self.assembler.feed_batch(payloads):
                     revolutions.append(rev)
                     stamps.append(chunk_stamps[rev.completed_by])
-            if drained or time.perf_counter() >= deadline:
+            if time.perf_counter() >= deadline:
                 break
+        self.backlogged = not drained
         self.implausible = self._too_fast(stamps)
         if self.implausible:
             self.counters.implausible_revolutions += len(revolutions)

@@ -10,6 +10,7 @@ import os
 import select
 import socket
 import struct
+import threading
 import time
 from typing import Any
 
@@ -215,11 +216,14 @@ class SimulatedAutopilot:
 SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux
 
 
-def _enter_realtime(priority: int) -> tuple[int, os.sched_param] | None:
-    """Make this thread SCHED_FIFO ``priority``; return its previous policy, or None if not permitted."""
-    previous = (os.sched_getscheduler(0), os.sched_getparam(0))
+def _favour_this_thread(niceness: int) -> int | None:
+    """Give this thread ``niceness`` (negative: a larger share of the processor); return the previous
+    one, or None if not permitted. Not real-time: that would starve the kernel's softirq threads,
+    which deliver loopback datagrams under load."""
+    thread = threading.get_native_id()
+    previous = os.getpriority(os.PRIO_PROCESS, thread)
     try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        os.setpriority(os.PRIO_PROCESS, thread, niceness)
     except PermissionError:
         return None
     return previous
@@ -240,14 +244,14 @@ class StampingAutopilot:
         self.received: list[tuple[float, Any]] = []  # (monotonic arrival, message)
         self._last_status = -1.0
 
-    def run(self, seconds: float, until=None, realtime: bool = False) -> None:
+    def run(self, seconds: float, until=None, favoured: bool = False) -> None:
         """Play the autopilot for ``seconds`` (or until ``until(message)`` is true for one), then take
         in whatever already arrived (its stamps say when).
 
-        :param realtime: run this thread SCHED_FIFO meanwhile where permitted: an autopilot is never
+        :param favoured: run this thread at nice -10 meanwhile where permitted: an autopilot is never
             starved of the processor, and on a loaded test machine this process would be
         """
-        previous = _enter_realtime(15) if realtime else None
+        previous = _favour_this_thread(-10) if favoured else None
         try:
             deadline = time.monotonic() + seconds
             while (now := time.monotonic()) < deadline:
@@ -261,7 +265,7 @@ class StampingAutopilot:
                 pass
         finally:
             if previous is not None:
-                os.sched_setscheduler(0, *previous)
+                os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), previous)
 
     def _receive(self, timeout: float, until) -> bool | None:
         """One datagram within ``timeout``: None if none came, else whether ``until`` matched."""
