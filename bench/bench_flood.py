@@ -74,7 +74,7 @@ def main() -> int:
     model = write_policy(tmp / "forward.onnx", kind="forward")
     config = write_config(tmp, model, lidar_port, mavlink_port, sensor_ip="127.0.0.1")
     autopilot = StampingAutopilot(f"udpout:127.0.0.1:{mavlink_port}")
-    proc = start_companion(config, realtime=args.realtime)
+    proc = start_companion(config, realtime=args.realtime, log=tmp / "companion.log")
     total = (len(kinds) + 1) * (args.seconds + 1.5) + 30
     rt = args.realtime
     player = start_lidar_traffic(lidar_port, "--play", f"1:{total}", favoured=rt)
@@ -106,8 +106,9 @@ def main() -> int:
     finally:
         player.kill()
         player.communicate()
-        _, _, log = stop(proc)
+        stop(proc)
         autopilot.close()
+    log = (tmp / "companion.log").read_text()
     print(f"companion setpoints under lidar floods, {args.seconds:g} s per phase, real recording at "
           f"10 Hz throughout{', companion SCHED_FIFO 20' if args.realtime else ''}; load average "
           f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")

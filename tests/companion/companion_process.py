@@ -150,24 +150,34 @@ def realtime_prefix(priority: int = 20) -> list[str]:
 
 
 def start_companion(config: Path, notify: Path | None = None, extra_env: dict[str, str] | None = None,
-                    python_args: tuple[str, ...] = (), realtime: bool = False) -> subprocess.Popen[str]:
-    """``avoid-companion run --config config`` in a subprocess (``realtime``: SCHED_FIFO as deployed,
-    where permitted)."""
+                    python_args: tuple[str, ...] = (), realtime: bool = False,
+                    log: Path | None = None) -> subprocess.Popen[str]:
+    """``avoid-companion run --config config`` in a subprocess.
+
+    :param realtime: SCHED_FIFO 20 as deployed, where permitted
+    :param log: write its log (stderr) to this file instead of a pipe: a pipe nobody reads before
+        the end fills after 64 KiB, and the companion then blocks on its next log line
+    """
     env = dict(os.environ)
     env.pop("NOTIFY_SOCKET", None)
     if notify is not None:
         env["NOTIFY_SOCKET"] = str(notify)
         env["WATCHDOG_USEC"] = "1000000"
     env.update(extra_env or {})
-    return subprocess.Popen(
-        [*(realtime_prefix() if realtime else []), sys.executable, *python_args, "-m", "companion", "run",
-         "--config", str(config)],
-        cwd=REPO,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    stderr = log.open("w") if log is not None else None
+    try:
+        return subprocess.Popen(
+            [*(realtime_prefix() if realtime else []), sys.executable, *python_args, "-m", "companion",
+             "run", "--config", str(config)],
+            cwd=REPO,
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE if stderr is None else stderr,
+            text=True,
+        )
+    finally:
+        if stderr is not None:
+            stderr.close()  # the child has its own copy
 
 
 def favoured_prefix() -> list[str]:

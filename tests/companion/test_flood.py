@@ -47,13 +47,15 @@ def rig(tmp_path):
     model = write_policy(tmp_path / "forward.onnx", kind="forward")
     config = write_config(tmp_path, model, lidar_port, mavlink_port, sensor_ip="127.0.0.1")
     autopilot = StampingAutopilot(f"udpout:127.0.0.1:{mavlink_port}")
-    proc = start_companion(config, realtime=True)  # SCHED_FIFO as the service runs it, where permitted
+    log = tmp_path / "companion.log"
+    proc = start_companion(config, realtime=True, log=log)  # SCHED_FIFO as the service runs it
     player = start_lidar_traffic(lidar_port, "--play", "1:60", favoured=True)
     yield autopilot, proc, lidar_port
     player.kill()
     player.communicate()
     if proc.poll() is None:
-        print(stop(proc)[2][-5000:])  # the companion's log, shown when a test fails
+        stop(proc)
+    print(log.read_text()[-5000:])  # the companion's log, shown when a test fails
     autopilot.close()
 
 
@@ -89,7 +91,7 @@ def test_more_turns_a_second_than_the_sensor_makes_hold_until_the_pace_is_real_a
     model = write_policy(tmp_path / "forward.onnx", kind="forward")
     config = write_config(tmp_path, model, lidar_port, mavlink_port, sensor_ip="127.0.0.1")
     autopilot = StampingAutopilot(f"udpout:127.0.0.1:{mavlink_port}")
-    proc = start_companion(config, realtime=True)
+    proc = start_companion(config, realtime=True, log=tmp_path / "companion.log")
     player = None
     try:
         autopilot.run(3.0, favoured=True)  # the companion starts up and hears the autopilot
@@ -99,8 +101,9 @@ def test_more_turns_a_second_than_the_sensor_makes_hold_until_the_pace_is_real_a
     finally:
         if player is not None and player.poll() is None:
             player.kill()
-        _, _, log = stop(proc)
+        stop(proc)
         autopilot.close()
+    log = (tmp_path / "companion.log").read_text()
     texts = [m.text.removeprefix("avoid ") for _, m in autopilot.messages("STATUSTEXT")]
     changes = [t for t in texts if "->" in t]
     assert "ACTIVE->HOLD: lidar implausible" in changes, (changes, log[-3000:])
