@@ -93,7 +93,7 @@ def main() -> int:
             else:
                 flood = start_lidar_traffic(lidar_port, "--flood", kind, "--rate", str(args.rate),
                                             "--seconds", str(args.seconds), favoured=rt)
-                autopilot.run(args.seconds + 1.0, favoured=rt)
+                autopilot.run_while(flood, favoured=rt)
                 report = json.loads(flood.communicate(timeout=30)[0])
                 start, end, sent = report["start"], report["end"], report["sent"]
             cpu = cpu_seconds(proc.pid) - cpu_start

@@ -10,6 +10,7 @@ import os
 import select
 import socket
 import struct
+import subprocess
 import threading
 import time
 from typing import Any
@@ -266,6 +267,13 @@ class StampingAutopilot:
         finally:
             if previous is not None:
                 os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), previous)
+
+    def run_while(self, process: subprocess.Popen[str], favoured: bool = False) -> None:
+        """Play the autopilot until ``process`` has exited, and a little longer (what it caused has
+        arrived): a flood process that started late must not end its window unobserved."""
+        while process.poll() is None:
+            self.run(0.1, favoured=favoured)
+        self.run(0.3, favoured=favoured)
 
     def _receive(self, timeout: float, until) -> bool | None:
         """One datagram within ``timeout``: None if none came, else whether ``until`` matched."""
