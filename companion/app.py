@@ -6,10 +6,16 @@ the optional autopilot parameter check, then the autopilot link; READY=1 to syst
 The loop (one thread, ``select()`` on the lidar socket with a short timeout so the link is
 serviced even when the lidar is silent):
 
-- every finished revolution: scan → frame stack → policy → supervisor.on_scan
+- the newest finished revolution of the iteration: scan → frame stack → policy → supervisor.on_scan
+  (older ones that arrived in the same read are counted as skipped: the work per iteration stays
+  one scan, however much arrived; the lidar source bounds its own reading in time and count). A
+  source that saw more revolutions than the sensor can make reports ``implausible``: a fault for
+  the supervisor ("lidar implausible" → HOLD).
 - the link's vehicle status → supervisor.on_vehicle; supervisor.tick() says what to send:
-  POLICY → the shielded policy setpoint (every scan), ZERO → zero velocity (every scan, and at
-  10 Hz without scans), NONE → no setpoint; then OBSTACLE_DISTANCE for the newest scan
+  POLICY → the shielded policy setpoint (every scan; the last one again when no scan came for
+  LATE_SCAN_AFTER, so the stream never pauses while a scan is late: the autopilot would keep
+  flying it anyway, and the lidar-stale timeout still holds), ZERO → zero velocity (every scan,
+  and at 10 Hz without scans), NONE → no setpoint; then OBSTACLE_DISTANCE for the newest scan
 - HEARTBEAT at 1 Hz; every supervisor transition: one log line, one STATUSTEXT
 - WATCHDOG=1 after every iteration that completed; a periodic counters log line
 
@@ -54,6 +60,16 @@ log = logging.getLogger(__name__)
 
 #: Zero setpoints (HOLD, and PX4's pre-OFFBOARD stream) go out at least this often without scans, s.
 ZERO_SETPOINT_PERIOD = 0.1
+#: While ACTIVE and no scan came for this long after the last setpoint (the scan is lost, partial or
+#: withheld), the last setpoint goes out again rather than none, s. Not a new decision on an old
+#: picture: the autopilot keeps flying the last setpoint it got, and supervisor.lidar_timeout (0.3 s)
+#: still ends it with HOLD.
+LATE_SCAN_AFTER = 0.12
+#: After an iteration whose lidar read stopped at its bounds with datagrams still waiting (a flood),
+#: the loop pauses this long, s: it reads at most about half the time instead of spinning, so a
+#: flood cannot take the whole processor (run SCHED_FIFO, the companion would starve the kernel's
+#: own threads, ksoftirqd among them, and its own datagrams with them). The kernel drops the excess.
+BACKLOG_PAUSE = 0.005
 #: Watchdog ping period when systemd does not say (WATCHDOG_USEC unset), s.
 DEFAULT_WATCHDOG_PERIOD = 1.0
 
@@ -100,7 +116,9 @@ def open_lidar(config: CompanionConfig, clock: Callable[[], float]) -> LidarSour
         from companion.lidar.velodyne import VelodyneUdpSource
 
         v = lidar.velodyne
-        return VelodyneUdpSource(v.host, v.port, backend=v.decoder, clock=clock)
+        if not v.sensor_ip:
+            log.warning("lidar.velodyne.sensor_ip is not set: VLP-16 packets from any sender are decoded")
+        return VelodyneUdpSource(v.host, v.port, backend=v.decoder, clock=clock, sensor_ip=v.sensor_ip)
     from companion.lidar.can_ring import open_can_ring
 
     return open_can_ring(lidar.can, clock)
@@ -236,6 +254,7 @@ class Companion:
             policy_spec(config),
             config.policy.providers or None,
             trt_cache_dir=config.policy.trt_cache_dir or None,
+            sha256=config.policy.sha256 or None,
         )
         self._param_messages = check_parameters(config)
         self.lidar = open_lidar(config, clock)
@@ -258,6 +277,8 @@ class Companion:
         self._unsent_scan: np.ndarray | None = None  # newest scan not yet sent as OBSTACLE_DISTANCE
         self._last_filter: float | None = None
         self._last_zero = -math.inf
+        self._last_setpoint = -math.inf
+        self._last_command = Command(0.0, 0.0)  # the last setpoint sent, repeated while a scan is late
         self._last_heartbeat = -math.inf
         self._last_watchdog = -math.inf
         self._last_log = clock()
@@ -292,8 +313,12 @@ class Companion:
         self._status = self.link.poll()
         self.supervisor.on_vehicle(self._status)
         self._step_goal()
-        for cloud in clouds:
-            self._on_cloud(cloud)
+        if getattr(self.lidar, "implausible", False):
+            self.counters["reads_implausible"] += 1
+            self.supervisor.on_scan(False, "lidar implausible")
+        elif clouds:
+            self.counters["revolutions_skipped"] += len(clouds) - 1
+            self._on_cloud(clouds[-1])
         kind = self.supervisor.tick()
         self._send(kind, new_scan=bool(clouds))  # the setpoint first: it is the time-critical message
         self._kind = kind
@@ -301,6 +326,9 @@ class Companion:
         for transition in self.supervisor.drain_transitions():
             self._announce(transition)
         self._periodic()
+        if getattr(self.lidar, "backlogged", False):
+            self.counters["backlog_pauses"] += 1
+            time.sleep(BACKLOG_PAUSE)
 
     def _step_goal(self) -> None:
         """Goal: progress announced; a goal that says hold gates the policy (see :meth:`_send`)."""
@@ -373,7 +401,13 @@ class Companion:
                 command = self.shield.filter(requested, scan, dt)
                 self._last_filter = now
                 self.link.send_velocity(command.forward, command.yaw_rate)
+                self._last_setpoint, self._last_command = now, command
                 self.counters["setpoints_policy"] += 1
+            elif now - self._last_setpoint > LATE_SCAN_AFTER:
+                command = self._last_command
+                self.link.send_velocity(command.forward, command.yaw_rate)
+                self._last_setpoint = now
+                self.counters["setpoints_late_scan"] += 1
         else:
             # Leaving ACTIVE: the next engagement ramps up from standstill, with a fresh stack.
             self.shield.reset()
@@ -385,7 +419,8 @@ class Companion:
             )
             if stream and (new_scan or now - self._last_zero >= ZERO_SETPOINT_PERIOD):
                 self.link.send_velocity(0.0, 0.0)
-                self._last_zero = now
+                self._last_zero = self._last_setpoint = now
+                self._last_command = Command(0.0, 0.0)
                 self.counters["setpoints_zero"] += 1
         if self.supervisor.state is not SupervisorState.ACTIVE:
             self._reset_stack = True

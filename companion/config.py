@@ -10,6 +10,8 @@ deployment directory can be moved as a whole. ``config/companion.example.toml`` 
 from __future__ import annotations
 
 import dataclasses
+import ipaddress
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -34,11 +36,22 @@ class VelodyneConfig:
     :param port: UDP data port (the sensor's default is 2368)
     :param decoder: ``numpy`` (the project's vectorised decoder) or ``velodyne-decoder`` (the C++
         package); both give the same cloud
+    :param sensor_ip: the sensor's IPv4 address (factory default 192.168.1.201): datagrams from any
+        other address are counted and dropped, as the ROS driver's ``device_ip`` does; empty accepts
+        every sender (a warning at start-up)
     """
 
     host: str = "0.0.0.0"
     port: int = field(default=2368, metadata={"min": 1, "max": 65535})
     decoder: Literal["numpy", "velodyne-decoder"] = "numpy"
+    sensor_ip: str = ""
+
+    def __post_init__(self) -> None:
+        if self.sensor_ip:
+            try:
+                ipaddress.IPv4Address(self.sensor_ip)
+            except ValueError:
+                raise ValueError(f"sensor_ip: {self.sensor_ip!r} is not an IPv4 address") from None
 
 
 @dataclass(frozen=True)
@@ -108,14 +121,21 @@ class PolicyConfig:
     :param max_yaw_rate: yaw rate that action 1.0 stands for, rad/s (as in training)
     :param trt_cache_dir: directory for TensorRT's engine cache (empty: no cache; relative: to the
         config file); the service's StateDirectory is meant for it
+    :param sha256: the model file's SHA-256 (64 hex digits, as ``avoid-train export`` prints it);
+        when set, any other file is refused at start-up; empty: not checked (the hash is logged)
     """
 
     model: str = ""
+    sha256: str = ""
     providers: tuple[str, ...] = ()
     trt_cache_dir: str = ""
     stack: int = field(default=4, metadata={"min": 1, "max": 64})
     max_speed: float = field(default=2.0, metadata={"min": 0.01, "max": 20.0})
     max_yaw_rate: float = field(default=1.5, metadata={"min": 0.01, "max": 6.0})
+
+    def __post_init__(self) -> None:
+        if self.sha256 and not re.fullmatch(r"[0-9a-fA-F]{64}", self.sha256):
+            raise ValueError(f"sha256: {self.sha256!r} is not 64 hexadecimal digits")
 
 
 @dataclass(frozen=True)

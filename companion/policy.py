@@ -8,6 +8,7 @@ order or speed scaling would fly the vehicle wrongly without any error, so it mu
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import math
@@ -20,6 +21,7 @@ import onnxruntime as ort
 
 from companion.errors import UserError
 from companion.scan import BIN_CONVENTION
+from companion.userfile import read_user_bytes
 
 log = logging.getLogger(__name__)
 
@@ -36,6 +38,9 @@ METADATA_KEYS: dict[str, str] = {
     PREFIX + "max_yaw_rate": "rad/s that action a1 = 1 stands for (counter-clockwise positive)",
     PREFIX + "config": "the training configuration, JSON (informational)",
 }
+
+#: A policy is a small MLP (under 1 MB); a model file larger than this is not one.
+MAX_MODEL_BYTES = 256 << 20
 
 # Execution providers in order of preference; whichever of them this onnxruntime build has is used.
 PREFERRED_PROVIDERS = ("TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider")
@@ -135,9 +140,11 @@ class OnnxPolicy:
     :param path: the model file (from ``avoid-train export``)
     :param spec: what the companion will feed it; the model's metadata must match
     :param providers: execution providers to try (default TensorRT → CUDA → CPU, as available)
-    :param trt_cache_dir: where TensorRT keeps its built engines (``None``: no cache)
-    :raises UserError: unreadable or not ONNX, wrong input/output shape, metadata missing or not
-        matching ``spec``; the message names both values
+    :param trt_cache_dir: where TensorRT keeps its built engines, in one directory per model hash
+        (``None``: no cache)
+    :param sha256: the file's expected SHA-256 (hex; ``None`` or empty: not checked)
+    :raises UserError: unreadable or not ONNX, not the expected hash, wrong input/output shape,
+        metadata missing, not UTF-8 or not matching ``spec``; the message names both values
     """
 
     def __init__(
@@ -146,11 +153,18 @@ class OnnxPolicy:
         spec: PolicySpec,
         providers: Sequence[str] | None = None,
         trt_cache_dir: str | None = None,
+        sha256: str | None = None,
     ) -> None:
         self.path = Path(path)
         self.spec = spec
-        if not self.path.is_file():
-            raise UserError(f"policy model not found: {self.path}")
+        model = read_user_bytes(self.path, "policy model", MAX_MODEL_BYTES)
+        #: SHA-256 of the model file, hex: logged at start-up, compared with ``policy.sha256``.
+        self.sha256 = hashlib.sha256(model).hexdigest()
+        if sha256 and sha256.lower() != self.sha256:
+            raise UserError(
+                f"policy model {self.path}: sha256 {self.sha256} is not the configured policy.sha256 "
+                f"{sha256.lower()} (a different or corrupted file)"
+            )
         options = ort.SessionOptions()
         # One small MLP per scan: a single thread has the lowest, steadiest latency and leaves the
         # other cores to the lidar and MAVLink.
@@ -159,9 +173,9 @@ class OnnxPolicy:
         options.log_severity_level = 3
         try:
             self._session = ort.InferenceSession(
-                str(self.path),
+                model,  # the bytes hashed above, not the path: the file may change in between
                 sess_options=options,
-                providers=provider_options(select_providers(providers), trt_cache_dir),
+                providers=provider_options(select_providers(providers), self._engine_cache(trt_cache_dir)),
             )
         except UserError:
             raise
@@ -175,7 +189,23 @@ class OnnxPolicy:
         self._output_names = [self._session.get_outputs()[0].name]
         self._run_options = ort.RunOptions()
         self._run_options.log_severity_level = 4  # a failed run is reported once, as InferenceFault
-        log.info("policy %s loaded, ONNX Runtime providers in use: %s", self.path, ", ".join(self.providers))
+        log.info("policy %s (sha256 %s) loaded, ONNX Runtime providers in use: %s", self.path, self.sha256,
+                 ", ".join(self.providers))
+
+    def _engine_cache(self, trt_cache_dir: str | None) -> str | None:
+        """This model's own directory under ``trt_cache_dir``, named by its hash.
+
+        ONNX Runtime keys TensorRT engines on the model's path, or its graph when loaded from bytes,
+        never on its weights: a retrained model of the same shape would run the old engine.
+        """
+        if not trt_cache_dir:
+            return None
+        directory = Path(trt_cache_dir) / self.sha256[:16]
+        try:
+            directory.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise UserError(f"policy.trt_cache_dir: cannot create {directory}: {exc.strerror}") from None
+        return str(directory)
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         """One action for one stacked observation.
@@ -218,7 +248,12 @@ class OnnxPolicy:
             raise UserError(f"model output shape {_shape(out.shape)} is not (1, 2)")
 
     def _check_metadata(self) -> None:
-        meta = dict(self._session.get_modelmeta().custom_metadata_map)
+        try:
+            meta = dict(self._session.get_modelmeta().custom_metadata_map)
+        except UnicodeDecodeError as exc:  # protobuf strings are UTF-8 by contract; a file can break it
+            raise UserError(
+                f"policy model {self.path}: metadata is not UTF-8 text ({exc.reason} at byte {exc.start})"
+            ) from None
         missing = [key for key in METADATA_KEYS if key not in meta]
         if missing:
             raise UserError(

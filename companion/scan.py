@@ -26,15 +26,18 @@ class ScanConfig:
     :param max_range: range that maps to 1.0, metres
     :param min_range: returns closer than this to the sensor are ignored (own frame, dust)
     :param slice_height: keep points with ``|z_body| < slice_height``
-    :param mount_xyz: sensor origin in the body frame, metres
-    :param mount_rpy_deg: sensor orientation in the body frame (roll, pitch, yaw), degrees
+    :param mount_xyz: sensor origin in the body frame, metres (within 2 m of the body origin)
+    :param mount_rpy_deg: sensor orientation in the body frame (roll, pitch, yaw), degrees, each
+        within ±180
     """
 
     max_range: float = field(default=10.0, metadata={"min": 0.5, "max": 200.0})
     min_range: float = field(default=0.1, metadata={"min": 0.0, "max": 5.0})
     slice_height: float = field(default=0.5, metadata={"min": 0.01, "max": 10.0})
-    mount_xyz: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    mount_rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    mount_xyz: tuple[float, float, float] = field(default=(0.0, 0.0, 0.0), metadata={"min": -2.0, "max": 2.0})
+    mount_rpy_deg: tuple[float, float, float] = field(
+        default=(0.0, 0.0, 0.0), metadata={"min": -180.0, "max": 180.0}
+    )
 
     def __post_init__(self) -> None:
         if self.min_range >= self.max_range:

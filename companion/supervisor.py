@@ -147,10 +147,12 @@ class Supervisor:
             self._good_scans = 0
             self._go(SupervisorState.WAITING_FOR_AUTOPILOT, "started")
 
-    def on_scan(self, ok: bool) -> None:
+    def on_scan(self, ok: bool, fault: str = "inference fault") -> None:
         """A scan arrived.
 
-        :param ok: False when inference on it faulted (exception, NaN/Inf output)
+        :param ok: False when inference on it faulted (exception, NaN/Inf output), or the lidar
+            source judged its input implausible
+        :param fault: the HOLD reason when not ``ok``
         """
         now = self._clock()
         last, self._last_scan_time = self._last_scan_time, now
@@ -164,7 +166,7 @@ class Supervisor:
             self.counters["scans_ok"] += 1
         else:
             self._good_scans = 0
-            self._scan_problem = "inference fault"
+            self._scan_problem = fault
             self.counters["scans_faulted"] += 1
 
     def on_vehicle(self, status: VehicleStatus) -> None:

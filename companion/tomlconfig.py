@@ -1,7 +1,8 @@
 """Load a (nested) dataclass from TOML with strict checking.
 
-Every program has one config dataclass. An unknown key, a wrong type or a value outside the
-range declared in the field's metadata (``metadata={"min": 0, "max": 10}``) raises
+Every program has one config dataclass. An unknown key, a wrong type, a float that is NaN or
+infinite, or a value outside the range declared in the field's metadata
+(``metadata={"min": 0, "max": 10}``, on a list: for every item) raises
 :class:`UserError` naming the dotted key, so a typo in a config file stops start-up instead of
 silently falling back to a default.
 """
@@ -9,6 +10,7 @@ silently falling back to a default.
 from __future__ import annotations
 
 import dataclasses
+import math
 import sys
 import types
 import typing
@@ -16,6 +18,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from companion.errors import UserError
+from companion.userfile import load_user_file
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -26,15 +29,9 @@ T = TypeVar("T")
 
 
 def load_toml(path: str | Path) -> dict[str, Any]:
-    """Read a TOML file; a missing or malformed file is a :class:`UserError`."""
-    path = Path(path)
-    try:
-        with path.open("rb") as f:
-            return tomllib.load(f)
-    except FileNotFoundError:
-        raise UserError(f"config file not found: {path}") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise UserError(f"config file {path} is not valid TOML: {exc}") from None
+    """Read a TOML file; a file that cannot be read or parsed, whatever the reason, is a
+    :class:`UserError` naming it (:func:`companion.userfile.load_user_file`)."""
+    return load_user_file(path, "config file", tomllib.loads)
 
 
 def _check_value(key: str, value: Any, tp: Any) -> Any:
@@ -81,6 +78,8 @@ def _check_value(key: str, value: Any, tp: Any) -> Any:
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise UserError(f"{key}: expected a number, got {type(value).__name__} {value!r}")
+        if not math.isfinite(value):  # NaN compares false with every bound, inf passes one side
+            raise UserError(f"{key}: expected a finite number, got {value}")
         return float(value)
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
@@ -100,8 +99,12 @@ def _check_value(key: str, value: Any, tp: Any) -> Any:
 
 
 def _check_range(key: str, value: Any, meta: typing.Mapping[str, Any]) -> None:
+    """The field's ``min``/``max``; on a list or tuple they bound every item."""
     lo, hi = meta.get("min"), meta.get("max")
-    if isinstance(value, (int, float)) and not isinstance(value, bool):
+    if isinstance(value, (list, tuple)):
+        for i, item in enumerate(value):
+            _check_range(f"{key}[{i}]", item, meta)
+    elif isinstance(value, (int, float)) and not isinstance(value, bool):
         if lo is not None and value < lo:
             raise UserError(f"{key}: {value} is below the minimum {lo}")
         if hi is not None and value > hi:

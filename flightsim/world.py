@@ -20,6 +20,7 @@ import numpy as np
 from numba import njit
 
 from companion.errors import UserError
+from companion.userfile import load_user_file
 
 WALL_THICKNESS = 0.1
 DEFAULT_VEHICLE_RADIUS = 0.25
@@ -363,20 +364,14 @@ def load_world(path: str | Path, *, vehicle_radius: float = DEFAULT_VEHICLE_RADI
     :raises UserError: missing/empty/invalid file or any bad field, naming it
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise UserError(f"world {path}: file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise UserError(f"world {path}: cannot read: {exc}") from None
-    if not text.strip():
-        raise UserError(f"world {path}: file is empty")
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        where = f"line {exc.lineno} column {exc.colno}"
-        raise UserError(f"world {path}: invalid JSON at {where}: {exc.msg}") from None
+    data = load_user_file(path, "world", _parse_json)
     return world_from_dict(data, path_for_messages=str(path), vehicle_radius=vehicle_radius)
+
+
+def _parse_json(text: str) -> Any:
+    if not text.strip():
+        raise ValueError("file is empty")
+    return json.loads(text)
 
 
 def world_to_dict(world: World) -> dict[str, Any]:

@@ -13,6 +13,7 @@ wrote the weights to a side file by default.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import logging
 import warnings
@@ -217,4 +218,6 @@ def command(args: argparse.Namespace) -> int:
         f"exported {args.out}: max abs diff vs model.predict over {args.parity_samples} "
         f"rollout observations {diff:.3g}"
     )
+    # for the companion config's policy.sha256, which refuses any other file
+    print(f"sha256 {hashlib.sha256(args.out.read_bytes()).hexdigest()}  {args.out}")
     return 0

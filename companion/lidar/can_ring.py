@@ -8,7 +8,8 @@ and TFmini Plus CAN manuals; ArduPilot's AP_RangeFinder_Benewake_CAN reads the s
     byte 4–7  sensor timestamp, uint32 little-endian, milliseconds (unused here)
 
 DLC 8, standard 11-bit id by default (0x003 from the factory; give each sensor its own id with
-Benewake's configuration tool), 250 kbit/s by default. Each sensor becomes one point at its mounting
+Benewake's configuration tool), 250 kbit/s by default. An id up to 0x7FF is taken only from standard
+frames, a larger one only from extended frames. Each sensor becomes one point at its mounting
 yaw in the FLU sensor frame (x forward, y left, z = 0), so the scan code treats the ring like a lidar.
 """
 
@@ -36,8 +37,13 @@ FRAME_DLC = 8
 _FRAME = struct.Struct("<HHI")
 MAX_CAN_ID = 0x1FFFFFFF
 
-#: Why a frame was dropped; the keys of the ``malformed`` counter.
-MALFORMED_REASONS = ("error_frame", "remote_frame", "unknown_id", "wrong_dlc")
+#: Highest standard (11-bit) id: a sensor's id up to this arrives in standard frames, above it in
+#: extended (29-bit) ones, as benewake_frame sends them.
+MAX_STANDARD_ID = 0x7FF
+
+#: Why a frame was dropped; the keys of the ``malformed`` counter. ``wrong_id_format``: a sensor's
+#: id in the other frame format (extended 0x10 is not standard 0x10, whoever sent it).
+MALFORMED_REASONS = ("error_frame", "remote_frame", "unknown_id", "wrong_id_format", "wrong_dlc")
 
 
 @dataclass(frozen=True)
@@ -65,7 +71,7 @@ def benewake_frame(
         raise ValueError(f"distance {distance_m} m does not fit the frame's uint16 centimetres")
     return can.Message(
         arbitration_id=can_id,
-        is_extended_id=can_id > 0x7FF,
+        is_extended_id=can_id > MAX_STANDARD_ID,
         data=_FRAME.pack(centimetres, strength, timestamp_ms & 0xFFFFFFFF),
     )
 
@@ -212,6 +218,8 @@ class CanRangefinderRing:
         index = self._index.get(message.arbitration_id)
         if index is None:
             return self._drop("unknown_id")
+        if message.is_extended_id != (message.arbitration_id > MAX_STANDARD_ID):
+            return self._drop("wrong_id_format")
         if message.dlc != FRAME_DLC or len(message.data) != FRAME_DLC:
             return self._drop("wrong_dlc")
         centimetres, strength, _ = _FRAME.unpack_from(message.data)

@@ -22,10 +22,12 @@ from tests.companion.mavlink_peer import free_udp_port
 REPO = Path(__file__).resolve().parents[2]
 
 
-def revolution_packets(index: int, step_deg: float = 1.0, range_m: float = 8.0) -> list[bytes]:
+def revolution_packets(index: int, step_deg: float = 0.2, range_m: float = 8.0) -> list[bytes]:
     """The packets of one whole revolution, laid out so the azimuth wraps inside the last packet.
 
     Revolutions of consecutive ``index`` continue each other, so each one completes the previous.
+    The default 0.2° step is the VLP-16's at 600 rpm (75 packets): the companion drops turns no
+    VLP-16 can make (1° = 15 packets a turn would be 2,400 rpm).
     """
     n = round(360 / step_deg)
     start = step_deg * (FIRINGS_PER_PACKET // 2)  # the wrap falls half-way through the last packet
@@ -38,7 +40,7 @@ def revolution_packets(index: int, step_deg: float = 1.0, range_m: float = 8.0) 
 class LidarSender:
     """Sends revolutions to the companion's VLP-16 port at ``rate_hz`` from a thread while ``on``."""
 
-    def __init__(self, port: int, rate_hz: float = 10.0, step_deg: float = 1.0) -> None:
+    def __init__(self, port: int, rate_hz: float = 10.0, step_deg: float = 0.2) -> None:
         self.address = ("127.0.0.1", port)
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.period = 1.0 / rate_hz
@@ -104,7 +106,7 @@ class NotifySocket:
 
 
 def write_config(tmp_path: Path, model: Path, lidar_port: int, mavlink_port: int, extra: str = "",
-                 autopilot: str = "ardupilot") -> Path:
+                 autopilot: str = "ardupilot", sensor_ip: str = "") -> Path:
     """A companion config for loopback: VLP-16 on ``lidar_port``, the autopilot via udpin ``mavlink_port``."""
     path = tmp_path / "companion.toml"
     connect = f"udpin://127.0.0.1:{mavlink_port}" if autopilot == "px4" else f"udpin:127.0.0.1:{mavlink_port}"
@@ -113,6 +115,7 @@ def write_config(tmp_path: Path, model: Path, lidar_port: int, mavlink_port: int
 [lidar.velodyne]
 host = "127.0.0.1"
 port = {lidar_port}
+sensor_ip = "{sensor_ip}"
 
 [policy]
 model = "{model}"
@@ -133,22 +136,72 @@ log_interval = 2.0
     return path
 
 
+def realtime_prefix(priority: int = 20) -> list[str]:
+    """``chrt --fifo PRIORITY`` where this user may (root or CAP_SYS_NICE), otherwise nothing.
+
+    20 is the companion's priority in systemd/lidar-avoid-companion.service.
+    """
+    command = ["chrt", "--fifo", str(priority)]
+    try:
+        allowed = subprocess.run([*command, "true"], capture_output=True).returncode == 0
+    except OSError:
+        allowed = False
+    return command if allowed else []
+
+
 def start_companion(config: Path, notify: Path | None = None, extra_env: dict[str, str] | None = None,
-                    python_args: tuple[str, ...] = ()) -> subprocess.Popen[str]:
+                    python_args: tuple[str, ...] = (), realtime: bool = False,
+                    log: Path | None = None) -> subprocess.Popen[str]:
+    """``avoid-companion run --config config`` in a subprocess.
+
+    :param realtime: SCHED_FIFO 20 as deployed, where permitted
+    :param log: write its log (stderr) to this file instead of a pipe: a pipe nobody reads before
+        the end fills after 64 KiB, and the companion then blocks on its next log line
+    """
     env = dict(os.environ)
     env.pop("NOTIFY_SOCKET", None)
     if notify is not None:
         env["NOTIFY_SOCKET"] = str(notify)
         env["WATCHDOG_USEC"] = "1000000"
     env.update(extra_env or {})
+    stderr = log.open("w") if log is not None else None
+    try:
+        return subprocess.Popen(
+            [*(realtime_prefix() if realtime else []), sys.executable, *python_args, "-m", "companion",
+             "run", "--config", str(config)],
+            cwd=REPO,
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE if stderr is None else stderr,
+            text=True,
+        )
+    finally:
+        if stderr is not None:
+            stderr.close()  # the child has its own copy
+
+
+def favoured_prefix() -> list[str]:
+    """``nice -n -10`` where this user may: a larger share of a loaded machine's processor, without
+    the real-time priority that would starve the kernel's own threads (ksoftirqd delivers loopback
+    datagrams once the softirq load is high)."""
+    command = ["nice", "-n", "-10"]
+    try:
+        allowed = subprocess.run([*command, "true"], capture_output=True).returncode == 0
+    except OSError:
+        allowed = False
+    return command if allowed and os.geteuid() == 0 else []
+
+
+def start_lidar_traffic(port: int, *args: str, favoured: bool = False) -> subprocess.Popen[str]:
+    """tests/companion/lidar_flood.py in its own process (``--play ...`` or ``--flood ...``).
+
+    :param favoured: ``nice -n -10`` where permitted, so that a loaded machine cannot keep the
+        sensor's pace or the flood's rate from being what the test says
+    """
+    prefix = favoured_prefix() if favoured else []
     return subprocess.Popen(
-        [sys.executable, *python_args, "-m", "companion", "run", "--config", str(config)],
-        cwd=REPO,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+        [*prefix, sys.executable, "-m", "tests.companion.lidar_flood", "--port", str(port), *args],
+        cwd=REPO, stdout=subprocess.PIPE, text=True)
 
 
 def run_to_exit(args: list[str], timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
@@ -169,4 +222,4 @@ def stop(proc: subprocess.Popen[str], timeout: float = 10.0) -> tuple[int, str, 
 
 
 __all__ = ["LidarSender", "NotifySocket", "free_udp_port", "revolution_packets", "run_to_exit",
-           "start_companion", "stop", "write_config"]
+           "start_companion", "start_lidar_traffic", "stop", "write_config"]

@@ -6,6 +6,7 @@ streams VLP-16 revolutions; an AF_UNIX socket stands in for systemd.
 
 from __future__ import annotations
 
+import hashlib
 import signal
 import socket
 import time
@@ -168,10 +169,26 @@ def test_model_trained_for_another_range_is_refused(tmp_path):
     assert "max_range 8.0" in lines[0] and "scan.max_range 10.0" in lines[0]
 
 
+def test_start_up_logs_the_models_sha256_and_an_unset_sensor_ip(tmp_path):
+    model = write_policy(tmp_path / "m.onnx")
+    digest = hashlib.sha256(model.read_bytes()).hexdigest()
+    config = write_config(tmp_path, model, free_udp_port(), free_udp_port())
+    notify = NotifySocket(tmp_path / "notify.sock")
+    proc = start_companion(config, notify=notify.path)
+    try:
+        assert notify.wait_for("READY=1")
+    finally:
+        code, _, log = stop(proc)
+        notify.close()
+    assert code == 0
+    assert f"(sha256 {digest}) loaded" in log
+    assert "lidar.velodyne.sensor_ip is not set" in log
+
+
 def test_missing_model_and_busy_lidar_port(tmp_path):
     config = write_config(tmp_path, tmp_path / "nope.onnx", free_udp_port(), free_udp_port())
     result = run_to_exit(["run", "--config", str(config)])
-    assert result.returncode == 2 and "policy model not found" in result.stderr
+    assert result.returncode == 2 and "policy model" in result.stderr and "file not found" in result.stderr
     assert len(result.stderr.strip().splitlines()) == 1
 
     busy = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)

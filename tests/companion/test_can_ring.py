@@ -104,6 +104,19 @@ def test_malformed_frames_are_counted_and_dropped(buses) -> None:
     assert ring.counters.frames == 9
 
 
+def test_an_extended_frame_is_not_the_standard_id_it_shares_a_number_with(buses) -> None:
+    """Issue 14: extended frame 0x10 was read as sensor 0x10 (standard)."""
+    sensor_bus, ring = buses
+    send(sensor_bus, {0x11: 1.0, 0x12: 1.0, 0x13: 1.0})
+    forged = benewake_frame(0x10, 0.2).data
+    sensor_bus.send(can.Message(arbitration_id=0x10, data=forged, is_extended_id=True))
+    assert ring.read_available(now=0.0) == []  # 0x10 never reported: no cloud, no 0.2 m return
+    assert ring.counters.malformed == {"wrong_id_format": 1}
+    send(sensor_bus, {0x10: 4.0})
+    [cloud] = ring.read_available(now=0.01)
+    assert float(cloud[0, 0]) == pytest.approx(4.0)
+
+
 def test_a_silent_sensor_stops_the_clouds_instead_of_leaving_a_blind_sector(buses) -> None:
     sensor_bus, ring = buses
     send(sensor_bus, {0x10: 1.0})

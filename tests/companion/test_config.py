@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import re
 import typing
 from pathlib import Path
 
@@ -113,7 +114,7 @@ def test_bad_override_names_the_key(tmp_path):
 
 
 def test_missing_file(tmp_path):
-    with pytest.raises(UserError, match="config file not found"):
+    with pytest.raises(UserError, match=r"^config file .*nope\.toml: file not found$"):
         load_config(tmp_path / "nope.toml")
 
 
@@ -125,3 +126,71 @@ def test_absolute_and_home_paths_are_kept(tmp_path):
     assert config.policy.model == "/opt/avoid/policy.onnx"
     assert config.params_check.file == str(Path.home() / "copter.parm")
     assert config.params_check.mode == "warn"
+
+
+def _float_keys(cls: type, prefix: str = "") -> list[tuple[str, int | None]]:
+    """(dotted key, tuple length or None) of every float key, sensors' through one [[table]] item."""
+    out: list[tuple[str, int | None]] = []
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        tp, args = hints[f.name], typing.get_args(hints[f.name])
+        if dataclasses.is_dataclass(tp):
+            out += _float_keys(tp, f"{prefix}{f.name}.")
+        elif typing.get_origin(tp) is tuple and args and dataclasses.is_dataclass(args[0]):
+            out += _float_keys(args[0], f"{prefix}{f.name}[0].")
+        elif tp is float:
+            out.append((prefix + f.name, None))
+        elif typing.get_origin(tp) is tuple and args and all(a is float for a in args):
+            out.append((prefix + f.name, len(args)))
+    return out
+
+
+FLOAT_KEYS = _float_keys(CompanionConfig)
+
+
+def _override(key: str, length: int | None, value: str) -> str:
+    """An override setting ``key`` to ``value`` (tuples: the first item; sensors: one whole table)."""
+    item = f"[{value}{', 0.0' * (length - 1)}]" if length else value
+    if "[0]." in key:
+        table, _, name = key.partition("[0].")
+        return f"{table}=[{{can_id = 1, {name} = {item}}}]"
+    return f"{key}={item}"
+
+
+def test_every_float_key_is_found():
+    keys = {k for k, _ in FLOAT_KEYS}
+    assert {"shield.estop_distance", "scan.slice_height", "scan.mount_xyz", "scan.mount_rpy_deg",
+            "runtime.heartbeat_interval", "lidar.can.sensors[0].yaw_deg"} <= keys
+    assert len(keys) >= 25
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf", "+nan"])
+@pytest.mark.parametrize(("key", "length"), FLOAT_KEYS, ids=[k for k, _ in FLOAT_KEYS])
+def test_every_float_key_refuses_nan_and_infinity(tmp_path, key, length, value):
+    """NaN passes every comparison with a bound (issue 14: shield.estop_distance=nan flew at a wall)."""
+    named = re.escape(f"{key}[0]" if length else key)
+    with pytest.raises(UserError, match=rf"^{named}: expected a finite number, got [-+]?(nan|inf)$"):
+        load_config(_write(tmp_path, ""), [_override(key, length, value)])
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("scan.mount_xyz=[0.0, 1e30, 0.0]", r"scan\.mount_xyz\[1\]: 1e\+30 is above the maximum 2\.0"),
+        ("scan.mount_xyz=[-2.5, 0.0, 0.0]", r"scan\.mount_xyz\[0\]: -2\.5 is below the minimum -2\.0"),
+        ("scan.mount_rpy_deg=[0.0, 0.0, 720.0]", r"scan\.mount_rpy_deg\[2\]: 720\.0 is above the max"),
+        ("lidar.velodyne.sensor_ip=\"192.168.1.300\"", r"lidar\.velodyne: sensor_ip: '192\.168\.1\.300'"),
+        ("policy.sha256=\"abc\"", r"policy: sha256: 'abc' is not 64 hexadecimal digits"),
+    ],
+)
+def test_mount_bounds_sensor_ip_and_model_hash_are_checked(tmp_path, override, message):
+    with pytest.raises(UserError, match=message):
+        load_config(_write(tmp_path, ""), [override])
+
+
+def test_mount_within_bounds_and_sensor_ip_load(tmp_path):
+    config = load_config(_write(tmp_path, ""), ["scan.mount_rpy_deg=[180.0, -10.0, -180.0]",
+                                                "lidar.velodyne.sensor_ip=\"192.168.1.201\"",
+                                                f"policy.sha256=\"{'Ab' * 32}\""])
+    assert config.scan.mount_rpy_deg == (180.0, -10.0, -180.0)
+    assert config.lidar.velodyne.sensor_ip == "192.168.1.201"

@@ -310,6 +310,16 @@ def test_restarted_mid_flight_resumes_only_after_fresh_scans() -> None:
     assert [t[1] for t in rig.transitions()] == [S.WAITING_FOR_AUTOPILOT, S.STANDBY, S.ACTIVE]
 
 
+def test_an_implausible_lidar_holds_with_its_own_reason() -> None:
+    rig = Rig()
+    rig.to_active()
+    rig.clock.now += DT
+    rig.sup.on_scan(False, "lidar implausible")  # the source saw more turns than the sensor makes
+    assert rig.sup.tick() is CommandKind.ZERO
+    assert rig.transitions() == [(S.ACTIVE, S.HOLD, "lidar implausible")]
+    assert rig.sup.counters["lidar implausible"] == 1
+
+
 def test_every_transition_is_recorded_and_counted() -> None:
     rig = Rig()
     rig.to_active()

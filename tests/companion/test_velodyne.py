@@ -389,7 +389,7 @@ def test_encode_decode_round_trip(
 @pytest.mark.parametrize(
     ("step", "start", "packets_per_revolution"),
     [
-        (1.0, 90.0, 15),  # wrap at the first firing of a block, inside a packet
+        (0.25, 90.5, 60),  # wrap at the first firing of a block, inside a packet (960 rpm)
         (0.2, 90.0, 75),
         (0.2, 90.3, 75),  # wrap at the interpolated second firing of a block
         (0.2, 0.0, 75),  # wrap at a packet boundary

@@ -83,7 +83,8 @@ def test_cosim_streams_revolutions_the_companion_decodes_into_the_right_scan():
     state = hover_state(-4.5, 0.0, 0.0)  # room 12 x 8 m: the wall behind is 1.5 m away, East wall 10.5 m
     port = free_udp_port()
     source = VelodyneUdpSource("127.0.0.1", port)
-    cosim = LidarCosim(world, lambda: state, ("127.0.0.1", port), lidar=LidarConfig(azimuth_step_deg=1.0))
+    # 0.2°: the VLP-16 at 600 rpm; the companion drops turns no VLP-16 makes (1° would be 2,400 rpm)
+    cosim = LidarCosim(world, lambda: state, ("127.0.0.1", port), lidar=LidarConfig(azimuth_step_deg=0.2))
     cosim.revolution_packets(state)  # compile before timing anything
     clouds = []
     try:
@@ -96,7 +97,7 @@ def test_cosim_streams_revolutions_the_companion_decodes_into_the_right_scan():
         cosim.stop()
         source.close()
     assert 8 <= cosim.stats.revolutions <= 11  # 10 Hz, real time
-    assert cosim.stats.packets == 15 * cosim.stats.revolutions  # 360 firings / 24 per packet
+    assert cosim.stats.packets == 75 * cosim.stats.revolutions  # 1800 firings / 24 per packet
     assert len(clouds) >= cosim.stats.revolutions - 2
     scan = scan_from_points(clouds[-1], ScanConfig())
     assert scan[180] * 10.0 == pytest.approx(1.5, abs=0.05)  # bin 180 = behind: the West wall

@@ -8,6 +8,7 @@ companion's own OnnxPolicy and FrameStack.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import io
 import json
 import re
@@ -112,7 +113,10 @@ def test_export_checks_parity_and_writes_what_the_companion_checks(pipeline):
     meta = {p.key: p.value for p in proto.metadata_props}
     assert meta["lidar_avoid.stack"] == "4" and meta["lidar_avoid.max_range"] == "10.0"
     assert json.loads(meta["lidar_avoid.config"])["env"]["max_steps"] == 40
-    OnnxPolicy(onnx_path, PolicySpec())  # the companion accepts it...
+    # the hash it prints is the file's, and what the companion's policy.sha256 checks
+    digest = re.search(r"^sha256 ([0-9a-f]{64})  ", printed, re.MULTILINE).group(1)
+    assert digest == hashlib.sha256(onnx_path.read_bytes()).hexdigest()
+    OnnxPolicy(onnx_path, PolicySpec(), sha256=digest)  # the companion accepts it...
     with pytest.raises(UserError, match="max_speed"):
         OnnxPolicy(onnx_path, PolicySpec(max_speed=3.0))  # ...and refuses it under another config
 
