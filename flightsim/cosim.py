@@ -1,8 +1,10 @@
 """Lidar co-simulation: the vehicle's pose → ray-cast VLP-16 revolution → real UDP data packets.
 
 Every 100 ms (10 Hz, like the sensor) the pose is read, one revolution is cast from the sensor's
-mount point and encoded into VLP-16 packets (75 packets at 0.2°, 15 at 1°), which are then sent
-spread over the revolution's 100 ms, as the spinning sensor does. The companion cuts revolutions
+mount point and encoded into the 75 VLP-16 packets a sensor at 600 rpm sends (0.2° apart; a coarser
+cast, e.g. 1°, is sent as those firings too, see :func:`as_sensor_firings`, because the companion
+accepts only turns a real VLP-16 can make), which are then sent spread over the revolution's
+100 ms, as the spinning sensor does. The companion cuts revolutions
 where the azimuth wraps, so a revolution is complete when the next one's first packet arrives,
 right after its own last packet: the send time of each revolution's last packet is recorded so
 the harness can measure latency from "scan complete" to "setpoint received".
@@ -27,6 +29,24 @@ from flightsim.raycast import LidarConfig, VLP16Raycaster
 from flightsim.world import World
 
 log = logging.getLogger(__name__)
+
+#: azimuth between firings of a VLP-16 at 600 rpm (10 Hz), degrees
+SENSOR_STEP_DEG = 0.2
+
+
+def as_sensor_firings(azimuth_deg: np.ndarray, ranges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A cast coarser than the sensor's 0.2° as the firings a VLP-16 at 600 rpm sends.
+
+    Each column is repeated at 0.2° steps just before its own azimuth (1° column α: α − 0.8, …,
+    α − 0.2, α), so every repeat falls into the same 1° scan bin as the column and the scan equals
+    the coarse cast's; a cast at 0.2° or finer is returned as it is.
+    """
+    repeats = round(360.0 / SENSOR_STEP_DEG / len(azimuth_deg))
+    if repeats <= 1:
+        return azimuth_deg, ranges
+    offsets = SENSOR_STEP_DEG * np.arange(repeats - 1, -1, -1)
+    firings = (np.asarray(azimuth_deg, dtype=np.float64)[:, None] - offsets[None, :]).reshape(-1) % 360.0
+    return firings, np.repeat(ranges, repeats, axis=0)
 
 REVOLUTION_S = 0.1
 #: don't sleep for less than this between packets (the OS would oversleep); send a few together
@@ -89,7 +109,8 @@ class LidarCosim:
         position = np.asarray(state.position, dtype=float) + rotation @ self.mount_xyz
         grid = self.caster.cast(self.world, position, rotation @ self.mount_rotation)
         past_hour_us = (time.time() % 3600.0) * 1e6
-        return encode_packets(grid.azimuth_deg, grid.ranges, start_timestamp_us=past_hour_us)
+        azimuth, ranges = as_sensor_firings(grid.azimuth_deg, grid.ranges)
+        return encode_packets(azimuth, ranges, start_timestamp_us=past_hour_us)
 
     def send_raw(self, data: bytes) -> None:
         """Send arbitrary bytes to the companion's lidar port (fault injection)."""

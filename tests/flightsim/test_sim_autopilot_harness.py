@@ -78,13 +78,14 @@ def hover_state(x: float, y: float, yaw_deg: float) -> VehicleState:
     )
 
 
-def test_cosim_streams_revolutions_the_companion_decodes_into_the_right_scan():
+@pytest.mark.parametrize("step", [0.2, 1.0])
+def test_cosim_streams_revolutions_the_companion_decodes_into_the_right_scan(step):
     world = load_world("flightsim/worlds/two-pillars.json")
     state = hover_state(-4.5, 0.0, 0.0)  # room 12 x 8 m: the wall behind is 1.5 m away, East wall 10.5 m
     port = free_udp_port()
     source = VelodyneUdpSource("127.0.0.1", port)
-    # 0.2°: the VLP-16 at 600 rpm; the companion drops turns no VLP-16 makes (1° would be 2,400 rpm)
-    cosim = LidarCosim(world, lambda: state, ("127.0.0.1", port), lidar=LidarConfig(azimuth_step_deg=0.2))
+    # the companion drops turns no VLP-16 makes: a 1° cast is sent as the 0.2° firings of 600 rpm
+    cosim = LidarCosim(world, lambda: state, ("127.0.0.1", port), lidar=LidarConfig(azimuth_step_deg=step))
     cosim.revolution_packets(state)  # compile before timing anything
     clouds = []
     try:
