@@ -146,6 +146,8 @@ def _float_keys(cls: type, prefix: str = "") -> list[tuple[str, int | None]]:
 
 
 FLOAT_KEYS = _float_keys(CompanionConfig)
+#: what a [[table]] item needs besides the key under test
+REQUIRED_ITEM_KEYS = {"lidar.can.sensors": "can_id = 1, "}
 
 
 def _override(key: str, length: int | None, value: str) -> str:
@@ -153,7 +155,8 @@ def _override(key: str, length: int | None, value: str) -> str:
     item = f"[{value}{', 0.0' * (length - 1)}]" if length else value
     if "[0]." in key:
         table, _, name = key.partition("[0].")
-        return f"{table}=[{{can_id = 1, {name} = {item}}}]"
+        required = REQUIRED_ITEM_KEYS.get(table, "")
+        return f"{table}=[{{{required}{name} = {item}}}]"
     return f"{key}={item}"
 
 

@@ -49,7 +49,7 @@ def test_fixed_goal_position_loss_and_completion_hold(tmp_path):
     try:
         lidar.on = True
         _wait(lambda: any(m.vx > 0 for m in vehicle.messages(SETPOINT)), 20.0, "the policy flying")
-        assert any("goal: tracking" in t for t in _texts(vehicle, 0.0))
+        _wait(lambda: any("goal: tracking" in t for t in _texts(vehicle, 0.0)), 5.0, "goal: tracking")
 
         # position lost: after 1 s the goal says hold, the setpoints are zero, the pilot is told why
         vehicle.local_position = None

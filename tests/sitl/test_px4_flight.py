@@ -33,7 +33,7 @@ def flight(tmp_path_factory):
 def test_companion_flies_px4_in_offboard(flight):
     f = flight
     assert f.server.autopilot.mode_name() == "OFFBOARD"
-    wait_for(lambda: speed(f) > 0.6, 5.0, "the vehicle to fly")
+    wait_for(lambda: speed(f) > 0.4, 10.0, "the vehicle to fly")  # PX4's calibrated circle: 0.4-0.7 m/s
     t0 = time.monotonic()
     revs0 = f.cosim.stats.revolutions
     time.sleep(3.0)
