@@ -11,6 +11,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "fly": ("flightsim.harness", "SITL flight: the real companion flying a simulated or external autopilot"),
     "autopilot": ("flightsim.sim_autopilot.server", "a simulated ArduCopter/PX4 on MAVLink sockets"),
     "demo": ("flightsim.demo", "a few short SITL flights in generated and example rooms (under 3 minutes)"),
+    "worlds": ("flightsim.gallery", "the world families: a PNG gallery (--gallery) and world files (--save)"),
 }
 
 

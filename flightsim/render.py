@@ -24,9 +24,14 @@ from flightsim.world import WALL_THICKNESS, Box, World
 _WALL = "#303030"
 _OBSTACLE = "#8c8c8c"
 _OBSTACLE_EDGE = "#404040"
+_LOW_OBSTACLE = "#e3e3e3"
+_FLOATING = "#b0b0b0"
 _RAY = "#e4572e"
 _FREE_RAY = "#e6e6e6"
 _VEHICLE = "#1f5fbf"
+_WAYPOINT = "#2a9d3f"
+_WAYPOINT_ACTIVE = "#e08a00"
+_PLANNED = "#555555"
 _TRAJECTORY_COLOURS = ("#1f77b4", "#2ca02c", "#9467bd", "#ff7f0e", "#17becf", "#8c564b", "#e377c2")
 
 
@@ -48,8 +53,13 @@ def draw_top_down(
     vehicle_radius: float = 0.25,
     collided: bool = False,
     title: str | None = None,
+    active_waypoint: int | None = None,
+    planned: np.ndarray | None = None,
 ) -> Axes:
-    """Draw a world seen from above: walls, obstacles, start, trajectories, vehicle and scan.
+    """Draw a world seen from above: walls, obstacles, start, waypoints, trajectories, vehicle, scan.
+
+    Obstacles whose top is below the start altitude by more than the vehicle's radius (flown over)
+    are drawn light with a dashed edge; obstacles that do not stand on the floor (beams) hatched.
 
     :param world: the room and its obstacles
     :param trajectories: one ``(N, 2|3)`` array of positions or a sequence of them (each its own
@@ -63,6 +73,10 @@ def draw_top_down(
     :param vehicle_radius: disc radius, metres
     :param collided: draw the vehicle in red with a cross
     :param title: axes title
+    :param active_waypoint: index of the waypoint being flown to, drawn larger in another colour
+        (waypoints before it faded: already reached)
+    :param planned: ``(N, 2)`` planned path (e.g. :attr:`flightsim.planner.PlannedPath.points`),
+        drawn dashed
     :return: the Axes drawn on
     """
     if ax is None:
@@ -71,12 +85,19 @@ def draw_top_down(
     t = WALL_THICKNESS
     ax.add_patch(Rectangle((-hx - t, -hy - t), 2 * (hx + t), 2 * (hy + t), color=_WALL, zorder=0))
     ax.add_patch(Rectangle((-hx, -hy), 2 * hx, 2 * hy, color="white", zorder=0))
+    altitude = world.start_position[2]
     for obstacle in world.obstacles:
         if isinstance(obstacle, Box):
             patch = Polygon(_box_corners(obstacle), closed=True)
+            bottom, top = obstacle.center[2] - obstacle.size[2] / 2, obstacle.center[2] + obstacle.size[2] / 2
         else:
             patch = Circle(obstacle.center, obstacle.radius)
+            bottom, top = 0.0, obstacle.height
         patch.set(facecolor=_OBSTACLE, edgecolor=_OBSTACLE_EDGE, linewidth=0.8, zorder=2)
+        if top < altitude - vehicle_radius:  # below the flight altitude: flown over
+            patch.set(facecolor=_LOW_OBSTACLE, linestyle="--", zorder=1)
+        elif bottom > 0.05:  # floating (a beam): hatched
+            patch.set(facecolor=_FLOATING, hatch="////")
         ax.add_patch(patch)
     sx, sy, _ = world.start_position
     yaw0 = math.radians(world.start_yaw_deg)
@@ -85,6 +106,11 @@ def draw_top_down(
         "", xy=(sx + 0.8 * math.cos(yaw0), sy + 0.8 * math.sin(yaw0)), xytext=(sx, sy),
         arrowprops={"arrowstyle": "->", "color": "black", "lw": 1.0}, zorder=3,
     )  # fmt: skip
+
+    _draw_waypoints(ax, world, active_waypoint)
+    if planned is not None and len(planned) > 1:
+        planned = np.asarray(planned, dtype=float)
+        ax.plot(planned[:, 0], planned[:, 1], color=_PLANNED, linestyle="--", linewidth=1.0, zorder=3)
 
     if isinstance(trajectories, np.ndarray):
         trajectories = [trajectories]
@@ -120,6 +146,22 @@ def draw_top_down(
     return ax
 
 
+def _draw_waypoints(ax: Axes, world: World, active: int | None) -> None:
+    """Numbered discs in visiting order; the active one highlighted, those before it faded."""
+    for i, (x, y, _) in enumerate(world.waypoints):
+        is_active = active == i
+        done = active is not None and i < active
+        colour = _WAYPOINT_ACTIVE if is_active else _WAYPOINT
+        ax.plot(
+            [x], [y], marker="o", markersize=13 if is_active else 10, color=colour,
+            alpha=0.35 if done else 1.0, markeredgecolor="black", markeredgewidth=0.6, zorder=3,
+        )  # fmt: skip
+        ax.annotate(
+            str(i + 1), (x, y), ha="center", va="center", fontsize=7, color="white",
+            fontweight="bold", zorder=3,
+        )  # fmt: skip
+
+
 def _draw_scan(ax: Axes, scan: np.ndarray, px: float, py: float, yaw: float, max_range: float) -> None:
     angles = yaw + np.radians(np.arange(scan.size) + 0.5)  # bin centres, counter-clockwise from the nose
     ends = np.stack([px + scan * max_range * np.cos(angles), py + scan * max_range * np.sin(angles)], axis=1)
@@ -142,10 +184,12 @@ def render_rgb(
     collided: bool = False,
     title: str | None = None,
     width_px: int = 720,
+    active_waypoint: int | None = None,
 ) -> np.ndarray:
     """The :func:`draw_top_down` picture as an ``(H, W, 3)`` uint8 array.
 
     :param width_px: image width; the height follows the room's aspect ratio
+    :param active_waypoint: see :func:`draw_top_down`
     """
     sx, sy = world.room_size[0] + 1.0, world.room_size[1] + 1.0
     dpi = 100
@@ -156,7 +200,7 @@ def render_rgb(
     ax = fig.add_subplot()
     draw_top_down(
         world, trajectory, ax=ax, scan=scan, pose=pose, scan_max_range=scan_max_range,
-        vehicle_radius=vehicle_radius, collided=collided, title=title,
+        vehicle_radius=vehicle_radius, collided=collided, title=title, active_waypoint=active_waypoint,
     )  # fmt: skip
     fig.tight_layout()
     canvas.draw()

@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
 from typing import Any
@@ -58,7 +58,7 @@ Obstacle = Box | Cylinder
 
 @dataclass(frozen=True)
 class World:
-    """A room, its obstacles and the vehicle's start pose.
+    """A room, its obstacles, the vehicle's start pose and the waypoints to fly through.
 
     :param name: short identifier (file stem or ``gen-<seed>-d<difficulty>``)
     :param room_size: inner extents (sx, sy) of the room, metres
@@ -66,6 +66,12 @@ class World:
     :param obstacles: boxes and cylinders
     :param start_position: initial position (x, y, z); z is the flight altitude
     :param start_yaw_deg: initial heading, degrees counter-clockwise from +x
+    :param waypoints: goals (x, y, z) visited in order; empty for an exploration world (fly on,
+        avoid). Reaching one is decided by whoever flies the world (its acceptance radius).
+    :param shortest_path_m: length of the shortest safe path from the start through every
+        waypoint in order, as :func:`flightsim.planner.shortest_safe_path` found it for the radius
+        the world was generated for. Set by the family generators; None for a world read from a
+        file or without waypoints (plan it on demand). Not part of equality: it is derived.
     """
 
     name: str
@@ -74,6 +80,8 @@ class World:
     obstacles: tuple[Obstacle, ...]
     start_position: tuple[float, float, float]
     start_yaw_deg: float
+    waypoints: tuple[tuple[float, float, float], ...] = ()
+    shortest_path_m: float | None = field(default=None, compare=False)
 
     def clearance(self, position: Sequence[float] | np.ndarray) -> float:
         """Distance from a point to the nearest wall or obstacle surface, metres (negative inside).
@@ -115,24 +123,41 @@ def _cos_sin(deg: float) -> tuple[float, float]:
 
 @njit(cache=True)
 def _clearance_kernel(x, y, z, room, boxes, cylinders):  # pragma: no cover - compiled
+    best = wall_distance(x, y, z, room)
+    for k in range(boxes.shape[0]):
+        best = min(best, box_distance(x, y, z, boxes[k]))
+    for k in range(cylinders.shape[0]):
+        best = min(best, cylinder_distance(x, y, z, cylinders[k]))
+    return best
+
+
+@njit(cache=True, inline="always")
+def wall_distance(x, y, z, room):  # pragma: no cover - compiled
+    """Compiled: distance to the walls of a :attr:`World.packed` ``room`` (shared with the planner)."""
     best = min(room[0] - abs(x), room[1] - abs(y))
     if best > 0.0 and z > room[2]:
         best = math.hypot(best, z - room[2])
-    for k in range(boxes.shape[0]):
-        b = boxes[k]
-        dx, dy = x - b[0], y - b[1]
-        qx = abs(b[6] * dx + b[7] * dy) - b[3]
-        qy = abs(-b[7] * dx + b[6] * dy) - b[4]
-        qz = abs(z - b[2]) - b[5]
-        outside = math.sqrt(max(qx, 0.0) ** 2 + max(qy, 0.0) ** 2 + max(qz, 0.0) ** 2)
-        best = min(best, outside + min(max(qx, qy, qz), 0.0))
-    for k in range(cylinders.shape[0]):
-        c = cylinders[k]
-        qr = math.hypot(x - c[0], y - c[1]) - c[2]
-        qz = abs(z - c[3] / 2.0) - c[3] / 2.0
-        outside = math.hypot(max(qr, 0.0), max(qz, 0.0))
-        best = min(best, outside + min(max(qr, qz), 0.0))
     return best
+
+
+@njit(cache=True, inline="always")
+def box_distance(x, y, z, b):  # pragma: no cover - compiled
+    """Compiled: signed distance to one packed box row (centre, half sizes, cos, sin)."""
+    dx, dy = x - b[0], y - b[1]
+    qx = abs(b[6] * dx + b[7] * dy) - b[3]
+    qy = abs(-b[7] * dx + b[6] * dy) - b[4]
+    qz = abs(z - b[2]) - b[5]
+    outside = math.sqrt(max(qx, 0.0) ** 2 + max(qy, 0.0) ** 2 + max(qz, 0.0) ** 2)
+    return outside + min(max(qx, qy, qz), 0.0)
+
+
+@njit(cache=True, inline="always")
+def cylinder_distance(x, y, z, c):  # pragma: no cover - compiled
+    """Compiled: signed distance to one packed cylinder row (centre xy, radius, height)."""
+    qr = math.hypot(x - c[0], y - c[1]) - c[2]
+    qz = abs(z - c[3] / 2.0) - c[3] / 2.0
+    outside = math.hypot(max(qr, 0.0), max(qz, 0.0))
+    return outside + min(max(qr, qz), 0.0)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -196,6 +221,7 @@ def footprint_center(obstacle: Obstacle) -> tuple[float, float]:
 # loading and saving
 
 _TOP_KEYS = {"name", "room", "obstacles", "start"}
+_TOP_OPTIONAL = {"waypoints"}
 _ROOM_KEYS = {"size", "height"}
 _START_KEYS = {"position", "yaw_deg"}
 _BOX_KEYS = {"type", "center", "size", "yaw_deg"}
@@ -255,11 +281,12 @@ def world_from_dict(
 
     :param data: the parsed JSON document
     :param path_for_messages: how to name the source in error messages
-    :param vehicle_radius: the start must be at least this far from every wall and obstacle
+    :param vehicle_radius: the start and every waypoint must be at least this far from every wall
+        and obstacle
     :raises UserError: naming the offending field
     """
     r = _Reader(path_for_messages)
-    top = r.table(data, "", _TOP_KEYS)
+    top = r.table(data, "", _TOP_KEYS, _TOP_OPTIONAL)
     name = r.string(top["name"], "name")
     room = r.table(top["room"], "room", _ROOM_KEYS)
     room_size = r.vector(room["size"], "room.size", 2, positive=True)
@@ -297,26 +324,35 @@ def world_from_dict(
     start = r.table(top["start"], "start", _START_KEYS)
     position = r.vector(start["position"], "start.position", 3)
     yaw = r.number(start["yaw_deg"], "start.yaw_deg")
-    world = World(name, room_size, room_height, tuple(obstacles), position, yaw)  # type: ignore[arg-type]
-    _check_start(world, r, vehicle_radius)
+    waypoints = top.get("waypoints", [])
+    if not isinstance(waypoints, list):
+        raise r.fail("waypoints", f"expected a list of [x, y, z], got {type(waypoints).__name__}")
+    goals = tuple(r.vector(w, f"waypoints[{i}]", 3) for i, w in enumerate(waypoints))
+    world = World(name, room_size, room_height, tuple(obstacles), position, yaw, goals)  # type: ignore[arg-type]
+    _check_clear(world, r, "start.position", world.start_position, vehicle_radius)
+    for i, goal in enumerate(world.waypoints):
+        _check_clear(world, r, f"waypoints[{i}]", goal, vehicle_radius)
     return world
 
 
-def _check_start(world: World, r: _Reader, vehicle_radius: float) -> None:
-    x, y, z = world.start_position
+def _check_clear(
+    world: World, r: _Reader, key: str, point: tuple[float, float, float], vehicle_radius: float
+) -> None:
+    """The start or a waypoint must be inside the room and clear of everything by the radius."""
+    x, y, z = point
     hx, hy = world.room_size[0] / 2.0, world.room_size[1] / 2.0
     where = f"({x:g}, {y:g}, {z:g})"
     if not (abs(x) < hx and abs(y) < hy and 0.0 < z < world.room_height):
-        raise r.fail("start.position", f"{where} is outside the room")
-    p = np.asarray([world.start_position], dtype=np.float64)
+        raise r.fail(key, f"{where} is outside the room")
+    p = np.asarray([point], dtype=np.float64)
     if _wall_clearance(world, p)[0] < vehicle_radius:
-        raise r.fail("start.position", f"{where} is closer than {vehicle_radius:g} m to a wall")
+        raise r.fail(key, f"{where} is closer than {vehicle_radius:g} m to a wall")
     for i, obstacle in enumerate(world.obstacles):
         d = obstacle_clearance(obstacle, p)[0]
         if d < 0.0:
-            raise r.fail("start.position", f"{where} is inside obstacles[{i}]")
+            raise r.fail(key, f"{where} is inside obstacles[{i}]")
         if d < vehicle_radius:
-            raise r.fail("start.position", f"{where} is closer than {vehicle_radius:g} m to obstacles[{i}]")
+            raise r.fail(key, f"{where} is closer than {vehicle_radius:g} m to obstacles[{i}]")
 
 
 def load_world(path: str | Path, *, vehicle_radius: float = DEFAULT_VEHICLE_RADIUS) -> World:
@@ -352,12 +388,15 @@ def world_to_dict(world: World) -> dict[str, Any]:
         else:
             item = {"type": "cylinder", "center": list(o.center), "radius": o.radius, "height": o.height}
         obstacles.append(item)
-    return {
+    data: dict[str, Any] = {
         "name": world.name,
         "room": {"size": list(world.room_size), "height": world.room_height},
         "obstacles": obstacles,
         "start": {"position": list(world.start_position), "yaw_deg": world.start_yaw_deg},
     }
+    if world.waypoints:  # an exploration world's file stays in the original schema
+        data["waypoints"] = [list(w) for w in world.waypoints]
+    return data
 
 
 def save_world(world: World, path: str | Path) -> None:
