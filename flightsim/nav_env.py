@@ -45,7 +45,7 @@ class NavEnvConfig(EnvConfig):
     families: tuple[str, ...] = FAMILIES
     difficulty_range: tuple[float, float] = (0.0, 1.0)
     acceptance_radius: float = field(default=1.0, metadata={"min": 0.1, "max": 5.0})
-    goal_range: float = field(default=10.0, metadata={"min": 1.0, "max": 100.0})
+    goal_range: float = field(default=30.0, metadata={"min": 1.0, "max": 100.0})
     time_limit_per_m: float = field(default=2.0, metadata={"min": 0.5, "max": 100.0})
     time_limit_slack_s: float = field(default=10.0, metadata={"min": 0.0, "max": 600.0})
     goal_reward: GoalRewardConfig = field(default_factory=GoalRewardConfig)
@@ -88,14 +88,14 @@ class LidarNavEnv(LidarAvoidEnv):
 
     ## Observation Space
     ``Box(low, high, (365,), float32)``, one frame of :class:`companion.observation.ObservationLayout`
-    ``scan360+goal(cos,sin,distance/10m)+velocity(forward,left/2m/s)``:
+    ``scan360+goal(cos,sin,distance/30m)+velocity(forward,left/2m/s)``:
 
     ========== ===================================================== ==========
     index      meaning                                               range
     ========== ===================================================== ==========
     0–359      the scan, as LidarAvoid-v0 (bin i = i° CCW from nose) [0, 1]
     360, 361   cos, sin of the current waypoint's bearing, body FLU  [-1, 1]
-    362        its horizontal distance / ``goal_range`` (10 m)       [0, 1]
+    362        its horizontal distance / ``goal_range`` (30 m)       [0, 1]
     363, 364   measured body velocity forward, left / ``max_speed``  [-1, 1]
     ========== ===================================================== ==========
 

@@ -67,11 +67,11 @@ def test_config_is_strict_loadable_and_checked() -> None:
 
 def test_observation_is_the_documented_layout(env: LidarNavEnv) -> None:
     obs, _ = env.reset(seed=3, options={"world": HALL})
-    layout = ObservationLayout(goal=True, goal_range=10.0, velocity_scale=2.0)
+    layout = ObservationLayout(goal=True, goal_range=30.0, velocity_scale=2.0)
     assert env.layout == layout and env.observation_space.shape == (365,)
     assert env.observation_space.contains(obs)
     # waypoint 1 is 6 m straight ahead; at rest
-    np.testing.assert_allclose(obs[360:], [1.0, 0.0, 0.6, 0.0, 0.0], atol=1e-5)
+    np.testing.assert_allclose(obs[360:], [1.0, 0.0, 0.2, 0.0, 0.0], atol=1e-5)
     assert obs[180] == pytest.approx(0.2, abs=0.01) and obs[90] == pytest.approx(0.3, abs=0.01)  # walls
     for _ in range(15):
         obs, *_ = env.step(np.array([1.0, 1.0], np.float32))  # forward while turning left
