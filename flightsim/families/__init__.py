@@ -11,6 +11,7 @@ deterministic. The start heading is the bearing of the path's first leg turned b
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 
@@ -77,10 +78,7 @@ def generate_family_world(
             continue
         first = path.points[1] - path.points[0]
         yaw = math.degrees(math.atan2(first[1], first[0])) + rng.uniform(-90.0, 90.0) * d
-        return World(
-            world.name, world.room_size, world.room_height, world.obstacles, world.start_position,
-            round(yaw % 360.0, 1), world.waypoints, shortest_path_m=round(path.length, 3),
-        )  # fmt: skip
+        return dataclasses.replace(world, start_yaw_deg=round(yaw % 360.0, 1), shortest_path_m=path.length)
     raise RuntimeError(f"{family} seed {seed} difficulty {d}: no feasible layout in {MAX_ATTEMPTS} attempts")
 
 

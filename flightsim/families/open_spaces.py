@@ -52,46 +52,46 @@ def forest(rng: np.random.Generator, seed: int, d: float, r: float) -> Layout | 
     start = (rnd(-hx + rng.uniform(1.0, 1.8)), rnd(rng.uniform(-hy + 1.5, hy - 1.5)))
     layout = Layout((sx, sy), [], start)
     n_wp = int(rng.integers(1, 4))
-    waypoints = far_end_points(rng, layout, n_wp, 1.0)
+    clearing = max(1.0, r + POINT_MARGIN + 0.2)  # trunk-free around the start and waypoints
+    waypoints = far_end_points(rng, layout, n_wp, clearing)
     if waypoints is None:
         return None
     density = lerp(0.05, 0.3, d) * rng.uniform(0.85, 1.15)
     gap = lerp(2.2, 2 * r + 0.35, d)  # between trunk surfaces
     clearings = np.asarray([start, *waypoints])
-    trunks: list[tuple[np.ndarray, float]] = []
+    centres, radii = np.empty((0, 2)), np.empty(0)
     for _ in range(round(density * sx * sy)):
         radius = float(np.exp(rng.uniform(np.log(0.05), np.log(0.4))))
-        cand = rng.uniform(
-            [-hx + radius + 0.3, -hy + radius + 0.3], [hx - radius - 0.3, hy - radius - 0.3], (48, 2)
-        )
-        ok = (
-            np.min(np.hypot(*(cand[:, None, :] - clearings[None]).transpose(2, 0, 1)), axis=1) - radius >= 1.0
-        )
-        for c, rad in trunks:
-            ok &= np.hypot(*(cand - c).T) - radius - rad >= gap
+        edge = radius + 0.3
+        cand = rng.uniform([-hx + edge, -hy + edge], [hx - edge, hy - edge], (48, 2))
+        ok = _distances(cand, clearings).min(axis=1) - radius >= clearing
+        if len(radii):
+            ok &= (_distances(cand, centres) - radii[None, :] - radius).min(axis=1) >= gap
         if ok.any():
-            trunks.append((cand[np.argmax(ok)], radius))
+            centres = np.vstack([centres, cand[np.argmax(ok)]])
+            radii = np.append(radii, radius)
+    trunks = zip(centres, radii, strict=True)
     layout.obstacles = [Cylinder((rnd(c[0]), rnd(c[1])), rnd(rad), ROOM_HEIGHT) for c, rad in trunks]
     layout.waypoints = waypoints
     return layout
 
 
 def pillars(rng: np.random.Generator, seed: int, d: float, r: float) -> Layout | None:
-    """A regular grid of square or round pillars over the whole room, the gap between neighbours
-    from 2.5 m down to 2 × radius + 0.7 m, a few missing; the start and waypoints lie inside the
-    grid, each waypoint half the room's length or more from the point before it."""
+    """A regular grid of square or round pillars filling the room (half a gap or more from the
+    walls), the gap between neighbours from 2.5 m down to 2 × radius + 0.7 m, a few missing; the
+    start and waypoints lie inside the grid, each waypoint half the grid's length or more from
+    the point before it."""
     sx, sy = rnd(lerp(16.0, 22.0, rng.uniform())), rnd(lerp(11.0, 15.0, rng.uniform()))
-    hx, hy = sx / 2.0, sy / 2.0
     size = lerp(0.4, 0.9, d) * rng.uniform(0.8, 1.0)  # pillar width (diameter or side)
     gap = lerp(2.5, 2 * r + 0.7, d) * rng.uniform(1.0, 1.1)
     pitch = size + gap
     round_pillars = rng.uniform() < 0.5
-    offset = rng.uniform(0.0, pitch, 2)
     obstacles: list[Obstacle] = []
-    for x in np.arange(-hx + offset[0], hx, pitch):
-        for y in np.arange(-hy + offset[1], hy, pitch):
-            if rng.uniform() < 0.05 or min(hx - abs(x), hy - abs(y)) - size / 2 < gap:
-                continue  # missing, or too close to a wall to leave the grid's gap
+    xs, ys = _lattice(rng, sx, pitch, gap / 2 + size / 2), _lattice(rng, sy, pitch, gap / 2 + size / 2)
+    for x in xs:
+        for y in ys:
+            if rng.uniform() < 0.05:
+                continue  # a missing pillar
             if round_pillars:
                 obstacles.append(Cylinder((rnd(x), rnd(y)), rnd(size / 2.0), ROOM_HEIGHT))
             else:
@@ -130,7 +130,7 @@ def mixed(rng: np.random.Generator, seed: int, d: float, r: float) -> Layout | N
     hx, hy = sx / 2.0, sy / 2.0
     start = (rnd(-hx + rng.uniform(1.0, 2.0)), rnd(rng.uniform(-hy + 1.5, hy - 1.5)))
     layout = Layout((sx, sy), [], start)
-    waypoints = far_end_points(rng, layout, int(rng.integers(1, 4)), 1.0)
+    waypoints = far_end_points(rng, layout, int(rng.integers(1, 4)), max(1.0, r + POINT_MARGIN + 0.2))
     if waypoints is None:
         return None
     stops = np.asarray([start, *waypoints])
@@ -171,6 +171,22 @@ def mixed(rng: np.random.Generator, seed: int, d: float, r: float) -> Layout | N
     layout.obstacles = obstacles
     layout.waypoints = waypoints
     return layout
+
+
+def _lattice(rng: np.random.Generator, extent: float, pitch: float, margin: float) -> np.ndarray:
+    """Evenly spaced centres across a room of ``extent``, each at least ``margin`` from its walls,
+    the row shifted at random within the slack left over."""
+    usable = extent - 2 * margin
+    if usable < 0:
+        return np.empty(0)
+    n = int(usable // pitch) + 1
+    slack = usable - (n - 1) * pitch
+    return -extent / 2 + margin + rng.uniform(0.0, slack) + pitch * np.arange(n)
+
+
+def _distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``(len(a), len(b))`` distances between two sets of points (x, y)."""
+    return np.hypot(a[:, None, 0] - b[None, :, 0], a[:, None, 1] - b[None, :, 1])
 
 
 def _clear_of(obstacle: Obstacle, points: np.ndarray, clearance: float) -> bool:

@@ -61,19 +61,22 @@ def staggered(rng: np.random.Generator, seed: int, d: float, r: float) -> Layout
     sx, sy = rnd(lerp(18.0, 24.0, rng.uniform())), rnd(lerp(8.0, 12.0, rng.uniform()))
     hx, hy = sx / 2.0, sy / 2.0
     n_walls = round(lerp(2, 5, d)) + int(rng.integers(0, 2))
-    xs = np.linspace(-hx + 2.5, hx - 2.5, n_walls) + rng.uniform(-0.3, 0.3, n_walls)
+    end = 2.5 + 2 * r  # free zone at each end of the room, for the start and the waypoints
+    xs = np.linspace(-hx + end, hx - end, n_walls) + rng.uniform(-0.3, 0.3, n_walls)
     top_first = rng.uniform() < 0.5
     obstacles: list[Obstacle] = []
     for k, x in enumerate(xs):
-        opening = rnd(lerp(3.0, 1.4, d) * rng.uniform(1.0, 1.15))
+        opening = rnd(lerp(3.0, max(1.4, 2 * r + 0.9), d) * rng.uniform(1.0, 1.15))
         half_t = 0.1
         if (k % 2 == 0) == top_first:  # open at +y
             obstacles.append(wall(x - half_t, -hy - 0.05, x + half_t, hy - opening))
         else:
             obstacles.append(wall(x - half_t, -hy + opening, x + half_t, hy + 0.05))
-    start = (rnd(-hx + rng.uniform(0.9, 1.5)), rnd(rng.uniform(-hy + 1.0, hy - 1.0)))
+    start = (rnd(-hx + end / 2 + rng.uniform(-0.3, 0.3)), rnd(rng.uniform(-hy + 1.0, hy - 1.0)))
     layout = Layout((sx, sy), obstacles, start)
-    waypoints = far_end_points(rng, layout, int(rng.integers(1, 3)), r + POINT_MARGIN + 0.3, band=1.5)
+    waypoints = far_end_points(
+        rng, layout, int(rng.integers(1, 3)), r + POINT_MARGIN + 0.3, band=end / 2 + 0.3
+    )
     if waypoints is None:
         return None
     layout.waypoints = waypoints
@@ -102,7 +105,8 @@ def office(rng: np.random.Generator, seed: int, d: float, r: float) -> Layout | 
         line = xs[b[0]] if vertical else ys[b[1]]
         spans = [(lo, hi)]
         if k in doors:
-            width = rng.uniform(lerp(1.6, 1.2, d), lerp(2.0, 1.6, d))
+            narrow = max(lerp(1.6, 1.2, d), 2 * r + 0.7)  # a bigger vehicle gets wider doors
+            width = rng.uniform(narrow, max(lerp(2.0, 1.6, d), narrow))
             s0 = rng.uniform(lo + 0.4, hi - 0.4 - width)
             spans = [(lo, s0), (s0 + width, hi)]
         for s0, s1 in spans:
@@ -171,7 +175,7 @@ def warehouse(rng: np.random.Generator, seed: int, d: float, r: float) -> Layout
     them, cross aisles at both ends (and through the middle when easy); pallets stacked against
     the racks narrow some aisles, never below 2 × radius + 0.6 m. Start and waypoints lie in
     different aisles, so flights go down one aisle, across, and up another."""
-    aisle = lerp(3.0, 1.6, d) * rng.uniform(1.0, 1.1)
+    aisle = lerp(3.0, max(1.6, 2 * r + 1.1), d) * rng.uniform(1.0, 1.1)
     depth = rng.uniform(1.0, 1.2)
     n_racks = int(rng.integers(3, 6))
     sy = rnd(n_racks * depth + (n_racks + 1) * aisle)

@@ -236,3 +236,83 @@ def test_narrow_rooms_keep_gaps_and_a_clear_start() -> None:
             assert min(hx - abs(c[0]), hy - abs(c[1])) - footprint_radius(o) >= 1.2 - 1e-6
     with pytest.raises(ValueError, match="room_width"):
         generate_world(1, 0.5, room_width=4.0)
+
+
+# -- waypoints -------------------------------------------------------------------------------
+
+WAYPOINTS = [[5.0, 0.5, 1.5], [-3.0, 3.0, 1.5]]
+
+
+def test_waypoints_load_in_order(tmp_path: Path) -> None:
+    world = _load_modified(tmp_path, lambda d: d.update(waypoints=WAYPOINTS))
+    assert world.waypoints == ((5.0, 0.5, 1.5), (-3.0, 3.0, 1.5))
+    assert load_world(_write(tmp_path, EXAMPLE)).waypoints == ()  # optional: an exploration world
+
+
+@pytest.mark.parametrize(
+    ("waypoints", "field", "words"),
+    [
+        ({"x": 1}, "waypoints", "list"),
+        ([[5.0, 0.5, 1.5], "a"], "waypoints[1]", "list of 3 numbers"),
+        ([[5.0, 0.5]], "waypoints[0]", "3 numbers"),
+        ([[5.0, 0.5, 1.5], [1.0, None, 1.5]], "waypoints[1][1]", "number"),
+        ([[5.0, 0.5, 1.5], [1.0, 0.0, math.inf]], "waypoints[1][2]", "finite"),
+        ([[5.0, 0.5, 1.5], [7.0, 0.0, 1.5]], "waypoints[1]", "outside the room"),
+        ([[5.0, 0.5, 0.0]], "waypoints[0]", "outside the room"),
+        ([[5.0, 0.5, 1.5], [0.0, 0.0, 3.2]], "waypoints[1]", "outside the room"),
+        ([[5.0, 0.5, 1.5], [0.0, 3.9, 1.5]], "waypoints[1]", "closer than 0.25 m to a wall"),
+        ([[4.0, -1.5, 1.5]], "waypoints[0]", "inside obstacles[1]"),
+        ([[5.0, 0.5, 1.5], [2.0, 1.0, 1.5]], "waypoints[1]", "inside obstacles[0]"),
+        ([[5.0, 0.5, 1.5], [4.0, -1.0, 1.5]], "waypoints[1]", "closer than 0.25 m to obstacles[1]"),
+    ],
+)
+def test_bad_waypoint_is_named_with_its_index(tmp_path: Path, waypoints, field: str, words: str) -> None:
+    with pytest.raises(UserError) as info:
+        _load_modified(tmp_path, lambda d: d.update(waypoints=waypoints))
+    message = str(info.value)
+    assert f": {field}: " in message, message
+    assert words in message, message
+    assert "\n" not in message
+
+
+def test_waypoint_clearance_uses_the_callers_radius(tmp_path: Path) -> None:
+    data = copy.deepcopy(EXAMPLE)
+    data["waypoints"] = [[4.0, -0.9, 1.5]]  # 0.3 m from the cylinder's surface
+    assert load_world(_write(tmp_path, data)).waypoints == ((4.0, -0.9, 1.5),)
+    with pytest.raises(UserError, match=r": waypoints\[0\]: .*closer than 0.4 m to obstacles\[1\]"):
+        load_world(_write(tmp_path, data), vehicle_radius=0.4)
+
+
+def test_waypoint_over_a_low_obstacle_is_clear(tmp_path: Path) -> None:
+    """Clear means by the 3-D distance: a waypoint 0.8 m above a low box is fine."""
+    low_box = {"type": "box", "center": [0.0, -2.0, 0.35], "size": [2.0, 2.0, 0.7]}
+    world = _load_modified(
+        tmp_path, lambda d: (d["obstacles"].append(low_box), d.update(waypoints=[[0, -2, 1.5]]))
+    )
+    assert world.clearance(world.waypoints[0]) == pytest.approx(0.8)
+
+
+def test_waypoints_round_trip(tmp_path: Path) -> None:
+    data = copy.deepcopy(EXAMPLE)
+    data["waypoints"] = WAYPOINTS
+    world = world_from_dict(data)
+    assert world_to_dict(world)["waypoints"] == WAYPOINTS
+    save_world(world, tmp_path / "w.json")
+    assert load_world(tmp_path / "w.json") == world
+    assert "waypoints" not in world_to_dict(world_from_dict(EXAMPLE))  # exploration files keep the old schema
+
+
+def test_shortest_path_is_derived_not_identity() -> None:
+    world = world_from_dict(EXAMPLE)
+    planned = World(*(getattr(world, f) for f in ("name", "room_size", "room_height", "obstacles")),
+                    world.start_position, world.start_yaw_deg, shortest_path_m=12.5)  # fmt: skip
+    assert planned == world and planned.shortest_path_m == 12.5 and world.shortest_path_m is None
+
+
+@pytest.mark.parametrize("name", ["two-pillars.json", "slalom.json"])
+def test_shipped_examples_have_feasible_waypoints(name: str) -> None:
+    from flightsim.planner import shortest_safe_path
+
+    world = load_world(Path(str(files("flightsim") / "worlds" / name)))
+    assert 1 <= len(world.waypoints) <= 4
+    assert shortest_safe_path(world, vehicle_radius=0.25) is not None
