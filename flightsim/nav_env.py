@@ -37,11 +37,14 @@ class NavEnvConfig(EnvConfig):
     :param time_limit_per_m: seconds allowed per metre of the world's shortest safe path
     :param time_limit_slack_s: seconds allowed on top (turning to the first leg, braking)
     :param max_steps: hard cap on an episode, whatever the time limit says (3000 = 300 s)
+    :param autopilot_response: as in :class:`~flightsim.env.EnvConfig`, but ``"random"`` by default:
+        a PX4- or ArduPilot-like response drawn per episode, so a policy meets both
     :param goal_reward: the reward's weights
     """
 
     reward: Literal["goal"] = "goal"
     max_steps: int = field(default=3000, metadata={"min": 1})
+    autopilot_response: Literal["ideal", "px4", "ardupilot", "random"] = "random"
     families: tuple[str, ...] = FAMILIES
     difficulty_range: tuple[float, float] = (0.0, 1.0)
     acceptance_radius: float = field(default=1.0, metadata={"min": 0.1, "max": 5.0})
@@ -78,9 +81,10 @@ class LidarNavEnv(LidarAvoidEnv):
     ## Description
     The vehicle, sensor and control of ``flightsim/LidarAvoid-v0`` (JSBSim quadrotor, ray-cast
     VLP-16, the companion's scan code, 10 Hz steps, the same domain randomisation and shield
-    options), in a world with waypoints (:mod:`flightsim.families`: rooms, forest, office,
-    warehouse, pillars, staggered walls, concave traps, narrow gaps, mixed heights). The vehicle
-    holds its start altitude; the waypoints lie at that altitude.
+    options, the autopilot response model — ``"random"`` by default here), in a world with
+    waypoints (:mod:`flightsim.families`: rooms, forest, office, warehouse, pillars, staggered
+    walls, concave traps, narrow gaps, mixed heights). The vehicle holds its start altitude; the
+    waypoints lie at that altitude.
 
     ## Action Space
     As LidarAvoid-v0: ``Box(-1, 1, (2,), float32)``, ``a0`` forward speed × ``max_speed`` (2 m/s),
@@ -97,6 +101,7 @@ class LidarNavEnv(LidarAvoidEnv):
     360, 361   cos, sin of the current waypoint's bearing, body FLU  [-1, 1]
     362        its horizontal distance / ``goal_range`` (30 m)       [0, 1]
     363, 364   measured body velocity forward, left / ``max_speed``  [-1, 1]
+               (:meth:`measured_body_velocity`: what the autopilot reports, estimate error included)
     ========== ===================================================== ==========
 
     The goal features are the current pose's; the scan follows ``latency_scans``. Frame stacking
@@ -195,11 +200,6 @@ class LidarNavEnv(LidarAvoidEnv):
         )  # fmt: skip
 
     # ------------------------------------------------------------------ internals
-    def measured_body_velocity(self) -> tuple[float, float]:
-        """(forward, left) m/s as the autopilot reports it; until the response model lands, the truth."""
-        v = self._state.velocity
-        return goal_in_body(float(v[0]), float(v[1]), float(self._state.yaw))
-
     def _reward(self, outcome: StepOutcome) -> float:
         """Advance to the next waypoint when this one is reached, and pay for it (see the docstring)."""
         distance = self._distance_to_goal()

@@ -36,9 +36,10 @@ MessageHook = Callable[[int, Any, float], None]
 StepHook = Callable[[VehicleState], None]
 
 
-def make_autopilot(personality: str, boot_time: float) -> SimAutopilot:
-    """A personality (``"ardupilot"`` or ``"px4"``) with its firmware's default parameter table."""
-    return PERSONALITIES[personality](default_table(personality), boot_time=boot_time)
+def make_autopilot(personality: str, boot_time: float, response: bool = True) -> SimAutopilot:
+    """A personality (``"ardupilot"`` or ``"px4"``) with its firmware's default parameter table;
+    ``response`` False flies setpoints as given (the ideal autopilot) instead of the firmware's response."""
+    return PERSONALITIES[personality](default_table(personality), boot_time=boot_time, response=response)
 
 
 class SimAutopilotServer:
@@ -50,6 +51,7 @@ class SimAutopilotServer:
     :param start_yaw: rad, counter-clockwise from East
     :param params: parameter overrides applied before the first message (name -> value)
     :param vehicle: an existing vehicle to reuse (JSBSim load is the slow part); reset here
+    :param response: fly the firmware's calibrated response (False: the ideal autopilot)
     """
 
     def __init__(
@@ -60,10 +62,11 @@ class SimAutopilotServer:
         start_yaw: float = 0.0,
         params: dict[str, float] | None = None,
         vehicle: Vehicle | None = None,
+        response: bool = True,
     ) -> None:
         self.endpoint = MavlinkEndpoint(links)
         self.t0 = time.monotonic()
-        self.autopilot = make_autopilot(personality, boot_time=0.0)
+        self.autopilot = make_autopilot(personality, boot_time=0.0, response=response)
         for name, value in (params or {}).items():
             self.autopilot.params.set(name, value)
         self.vehicle = vehicle or Vehicle(VehicleConfig())
@@ -178,6 +181,11 @@ def configure_parser(parser: Any) -> None:
         metavar="NAME=VALUE",
         help="set a parameter before start, e.g. COM_OBL_RC_ACT=5; repeatable",
     )
+    parser.add_argument(
+        "--ideal-response",
+        action="store_true",
+        help="fly velocity setpoints as given, not with the firmware's calibrated (slower) response",
+    )
 
 
 def command(args: Any) -> int:
@@ -196,7 +204,12 @@ def command(args: Any) -> int:
     for name in params:
         if name not in known:
             raise UserError(f"--param {name}: not a parameter of the {args.personality} table")
-    server = SimAutopilotServer(args.personality, args.link or ["tcpin:127.0.0.1:5760"], params=params)
+    server = SimAutopilotServer(
+        args.personality,
+        args.link or ["tcpin:127.0.0.1:5760"],
+        params=params,
+        response=not args.ideal_response,
+    )
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):  # Ctrl-C, or a supervisor's/test's SIGTERM
         signal.signal(sig, lambda *_: stop.set())
