@@ -31,7 +31,8 @@ HOVER = np.array([0.0, 0.0], np.float32)
 
 @pytest.fixture(scope="module")
 def env() -> LidarNavEnv:
-    e = LidarNavEnv(NavEnvConfig(), render_mode="rgb_array")
+    # the ideal response: exact expectations (the default random response adds estimate error)
+    e = LidarNavEnv(NavEnvConfig(autopilot_response="ideal"), render_mode="rgb_array")
     yield e
     e.close()
 
@@ -82,6 +83,18 @@ def test_observation_is_the_documented_layout(env: LidarNavEnv) -> None:
     assert obs[363] > 0.2  # flying forward, measured
 
 
+def test_the_velocity_features_are_what_the_autopilot_reports_randomised_by_default() -> None:
+    env = LidarNavEnv(NavEnvConfig(max_steps=50))
+    assert env.config.autopilot_response == "random"
+    obs, _ = env.reset(seed=4, options={"world": HALL})
+    for _ in range(10):
+        obs, *_ = env.step(FORWARD)
+    measured = np.clip(np.asarray(env.measured_body_velocity()) / 2.0, -1.0, 1.0)
+    np.testing.assert_allclose(obs[363:365], measured, atol=1e-6)
+    assert obs[363] > 0.2
+    env.close()
+
+
 def test_waypoints_are_reached_in_order_paid_and_the_last_terminates(env: LidarNavEnv) -> None:
     _, info = env.reset(seed=0, options={"world": HALL})
     assert info["waypoint"] == 0 and info["waypoints"] == 2
@@ -112,7 +125,7 @@ def test_collision_terminates_with_the_collision_cost(env: LidarNavEnv) -> None:
 
 
 def test_truncated_at_the_path_proportional_time_limit() -> None:
-    cfg = NavEnvConfig(time_limit_per_m=0.5, time_limit_slack_s=1.0)
+    cfg = NavEnvConfig(time_limit_per_m=0.5, time_limit_slack_s=1.0, autopilot_response="ideal")
     env = LidarNavEnv(cfg)
     _, info = env.reset(seed=0, options={"world": HALL})
     limit = info["time_limit_steps"]
