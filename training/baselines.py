@@ -193,6 +193,7 @@ class GoalFollowerConfig:
         this much wider on each side (a vehicle turning at speed drifts off its heading), but not
         below ``creep`` (a gap narrower than the wide corridor is passed slowly, not refused)
     :param creep: see ``swept_margin``
+
     :param cruise: forward action with a clear path ahead
     :param stop_distance: forward action is 0 at or below this clearance along the chosen heading
     :param slow_distance: forward action reaches ``cruise`` at this clearance
@@ -213,9 +214,9 @@ class GoalFollowerConfig:
     subgoal_hysteresis: float = 1.0
     swept_margin: float = 0.3
     creep: float = 0.25
-    cruise: float = 1.0
-    stop_distance: float = 0.45
-    slow_distance: float = 2.5
+    cruise: float = 0.7
+    stop_distance: float = 0.6
+    slow_distance: float = 3.5
     turn_gain: float = 2.0
     stall_steps: int = 40
     stall_progress: float = 0.5
@@ -290,9 +291,11 @@ class GoalFollower:
         wide = corridor_clearance(ranges, c.body_radius + c.swept_margin)
         speed = self._ramp(float(clear[k]), distance) * max(0.0, math.cos(heading)) ** 2
         speed = min(speed, max(c.creep, self._ramp(float(wide[k]), distance)))
+
         ahead = float(min(clear[0], clear[-1]))
         if ahead < c.stop_distance:
             speed = 0.0
+
         return np.array([speed, np.clip(c.turn_gain * heading, -1.0, 1.0)], dtype=np.float32)
 
     def _ramp(self, clearance: float, distance: float) -> float:

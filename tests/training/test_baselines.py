@@ -91,7 +91,7 @@ def _frame(bins: dict[int, float], goal_deg: float, goal_m: float) -> np.ndarray
 def test_goal_controllers_fly_at_a_goal_in_the_open(kind):
     controller = kind(GOAL_LAYOUT)
     ahead = controller.reset(_frame({}, 0.0, 10.0))
-    assert ahead[0] == pytest.approx(1.0, abs=1e-3) and abs(ahead[1]) < 0.05
+    assert ahead[0] == pytest.approx(controller.config.cruise, abs=1e-3) and abs(ahead[1]) < 0.05
     left = controller.act(_frame({}, 60.0, 10.0))
     right = controller.act(_frame({}, -60.0, 10.0))
     assert left[1] > 0.5 and right[1] < -0.5 and left[0] < 0.5  # turn first, then go
