@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Literal
+from typing import Any, Literal
 
 import numpy as np
 from gymnasium import spaces
@@ -144,8 +144,6 @@ class LidarNavEnv(LidarAvoidEnv):
     * v0: initial version (families, goal + velocity features, goal reward, path-proportional time
       limit).
     """
-
-    metadata: ClassVar[dict[str, Any]] = LidarAvoidEnv.metadata
 
     def __init__(self, config: NavEnvConfig | None = None, render_mode: str | None = None) -> None:
         """:param config: episode settings (defaults: :class:`NavEnvConfig`)

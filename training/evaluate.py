@@ -245,7 +245,7 @@ def run_episode(
     max_steps = int(env.unwrapped.config.max_steps)
     dt = STEP_SECONDS
     distance = float(info["distance"])
-    goal = {}
+    goal: dict[str, Any] = {"success": is_success(collision, steps, max_steps, distance, dt)}
     if "waypoints" in info:  # the goal task: success is the env's (every waypoint, in time)
         goal = {
             "success": bool(info["success"]),
@@ -267,13 +267,9 @@ def run_episode(
         mean_speed=distance / max(steps * dt, 1e-9),
         min_clearance=max(min_clearance, 0.0),
         near_misses=near_misses,
-        success=is_success(collision, steps, max_steps, distance, dt),
         trajectory=trajectory,
-    ) if not goal else EpisodeResult(
-        controller="", world="", episode=0, steps=steps, max_steps=max_steps, collision=collision,
-        distance=distance, mean_speed=distance / max(steps * dt, 1e-9),
-        min_clearance=max(min_clearance, 0.0), near_misses=near_misses, trajectory=trajectory, **goal,
-    )  # fmt: skip
+        **goal,
+    )
 
 
 def _xy(info: dict[str, Any]) -> tuple[float, float]:

@@ -193,8 +193,9 @@ def make_callbacks(config: TrainConfig, run_dir: Path, n_envs: int, executor: An
             self.model.save(model_path)
             difficulty = self.difficulty if config.curriculum.enabled else config.eval.difficulty
             seeds = range(config.eval.first_seed, config.eval.first_seed + config.eval.n_worlds)
-            worlds = [WorldSpec(f"seed-{s}", seed=s, difficulty=difficulty) for s in seeds]
-            if config.is_goal_task:
+            if not config.is_goal_task:
+                worlds = [WorldSpec(f"seed-{s}", seed=s, difficulty=difficulty) for s in seeds]
+            else:  # n_worlds validation worlds per family
                 env_config = config.env_config()
                 worlds = goal_worlds(
                     env_config.families,
