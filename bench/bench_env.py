@@ -5,9 +5,12 @@ Figures (issue 2), each against the target of 5,000 env steps/s per core with 16
     one env in one process             1° azimuth (16 × 360 rays) and 0.2° (16 × 1,800, the real sensor)
     SB3 SubprocVecEnv with 2 envs      the same two, total steps/s across both workers
 
-then a per-step breakdown over the poses of a real flight: JSBSim vehicle (12 physics steps of
-JSBSim plus the compiled cascaded controller), ray cast and point cloud (apart, and in the one call
-the env makes), the companion's ``scan_from_points``, clearance/collision, and the rest (reward,
+then LidarNav-v0 against LidarAvoid-v0 in the same process (issue 12: the goal task's env adds
+goal/velocity features, waypoint bookkeeping, and a family world generated and planned on every
+reset; its resets are counted as they come), then a per-step breakdown over the poses of a real
+flight: JSBSim vehicle (12 physics steps of JSBSim plus the compiled cascaded controller), ray cast
+and point cloud (apart, and in the one call the env makes), the companion's ``scan_from_points``,
+clearance/collision, and the rest (reward,
 info, bookkeeping, resets). Actions are a
 fixed random sequence (forward-biased); episodes that end are reset (a new generated world each
 time), and the resets are counted in the figures. Each figure stands beside references measured in
@@ -16,7 +19,7 @@ vehicle alone (the floor no env can beat), and, for the ray cast, the previous t
 implementation (``cast`` then ``grid_to_points``, still the path with lidar noise or dropout)
 against ``cast_points``. The load average is printed: compare ratios, not absolute rates.
 
-    /work/venv/bin/python bench/bench_env.py [--steps 3000] [--difficulty 0.5] [--skip-subproc]
+    /work/venv/bin/python bench/bench_env.py [--steps 3000] [--difficulty 0.5] [--skip-subproc] [--nav-only]
 """
 
 from __future__ import annotations
@@ -47,9 +50,9 @@ def actions(n: int, seed: int = 0) -> np.ndarray:
     return a
 
 
-def run_single(cfg: EnvConfig, n: int) -> tuple[float, float, int]:
+def run_single(cfg: EnvConfig, n: int, env_class: type = LidarAvoidEnv) -> tuple[float, float, int]:
     """Steps/s of one env in this process by wall clock and by CPU time, and the resets included."""
-    env = LidarAvoidEnv(cfg)
+    env = env_class(cfg)
     acts = actions(n)
     env.reset(seed=0)
     for a in acts[:50]:  # warm-up: numba caches loaded, first allocations done
@@ -152,12 +155,45 @@ def breakdown(cfg: EnvConfig, n: int) -> dict[str, float]:
     return out
 
 
+def nav_vs_avoid(n: int, rounds: int = 3) -> None:
+    """LidarNav-v0 and LidarAvoid-v0 (default configs), alternated ``rounds`` times so that load
+    changes hit both alike; the CPU-time rates are the comparable ones. LidarNav-v0 flies the random
+    autopilot response by default, LidarAvoid-v0 the ideal one: a third row shows the nav env with
+    the ideal response, so the goal task's own cost and the response model's are apart."""
+    from flightsim.nav_env import LidarNavEnv, NavEnvConfig
+
+    envs = (
+        ("LidarAvoid-v0", EnvConfig(), LidarAvoidEnv),
+        ("LidarNav-v0", NavEnvConfig(), LidarNavEnv),
+        ("LidarNav-v0 ideal", NavEnvConfig(autopilot_response="ideal"), LidarNavEnv),
+    )
+    totals = {name: [0.0, 0.0, 0] for name, _, _ in envs}
+    for _ in range(rounds):
+        for name, cfg, cls in envs:
+            rate, cpu_rate, resets = run_single(cfg, n // rounds, cls)
+            totals[name][0] += n // rounds / rate
+            totals[name][1] += n // rounds / cpu_rate
+            totals[name][2] += resets
+    steps = rounds * (n // rounds)
+    print(f"\nLidarNav-v0 vs LidarAvoid-v0 (default configs, {steps} steps each, alternated {rounds}x):")
+    print(f"{'env':18s} {'steps/s':>9s} {'per CPU-s':>9s} {'resets':>7s}  vs LidarAvoid-v0 per CPU-s")
+    avoid = totals["LidarAvoid-v0"][1]
+    for name, (wall, cpu, resets) in totals.items():
+        print(f"{name:18s} {steps / wall:9.0f} {steps / cpu:9.0f} {resets:7d}  {avoid / cpu:.2f}")
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=3000, help="timed steps per figure")
     parser.add_argument("--difficulty", type=float, default=0.5)
     parser.add_argument("--skip-subproc", action="store_true", help="only the single-process figures")
+    parser.add_argument("--nav-only", action="store_true", help="only LidarNav-v0 vs LidarAvoid-v0")
     args = parser.parse_args()
+    if args.nav_only:
+        print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}, cpus: {os.cpu_count()}")
+        nav_vs_avoid(args.steps)
+        print(f"\nload average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+        return 0
 
     print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}, cpus: {os.cpu_count()}")
     print(f"target: >= {TARGET_PER_CORE:,.0f} env steps/s per core with 16 x 360 rays\n")
@@ -185,6 +221,7 @@ def main() -> int:
             f"{best / TARGET_PER_CORE:8.0%}{note}"
         )
 
+    nav_vs_avoid(args.steps)
     print("\nwhere a step's CPU time goes (1 deg azimuth, same flight, each part timed on its own):")
     parts = breakdown(EnvConfig(difficulty=args.difficulty), min(args.steps, 2000))
     total = parts["whole env.step"]

@@ -20,6 +20,7 @@ import numpy as np
 import onnxruntime as ort
 
 from companion.errors import UserError
+from companion.observation import ObservationLayout
 from companion.scan import BIN_CONVENTION
 from companion.userfile import read_user_bytes
 
@@ -29,7 +30,7 @@ FORMAT_VERSION = "1"
 PREFIX = "lidar_avoid."
 METADATA_KEYS: dict[str, str] = {
     PREFIX + "format": "metadata format version, " + FORMAT_VERSION,
-    PREFIX + "obs_size": "input length: stack × n_bins",
+    PREFIX + "obs_size": "input length: stack × frame size (companion.observation.ObservationLayout)",
     PREFIX + "stack": "scans per observation, oldest first",
     PREFIX + "n_bins": "bins per scan",
     PREFIX + "max_range": "metres a scan value of 1.0 stands for",
@@ -37,7 +38,10 @@ METADATA_KEYS: dict[str, str] = {
     PREFIX + "max_speed": "m/s that action a0 = 1 stands for",
     PREFIX + "max_yaw_rate": "rad/s that action a1 = 1 stands for (counter-clockwise positive)",
     PREFIX + "config": "the training configuration, JSON (informational)",
+    PREFIX + "obs_layout": "one frame's layout, companion.observation.ObservationLayout.name",
 }
+#: a model exported before ``obs_layout`` existed was trained on scans only
+LEGACY_LAYOUT = ObservationLayout().name
 
 #: A policy is a small MLP (under 1 MB); a model file larger than this is not one.
 MAX_MODEL_BYTES = 256 << 20
@@ -53,6 +57,7 @@ _CONFIG_KEYS = {
     "bin_convention": "scan bin convention",
     "max_speed": "policy.max_speed",
     "max_yaw_rate": "policy.max_yaw_rate",
+    "obs_layout": "observation layout",
 }
 
 
@@ -66,6 +71,7 @@ class PolicySpec:
     :param bin_convention: bin order (:data:`companion.scan.BIN_CONVENTION`)
     :param max_speed: m/s that a0 = 1 stands for
     :param max_yaw_rate: rad/s that a1 = 1 stands for
+    :param layout: one frame of the observation (scan only, or scan + goal + velocity)
     """
 
     stack: int = 4
@@ -74,10 +80,15 @@ class PolicySpec:
     bin_convention: str = BIN_CONVENTION
     max_speed: float = 2.0
     max_yaw_rate: float = 1.5
+    layout: ObservationLayout = ObservationLayout()
+
+    def __post_init__(self) -> None:
+        if self.layout.n_bins != self.n_bins:
+            raise ValueError(f"layout {self.layout.name} does not have {self.n_bins} bins")
 
     @property
     def obs_size(self) -> int:
-        return self.stack * self.n_bins
+        return self.stack * self.layout.frame_size
 
 
 class InferenceFault(Exception):
@@ -101,6 +112,7 @@ def policy_metadata(spec: PolicySpec, config_json: str) -> dict[str, str]:
         PREFIX + "max_speed": repr(float(spec.max_speed)),
         PREFIX + "max_yaw_rate": repr(float(spec.max_yaw_rate)),
         PREFIX + "config": config_json,
+        PREFIX + "obs_layout": spec.layout.name,
     }
 
 
@@ -183,6 +195,7 @@ class OnnxPolicy:
             detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             raise UserError(f"policy model {self.path} is not a loadable ONNX model: {detail}") from None
         self.providers: list[str] = list(self._session.get_providers())
+        self._check_layout()
         self._check_io()
         self._check_metadata()
         self._input_name = self._session.get_inputs()[0].name
@@ -210,7 +223,7 @@ class OnnxPolicy:
     def act(self, obs: np.ndarray) -> np.ndarray:
         """One action for one stacked observation.
 
-        :param obs: ``(stack × n_bins,)`` float32, oldest scan first
+        :param obs: ``(stack × frame size,)`` float32, oldest frame first
         :return: ``(2,)`` float32 in ``[-1, 1]``: a0 forward, a1 yaw rate (counter-clockwise positive)
         :raises InferenceFault: inference raised, or its output was not 2 finite numbers
         """
@@ -239,13 +252,19 @@ class OnnxPolicy:
         if len(inp.shape) != 2 or not _batch_dim_ok(inp.shape[0]) or inp.shape[1] != self.spec.obs_size:
             raise UserError(
                 f"model input shape {_shape(inp.shape)} does not match config {want} "
-                f"(stack {self.spec.stack} × {self.spec.n_bins} bins)"
+                f"(stack {self.spec.stack} × {self.spec.layout.frame_size}: {self.spec.layout.name})"
             )
         out = outputs[0]
         if out.type != "tensor(float)" or len(out.shape) != 2 or out.shape[-1] != 2:
             raise UserError(f"model output {_shape(out.shape)} {out.type} is not (1, 2) float32")
         if not _batch_dim_ok(out.shape[0]):
             raise UserError(f"model output shape {_shape(out.shape)} is not (1, 2)")
+
+    def _check_layout(self) -> None:
+        """Before the shapes: a layout mismatch is named as such, not as an input size."""
+        meta = dict(self._session.get_modelmeta().custom_metadata_map)
+        meta.setdefault(PREFIX + "obs_layout", LEGACY_LAYOUT)
+        self._compare("obs_layout", meta, self.spec.layout.name, _CONFIG_KEYS["obs_layout"])
 
     def _check_metadata(self) -> None:
         try:
@@ -254,7 +273,7 @@ class OnnxPolicy:
             raise UserError(
                 f"policy model {self.path}: metadata is not UTF-8 text ({exc.reason} at byte {exc.start})"
             ) from None
-        missing = [key for key in METADATA_KEYS if key not in meta]
+        missing = [key for key in METADATA_KEYS if key not in meta and key != PREFIX + "obs_layout"]
         if missing:
             raise UserError(
                 f"policy model {self.path} lacks metadata {', '.join(missing)} "

@@ -184,7 +184,6 @@ class LidarAvoidEnv(gym.Env):
         self.render_mode = render_mode
         self.observation_space = spaces.Box(0.0, 1.0, (N_BINS,), np.float32)
         self.action_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
-        self._reward_fn = REWARDS[self.config.reward]
         self._vehicle = Vehicle(VehicleConfig(mass_kg=VEHICLE_MASS_KG, physics_hz=120, control_hz=CONTROL_HZ))
         self._caster = VLP16Raycaster(self.config.lidar)
         needs_shield = self.config.shield or self.config.overspeed_penalty > 0.0
@@ -267,7 +266,7 @@ class LidarAvoidEnv(gym.Env):
             max_speed=cfg.max_speed,
             collision=self._collided,
         )
-        reward = float(self._reward_fn(outcome)) - cfg.overspeed_penalty * overspeed
+        reward = self._reward(outcome) - cfg.overspeed_penalty * overspeed
         observation = self._previous_scan if cfg.latency_scans else self._scan
         truncated = self._steps >= cfg.max_steps and not self._collided
         return observation.copy(), reward, self._collided, truncated, self._info()
@@ -300,6 +299,10 @@ class LidarAvoidEnv(gym.Env):
         super().close()
 
     # ------------------------------------------------------------------ internals
+    def _reward(self, outcome: StepOutcome) -> float:
+        """This step's reward before the overspeed penalty (LidarNavEnv pays for its goals here)."""
+        return float(REWARDS[self.config.reward](outcome))
+
     def _choose_world(self, options: dict[str, Any]) -> World:
         unknown = sorted(set(options) - _OPTION_KEYS)
         if unknown:

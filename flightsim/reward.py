@@ -1,4 +1,6 @@
-"""Rewards of the LidarAvoid environment: pure functions of one step's outcome, chosen by name.
+"""Rewards of the environments: pure functions of one step's outcome.
+
+LidarAvoid-v0 chooses one of :data:`REWARDS` by name; LidarNav-v0 pays :func:`goal_reward`.
 
 ``"tutorial"`` is the seed tutorial's reward, kept exactly so results compare with it.
 ``"progress"`` (the default) is what the project trains with, because the tutorial's reward pays
@@ -11,7 +13,7 @@ makes standing still cost something.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -82,3 +84,57 @@ REWARDS: dict[str, Callable[[StepOutcome], float]] = {
     "tutorial": tutorial_reward,
     "progress": progress_reward,
 }
+
+
+# --- the goal task (LidarNav-v0) -------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class GoalRewardConfig:
+    """Weights of :func:`goal_reward` (strict-loadable as ``[env.goal_reward]``).
+
+    :param progress: per metre flown closer to the current waypoint (negative when moving away)
+    :param waypoint_bonus: on reaching a waypoint (the last one included)
+    :param finish_bonus: on reaching the last waypoint, on top of ``waypoint_bonus``
+    :param collision: paid once, on the colliding step (the episode ends)
+    :param time_cost: per step (0.1 s): a slow or hovering pilot pays for it
+    :param proximity: times the tutorial's proximity penalty (up to 1.0 a step inside 1 m)
+    """
+
+    progress: float = field(default=1.0, metadata={"min": 0.0, "max": 100.0})
+    waypoint_bonus: float = field(default=10.0, metadata={"min": 0.0, "max": 1000.0})
+    finish_bonus: float = field(default=10.0, metadata={"min": 0.0, "max": 1000.0})
+    collision: float = field(default=50.0, metadata={"min": 0.0, "max": 1000.0})
+    time_cost: float = field(default=0.02, metadata={"min": 0.0, "max": 10.0})
+    proximity: float = field(default=0.25, metadata={"min": 0.0, "max": 10.0})
+
+
+@dataclass(frozen=True)
+class GoalStep:
+    """What the goal reward looks at after one control step, beside :class:`StepOutcome`.
+
+    :param progress_m: metres the vehicle came closer to the waypoint it was flying to
+    :param reached: it reached that waypoint this step
+    :param finished: that waypoint was the last one
+    """
+
+    progress_m: float
+    reached: bool
+    finished: bool
+
+
+def goal_reward(o: StepOutcome, g: GoalStep, w: GoalRewardConfig) -> float:
+    """Fly to the waypoints, in order, soon, without touching anything.
+
+    Per step: ``progress·progress_m`` (potential-based: circling or flying back and forth earns
+    nothing), ``− time_cost``, ``− proximity ×`` the tutorial's proximity penalty inside 1 m;
+    ``+ waypoint_bonus`` on reaching a waypoint and ``+ finish_bonus`` more on the last one;
+    a collision costs ``collision`` and nothing else counts on that step. With the defaults a
+    straight 20 m leg flown at 2 m/s earns about +28 (20 progress, 10 bonus, −2 time).
+    """
+    if o.collision:
+        return -w.collision
+    reward = w.progress * g.progress_m - w.time_cost - w.proximity * _proximity_penalty(o.scan_min)
+    if g.reached:
+        reward += w.waypoint_bonus + (w.finish_bonus if g.finished else 0.0)
+    return reward

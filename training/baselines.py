@@ -1,4 +1,6 @@
-"""Baselines the learned policy is measured against, on the same 360-bin scan it sees.
+"""Baselines the learned policy is measured against, on the same observation it sees.
+
+Avoidance task (LidarAvoid-v0, a 360-bin scan):
 
 * :class:`RandomController` — uniform random actions: the floor.
 * :class:`GapFollower` — a classical reactive controller (follow-the-gap with the vehicle's width,
@@ -6,18 +8,26 @@
   straight before its body touches a return, steers towards the freest heading near straight
   ahead, and slows down as the clearance ahead shrinks. No learning, no memory.
 
-Both implement the controller interface the evaluator uses: ``reset(scan)`` at an episode start,
-then ``act(scan) -> (2,)`` per scan, actions in ``[-1, 1]`` (a0 forward speed, a1 yaw rate,
+Goal task (LidarNav-v0, the scan + goal bearing/distance + measured velocity frame of
+:class:`companion.observation.ObservationLayout`):
+
+* :class:`StraightLine` — turn to the goal and fly at it, no avoidance: how hard a world is.
+* :class:`GoalFollower` — the classical goal-directed controller (see its docstring).
+
+All implement the controller interface the evaluator uses: ``reset(obs)`` at an episode start,
+then ``act(obs) -> (2,)`` per step, actions in ``[-1, 1]`` (a0 forward speed, a1 yaw rate,
 counter-clockwise positive).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
 
+from companion.observation import ObservationLayout
 from companion.scan import N_BINS
 
 _ANGLES = np.deg2rad(np.arange(N_BINS) + 0.5)  # bin centres, counter-clockwise from straight ahead
@@ -128,3 +138,218 @@ class GapFollower:
         speed *= max(0.0, float(np.cos(heading)))  # turn first, then go
         yaw = np.clip(c.turn_gain * heading, -1.0, 1.0)
         return np.array([speed, yaw], dtype=np.float32)
+
+
+def _goal(obs: np.ndarray, layout: ObservationLayout) -> tuple[np.ndarray, float, float]:
+    """(scan, goal bearing rad CCW from the nose, goal distance m) of one goal-layout frame."""
+    o = np.asarray(obs, dtype=np.float64).reshape(layout.frame_size)
+    n = layout.n_bins
+    return o[:n], math.atan2(o[n + 1], o[n]), float(o[n + 2]) * layout.goal_range
+
+
+def _wrap(angle: float | np.ndarray) -> float | np.ndarray:
+    return (angle + np.pi) % (2 * np.pi) - np.pi
+
+
+@dataclass(frozen=True)
+class StraightLineConfig:
+    """:param cruise: forward action once facing the goal
+    :param turn_gain: yaw-rate action per radian of bearing"""
+
+    cruise: float = 1.0
+    turn_gain: float = 2.0
+
+
+class StraightLine:
+    """Turn to the goal and fly straight at it, blind to obstacles (a world's difficulty gauge)."""
+
+    def __init__(self, layout: ObservationLayout, config: StraightLineConfig | None = None) -> None:
+        self.layout, self.config = layout, config or StraightLineConfig()
+
+    def reset(self, obs: np.ndarray) -> np.ndarray:
+        return self.act(obs)
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        _, bearing, _ = _goal(obs, self.layout)
+        c = self.config
+        speed = c.cruise * max(0.0, math.cos(bearing)) ** 2
+        return np.array([speed, np.clip(c.turn_gain * bearing, -1.0, 1.0)], dtype=np.float32)
+
+
+@dataclass(frozen=True)
+class GoalFollowerConfig:
+    """Tuning of :class:`GoalFollower` (metres, radians, steps of 0.1 s, fractions of the action range).
+
+    :param max_range: range of a scan value of 1.0
+    :param body_radius: half-width of the corridor a heading must keep clear (radius 0.25 + margin)
+    :param lookahead: a heading is admissible when its corridor is clear this far (or to the goal)
+    :param hysteresis: cost per radian of changing the chosen heading's offset from the goal,
+        so the choice does not flip between two gaps around an obstacle on the goal line
+    :param horizon: metres of clearance beyond which a heading counts as open (a subgoal candidate)
+    :param jump: metres between neighbouring bins' ranges that mark an obstacle's edge
+    :param edge_margin: metres beyond an edge the subgoal direction passes (on top of ``body_radius``)
+    :param subgoal_hysteresis: metres of heuristic per radian of change in the subgoal direction
+    :param swept_margin: the speed also follows the clearance along the chosen heading of a corridor
+        this much wider on each side (a vehicle turning at speed drifts off its heading), but not
+        below ``creep`` (a gap narrower than the wide corridor is passed slowly, not refused)
+    :param creep: see ``swept_margin``
+
+    :param cruise: forward action with a clear path ahead
+    :param stop_distance: forward action is 0 at or below this clearance along the chosen heading
+    :param slow_distance: forward action reaches ``cruise`` at this clearance
+    :param turn_gain: yaw-rate action per radian of heading error
+    :param stall_steps: no progress of ``stall_progress`` toward the goal for this long → escape
+    :param stall_progress: metres of progress that count as progress
+    :param escape_steps: longest escape (boundary following) before trying the goal again
+    :param wall_lookahead: clearance a heading needs to count as free while following a boundary
+    """
+
+    max_range: float = 10.0
+    body_radius: float = 0.42
+    lookahead: float = 2.5
+    hysteresis: float = 0.5
+    horizon: float = 8.0
+    jump: float = 1.0
+    edge_margin: float = 0.3
+    subgoal_hysteresis: float = 1.0
+    swept_margin: float = 0.3
+    creep: float = 0.25
+    cruise: float = 0.7
+    stop_distance: float = 0.6
+    slow_distance: float = 3.5
+    turn_gain: float = 2.0
+    stall_steps: int = 40
+    stall_progress: float = 0.5
+    escape_steps: int = 200
+    wall_lookahead: float = 1.5
+
+
+class GoalFollower:
+    """Tangent Bug on the scan: steer for the goal or the obstacle edge that promises the shortest way,
+    through the admissible heading nearest to it, with hysteresis and a boundary-following escape.
+
+    Every step, as Tangent Bug (Kamon, Rivlin & Rimon 1998) does with a range sensor: the subgoal
+    is the goal itself when its heading is clear (to the goal or for ``horizon``), else the edge of
+    an obstacle (a jump of ``jump`` between neighbouring bins, the direction passing it by
+    ``body_radius + edge_margin``) that minimises ``|edge| + |goal - edge|``; changing the
+    subgoal's direction costs ``subgoal_hysteresis`` metres per radian (offsets are measured from
+    the goal bearing, so the vehicle's own turning is no change). For each heading the distance the
+    vehicle's body could fly straight before touching a return (:func:`corridor_clearance`);
+    headings clear for ``lookahead`` (or up to the goal) are admissible, and the one nearest the
+    subgoal is flown (``hysteresis`` against changes); with none admissible, the freest heading.
+    Speed falls with the clearance along the chosen heading (also of a wider, swept corridor) and
+    with the heading error (turn first, then go).
+
+    Concave obstacles (a U between start and goal) trap any such greedy rule, so when the goal has
+    come no ``stall_progress`` closer for ``stall_steps``, the controller follows the obstacle's
+    boundary (as Bug algorithms do), keeping it on the side it was already turning toward, until the
+    goal's bearing is admissible again from closer than where it got stuck, or ``escape_steps``
+    pass. No map, no memory beyond these few numbers: it sees what the policy sees.
+    """
+
+    def __init__(self, layout: ObservationLayout, config: GoalFollowerConfig | None = None) -> None:
+        self.layout, self.config = layout, config or GoalFollowerConfig()
+
+    def reset(self, obs: np.ndarray) -> np.ndarray:
+        self._offset = 0.0  # last chosen heading minus the goal bearing
+        self._subgoal_offset = 0.0  # last subgoal direction minus the goal bearing
+        self._best = math.inf  # closest to the goal since the last progress
+        self._since_progress = 0
+        self._escape_side = 0  # +1: boundary on the right (turning left), -1: on the left; 0: no escape
+        self._escape_left = 0
+        self._stuck_at = math.inf
+        self._last_distance = math.inf
+        return self.act(obs)
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        c = self.config
+        scan, bearing, distance = _goal(obs, self.layout)
+        ranges = np.where(scan >= 1.0, np.inf, scan * c.max_range)
+        clear = corridor_clearance(ranges, c.body_radius)
+        self._track_progress(distance)
+        need = np.minimum(c.lookahead, distance)
+        admissible = clear >= need
+        goal_bin = int(np.degrees(bearing) % 360.0)
+        if self._escape_side:
+            self._escape_left -= 1
+            goal_free = bool(admissible[goal_bin]) and distance < self._stuck_at - c.stall_progress
+            if goal_free or self._escape_left <= 0:
+                self._escape_side = 0
+                self._best, self._since_progress = distance, 0
+        if self._escape_side:
+            heading = self._follow_boundary(clear)
+        elif admissible.any():
+            target = self._subgoal(ranges, clear, bearing, distance)
+            self._subgoal_offset = float(_wrap(target - bearing))
+            offsets = _wrap(_SIGNED - target)
+            cost = np.abs(offsets) + c.hysteresis * np.abs(_wrap(_SIGNED - bearing) - self._offset)
+            heading = float(_SIGNED[int(np.argmin(np.where(admissible, cost, np.inf)))])
+        else:
+            heading = float(_SIGNED[int(np.argmax(np.minimum(clear, c.max_range)))])
+        self._offset = float(_wrap(heading - bearing))
+        k = int(np.degrees(heading) % 360.0)
+        wide = corridor_clearance(ranges, c.body_radius + c.swept_margin)
+        speed = self._ramp(float(clear[k]), distance) * max(0.0, math.cos(heading)) ** 2
+        speed = min(speed, max(c.creep, self._ramp(float(wide[k]), distance)))
+
+        ahead = float(min(clear[0], clear[-1]))
+        if ahead < c.stop_distance:
+            speed = 0.0
+
+        return np.array([speed, np.clip(c.turn_gain * heading, -1.0, 1.0)], dtype=np.float32)
+
+    def _ramp(self, clearance: float, distance: float) -> float:
+        """Forward action for a clearance along the heading: 0 at ``stop_distance``, ``cruise`` at
+        ``slow_distance`` (the goal counts as clearance: no braking for a waypoint to fly through)."""
+        c = self.config
+        free = min(clearance, distance + c.stop_distance) - c.stop_distance
+        return c.cruise * float(np.clip(free / (c.slow_distance - c.stop_distance), 0.0, 1.0))
+
+    def _subgoal(self, ranges: np.ndarray, clear: np.ndarray, bearing: float, distance: float) -> float:
+        """The direction to fly for: the goal's bearing if clear, else the best obstacle edge's."""
+        c = self.config
+        goal_bin = int(np.degrees(bearing) % 360.0)
+        if clear[goal_bin] >= min(distance, c.horizon):
+            return bearing
+        r = np.minimum(ranges, c.max_range)
+        following = np.roll(r, -1)
+        edges = np.nonzero(np.abs(following - r) > c.jump)[0]
+        if edges.size == 0:
+            return bearing
+        # the edge is the nearer of the two bins; the way round it lies toward the farther one
+        near_is_first = r[edges] < following[edges]
+        near_bin = np.where(near_is_first, edges, (edges + 1) % N_BINS)
+        side = np.where(near_is_first, 1.0, -1.0)  # +1: pass counter-clockwise of the edge
+        near_r = r[near_bin]
+        passing = np.arcsin(np.minimum(1.0, (c.body_radius + c.edge_margin) / np.maximum(near_r, 1e-6)))
+        direction = _wrap(_SIGNED[near_bin] + side * passing)
+        ex, ey = near_r * np.cos(_SIGNED[near_bin]), near_r * np.sin(_SIGNED[near_bin])
+        gx, gy = distance * math.cos(bearing), distance * math.sin(bearing)
+        heuristic = near_r + np.hypot(gx - ex, gy - ey)
+        heuristic += c.subgoal_hysteresis * np.abs(_wrap(direction - bearing) - self._subgoal_offset)
+        return float(direction[int(np.argmin(heuristic))])
+
+    def _track_progress(self, distance: float) -> None:
+        """Stall detection; a jump in distance is a new waypoint and starts over."""
+        c = self.config
+        if distance > self._last_distance + 1.0:
+            self._best, self._since_progress, self._escape_side = distance, 0, 0
+        self._last_distance = distance
+        if distance < self._best - c.stall_progress:
+            self._best, self._since_progress = distance, 0
+            return
+        self._since_progress += 1
+        if not self._escape_side and self._since_progress >= c.stall_steps:
+            self._escape_side = 1 if self._offset >= 0.0 else -1
+            self._escape_left = c.escape_steps
+            self._stuck_at = distance
+
+    def _follow_boundary(self, clear: np.ndarray) -> float:
+        """The first free heading sweeping away from the boundary side: the boundary stays beside."""
+        c = self.config
+        side = self._escape_side
+        sweep = np.arange(-90, 271) if side > 0 else -np.arange(-90, 271)  # degrees, from the wall round
+        free = clear[sweep % 360] >= c.wall_lookahead
+        if not free.any():
+            return float(side * np.pi / 2)
+        return float(np.radians(sweep[int(np.argmax(free))]))

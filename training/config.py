@@ -1,8 +1,9 @@
 """The one training config: a strict TOML file (``training/configs/*.toml``) plus ``key=value`` overrides.
 
 Everything a run depends on lives here, so a run directory's saved ``config.toml`` reproduces it.
-The ``[env]`` table is the simulator's own :class:`flightsim.env.EnvConfig` (checked by its strict
-loader, keys named ``env.<key>``), which is also where the domain-randomisation switches live.
+The ``[env]`` table is the simulator's own :class:`flightsim.env.EnvConfig` — or, with ``env_id =
+"flightsim/LidarNav-v0"``, :class:`flightsim.nav_env.NavEnvConfig` — (checked by its strict loader,
+keys named ``env.<key>``), which is also where the domain-randomisation switches live.
 """
 
 from __future__ import annotations
@@ -21,6 +22,8 @@ SUCCESS_MIN_MEAN_SPEED = 0.4
 STEP_SECONDS = 0.1
 #: a clearance below this counts as a near miss in evaluation, metres
 NEAR_MISS_DISTANCE = 0.5
+#: the environments a config can train on: avoidance (no goal) and the goal task
+ENV_IDS = ("flightsim/LidarAvoid-v0", "flightsim/LidarNav-v0")
 
 
 @dataclass(frozen=True)
@@ -48,7 +51,11 @@ class PPOConfig:
 
 @dataclass(frozen=True)
 class EvalConfig:
-    """Evaluation during training on held-out generated worlds (seeds below the training range)."""
+    """Evaluation during training on held-out generated worlds (seeds below the training range).
+
+    The goal task flies ``n_worlds`` per family from ``first_seed`` (which must lie in
+    :data:`flightsim.seeds.VALIDATION`) over ``env.difficulty_range``; ``difficulty`` is unused.
+    """
 
     every_steps: int = field(default=50_000, metadata={"min": 1})
     n_worlds: int = field(default=10, metadata={"min": 1})
@@ -86,9 +93,13 @@ class TrainConfig:
     :param narrow_room_prob: fraction of training worlds generated as narrow rooms (corridors and
         small rooms like the example worlds, which the generator's default sizes never produce)
     :param narrow_room_widths: range the narrow rooms' width is drawn from, metres
+    :param env_id: the environment: ``flightsim/LidarAvoid-v0`` (avoid, no goal) or
+        ``flightsim/LidarNav-v0`` (fly to waypoints; ``difficulty_spread``, ``narrow_room_*`` and the
+        curriculum do not apply: the env draws its own families and difficulties)
     :param env: the simulator's ``EnvConfig`` table (domain randomisation switches included)
     """
 
+    env_id: Literal["flightsim/LidarAvoid-v0", "flightsim/LidarNav-v0"] = "flightsim/LidarAvoid-v0"
     name: str = "default"
     seed: int = field(default=0, metadata={"min": 0})
     total_timesteps: int = field(default=1_000_000, metadata={"min": 1})
@@ -121,11 +132,20 @@ class TrainConfig:
         """Where this run's checkpoints, logs and models go."""
         return Path(self.run_root) / f"{self.name}-s{self.seed}"
 
+    @property
+    def is_goal_task(self) -> bool:
+        return self.env_id == ENV_IDS[1]
+
     def env_config(self, **changes: Any):
-        """The simulator's :class:`~flightsim.env.EnvConfig` from the ``[env]`` table (+ ``changes``).
+        """The simulator's :class:`~flightsim.env.EnvConfig` (:class:`~flightsim.nav_env.NavEnvConfig`
+        for the goal task) from the ``[env]`` table (+ ``changes``).
 
         :raises UserError: on an unknown or ill-typed key, named ``env.<key>``
         """
+        if self.is_goal_task:
+            from flightsim.nav_env import NavEnvConfig
+
+            return from_dict(NavEnvConfig, {**self.env, **changes}, prefix="env.")
         from flightsim.env import EnvConfig  # the simulator is only needed once a run starts
 
         return from_dict(EnvConfig, {**self.env, **changes}, prefix="env.")
@@ -135,6 +155,18 @@ def config_from_dict(data: dict[str, Any]) -> TrainConfig:
     """Build and fully check a :class:`TrainConfig` (the ``[env]`` table included)."""
     config = from_dict(TrainConfig, data)
     config.env_config()
+    if config.is_goal_task:
+        from flightsim import seeds
+
+        if config.curriculum.enabled:
+            raise UserError(
+                "curriculum.enabled: the goal task draws its own difficulties (env.difficulty_range)"
+            )
+        if config.eval.first_seed not in seeds.VALIDATION:
+            raise UserError(
+                f"eval.first_seed {config.eval.first_seed}: the goal task validates on seeds "
+                f"{seeds.VALIDATION.start}..{seeds.VALIDATION.stop - 1}"
+            )
     if config.ppo.batch_size > config.ppo.n_steps * config.resolved_n_envs:
         raise UserError(
             f"ppo.batch_size {config.ppo.batch_size} exceeds one rollout "

@@ -1,9 +1,19 @@
 """``avoid-train evaluate``: fly a policy and two baselines over the same worlds and compare them.
 
-Success is strict: the whole episode (``max_steps``) without a collision AND a mean speed of at
-least :data:`~training.config.SUCCESS_MIN_MEAN_SPEED` (40 m in the default 100 s), because a
-policy that hovers in place survives every episode. Per controller the report gives, per world and
-overall: success rate, collisions, distance flown, mean speed, minimum clearance and near misses.
+The task is the training config's ``env_id``.
+
+Avoidance (``flightsim/LidarAvoid-v0``): success is strict: the whole episode (``max_steps``)
+without a collision AND a mean speed of at least :data:`~training.config.SUCCESS_MIN_MEAN_SPEED`
+(40 m in the default 100 s), because a policy that hovers in place survives every episode. Per
+controller the report gives, per world and overall: success rate, collisions, distance flown, mean
+speed, minimum clearance and near misses. Baselines: the gap follower and random actions.
+
+Goal (``flightsim/LidarNav-v0``): success is every waypoint reached in order, without a collision,
+within the world's time limit. Per controller, per world, per family and overall: success,
+collision and timeout rates, mean time to the last waypoint and SPL (shortest safe path / path
+flown, both over successes only; ``spl_all`` is Anderson et al.'s, failures counting 0).
+Baselines: the goal follower and the straight line. ``--seeds N`` flies N test worlds per family
+(:data:`flightsim.seeds.TEST`), difficulties spread evenly over the config's ``difficulty_range``.
 
 Every controller sees one scan per step through the same interface (``reset(scan)`` then
 ``act(scan)``). The learned policy goes through the companion's own :class:`FrameStack`; an
@@ -40,6 +50,9 @@ from training.config import NEAR_MISS_DISTANCE, STEP_SECONDS, SUCCESS_MIN_MEAN_S
 log = logging.getLogger(__name__)
 
 BASELINES = ("gap_follower", "random")
+GOAL_BASELINES = ("goal_follower", "straight_line")
+AVOID_ENV_ID = "flightsim/LidarAvoid-v0"
+NAV_ENV_ID = "flightsim/LidarNav-v0"
 
 
 class Controller(Protocol):
@@ -53,13 +66,16 @@ class Controller(Protocol):
 class StackedPolicyController:
     """A stacked-scan policy behind the companion's :class:`FrameStack` (as on the drone).
 
-    :param act_stacked: maps one ``(n_stack * 360,)`` observation to a ``(2,)`` action
+    :param act_stacked: maps one ``(n_stack * frame_size,)`` observation to a ``(2,)`` action
     :param n_stack: stack depth
+    :param frame_size: floats per frame (360 scan bins, 365 with the goal features)
     """
 
-    def __init__(self, act_stacked: Callable[[np.ndarray], np.ndarray], n_stack: int) -> None:
+    def __init__(
+        self, act_stacked: Callable[[np.ndarray], np.ndarray], n_stack: int, frame_size: int = N_BINS
+    ) -> None:
         self._act = act_stacked
-        self._stack = FrameStack(n_stack, N_BINS)
+        self._stack = FrameStack(n_stack, frame_size)
 
     def reset(self, scan: np.ndarray) -> np.ndarray:
         return np.asarray(self._act(self._stack.reset(scan)), dtype=np.float32)
@@ -93,18 +109,19 @@ class ShieldedController:
 
     def _filter(self, action: np.ndarray, scan: np.ndarray) -> np.ndarray:
         max_speed, max_yaw_rate = self._scale
+        scan = scan[:N_BINS]  # a goal frame's scan part
         safe = self.shield.filter(command_from_action(action, max_speed, max_yaw_rate), scan, STEP_SECONDS)
         return np.array([safe.forward / max_speed, safe.yaw_rate / max_yaw_rate], dtype=np.float32)
 
 
-def sb3_controller(model: Any, n_stack: int) -> StackedPolicyController:
+def sb3_controller(model: Any, n_stack: int, frame_size: int = N_BINS) -> StackedPolicyController:
     """An SB3 model acting deterministically (what ``model.predict(..., deterministic=True)`` gives)."""
 
     def act(obs: np.ndarray) -> np.ndarray:
         action, _ = model.predict(obs[None, :], deterministic=True)
         return action[0]
 
-    return StackedPolicyController(act, n_stack)
+    return StackedPolicyController(act, n_stack, frame_size)
 
 
 # --- what is evaluated, as picklable descriptions (tasks cross process boundaries) ------------------
@@ -112,8 +129,8 @@ def sb3_controller(model: Any, n_stack: int) -> StackedPolicyController:
 
 @dataclass(frozen=True)
 class ControllerSpec:
-    """What to build in a worker: ``kind`` is ``policy`` (``path``), ``gap_follower`` or ``random``;
-    ``shield``: behind the companion's safety shield."""
+    """What to build in a worker: ``kind`` is ``policy`` (``path``) or one of :data:`BASELINES` /
+    :data:`GOAL_BASELINES`; ``shield``: behind the companion's safety shield."""
 
     kind: str
     path: str = ""
@@ -127,17 +144,33 @@ class ControllerSpec:
 
 @dataclass(frozen=True)
 class WorldSpec:
-    """A world: a JSON file (``path``) or a generated one (``seed``, ``difficulty``)."""
+    """A world: a JSON file (``path``) or a generated one (``seed``, ``difficulty``; of ``family``
+    for the goal task)."""
 
     name: str
     path: str = ""
     seed: int = -1
     difficulty: float = 0.5
+    family: str = ""
 
     def reset_options(self) -> dict[str, Any]:
         if self.path:
             return {"world": self.path}
-        return {"world_seed": self.seed, "difficulty": self.difficulty}
+        family = {"family": self.family} if self.family else {}
+        return {**family, "world_seed": self.seed, "difficulty": self.difficulty}
+
+    def world(self, vehicle_radius: float) -> Any:
+        """The :class:`~flightsim.world.World` itself (for pictures)."""
+        from flightsim.families import generate_family_world
+        from flightsim.world import generate_world, load_world
+
+        if self.path:
+            return load_world(self.path, vehicle_radius=vehicle_radius)
+        if self.family:
+            return generate_family_world(
+                self.family, self.seed, self.difficulty, vehicle_radius=vehicle_radius
+            )
+        return generate_world(self.seed, self.difficulty, vehicle_radius)
 
 
 @dataclass(frozen=True)
@@ -147,6 +180,7 @@ class EpisodeTask:
     episode: int
     env: dict[str, Any]
     seed: int
+    env_id: str = AVOID_ENV_ID
 
 
 @dataclass
@@ -165,6 +199,13 @@ class EpisodeResult:
     near_misses: int
     success: bool
     trajectory: list[tuple[float, float]] = field(default_factory=list, repr=False)
+    #: the goal task's (0 waypoints: the avoidance task)
+    family: str = ""
+    waypoints: int = 0
+    waypoints_reached: int = 0
+    timeout: bool = False
+    time_s: float = 0.0
+    shortest_path_m: float = 0.0
 
 
 def is_success(collision: bool, steps: int, max_steps: int, distance: float, dt: float) -> bool:
@@ -175,7 +216,7 @@ def is_success(collision: bool, steps: int, max_steps: int, distance: float, dt:
 def run_episode(
     env: Any, controller: Controller, reset_options: dict[str, Any], seed: int | None = None
 ) -> EpisodeResult:
-    """Fly one episode of ``env`` (a ``LidarAvoidEnv``) with ``controller``.
+    """Fly one episode of ``env`` (a ``LidarAvoidEnv`` or a ``LidarNavEnv``) with ``controller``.
 
     :param env: the simulator environment (unwrapped observation: one scan)
     :param controller: turns scans into actions
@@ -204,6 +245,17 @@ def run_episode(
     max_steps = int(env.unwrapped.config.max_steps)
     dt = STEP_SECONDS
     distance = float(info["distance"])
+    goal: dict[str, Any] = {"success": is_success(collision, steps, max_steps, distance, dt)}
+    if "waypoints" in info:  # the goal task: success is the env's (every waypoint, in time)
+        goal = {
+            "success": bool(info["success"]),
+            "family": str(info["family"]),
+            "waypoints": int(info["waypoints"]),
+            "waypoints_reached": int(info["waypoint"]),
+            "timeout": bool(truncated and not info["success"]),
+            "time_s": steps * dt,
+            "shortest_path_m": float(info["shortest_path_m"]),
+        }
     return EpisodeResult(
         controller="",
         world="",
@@ -215,8 +267,8 @@ def run_episode(
         mean_speed=distance / max(steps * dt, 1e-9),
         min_clearance=max(min_clearance, 0.0),
         near_misses=near_misses,
-        success=is_success(collision, steps, max_steps, distance, dt),
         trajectory=trajectory,
+        **goal,
     )
 
 
@@ -241,12 +293,23 @@ def build_controller(spec: ControllerSpec, env_config: Any, seed: int, n_stack: 
 
 def _bare_controller(spec: ControllerSpec, env_config: Any, seed: int, n_stack: int) -> Controller:
     """The controller itself (policies are loaded once per process)."""
-    from training.baselines import GapFollower, GapFollowerConfig, RandomController
+    from training.baselines import (
+        GapFollower,
+        GapFollowerConfig,
+        GoalFollower,
+        GoalFollowerConfig,
+        RandomController,
+        StraightLine,
+    )
 
     if spec.kind == "random":
         return RandomController(seed)
     if spec.kind == "gap_follower":
         return GapFollower(GapFollowerConfig(max_range=float(env_config.scan.max_range)))
+    if spec.kind == "goal_follower":
+        return GoalFollower(env_config.layout, GoalFollowerConfig(max_range=float(env_config.scan.max_range)))
+    if spec.kind == "straight_line":
+        return StraightLine(env_config.layout)
     if spec.kind != "policy":
         raise ValueError(f"unknown controller kind {spec.kind!r}")
     # keyed by modification time too: training re-saves its evaluation model under one name
@@ -256,7 +319,14 @@ def _bare_controller(spec: ControllerSpec, env_config: Any, seed: int, n_stack: 
             del _WORKER_CACHE[old]
         _WORKER_CACHE[key] = load_policy(Path(spec.path), env_config, n_stack)
     act, stack = _WORKER_CACHE[key]
-    return StackedPolicyController(act, stack)
+    return StackedPolicyController(act, stack, _layout(env_config).frame_size)
+
+
+def _layout(env_config: Any) -> Any:
+    """The observation layout an env config produces (goal configs carry theirs)."""
+    from companion.observation import ObservationLayout
+
+    return getattr(env_config, "layout", None) or ObservationLayout(n_bins=N_BINS)
 
 
 def load_policy(
@@ -276,6 +346,7 @@ def load_policy(
             bin_convention=BIN_CONVENTION,
             max_speed=float(env_config.max_speed),
             max_yaw_rate=float(env_config.max_yaw_rate),
+            layout=_layout(env_config),
         )
         try:
             policy = OnnxPolicy(path, spec)
@@ -291,21 +362,29 @@ def load_policy(
 
         torch.set_num_threads(1)  # one episode per process: more threads only contend for the cores
         model = load_model(path)
-        stack = int(model.observation_space.shape[0]) // N_BINS
-        return sb3_controller(model, stack)._act, stack
+        frame = _layout(env_config).frame_size
+        size = int(model.observation_space.shape[0])
+        if size % frame:
+            raise UserError(f"{path}: observation of {size} floats is not a stack of {frame}-float frames")
+        return sb3_controller(model, size // frame, frame)._act, size // frame
     raise UserError(f"{path}: a policy is an .onnx or a stable-baselines3 .zip file")
 
 
-def _worker_env(env_dict: dict[str, Any]) -> Any:
-    key = ("env", json.dumps(env_dict, sort_keys=True))
+def _worker_env(env_dict: dict[str, Any], env_id: str = AVOID_ENV_ID) -> Any:
+    key = ("env", env_id, json.dumps(env_dict, sort_keys=True))
     if key not in _WORKER_CACHE:
-        _WORKER_CACHE[key] = make_eval_env(env_dict)
+        _WORKER_CACHE[key] = make_eval_env(env_dict, env_id)
     return _WORKER_CACHE[key]
 
 
-def make_eval_env(env_dict: dict[str, Any]) -> Any:
-    """A single simulator environment from an ``[env]`` table (strictly checked)."""
+def make_eval_env(env_dict: dict[str, Any], env_id: str = AVOID_ENV_ID) -> Any:
+    """A single simulator environment of ``env_id`` from an ``[env]`` table (strictly checked)."""
     from companion.tomlconfig import from_dict
+
+    if env_id == NAV_ENV_ID:
+        from flightsim.nav_env import LidarNavEnv, NavEnvConfig
+
+        return LidarNavEnv(from_dict(NavEnvConfig, env_dict, prefix="env."))
     from flightsim.env import EnvConfig, LidarAvoidEnv
 
     return LidarAvoidEnv(from_dict(EnvConfig, env_dict, prefix="env."))
@@ -313,7 +392,7 @@ def make_eval_env(env_dict: dict[str, Any]) -> Any:
 
 def run_task(task: EpisodeTask) -> EpisodeResult:
     """Run one :class:`EpisodeTask` (in a worker process or in-line)."""
-    env = _worker_env(task.env)
+    env = _worker_env(task.env, task.env_id)
     controller = build_controller(task.controller, env.unwrapped.config, task.seed)
     result = run_episode(env, controller, task.world.reset_options(), seed=task.seed)
     result.controller, result.world, result.episode = task.controller.label, task.world.name, task.episode
@@ -333,11 +412,15 @@ def run_tasks(tasks: Sequence[EpisodeTask], executor: Executor | None = None) ->
 
 
 def make_tasks(
-    controllers: Iterable[ControllerSpec], worlds: Sequence[WorldSpec], episodes: int, env: dict[str, Any]
+    controllers: Iterable[ControllerSpec],
+    worlds: Sequence[WorldSpec],
+    episodes: int,
+    env: dict[str, Any],
+    env_id: str = AVOID_ENV_ID,
 ) -> list[EpisodeTask]:
     """Every controller × world × episode; episode ``k`` uses reset seed ``k`` for every controller."""
     return [
-        EpisodeTask(controller=c, world=w, episode=k, env=env, seed=k)
+        EpisodeTask(controller=c, world=w, episode=k, env=env, seed=k, env_id=env_id)
         for c in controllers
         for w in worlds
         for k in range(episodes)
@@ -348,10 +431,13 @@ def make_tasks(
 
 
 def summarise(results: Sequence[EpisodeResult]) -> dict[str, Any]:
-    """Success rate, collisions, mean distance and speed, worst clearance and near misses of ``results``."""
+    """Success rate, collisions, mean distance and speed, worst clearance and near misses of ``results``
+    (and for the goal task :func:`goal_summary`'s figures too)."""
     n = len(results)
     if n == 0:
         return {"episodes": 0}
+    if any(r.waypoints for r in results):
+        return goal_summary(results)
     return {
         "episodes": n,
         "success_rate": sum(r.success for r in results) / n,
@@ -363,14 +449,42 @@ def summarise(results: Sequence[EpisodeResult]) -> dict[str, Any]:
     }
 
 
+def goal_summary(results: Sequence[EpisodeResult]) -> dict[str, Any]:
+    """The goal task's figures: success, collision and timeout rates, mean time to goal and SPL (the
+    last two over successes only; ``spl_all`` counts a failure as 0, as Anderson et al. define it)."""
+    n = len(results)
+    won = [r for r in results if r.success]
+    spl = [r.shortest_path_m / max(r.distance, r.shortest_path_m, 1e-9) for r in won]
+    return {
+        "episodes": n,
+        "success_rate": len(won) / n,
+        "collision_rate": sum(r.collision for r in results) / n,
+        "timeout_rate": sum(r.timeout for r in results) / n,
+        "mean_time_s": float(np.mean([r.time_s for r in won])) if won else None,
+        "spl": float(np.mean(spl)) if won else None,
+        "spl_all": float(np.sum(spl)) / n,
+        "waypoints_reached": sum(r.waypoints_reached for r in results)
+        / max(sum(r.waypoints for r in results), 1),
+        "collisions": sum(r.collision for r in results),
+        "mean_distance_m": float(np.mean([r.distance for r in results])),
+        "min_clearance_m": float(min(r.min_clearance for r in results)),
+        "near_misses": sum(r.near_misses for r in results),
+    }
+
+
 def report(results: Sequence[EpisodeResult], worlds: Sequence[WorldSpec]) -> dict[str, Any]:
     """The evaluation as a JSON-able dict: per controller, overall and per world, plus every episode."""
     controllers = list(dict.fromkeys(r.controller for r in results))
+    goal = any(r.waypoints for r in results)
     out: dict[str, Any] = {
         "success_definition": (
-            f"no collision for max_steps and mean speed >= {SUCCESS_MIN_MEAN_SPEED} m/s "
-            f"(40 m over the default 100 s); near miss: clearance < {NEAR_MISS_DISTANCE} m"
-        ),
+            "every waypoint reached in order, no collision, within the world's time limit; "
+            "mean_time_s and spl over successes only"
+            if goal
+            else f"no collision for max_steps and mean speed >= {SUCCESS_MIN_MEAN_SPEED} m/s "
+            f"(40 m over the default 100 s)"
+        )
+        + f"; near miss: clearance < {NEAR_MISS_DISTANCE} m",
         "worlds": [asdict(w) for w in worlds],
         "controllers": {},
     }
@@ -380,12 +494,19 @@ def report(results: Sequence[EpisodeResult], worlds: Sequence[WorldSpec]) -> dic
             "overall": summarise(mine),
             "per_world": {w.name: summarise([r for r in mine if r.world == w.name]) for w in worlds},
         }
+        if goal:
+            out["controllers"][c]["per_family"] = {
+                f: summarise([r for r in mine if r.family == f])
+                for f in dict.fromkeys(r.family for r in mine)
+            }
     out["episodes"] = [{k: v for k, v in asdict(r).items() if k != "trajectory"} for r in results]
     return out
 
 
 def format_table(summary: dict[str, Any], per_world: bool) -> str:
     """A readable text table of :func:`report`'s output."""
+    if any("per_family" in data for data in summary["controllers"].values()):
+        return format_goal_table(summary, per_world)
     header = f"{'controller':<19} {'world':<16} {'eps':>4} {'success':>8} {'coll':>5} {'dist m':>8} "
     header += f"{'speed':>6} {'min clr':>8} {'near':>5}"
     lines = [header, "-" * len(header)]
@@ -422,6 +543,29 @@ def controller_colours(names: Iterable[str]) -> dict[str, str]:
     return colours
 
 
+def format_goal_table(summary: dict[str, Any], per_world: bool) -> str:
+    """The goal task's table: a row per family (and per world with ``per_world``), then overall."""
+    header = f"{'controller':<22} {'family/world':<24} {'eps':>4} {'success':>8} {'coll':>6} {'timeout':>8} "
+    header += f"{'time s':>7} {'SPL':>5} {'min clr':>8}"
+    lines = [header, "-" * len(header)]
+
+    def row(name: str, where: str, s: dict[str, Any]) -> str:
+        time_s = "-" if s["mean_time_s"] is None else f"{s['mean_time_s']:.1f}"
+        spl = "-" if s["spl"] is None else f"{s['spl']:.2f}"
+        return (
+            f"{name:<22} {where:<24} {s['episodes']:>4} {100 * s['success_rate']:>7.1f}% "
+            f"{100 * s['collision_rate']:>5.1f}% {100 * s['timeout_rate']:>7.1f}% {time_s:>7} {spl:>5} "
+            f"{s['min_clearance_m']:>8.2f}"
+        )
+
+    for name, data in summary["controllers"].items():
+        if per_world:
+            lines += [row(name, world, s) for world, s in data["per_world"].items()]
+        lines += [row(name, family, s) for family, s in data["per_family"].items()]
+        lines.append(row(name, "ALL", data["overall"]))
+    return "\n".join(lines)
+
+
 def plot_trajectories(
     results: Sequence[EpisodeResult], worlds: Sequence[WorldSpec], out: Path, env_config: Any
 ) -> None:
@@ -439,7 +583,6 @@ def trajectory_figure(results: Sequence[EpisodeResult], worlds: Sequence[WorldSp
     from matplotlib.figure import Figure
 
     from flightsim.render import draw_top_down
-    from flightsim.world import generate_world, load_world
 
     colours = controller_colours(r.controller for r in results)
     cols = min(len(worlds), 10 if len(worlds) > 16 else 4)
@@ -450,12 +593,7 @@ def trajectory_figure(results: Sequence[EpisodeResult], worlds: Sequence[WorldSp
     for i, w in enumerate(worlds):
         ax = fig.add_subplot(rows, cols, i + 1)
         radius = env_config.vehicle_radius
-        world = (
-            load_world(w.path, vehicle_radius=radius)
-            if w.path
-            else generate_world(w.seed, w.difficulty, radius)
-        )
-        draw_top_down(world, ax=ax, vehicle_radius=radius)
+        draw_top_down(w.world(radius), ax=ax, vehicle_radius=radius)
         for r in results:
             if r.world != w.name or r.episode != 0:
                 continue
@@ -468,8 +606,13 @@ def trajectory_figure(results: Sequence[EpisodeResult], worlds: Sequence[WorldSp
         ax.set_xlabel("")
         ax.set_ylabel("")
         ax.tick_params(labelsize=5)
+    from matplotlib.lines import Line2D
+
     labels = sorted(legend)
-    fig.legend([legend[n] for n in labels], labels, loc="lower center", ncol=max(len(labels), 1), fontsize=9)
+    handles = [legend[n] for n in labels]
+    handles.append(Line2D([], [], color="red", marker="x", ls="none", mew=2))
+    labels = [*labels, "collision"]
+    fig.legend(handles, labels, loc="lower center", ncol=len(handles), fontsize=9)
     fig.tight_layout(rect=(0, 0.6 / fig.get_figheight(), 1, 1))
     return fig
 
@@ -477,7 +620,26 @@ def trajectory_figure(results: Sequence[EpisodeResult], worlds: Sequence[WorldSp
 # --- command line ----------------------------------------------------------------------------------
 
 
-def worlds_from_args(args: argparse.Namespace) -> list[WorldSpec]:
+def goal_worlds(
+    families: Sequence[str], first_seed: int, n: int, difficulty_range: tuple[float, float]
+) -> list[WorldSpec]:
+    """``n`` generated goal-task worlds per family, seeds ``first_seed…``, difficulties spread evenly
+    over ``difficulty_range`` (world ``k`` at the middle of the ``k``-th of ``n`` equal slices)."""
+    low, high = difficulty_range
+    return [
+        WorldSpec(
+            f"{f}-{first_seed + k}",
+            seed=first_seed + k,
+            difficulty=round(low + (high - low) * (k + 0.5) / n, 3),
+            family=f,
+        )
+        for f in families
+        for k in range(n)
+    ]
+
+
+def worlds_from_args(args: argparse.Namespace, env_config: Any = None) -> list[WorldSpec]:
+    """The worlds the command line names; ``--seeds`` of the goal task when ``env_config`` is one."""
     if args.worlds is not None:
         directory = Path(args.worlds)
         if not directory.is_dir():
@@ -490,8 +652,13 @@ def worlds_from_args(args: argparse.Namespace) -> list[WorldSpec]:
         for f in files:
             load_world(f)  # a bad world file is the user's error, before any worker starts
         return [WorldSpec(name=f.stem, path=str(f.resolve())) for f in files]
+    if hasattr(env_config, "families"):
+        return _goal_worlds_from_args(args, env_config)
     from flightsim.env import TRAIN_SEED_OFFSET
 
+    args.first_seed = 0 if args.first_seed is None else args.first_seed
+    if args.difficulty is None:
+        args.difficulty = 0.5
     first, last = args.first_seed, args.first_seed + args.seeds - 1
     if args.seeds < 1 or first < 0 or last >= TRAIN_SEED_OFFSET:
         raise UserError(
@@ -503,23 +670,47 @@ def worlds_from_args(args: argparse.Namespace) -> list[WorldSpec]:
     return [WorldSpec(name=f"seed-{s}", seed=s, difficulty=args.difficulty) for s in range(first, last + 1)]
 
 
+def _goal_worlds_from_args(args: argparse.Namespace, env_config: Any) -> list[WorldSpec]:
+    from flightsim import seeds
+
+    first = seeds.TEST.start if args.first_seed is None else args.first_seed
+    held_out = [r for r in (seeds.VALIDATION, seeds.TEST) if first in r and first + args.seeds - 1 in r]
+    if args.seeds < 1 or not held_out:
+        raise UserError(
+            f"--first-seed {first} --seeds {args.seeds}: goal-task world seeds must lie within the test "
+            f"seeds {seeds.TEST.start}..{seeds.TEST.stop - 1} or the validation seeds "
+            f"{seeds.VALIDATION.start}..{seeds.VALIDATION.stop - 1}"
+        )
+    span = env_config.difficulty_range
+    if args.difficulty is not None:
+        if not 0.0 <= args.difficulty <= 1.0:
+            raise UserError(f"--difficulty must be in [0, 1], got {args.difficulty}")
+        span = (args.difficulty, args.difficulty)
+    return goal_worlds(env_config.families, first, args.seeds, span)
+
+
 def evaluate(
     policy: Path | None,
     worlds: Sequence[WorldSpec],
     episodes: int,
     env: dict[str, Any],
     workers: int,
-    baselines: Sequence[str] = BASELINES,
+    baselines: Sequence[str] | None = None,
     shield: bool = False,
+    env_id: str = AVOID_ENV_ID,
 ) -> tuple[dict[str, Any], list[EpisodeResult]]:
     """Evaluate ``policy`` (optional) and ``baselines`` on ``worlds``: (report dict, episode results).
 
+    :param baselines: default: the task's (:data:`BASELINES` or :data:`GOAL_BASELINES`)
     :param shield: every controller behind the companion's safety shield
+    :param env_id: the task
     """
+    if baselines is None:
+        baselines = GOAL_BASELINES if env_id == NAV_ENV_ID else BASELINES
     controllers = ([ControllerSpec("policy", str(policy), "policy", shield)] if policy else []) + [
         ControllerSpec(b, shield=shield) for b in baselines
     ]
-    tasks = make_tasks(controllers, worlds, episodes, env)
+    tasks = make_tasks(controllers, worlds, episodes, env, env_id)
     if workers <= 1:
         results = run_tasks(tasks)
     else:
@@ -529,14 +720,26 @@ def evaluate(
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--policy", type=Path, required=True, help="policy to evaluate (.onnx or SB3 .zip)")
+    parser.add_argument(
+        "--policy", type=Path, help="policy to evaluate (.onnx or SB3 .zip); without one, the baselines alone"
+    )
     where = parser.add_mutually_exclusive_group(required=True)
     where.add_argument("--worlds", type=Path, help="directory of world JSON files")
     where.add_argument(
-        "--seeds", type=int, help="evaluate on N held-out generated worlds (seeds from --first-seed)"
+        "--seeds",
+        type=int,
+        help="evaluate on N held-out generated worlds (seeds from --first-seed; goal task: N per family)",
     )
-    parser.add_argument("--first-seed", type=int, default=0, help="first world seed for --seeds (default 0)")
-    parser.add_argument("--difficulty", type=float, default=0.5, help="generator difficulty for --seeds")
+    parser.add_argument(
+        "--first-seed",
+        type=int,
+        help="first world seed for --seeds (default 0; goal task: the first test seed)",
+    )
+    parser.add_argument(
+        "--difficulty",
+        type=float,
+        help="generator difficulty for --seeds (default 0.5; goal task: spread over env.difficulty_range)",
+    )
     parser.add_argument("--episodes", type=int, default=1, help="episodes per world (reset seeds 0..N-1)")
     parser.add_argument(
         "--config", type=Path, help="training config whose [env] table to fly in (default: env defaults)"
@@ -575,12 +778,16 @@ def command(args: argparse.Namespace) -> int:
     if args.autopilot_response:
         overrides.append(f"env.autopilot_response={args.autopilot_response}")
     config = load_train_config(args.config, overrides)
-    worlds = worlds_from_args(args)
     env_config = config.env_config()
+    worlds = worlds_from_args(args, env_config)
     workers = args.workers or (os.cpu_count() or 1)
-    load_policy(args.policy, env_config, config.n_stack)  # fail fast, with a one-line error
-    summary, results = evaluate(args.policy, worlds, args.episodes, config.env, workers, shield=args.shield)
-    summary["policy"] = str(args.policy)
+    if args.policy is not None:
+        load_policy(args.policy, env_config, config.n_stack)  # fail fast, with a one-line error
+    summary, results = evaluate(
+        args.policy, worlds, args.episodes, config.env, workers, shield=args.shield, env_id=config.env_id
+    )
+    summary["env_id"] = config.env_id
+    summary["policy"] = None if args.policy is None else str(args.policy)
     summary["shield"] = asdict(ShieldConfig()) if args.shield else None
     print(format_table(summary, per_world=args.per_world or args.worlds is not None))
     if args.json:

@@ -97,7 +97,8 @@ def export_onnx(model: PPO, out: Path, metadata: dict[str, str]) -> None:
     for key, value in metadata.items():
         entry = proto.metadata_props.add()
         entry.key, entry.value = key, value
-    proto.doc_string = "lidar-avoid deterministic PPO actor (stacked 360-bin scans -> [forward, yaw rate])"
+    layout = metadata.get("lidar_avoid.obs_layout", "scan360")
+    proto.doc_string = f"lidar-avoid deterministic PPO actor (stacked {layout} frames -> [forward, yaw rate])"
     onnx.checker.check_model(proto, full_check=True)
     onnx.save(proto, str(out))
     log.info("wrote %s (%d bytes)", out, out.stat().st_size)
@@ -105,10 +106,13 @@ def export_onnx(model: PPO, out: Path, metadata: dict[str, str]) -> None:
 
 def policy_spec_for(config: TrainConfig):
     """The companion's :class:`~companion.policy.PolicySpec` for what this training run fed the policy."""
+    from companion.observation import ObservationLayout
     from companion.policy import PolicySpec
     from companion.scan import BIN_CONVENTION, N_BINS
 
     env_config = config.env_config()
+    # the goal task's frame layout (scan + goal + velocity); the avoidance task's is the scan alone
+    layout = env_config.layout if config.is_goal_task else ObservationLayout(n_bins=N_BINS)
     return PolicySpec(
         stack=config.n_stack,
         n_bins=N_BINS,
@@ -116,6 +120,7 @@ def policy_spec_for(config: TrainConfig):
         bin_convention=BIN_CONVENTION,
         max_speed=float(env_config.max_speed),
         max_yaw_rate=float(env_config.max_yaw_rate),
+        layout=layout,
     )
 
 
@@ -186,14 +191,15 @@ def export_policy(
 
     model = load_model(model_path)
     config = load_train_config(config_path or find_run_config(model_path))
-    expected = (config.n_stack * 360,)
+    spec = policy_spec_for(config)
+    expected = (spec.obs_size,)
     if model.observation_space.shape != expected:
         raise UserError(
             f"{model_path}: observation shape {model.observation_space.shape} does not match the config's "
-            f"{config.n_stack} stacked scans {expected}"
+            f"{config.n_stack} stacked {spec.layout.name} frames {expected}"
         )
     config_json = json.dumps(to_dict(config), sort_keys=True)
-    export_onnx(model, out, policy_metadata(policy_spec_for(config), config_json))
+    export_onnx(model, out, policy_metadata(spec, config_json))
     observations = rollout_observations(model, config, samples, seed=config.seed + 12345)
     diff = parity_max_abs_diff(model, out, observations)
     if diff > PARITY_TOLERANCE:

@@ -40,7 +40,14 @@ import numpy as np
 
 from companion.errors import UserError
 from training.config import TrainConfig, config_to_toml, load_train_config
-from training.evaluate import ControllerSpec, WorldSpec, make_tasks, run_tasks, summarise
+from training.evaluate import (
+    ControllerSpec,
+    WorldSpec,
+    goal_worlds,
+    make_tasks,
+    run_tasks,
+    summarise,
+)
 
 log = logging.getLogger(__name__)
 
@@ -98,13 +105,20 @@ class TrainingWorlds(gym.Wrapper):
 
 
 def make_env(config: TrainConfig, difficulty: float):
-    """A thunk building one training environment (called inside each subprocess)."""
+    """A thunk building one training environment (called inside each subprocess).
+
+    The goal task's env draws its own training worlds (families, difficulties, training seeds).
+    """
     env_config = config.env_config()
 
     def thunk() -> gym.Env:
         from flightsim.env import LidarAvoidEnv
 
         ignore_sigint_in_worker()
+        if config.is_goal_task:
+            from flightsim.nav_env import LidarNavEnv
+
+            return LidarNavEnv(env_config)
 
         return TrainingWorlds(
             LidarAvoidEnv(env_config),
@@ -276,11 +290,21 @@ def make_callbacks(config: TrainConfig, run_dir: Path, n_envs: int, executor: An
             self.model.save(model_path)
             difficulty = self.difficulty if config.curriculum.enabled else config.eval.difficulty
             seeds = range(config.eval.first_seed, config.eval.first_seed + config.eval.n_worlds)
-            worlds = [WorldSpec(f"seed-{s}", seed=s, difficulty=difficulty) for s in seeds]
+            if not config.is_goal_task:
+                worlds = [WorldSpec(f"seed-{s}", seed=s, difficulty=difficulty) for s in seeds]
+            else:  # n_worlds validation worlds per family
+                env_config = config.env_config()
+                worlds = goal_worlds(
+                    env_config.families,
+                    config.eval.first_seed,
+                    config.eval.n_worlds,
+                    env_config.difficulty_range,
+                )
             policy = [ControllerSpec("policy", str(model_path))]
             modes = {}
             for name, env in eval_envs:
-                modes[name] = summarise(run_tasks(make_tasks(policy, worlds, 1, env), executor))
+                tasks = make_tasks(policy, worlds, 1, env, config.env_id)
+                modes[name] = summarise(run_tasks(tasks, executor))
             row = {
                 "timesteps": self.num_timesteps,
                 "wall_s": round(self.wall_offset + time.monotonic() - self.started, 1),

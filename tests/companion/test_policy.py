@@ -12,6 +12,7 @@ import pytest
 from onnx import TensorProto, helper, numpy_helper
 
 from companion.errors import UserError
+from companion.observation import ObservationLayout
 from companion.policy import (
     METADATA_KEYS,
     InferenceFault,
@@ -45,6 +46,7 @@ def test_metadata_helper_writes_exactly_the_checked_keys() -> None:
         "lidar_avoid.max_speed": "2.0",
         "lidar_avoid.max_yaw_rate": "1.5",
         "lidar_avoid.config": '{"lr": 0.0003}',
+        "lidar_avoid.obs_layout": "scan360",
     }
     with pytest.raises(ValueError):
         policy_metadata(SPEC, "{not json")
@@ -202,11 +204,57 @@ def test_metadata_equal_within_float_tolerance_is_accepted(tmp_path: Path) -> No
     OnnxPolicy(path, SPEC)
 
 
-@pytest.mark.parametrize("key", sorted(METADATA_KEYS))
+@pytest.mark.parametrize("key", sorted(set(METADATA_KEYS) - {"lidar_avoid.obs_layout"}))
 def test_missing_metadata_is_named(tmp_path: Path, key: str) -> None:
     path = write_policy(tmp_path / "p.onnx", metadata_overrides={key: None})
     with pytest.raises(UserError, match=f"lacks metadata {key} "):
         OnnxPolicy(path, SPEC)
+
+
+GOAL_SPEC = PolicySpec(layout=ObservationLayout(goal=True))
+GOAL_NAME = "scan360+goal(cos,sin,distance/10m)+velocity(forward,left/2m/s)"
+
+
+def test_a_goal_model_loads_with_a_goal_config_and_takes_its_frames(tmp_path: Path) -> None:
+    path = write_policy(tmp_path / "goal.onnx", spec=GOAL_SPEC)
+    policy = OnnxPolicy(path, GOAL_SPEC)
+    assert policy.act(np.zeros(4 * 365, np.float32)).tolist() == [1.0, 0.0]
+    with pytest.raises(ValueError, match="1440 values, the policy takes 1460"):
+        policy.act(np.zeros(1440, np.float32))
+
+
+@pytest.mark.parametrize(
+    ("model_spec", "config_spec", "message"),
+    [
+        (GOAL_SPEC, SPEC, f"model obs_layout {GOAL_NAME} does not match config observation layout scan360"),
+        (SPEC, GOAL_SPEC, f"model obs_layout scan360 does not match config observation layout {GOAL_NAME}"),
+        (
+            PolicySpec(layout=ObservationLayout(goal=True, goal_range=20.0)),
+            GOAL_SPEC,
+            "model obs_layout scan360+goal(cos,sin,distance/20m)+velocity(forward,left/2m/s) does not match "
+            f"config observation layout {GOAL_NAME}",
+        ),
+    ],
+)
+def test_a_model_of_another_observation_layout_is_refused_naming_both(
+    tmp_path: Path, model_spec: PolicySpec, config_spec: PolicySpec, message: str
+) -> None:
+    path = write_policy(tmp_path / "p.onnx", spec=model_spec)
+    with pytest.raises(UserError) as err:
+        OnnxPolicy(path, config_spec)
+    assert message in str(err.value)
+
+
+def test_a_model_without_a_layout_key_is_a_scan_only_model(tmp_path: Path) -> None:
+    """Models exported before the key existed (the shipped one) were trained on scans alone."""
+    path = write_policy(tmp_path / "old.onnx", metadata_overrides={"lidar_avoid.obs_layout": None})
+    OnnxPolicy(path, SPEC)
+    with pytest.raises(UserError, match=r"model obs_layout scan360 does not match config observation layout"):
+        OnnxPolicy(path, GOAL_SPEC)
+
+
+def test_the_shipped_model_still_loads_as_scan_only() -> None:
+    OnnxPolicy(Path(__file__).resolve().parents[2] / "models" / "policy.onnx", SPEC)
 
 
 def test_tensorrt_gets_the_engine_cache_and_others_are_left_alone() -> None:

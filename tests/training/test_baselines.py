@@ -3,7 +3,16 @@
 import numpy as np
 import pytest
 
-from training.baselines import GapFollower, GapFollowerConfig, RandomController, corridor_clearance
+from companion.observation import ObservationLayout, build_frame, goal_features
+from training.baselines import (
+    GapFollower,
+    GapFollowerConfig,
+    GoalFollower,
+    GoalFollowerConfig,
+    RandomController,
+    StraightLine,
+    corridor_clearance,
+)
 
 
 def _scan_with(bins: dict[int, float], max_range: float = 10.0) -> np.ndarray:
@@ -64,3 +73,51 @@ def test_corridor_clearance_matches_the_brute_force_definition():
         blocking = np.isfinite(ranges)[None, :] & (along > 1e-9) & (across < 0.55)
         expected = np.where(blocking, along, np.inf).min(axis=1)
         np.testing.assert_allclose(corridor_clearance(ranges, 0.55), expected, rtol=1e-12)
+
+
+# --- the goal task -------------------------------------------------------------------------------
+
+GOAL_LAYOUT = ObservationLayout(goal=True, goal_range=30.0, velocity_scale=2.0)
+
+
+def _frame(bins: dict[int, float], goal_deg: float, goal_m: float) -> np.ndarray:
+    """A goal-layout frame: the scan of ``bins``, the goal at ``goal_deg`` CCW from the nose."""
+    a = np.radians(goal_deg)
+    features = goal_features(goal_m * np.cos(a), goal_m * np.sin(a), 0.0, 0.0, GOAL_LAYOUT)
+    return build_frame(_scan_with(bins), features, GOAL_LAYOUT)
+
+
+@pytest.mark.parametrize("kind", [StraightLine, GoalFollower])
+def test_goal_controllers_fly_at_a_goal_in_the_open(kind):
+    controller = kind(GOAL_LAYOUT)
+    ahead = controller.reset(_frame({}, 0.0, 10.0))
+    assert ahead[0] == pytest.approx(controller.config.cruise, abs=1e-3) and abs(ahead[1]) < 0.05
+    left = controller.act(_frame({}, 60.0, 10.0))
+    right = controller.act(_frame({}, -60.0, 10.0))
+    assert left[1] > 0.5 and right[1] < -0.5 and left[0] < 0.5  # turn first, then go
+
+
+def test_straight_line_flies_into_what_is_in_the_way():
+    wall = {i % 360: 1.0 for i in range(-40, 41)}
+    assert StraightLine(GOAL_LAYOUT).reset(_frame(wall, 0.0, 10.0))[0] == pytest.approx(1.0, abs=1e-3)
+
+
+def test_goal_follower_brakes_for_a_wall_and_heads_for_its_edge():
+    # a wall 2 m ahead from 40° right to 20° left; beyond its left edge the way is open
+    wall = {i % 360: 2.0 / np.cos(np.radians(i)) for i in range(-40, 21)}
+    action = GoalFollower(GOAL_LAYOUT).reset(_frame(wall, 0.0, 10.0))
+    assert action[1] > 0.3  # toward the near (left) edge, not the far one
+    assert action[0] < 0.8  # slowed while it turns
+
+
+def test_goal_follower_escapes_when_the_goal_comes_no_closer_and_resets_on_a_new_waypoint():
+    config = GoalFollowerConfig(stall_steps=5)
+    controller = GoalFollower(GOAL_LAYOUT, config)
+    # a U around the goal direction: walls ahead and on both sides, the goal behind the bottom
+    trap = {i % 360: 1.5 for i in range(-100, 101)}
+    controller.reset(_frame(trap, 0.0, 8.0))
+    for _ in range(6):
+        controller.act(_frame(trap, 0.0, 8.0))
+    assert controller._escape_side != 0
+    controller.act(_frame({}, 0.0, 15.0))  # the next waypoint: distance jumps
+    assert controller._escape_side == 0

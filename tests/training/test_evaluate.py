@@ -172,6 +172,6 @@ def test_every_controller_has_its_own_colour_and_the_legend_names_them_all():
     ]  # fmt: skip
     fig = trajectory_figure(results, worlds, EnvConfig())
     (legend,) = fig.legends
-    assert sorted(t.get_text() for t in legend.get_texts()) == sorted(shielded)
+    assert sorted(t.get_text() for t in legend.get_texts()) == sorted([*shielded, "collision"])
     drawn = {line.get_color() for ax in fig.axes for line in ax.get_lines() if len(line.get_xdata()) == 2}
     assert drawn == {colours[n] for n in shielded}

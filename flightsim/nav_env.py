@@ -1,0 +1,281 @@
+"""The goal-directed Gymnasium environment: fly through a world's waypoints, in order, on a lidar scan."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+from gymnasium import spaces
+
+from companion.observation import ObservationLayout, build_frame, goal_features, goal_in_body
+from flightsim import seeds
+from flightsim.env import CONTROL_HZ, EnvConfig, LidarAvoidEnv
+from flightsim.families import FAMILIES, generate_family_world
+from flightsim.planner import shortest_safe_path
+from flightsim.render import render_rgb
+from flightsim.reward import GoalRewardConfig, GoalStep, StepOutcome, goal_reward
+from flightsim.world import World
+
+_NAV_OPTION_KEYS = {"world", "family", "world_seed", "difficulty"}
+
+
+@dataclass(frozen=True)
+class NavEnvConfig(EnvConfig):
+    """:class:`~flightsim.env.EnvConfig` plus what the goal task adds (strict-loadable).
+
+    ``difficulty`` and ``reward`` of the base config do not apply: difficulties are drawn from
+    ``difficulty_range`` and the reward is :func:`flightsim.reward.goal_reward`.
+
+    :param families: world families training draws from (uniformly), see
+        :data:`flightsim.families.FAMILIES`
+    :param difficulty_range: a generated world's difficulty is drawn uniformly in it
+    :param acceptance_radius: a waypoint is reached when the vehicle's centre comes this close,
+        horizontally, metres
+    :param goal_range: metres a goal-distance feature of 1.0 stands for (farther reads 1.0)
+    :param time_limit_per_m: seconds allowed per metre of the world's shortest safe path
+    :param time_limit_slack_s: seconds allowed on top (turning to the first leg, braking)
+    :param max_steps: hard cap on an episode, whatever the time limit says (3000 = 300 s)
+    :param autopilot_response: as in :class:`~flightsim.env.EnvConfig`, but ``"random"`` by default:
+        a PX4- or ArduPilot-like response drawn per episode, so a policy meets both
+    :param goal_reward: the reward's weights
+    """
+
+    reward: Literal["goal"] = "goal"
+    max_steps: int = field(default=3000, metadata={"min": 1})
+    autopilot_response: Literal["ideal", "px4", "ardupilot", "random"] = "random"
+    families: tuple[str, ...] = FAMILIES
+    difficulty_range: tuple[float, float] = (0.0, 1.0)
+    acceptance_radius: float = field(default=1.0, metadata={"min": 0.1, "max": 5.0})
+    goal_range: float = field(default=30.0, metadata={"min": 1.0, "max": 100.0})
+    time_limit_per_m: float = field(default=2.0, metadata={"min": 0.5, "max": 100.0})
+    time_limit_slack_s: float = field(default=10.0, metadata={"min": 0.0, "max": 600.0})
+    goal_reward: GoalRewardConfig = field(default_factory=GoalRewardConfig)
+
+    def __post_init__(self) -> None:
+        unknown = [f for f in self.families if f not in FAMILIES]
+        if unknown or not self.families:
+            raise ValueError(f"families: {unknown or 'none'} not among {', '.join(FAMILIES)}")
+        low, high = self.difficulty_range
+        if not 0.0 <= low <= high <= 1.0:
+            raise ValueError(f"difficulty_range {self.difficulty_range} must satisfy 0 <= low <= high <= 1")
+
+    @property
+    def layout(self) -> ObservationLayout:
+        """One observation frame of this env (the companion and the ONNX metadata use the same)."""
+        return ObservationLayout(
+            n_bins=360, goal=True, goal_range=self.goal_range, velocity_scale=self.max_speed
+        )
+
+
+def time_limit_steps(shortest_path_m: float, config: NavEnvConfig) -> int:
+    """Steps an episode may last: proportional to the shortest safe path, plus slack, within the cap."""
+    seconds = config.time_limit_slack_s + config.time_limit_per_m * shortest_path_m
+    return min(config.max_steps, math.ceil(seconds * CONTROL_HZ))
+
+
+class LidarNavEnv(LidarAvoidEnv):
+    """Fly through a world's waypoints, in order, on a 360° lidar scan, without touching anything.
+
+    ## Description
+    The vehicle, sensor and control of ``flightsim/LidarAvoid-v0`` (JSBSim quadrotor, ray-cast
+    VLP-16, the companion's scan code, 10 Hz steps, the same domain randomisation and shield
+    options, the autopilot response model — ``"random"`` by default here), in a world with
+    waypoints (:mod:`flightsim.families`: rooms, forest, office, warehouse, pillars, staggered
+    walls, concave traps, narrow gaps, mixed heights). The vehicle holds its start altitude; the
+    waypoints lie at that altitude.
+
+    ## Action Space
+    As LidarAvoid-v0: ``Box(-1, 1, (2,), float32)``, ``a0`` forward speed × ``max_speed`` (2 m/s),
+    ``a1`` yaw rate × ``max_yaw_rate`` (1.5 rad/s), counter-clockwise positive.
+
+    ## Observation Space
+    ``Box(low, high, (365,), float32)``, one frame of :class:`companion.observation.ObservationLayout`
+    ``scan360+goal(cos,sin,distance/30m)+velocity(forward,left/2m/s)``:
+
+    ========== ===================================================== ==========
+    index      meaning                                               range
+    ========== ===================================================== ==========
+    0–359      the scan, as LidarAvoid-v0 (bin i = i° CCW from nose) [0, 1]
+    360, 361   cos, sin of the current waypoint's bearing, body FLU  [-1, 1]
+    362        its horizontal distance / ``goal_range`` (30 m)       [0, 1]
+    363, 364   measured body velocity forward, left / ``max_speed``  [-1, 1]
+               (:meth:`measured_body_velocity`: what the autopilot reports, estimate error included)
+    ========== ===================================================== ==========
+
+    The goal features are the current pose's; the scan follows ``latency_scans``. Frame stacking
+    (4 frames in the project, the whole 365-float frame stacked, oldest first) is the training
+    code's ``VecFrameStack`` and the companion's ``FrameStack``.
+
+    ## Rewards
+    :func:`flightsim.reward.goal_reward` with ``config.goal_reward``: +1 per metre of progress
+    toward the current waypoint, +10 on reaching each waypoint and +10 more on the last, −0.02 a
+    step, −0.25 × the proximity penalty inside 1 m (up to 1 a step), −50 on a collision; and
+    ``overspeed_penalty`` as in LidarAvoid-v0.
+
+    ## Starting State
+    Hovering at the world's start position and heading (generated worlds turn the start heading
+    up to ±90° × difficulty away from the first leg), zero velocity.
+
+    ## Episode End
+    Terminated on a collision (clearance below ``vehicle_radius``) or on reaching the last
+    waypoint (horizontal distance below ``acceptance_radius``, 1 m). Truncated at the world's time
+    limit: ``time_limit_slack_s + time_limit_per_m × shortest safe path`` (10 s + 2 s/m), at most
+    ``max_steps``.
+
+    ## Info
+    LidarAvoid-v0's (``collision``, ``min_distance``, ``distance``, ``position``, ``yaw``,
+    ``world``, ``steps``) plus ``family``, ``waypoint`` (index being flown to; ``len(waypoints)``
+    when done), ``waypoints`` (their number), ``goal_distance`` (m, horizontal),
+    ``shortest_path_m``, ``time_limit_steps``, ``success`` (every waypoint reached, no collision).
+
+    ## Arguments
+    ``LidarNavEnv(config: NavEnvConfig | None = None, render_mode: "rgb_array" | None = None)``, or
+    ``gymnasium.make("flightsim/LidarNav-v0", config=NavEnvConfig(...))``.
+
+    ## Reset Options
+    ``{"world": path or World}`` (with waypoints), or any of ``{"family": str, "world_seed": int,
+    "difficulty": float}``: what is not given is drawn from ``self.np_random`` (family uniformly
+    from ``config.families``, seed from :data:`flightsim.seeds.TRAIN`, difficulty uniformly in
+    ``config.difficulty_range``). Without options: ``config.world_file`` if set, else all drawn.
+
+    ## Version History
+    * v0: initial version (families, goal + velocity features, goal reward, path-proportional time
+      limit).
+    """
+
+    def __init__(self, config: NavEnvConfig | None = None, render_mode: str | None = None) -> None:
+        """:param config: episode settings (defaults: :class:`NavEnvConfig`)
+        :param render_mode: None or ``"rgb_array"`` (top-down, waypoints numbered, the current one
+            highlighted)
+        """
+        config = config if config is not None else NavEnvConfig()
+        if not isinstance(config, NavEnvConfig):
+            raise TypeError(f"LidarNavEnv needs a NavEnvConfig, got {type(config).__name__}")
+        super().__init__(config, render_mode)
+        self.config: NavEnvConfig = config
+        self.layout = config.layout
+        low, high = self.layout.bounds()
+        self.observation_space = spaces.Box(low, high, (self.layout.frame_size,), np.float32)
+        self.family = ""
+        self.shortest_path_m = 0.0
+        self.time_limit_steps = 0
+        self._planned: dict[World, float] = {}
+
+    # ------------------------------------------------------------------ gymnasium API
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        scan, info = super().reset(seed=seed, options=options)
+        world = self.world
+        if not world.waypoints:
+            raise ValueError(f"world {world.name} has no waypoints: LidarNav-v0 needs at least one")
+        self.shortest_path_m = self._shortest_path(world)
+        self.time_limit_steps = time_limit_steps(self.shortest_path_m, self.config)
+        self._waypoint = 0
+        self._goal_distance = self._distance_to_goal()
+        return self._frame(scan), self._nav_info(info)
+
+    def step(self, action: np.ndarray):
+        scan, reward, collided, truncated, info = super().step(action)
+        finished = self._waypoint >= len(self.world.waypoints)
+        terminated = collided or finished
+        truncated = not terminated and (truncated or self._steps >= self.time_limit_steps)
+        return self._frame(scan), reward, terminated, truncated, self._nav_info(info)
+
+    def render(self) -> np.ndarray | None:
+        if self.render_mode != "rgb_array" or self.world is None:
+            return None
+        n = len(self.world.waypoints)
+        title = (
+            f"{self.world.name}  step {self._steps}/{self.time_limit_steps}  "
+            f"waypoint {min(self._waypoint + 1, n)}/{n}  flown {self._distance:.1f} m"
+        )
+        return render_rgb(
+            self.world, np.asarray(self._trajectory), scan=self._scan,
+            pose=(self._state.position, self._state.yaw), scan_max_range=self.config.scan.max_range,
+            vehicle_radius=self.config.vehicle_radius, collided=self._collided, title=title,
+            active_waypoint=self._waypoint if self._waypoint < n else None,
+        )  # fmt: skip
+
+    # ------------------------------------------------------------------ internals
+    def _reward(self, outcome: StepOutcome) -> float:
+        """Advance to the next waypoint when this one is reached, and pay for it (see the docstring)."""
+        distance = self._distance_to_goal()
+        progress = self._goal_distance - distance
+        n = len(self.world.waypoints)
+        reached = not outcome.collision and distance < self.config.acceptance_radius
+        finished = reached and self._waypoint == n - 1
+        if reached:
+            self._waypoint += 1
+            distance = self._distance_to_goal() if self._waypoint < n else 0.0
+        self._goal_distance = distance
+        return goal_reward(outcome, GoalStep(progress, reached, finished), self.config.goal_reward)
+
+    def _choose_world(self, options: dict[str, Any]) -> World:
+        unknown = sorted(set(options) - _NAV_OPTION_KEYS)
+        if unknown:
+            known = ", ".join(sorted(_NAV_OPTION_KEYS))
+            raise ValueError(f"unknown reset option {unknown[0]!r}; known: {known}")
+        if "world" in options or (self._fixed_world is not None and not options):
+            if set(options) - {"world"}:
+                raise ValueError("reset options: give either 'world' or 'family'/'world_seed'/'difficulty'")
+            world = super()._choose_world(options)
+            prefix = world.name.split("-")[0]
+            self.family = prefix if prefix in FAMILIES else "custom"
+            return world
+        cfg, rng = self.config, self.np_random
+        family = options.get("family")
+        if family is None:
+            family = cfg.families[int(rng.integers(len(cfg.families)))]
+        seed = options.get("world_seed")
+        if seed is None:
+            seed = int(rng.integers(seeds.TRAIN.start, seeds.TRAIN.stop))
+        difficulty = options.get("difficulty")
+        if difficulty is None:
+            difficulty = float(rng.uniform(*cfg.difficulty_range))
+        self.family = str(family)
+        return generate_family_world(
+            self.family, int(seed), float(difficulty), vehicle_radius=cfg.vehicle_radius
+        )
+
+    def _shortest_path(self, world: World) -> float:
+        """The world's stored shortest safe path, or planned now (world files carry none)."""
+        if world.shortest_path_m is not None:
+            return float(world.shortest_path_m)
+        if world not in self._planned:  # a file flown every episode is planned once
+            path = shortest_safe_path(world, vehicle_radius=self.config.vehicle_radius)
+            if path is None:
+                raise ValueError(
+                    f"world {world.name}: no safe path through its waypoints for a vehicle radius of "
+                    f"{self.config.vehicle_radius} m"
+                )
+            self._planned = {world: float(path.length)}
+        return self._planned[world]
+
+    def _distance_to_goal(self) -> float:
+        goal = self.world.waypoints[self._waypoint]
+        p = self._state.position
+        return math.hypot(goal[0] - p[0], goal[1] - p[1])
+
+    def _frame(self, scan: np.ndarray) -> np.ndarray:
+        n = len(self.world.waypoints)
+        p, yaw = self._state.position, float(self._state.yaw)
+        goal = self.world.waypoints[min(self._waypoint, n - 1)]
+        forward, left = goal_in_body(goal[0] - p[0], goal[1] - p[1], yaw)
+        if self._waypoint >= n:  # done: the goal is where the vehicle is
+            forward = left = 0.0
+        features = goal_features(forward, left, *self.measured_body_velocity(), self.layout)
+        return build_frame(scan, features, self.layout)
+
+    def _nav_info(self, info: dict[str, Any]) -> dict[str, Any]:
+        n = len(self.world.waypoints)
+        info.update(
+            family=self.family,
+            waypoint=self._waypoint,
+            waypoints=n,
+            goal_distance=self._goal_distance,
+            shortest_path_m=self.shortest_path_m,
+            time_limit_steps=self.time_limit_steps,
+            success=self._waypoint >= n and not self._collided,
+        )
+        return info

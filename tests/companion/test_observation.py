@@ -1,0 +1,71 @@
+"""The observation layout and its goal/velocity features (pure logic)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from companion.observation import ObservationLayout, build_frame, goal_features, goal_in_body
+
+GOAL = ObservationLayout(goal=True, goal_range=10.0, velocity_scale=2.0)
+
+
+def test_layouts_spell_out_sizes_slices_and_scales() -> None:
+    scan = ObservationLayout()
+    assert (scan.name, scan.frame_size, scan.slices()) == ("scan360", 360, {"scan": slice(0, 360)})
+    assert GOAL.name == "scan360+goal(cos,sin,distance/10m)+velocity(forward,left/2m/s)"
+    assert GOAL.frame_size == 365
+    assert GOAL.slices() == {
+        "scan": slice(0, 360),
+        "goal_bearing": slice(360, 362),
+        "goal_distance": slice(362, 363),
+        "velocity": slice(363, 365),
+    }
+    low, high = GOAL.bounds()
+    assert low[:360].tolist() == [0.0] * 360 and low[360:].tolist() == [-1, -1, 0, -1, -1]
+    assert high.tolist() == [1.0] * 365
+    with pytest.raises(ValueError):
+        ObservationLayout(goal=True, goal_range=0.0)
+
+
+def test_goal_features_bearing_distance_and_velocity() -> None:
+    f = goal_features(0.0, 5.0, 1.0, -3.0, GOAL)  # goal 5 m to the left, flying forward, sliding right
+    assert f.dtype == np.float32
+    np.testing.assert_allclose(f, [0.0, 1.0, 0.5, 0.5, -1.0], atol=1e-7)
+    far_right_behind = goal_features(-30.0, -30.0, 0.0, 0.0, GOAL)
+    np.testing.assert_allclose(far_right_behind[:3], [-math.sqrt(0.5), -math.sqrt(0.5), 1.0], atol=1e-6)
+    np.testing.assert_allclose(goal_features(0.0, 0.0, 0.0, 0.0, GOAL), [1.0, 0.0, 0.0, 0.0, 0.0])
+
+
+def test_non_finite_inputs_and_scan_only_layouts_are_refused() -> None:
+    with pytest.raises(ValueError, match="finite"):
+        goal_features(math.nan, 1.0, 0.0, 0.0, GOAL)
+    with pytest.raises(ValueError, match="no goal features"):
+        goal_features(1.0, 1.0, 0.0, 0.0, ObservationLayout())
+
+
+def test_goal_in_body_rotates_world_offsets_into_flu() -> None:
+    # heading north (+y): a goal to the east (+x) is on the right
+    forward, left = goal_in_body(3.0, 0.0, math.pi / 2)
+    assert forward == pytest.approx(0.0, abs=1e-12) and left == pytest.approx(-3.0)
+
+
+@given(st.floats(-50, 50), st.floats(-50, 50), st.floats(-10, 10), st.floats(-10, 10), st.floats(-7, 7))
+def test_features_stay_in_the_layout_bounds(dx: float, dy: float, vf: float, vl: float, yaw: float) -> None:
+    f = goal_features(*goal_in_body(dx, dy, yaw), vf, vl, GOAL)
+    low, high = GOAL.bounds()
+    assert np.all(f >= low[360:]) and np.all(f <= high[360:])
+    assert f[0] ** 2 + f[1] ** 2 == pytest.approx(1.0, abs=1e-6)
+
+
+def test_build_frame_concatenates_and_checks_sizes() -> None:
+    scan = np.full(360, 0.5, np.float32)
+    frame = build_frame(scan, goal_features(1.0, 0.0, 0.0, 0.0, GOAL), GOAL)
+    assert frame.shape == (365,) and frame[360] == 1.0
+    assert build_frame(scan, None, ObservationLayout()).shape == (360,)
+    with pytest.raises(ValueError, match="365 floats, got 360 scan \\+ 0 features"):
+        build_frame(scan, None, GOAL)

@@ -1,0 +1,205 @@
+"""LidarNav-v0: API checkers, observation layout, waypoints in order, reward, termination, options."""
+
+from __future__ import annotations
+
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env as gym_check_env
+
+import flightsim
+from companion.observation import ObservationLayout
+from companion.tomlconfig import from_dict
+from flightsim import seeds
+from flightsim.families import FAMILIES, generate_family_world
+from flightsim.nav_env import LidarNavEnv, NavEnvConfig, time_limit_steps
+from flightsim.reward import GoalRewardConfig, GoalStep, StepOutcome, goal_reward
+from flightsim.world import Box, World
+
+# an empty 20 × 6 m hall: start at x = -8 facing +x, waypoint 1 at x = -2, waypoint 2 at x = +5
+HALL = World("hall", (20.0, 6.0), 3.0, (), (-8.0, 0.0, 1.5), 0.0, ((-2.0, 0.0, 1.5), (5.0, 0.0, 1.5)))
+# the same hall with a wall across it 2 m ahead of the start (the first waypoint behind it)
+BLOCKED = World(
+    "blocked", (20.0, 6.0), 3.0, (Box((-6.0, -1.0, 1.5), (0.3, 4.0, 3.0)),), (-8.0, 0.0, 1.5), 0.0,
+    ((-2.0, 0.0, 1.5),),
+)  # fmt: skip
+FORWARD = np.array([1.0, 0.0], np.float32)
+HOVER = np.array([0.0, 0.0], np.float32)
+
+
+@pytest.fixture(scope="module")
+def env() -> LidarNavEnv:
+    # the ideal response: exact expectations (the default random response adds estimate error)
+    e = LidarNavEnv(NavEnvConfig(autopilot_response="ideal"), render_mode="rgb_array")
+    yield e
+    e.close()
+
+
+def test_gymnasium_env_checker() -> None:
+    env = gym.make(flightsim.NAV_ENV_ID, config=NavEnvConfig(max_steps=50), render_mode="rgb_array")
+    gym_check_env(env.unwrapped, skip_render_check=False)
+    env.close()
+
+
+def test_stable_baselines3_env_checker() -> None:
+    from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+    env = LidarNavEnv(NavEnvConfig(max_steps=50))
+    sb3_check_env(env, warn=True)
+    env.close()
+
+
+def test_config_is_strict_loadable_and_checked() -> None:
+    cfg = from_dict(
+        NavEnvConfig,
+        {"families": ["forest", "gaps"], "difficulty_range": [0.2, 0.6], "goal_reward": {"progress": 2.0}},
+        prefix="env.",
+    )
+    assert cfg.families == ("forest", "gaps") and cfg.goal_reward.progress == 2.0
+    with pytest.raises(ValueError, match="families"):
+        NavEnvConfig(families=("moon",))
+    with pytest.raises(ValueError, match="difficulty_range"):
+        NavEnvConfig(difficulty_range=(0.8, 0.2))
+    with pytest.raises(TypeError, match="NavEnvConfig"):
+        LidarNavEnv(flightsim.env.EnvConfig())
+
+
+def test_observation_is_the_documented_layout(env: LidarNavEnv) -> None:
+    obs, _ = env.reset(seed=3, options={"world": HALL})
+    layout = ObservationLayout(goal=True, goal_range=30.0, velocity_scale=2.0)
+    assert env.layout == layout and env.observation_space.shape == (365,)
+    assert env.observation_space.contains(obs)
+    # waypoint 1 is 6 m straight ahead; at rest
+    np.testing.assert_allclose(obs[360:], [1.0, 0.0, 0.2, 0.0, 0.0], atol=1e-5)
+    assert obs[180] == pytest.approx(0.2, abs=0.01) and obs[90] == pytest.approx(0.3, abs=0.01)  # walls
+    for _ in range(15):
+        obs, *_ = env.step(np.array([1.0, 1.0], np.float32))  # forward while turning left
+    p, yaw = env.unwrapped._state.position, env.unwrapped._state.yaw
+    bearing = math.atan2(0.0 - p[1], -2.0 - p[0]) - yaw
+    np.testing.assert_allclose(obs[360:362], [math.cos(bearing), math.sin(bearing)], atol=1e-5)
+    assert obs[361] < -0.3  # turned left of the goal: it is now on the right
+    assert obs[363] > 0.2  # flying forward, measured
+
+
+def test_the_velocity_features_are_what_the_autopilot_reports_randomised_by_default() -> None:
+    env = LidarNavEnv(NavEnvConfig(max_steps=50))
+    assert env.config.autopilot_response == "random"
+    obs, _ = env.reset(seed=4, options={"world": HALL})
+    for _ in range(10):
+        obs, *_ = env.step(FORWARD)
+    measured = np.clip(np.asarray(env.measured_body_velocity()) / 2.0, -1.0, 1.0)
+    np.testing.assert_allclose(obs[363:365], measured, atol=1e-6)
+    assert obs[363] > 0.2
+    env.close()
+
+
+def test_waypoints_are_reached_in_order_paid_and_the_last_terminates(env: LidarNavEnv) -> None:
+    _, info = env.reset(seed=0, options={"world": HALL})
+    assert info["waypoint"] == 0 and info["waypoints"] == 2
+    assert info["shortest_path_m"] == pytest.approx(13.0, abs=0.15)
+    assert info["time_limit_steps"] == math.ceil((10.0 + 2.0 * info["shortest_path_m"]) * 10)
+    rewards, waypoints = [], []
+    terminated = truncated = False
+    while not (terminated or truncated):
+        _, reward, terminated, truncated, info = env.step(FORWARD)
+        rewards.append(reward)
+        waypoints.append(info["waypoint"])
+    assert terminated and not truncated and info["success"] and not info["collision"]
+    first, second = waypoints.index(1), waypoints.index(2)
+    assert 0 < first < second == len(waypoints) - 1
+    assert env.unwrapped._state.position[0] == pytest.approx(5.0 - 1.0, abs=0.25)  # 1 m acceptance
+    assert rewards[first] > 10.0 and rewards[second] > 20.0  # the bonuses
+    # progress pays about a point per metre: 12 m to the second acceptance circle
+    assert sum(rewards) - 30.0 + 0.02 * len(rewards) == pytest.approx(12.0, abs=0.5)
+
+
+def test_collision_terminates_with_the_collision_cost(env: LidarNavEnv) -> None:
+    env.reset(seed=0, options={"world": BLOCKED})
+    for _ in range(100):
+        _, reward, terminated, truncated, info = env.step(FORWARD)
+        if terminated or truncated:
+            break
+    assert terminated and info["collision"] and not info["success"] and reward == -50.0
+
+
+def test_truncated_at_the_path_proportional_time_limit() -> None:
+    cfg = NavEnvConfig(time_limit_per_m=0.5, time_limit_slack_s=1.0, autopilot_response="ideal")
+    env = LidarNavEnv(cfg)
+    _, info = env.reset(seed=0, options={"world": HALL})
+    limit = info["time_limit_steps"]
+    assert limit == math.ceil((1.0 + 0.5 * info["shortest_path_m"]) * 10)
+    rewards = []
+    for step in range(1, limit + 1):
+        _, reward, terminated, truncated, info = env.step(HOVER)
+        rewards.append(reward)
+        assert not terminated and truncated == (step == limit)
+    assert sum(rewards) == pytest.approx(-0.02 * limit, abs=0.05)  # hovering only costs time
+    assert time_limit_steps(20.0, cfg) == 110 and time_limit_steps(1e6, cfg) == cfg.max_steps
+    env.close()
+
+
+def test_goal_reward_pure() -> None:
+    w = GoalRewardConfig()
+    clear = StepOutcome(np.zeros(2, np.float32), 1.0, 1.0, 2.0, False)
+    near = StepOutcome(np.zeros(2, np.float32), 0.05, 1.0, 2.0, False)
+    crash = StepOutcome(np.zeros(2, np.float32), 0.0, 1.0, 2.0, True)
+    assert goal_reward(clear, GoalStep(0.2, False, False), w) == pytest.approx(0.18)
+    assert goal_reward(clear, GoalStep(-0.2, False, False), w) == pytest.approx(-0.22)
+    assert goal_reward(near, GoalStep(0.0, False, False), w) == pytest.approx(-0.02 - 0.25 * 0.5)
+    assert goal_reward(clear, GoalStep(0.0, True, False), w) == pytest.approx(10.0 - 0.02)
+    assert goal_reward(clear, GoalStep(0.0, True, True), w) == pytest.approx(20.0 - 0.02)
+    assert goal_reward(crash, GoalStep(5.0, True, True), w) == -50.0
+
+
+def test_generated_worlds_from_options_and_from_the_training_range(env: LidarNavEnv) -> None:
+    _, info = env.reset(seed=1, options={"family": "traps", "world_seed": 5, "difficulty": 0.7})
+    assert info["family"] == "traps" and info["world"] == generate_family_world("traps", 5, 0.7).name
+    assert info["shortest_path_m"] == generate_family_world("traps", 5, 0.7).shortest_path_m
+    seen = set()
+    for k in range(12):
+        _, info = env.reset(seed=100 + k)
+        family, seed = info["world"].split("-")[:2]
+        assert family in FAMILIES and int(seed) in seeds.TRAIN and 0 < info["waypoints"] <= 4
+        seen.add(family)
+    assert len(seen) >= 4
+    few = LidarNavEnv(NavEnvConfig(families=("pillars",), difficulty_range=(0.9, 0.9)))
+    _, info = few.reset(seed=2)
+    assert info["world"].startswith("pillars-") and info["world"].endswith("-d0.90")
+    few.close()
+    with pytest.raises(ValueError, match="unknown reset option 'room_width'"):
+        env.reset(options={"room_width": 7.0})
+    with pytest.raises(ValueError, match="no waypoints"):
+        env.reset(options={"world": World("empty", (8.0, 8.0), 3.0, (), (0.0, 0.0, 1.5), 0.0)})
+
+
+def test_reset_and_rollout_are_deterministic_for_a_seed(env: LidarNavEnv) -> None:
+    def roll() -> list[np.ndarray]:
+        obs, _ = env.reset(seed=42)
+        out = [obs]
+        for k in range(20):
+            obs, *_ = env.step(np.array([0.8, math.sin(k / 3)], np.float32))
+            out.append(obs)
+        return out
+
+    for a, b in zip(roll(), roll(), strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_render_shows_the_waypoint_being_flown_to(env: LidarNavEnv) -> None:
+    env.reset(seed=0, options={"world": HALL})
+    active = np.array([0xE0, 0x8A, 0x00])  # flightsim.render's active-waypoint colour
+
+    def active_pixels() -> int:
+        img = env.render()
+        return int(np.sum(np.all(np.abs(img.astype(int) - active) < 8, axis=-1)))
+
+    assert active_pixels() > 30
+    first_centre = active_pixels()
+    for _ in range(60):
+        _, _, terminated, _, info = env.step(FORWARD)
+        if info["waypoint"] == 1:
+            break
+    assert info["waypoint"] == 1 and not terminated
+    assert active_pixels() == pytest.approx(first_centre, rel=0.3)  # still one active waypoint, now #2

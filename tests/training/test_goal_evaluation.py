@@ -1,0 +1,94 @@
+"""The goal task's evaluation: figures from known episodes, held-out worlds, the CLI end to end."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from flightsim import seeds
+from flightsim.families import FAMILIES
+from training.__main__ import main
+from training.evaluate import EpisodeResult, format_table, goal_summary, goal_worlds, report
+
+
+def _episode(controller, world, family, *, success=False, collision=False, timeout=False, steps=100, flown=12.0):  # noqa: E501
+    return EpisodeResult(
+        controller=controller, world=world, episode=0, steps=steps, max_steps=3000, collision=collision,
+        distance=flown, mean_speed=flown / (steps * 0.1), min_clearance=0.4, near_misses=1, success=success,
+        family=family, waypoints=2, waypoints_reached=2 if success else 1, timeout=timeout,
+        time_s=steps * 0.1, shortest_path_m=10.0,
+    )  # fmt: skip
+
+
+def test_goal_summary_rates_time_and_spl_over_successes_only():
+    results = [
+        _episode("a", "w1", "forest", success=True, steps=100, flown=12.5),  # SPL 0.8, 10 s
+        _episode("a", "w2", "forest", success=True, steps=200, flown=10.0),  # SPL 1.0, 20 s
+        _episode("a", "w3", "gaps", collision=True, steps=50, flown=3.0),
+        _episode("a", "w4", "gaps", timeout=True, steps=400, flown=30.0),
+    ]
+    s = goal_summary(results)
+    assert (s["success_rate"], s["collision_rate"], s["timeout_rate"]) == (0.5, 0.25, 0.25)
+    assert s["mean_time_s"] == pytest.approx(15.0) and s["spl"] == pytest.approx(0.9)
+    assert s["spl_all"] == pytest.approx(1.8 / 4) and s["waypoints_reached"] == pytest.approx(6 / 8)
+    assert goal_summary(results[2:])["spl"] is None and goal_summary(results[2:])["mean_time_s"] is None
+
+    out = report([*results, _episode("b", "w1", "forest")], [])
+    a = out["controllers"]["a"]
+    assert set(a) == {"overall", "per_world", "per_family"}
+    assert a["per_family"]["forest"]["success_rate"] == 1.0 and a["per_family"]["gaps"]["success_rate"] == 0.0
+    assert out["controllers"]["b"]["overall"]["success_rate"] == 0.0
+    assert "every waypoint reached in order" in out["success_definition"]
+    table = format_table(out, per_world=False)
+    assert "forest" in table and "gaps" in table and "ALL" in table
+
+
+def test_goal_worlds_spread_difficulty_per_family_and_are_deterministic():
+    worlds = goal_worlds(("forest", "traps"), 900_000, 4, (0.2, 1.0))
+    assert [w.family for w in worlds] == ["forest"] * 4 + ["traps"] * 4
+    assert [w.difficulty for w in worlds[:4]] == [0.3, 0.5, 0.7, 0.9]
+    assert worlds[0].reset_options() == {"family": "forest", "world_seed": 900_000, "difficulty": 0.3}
+    assert worlds == goal_worlds(("forest", "traps"), 900_000, 4, (0.2, 1.0))
+
+
+def test_the_default_test_set_is_20_held_out_worlds_per_family():
+    worlds = goal_worlds(FAMILIES, seeds.TEST.start, 20, (0.0, 1.0))
+    assert len(worlds) == 20 * len(FAMILIES)
+    assert all(w.seed in seeds.TEST for w in worlds)
+    assert not any(w.seed in seeds.TRAIN or w.seed in seeds.VALIDATION for w in worlds)
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--seeds", "2", "--first-seed", "1000000"], "goal-task world seeds must lie within the test seeds"),
+        (["--seeds", "2", "--first-seed", "999999"], "goal-task world seeds must lie within the test seeds"),
+        (["--seeds", "1", "--difficulty", "2"], "--difficulty must be in [0, 1]"),
+    ],
+)
+def test_goal_evaluation_refuses_training_seeds(tmp_path, capsys, argv, message):
+    config = tmp_path / "nav.toml"
+    config.write_text('env_id = "flightsim/LidarNav-v0"\n[eval]\nfirst_seed = 500000\n')
+    assert main(["evaluate", "--config", str(config), *argv]) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_goal_evaluation_end_to_end_writes_json_and_png(tmp_path, capsys):
+    config = tmp_path / "nav.toml"
+    config.write_text(
+        'env_id = "flightsim/LidarNav-v0"\n[eval]\nfirst_seed = 500000\n'
+        '[env]\nfamilies = ["gaps"]\ndifficulty_range = [0.0, 0.3]\n'
+    )
+    out_json, out_png = tmp_path / "eval.json", tmp_path / "eval.png"
+    argv = ["evaluate", "--config", str(config), "--seeds", "1", "--shield", "--workers", "1"]
+    assert main([*argv, "--json", str(out_json), "--png", str(out_png)]) == 0
+    data = json.loads(out_json.read_text())
+    assert data["env_id"] == "flightsim/LidarNav-v0" and data["policy"] is None
+    assert set(data["controllers"]) == {"goal_follower+shield", "straight_line+shield"}
+    overall = data["controllers"]["goal_follower+shield"]["overall"]
+    assert {"success_rate", "collision_rate", "timeout_rate", "mean_time_s", "spl"} <= set(overall)
+    assert overall["success_rate"] == 1.0 and 0.5 < overall["spl"] <= 1.0  # gaps-900000, an easy one
+    assert list(data["controllers"]["goal_follower+shield"]["per_family"]) == ["gaps"]
+    assert data["worlds"][0]["family"] == "gaps" and out_png.stat().st_size > 10_000
+    assert "goal_follower+shield" in capsys.readouterr().out

@@ -1,0 +1,89 @@
+"""The goal task through the whole pipeline, tiny: train LidarNav-v0, export (parity, layout metadata),
+the companion's OnnxPolicy accepts it only under the goal layout, evaluate the .onnx."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+
+import numpy as np
+import onnx
+import pytest
+
+from companion.errors import UserError
+from companion.framestack import FrameStack
+from companion.observation import ObservationLayout
+from companion.policy import OnnxPolicy, PolicySpec
+from training.__main__ import main
+
+TINY_NAV = """
+env_id = "flightsim/LidarNav-v0"
+name = "tiny-nav"
+seed = 2
+total_timesteps = 128
+n_envs = 1
+checkpoint_every = 128
+progress_bar = false
+
+[env]
+families = ["gaps"]
+difficulty_range = [0.0, 0.2]
+max_steps = 60
+
+[ppo]
+n_steps = 64
+batch_size = 64
+n_epochs = 1
+net_arch = [16, 16]
+
+[eval]
+every_steps = 1000
+n_worlds = 1
+first_seed = 500000
+workers = 1
+"""
+GOAL = ObservationLayout(goal=True, goal_range=30.0, velocity_scale=2.0)
+
+
+@pytest.fixture(scope="module")
+def nav_run(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("nav")
+    config = tmp / "tiny-nav.toml"
+    config.write_text(TINY_NAV)
+    assert main(["train", "--config", str(config), f"run_root={tmp / 'runs'}"]) == 0
+    run_dir = tmp / "runs" / "tiny-nav-s2"
+    onnx_path = tmp / "nav.onnx"
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        assert main(["export", "--model", str(run_dir / "final_model.zip"), "--out", str(onnx_path),
+                     "--parity-samples", "100"]) == 0  # fmt: skip
+    return {"config": config, "run_dir": run_dir, "onnx": onnx_path, "printed": printed.getvalue()}
+
+
+def test_training_validates_on_goal_worlds(nav_run):
+    rows = (nav_run["run_dir"] / "eval.csv").read_text().splitlines()
+    assert len(rows) == 2 and rows[-1].split(",")[-1] == "2"  # one gaps world, with and without the shield
+
+
+def test_export_writes_the_goal_layout_and_the_companion_checks_it(nav_run):
+    meta = {p.key: p.value for p in onnx.load(str(nav_run["onnx"])).metadata_props}
+    assert meta["lidar_avoid.obs_layout"] == GOAL.name
+    assert meta["lidar_avoid.obs_size"] == "1460"
+    assert "max abs diff" in nav_run["printed"]
+    policy = OnnxPolicy(nav_run["onnx"], PolicySpec(layout=GOAL))
+    stack = FrameStack(4, GOAL.frame_size)
+    action = policy.act(stack.reset(np.concatenate([np.ones(360), [1.0, 0.0, 0.3, 0.0, 0.0]])))
+    assert action.shape == (2,) and np.all(np.abs(action) <= 1.0)
+    with pytest.raises(UserError, match=r"model obs_layout scan360\+goal.* does not match config observation layout scan360"):  # noqa: E501
+        OnnxPolicy(nav_run["onnx"], PolicySpec())
+
+
+def test_evaluate_flies_the_exported_goal_policy(nav_run, tmp_path, capsys):
+    out = tmp_path / "eval.json"
+    argv = ["evaluate", "--config", str(nav_run["config"]), "--policy", str(nav_run["onnx"]), "--seeds", "1",
+            "--workers", "1", "--json", str(out)]  # fmt: skip
+    assert main(argv) == 0
+    data = json.loads(out.read_text())
+    assert set(data["controllers"]) == {"policy", "goal_follower", "straight_line"}
+    assert data["controllers"]["policy"]["per_family"]["gaps"]["episodes"] == 1
