@@ -260,19 +260,23 @@ class OnnxPolicy:
         if not _batch_dim_ok(out.shape[0]):
             raise UserError(f"model output shape {_shape(out.shape)} is not (1, 2)")
 
-    def _check_layout(self) -> None:
-        """Before the shapes: a layout mismatch is named as such, not as an input size."""
-        meta = dict(self._session.get_modelmeta().custom_metadata_map)
-        meta.setdefault(PREFIX + "obs_layout", LEGACY_LAYOUT)
-        self._compare("obs_layout", meta, self.spec.layout.name, _CONFIG_KEYS["obs_layout"])
-
-    def _check_metadata(self) -> None:
+    def _metadata(self) -> dict[str, str]:
+        """The model's metadata map (one line, not a traceback, when a file breaks its UTF-8)."""
         try:
-            meta = dict(self._session.get_modelmeta().custom_metadata_map)
+            return dict(self._session.get_modelmeta().custom_metadata_map)
         except UnicodeDecodeError as exc:  # protobuf strings are UTF-8 by contract; a file can break it
             raise UserError(
                 f"policy model {self.path}: metadata is not UTF-8 text ({exc.reason} at byte {exc.start})"
             ) from None
+
+    def _check_layout(self) -> None:
+        """Before the shapes: a layout mismatch is named as such, not as an input size."""
+        meta = self._metadata()
+        meta.setdefault(PREFIX + "obs_layout", LEGACY_LAYOUT)
+        self._compare("obs_layout", meta, self.spec.layout.name, _CONFIG_KEYS["obs_layout"])
+
+    def _check_metadata(self) -> None:
+        meta = self._metadata()
         missing = [key for key in METADATA_KEYS if key not in meta and key != PREFIX + "obs_layout"]
         if missing:
             raise UserError(
