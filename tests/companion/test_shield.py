@@ -12,11 +12,14 @@ from hypothesis.extra import numpy as hnp
 
 from companion.errors import UserError
 from companion.shield import (
+    AUTOPILOT_LIMITS,
     Command,
     SafetyShield,
     ShieldConfig,
+    arc_bins,
     command_from_action,
     sector_bins,
+    stopping_distance,
     stopping_speed,
 )
 from companion.tomlconfig import from_dict
@@ -90,10 +93,10 @@ def test_forward_speed_lets_the_vehicle_stop_before_the_return(distance: float) 
     cfg = ShieldConfig(max_speed=10.0)
     shield = SafetyShield(cfg, MAX_RANGE)
     out = settled(shield, Command(10.0, 0.0), scan_with({10: distance}))
-    expected = stopping_speed(distance - cfg.estop_distance, cfg.max_decel, cfg.reaction_time)
+    expected = stopping_speed(distance - cfg.estop_distance, shield.max_decel, shield.reaction_time)
     assert out.forward == pytest.approx(expected)
     # and that speed indeed stops before estop_distance from the return
-    v, a, t = out.forward, cfg.max_decel, cfg.reaction_time
+    v, a, t = out.forward, shield.max_decel, shield.reaction_time
     assert v * t + v * v / (2 * a) == pytest.approx(distance - cfg.estop_distance)
     assert shield.interventions["stopping_distance"] > 0
 
@@ -147,7 +150,8 @@ def test_backing_up_is_limited_by_rear_clearance() -> None:
     cfg = ShieldConfig(max_reverse_speed=5.0)
     shield = SafetyShield(cfg, MAX_RANGE)
     out = settled(shield, Command(-5.0, 0.0), scan_with({170: 1.0}))
-    cap = stopping_speed(1.0 - cfg.rear_clear_margin - cfg.estop_distance, cfg.max_decel, cfg.reaction_time)
+    margin = 1.0 - cfg.rear_clear_margin - cfg.estop_distance
+    cap = stopping_speed(margin, shield.max_decel, shield.reaction_time)
     assert out.forward == pytest.approx(-cap)
 
 
@@ -235,9 +239,149 @@ def test_output_is_always_finite_within_limits_and_never_faster_than_asked(
         if rear < cfg.estop_distance + cfg.rear_clear_margin:
             assert out.forward >= 0.0
         # never faster towards the front than the vehicle can stop from
-        cap = stopping_speed(front - cfg.estop_distance, cfg.max_decel, cfg.reaction_time)
+        cap = stopping_speed(front - cfg.estop_distance, shield.max_decel, shield.reaction_time)
         assert out.forward <= cap + 1e-9
         # growth away from zero bounded by the acceleration limits
         assert abs(out.forward) <= abs(previous.forward) + cfg.max_accel * dt + 1e-9
         assert abs(out.yaw_rate) <= abs(previous.yaw_rate) + cfg.max_yaw_accel * dt + 1e-9
         previous = out
+
+
+# ---- the measured motion ----------------------------------------------------------------------
+
+
+def bins_around(centre_deg: float, half_width: float = 3.0) -> list[int]:
+    """Counter-clockwise scan bins within ``half_width`` of ``centre_deg``."""
+    return sector_bins(centre_deg % 360.0, half_width).tolist()
+
+
+def test_arc_bins_cover_the_swing_from_course_to_nose() -> None:
+    # course 35° right of the nose, ±30° around every direction in between: −65° … +30°
+    assert sorted(arc_bins(-35.0, 0.0, 30.0).tolist()) == [*range(30), *range(295, 360)]
+    assert arc_bins(0.0, 0.0, 30.0).tolist() == sector_bins(0.0, 30.0).tolist()
+    assert sorted(arc_bins(170.0, -170.0, 5.0).tolist()) == list(range(165, 195))  # the short way
+
+
+def test_motion_sliding_into_an_obstacle_off_the_nose_stops() -> None:
+    """The u-trap on real ArduPilot: the nose swung left, the vehicle kept travelling right of it,
+    and the wall end 57° right of the nose was outside the ±30° forward sector."""
+    wall = scan_with({b: 0.8 for b in bins_around(-57.0)})
+    shield = SafetyShield(ShieldConfig(), MAX_RANGE, "ardupilot")
+    assert settled(shield, Command(1.0, 0.5), wall) == Command(1.0, 0.5)  # the nose alone: let through
+    sliding = (0.9, -0.6)  # 1.08 m/s on a course 34° right of the nose
+    out = shield.filter(Command(1.0, 0.5), wall, 0.1, velocity=sliding)
+    assert out.forward < 0.0  # stopped, and braking against the motion (the rear is clear)
+    assert out.yaw_rate == 0.5  # turning stays allowed
+    assert shield.interventions["motion_stop"] == 1
+
+
+def test_braking_reverse_only_as_far_as_the_rear_allows() -> None:
+    wall = scan_with({**{b: 0.8 for b in bins_around(-57.0)}, 180: 0.45})  # rear inside its margin
+    shield = SafetyShield(ShieldConfig(), MAX_RANGE, "ardupilot")
+    out = settled(shield, Command(1.0, 0.0), wall)
+    out = shield.filter(Command(1.0, 0.0), wall, 0.1, velocity=(0.9, -0.6))
+    assert out.forward == 0.0
+
+
+def test_motion_that_can_stop_in_time_is_left_alone() -> None:
+    wall = scan_with({b: 5.0 for b in bins_around(-40.0)})
+    shield = SafetyShield(ShieldConfig(), MAX_RANGE, "ardupilot")
+    settled(shield, Command(1.0, 0.0), wall)
+    assert shield.filter(Command(1.0, 0.0), wall, 0.1, velocity=(0.9, -0.6)) == Command(1.0, 0.0)
+    assert shield.interventions["motion_stop"] == 0
+
+
+def test_speed_along_the_course_is_limited_by_the_clearance_there() -> None:
+    wall = scan_with({b: 2.0 for b in bins_around(-60.0)})
+    shield = SafetyShield(ShieldConfig(), MAX_RANGE, "ardupilot")
+    out = settled(shield, Command(2.0, 0.0), wall)
+    assert out.forward == 2.0  # nothing ahead of the nose
+    slow_slide = (0.0, -0.3)  # drifting right at 0.3 m/s: can stop, but the speed is capped
+    for _ in range(30):
+        out = shield.filter(Command(2.0, 0.0), wall, 0.1, velocity=slow_slide)
+    cap = stopping_speed(2.0 - 0.3, shield.max_decel, shield.reaction_time)
+    assert out.forward == pytest.approx(cap)
+    assert cap < 2.0
+
+
+def test_motion_slower_than_the_noise_floor_gives_no_direction() -> None:
+    wall = scan_with({b: 0.5 for b in bins_around(-90.0)})
+    shield = SafetyShield(ShieldConfig(), MAX_RANGE)
+    assert settled(shield, Command(1.0, 0.0), wall) == Command(1.0, 0.0)
+    assert shield.filter(Command(1.0, 0.0), wall, 0.1, velocity=(0.0, -0.05)) == Command(1.0, 0.0)
+
+
+def test_non_finite_velocity_stops() -> None:
+    shield = SafetyShield(ShieldConfig(), MAX_RANGE)
+    settled(shield, Command(1.0, 0.0), CLEAR)
+    assert shield.filter(Command(1.0, 0.0), CLEAR, 0.1, velocity=(math.nan, 0.0)).forward == 0.0
+    assert shield.interventions["velocity_nan"] == 1
+
+
+def test_backing_into_an_obstacle_behind_stops() -> None:
+    behind = scan_with({b: 0.6 for b in bins_around(150.0)})  # 30° off the tail: in the rear arc too
+    shield = SafetyShield(ShieldConfig(max_reverse_speed=1.0), MAX_RANGE, "px4")
+    out = shield.filter(Command(-1.0, 0.0), behind, 0.1, velocity=(-0.8, 0.4))
+    assert out.forward == 0.8  # braking forwards against the motion: the front is clear
+    blocked = scan_with({**{b: 0.6 for b in bins_around(150.0)}, 0: 0.2})
+    assert shield.filter(Command(-1.0, 0.0), blocked, 0.1, velocity=(-0.8, 0.4)).forward == 0.0
+
+
+def test_braking_figures_per_autopilot() -> None:
+    """The fixture's ArduPilot stop from 2 m/s took 1.68 m; PX4 reached 0.5 m/s after 1.2 m from
+    1.8 m/s and then crept: each assumed braking distance covers what was measured."""
+    ap, px4 = AUTOPILOT_LIMITS["ardupilot"], AUTOPILOT_LIMITS["px4"]
+    assert stopping_distance(2.0, ap.decel, ap.reaction_time) > 1.68
+    assert stopping_distance(1.8, px4.decel, px4.reaction_time) > 2.5
+    shield = SafetyShield(ShieldConfig(max_decel=3.0), MAX_RANGE, "px4")
+    assert (shield.max_decel, shield.reaction_time) == (3.0, px4.reaction_time)  # config wins
+
+
+def test_yaw_rate_never_above_what_the_autopilot_flies() -> None:
+    cfg = ShieldConfig()
+    ardupilot = SafetyShield(cfg, MAX_RANGE, "ardupilot")
+    assert ardupilot.max_yaw_rate == pytest.approx(math.radians(60.0))  # ATC_RATE_WPY_MAX default
+    assert settled(ardupilot, Command(0.0, 1.5), CLEAR).yaw_rate == pytest.approx(math.radians(60.0))
+    raised = SafetyShield(cfg, MAX_RANGE, "ardupilot", autopilot_yaw_rate=math.radians(86.0))
+    assert settled(raised, Command(0.0, -1.5), CLEAR).yaw_rate == -1.5  # the shield's own limit
+    assert SafetyShield(cfg, MAX_RANGE, "px4").max_yaw_rate == cfg.max_yaw_rate
+
+
+velocities = st.tuples(finite_or_not, finite_or_not)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    requests=st.lists(st.tuples(finite_or_not, finite_or_not, velocities), min_size=1, max_size=8),
+    scan=scans,
+    autopilot=st.sampled_from(sorted(AUTOPILOT_LIMITS)),
+)
+def test_with_measured_motion_output_stays_finite_and_never_drives_towards_a_close_return(
+    requests: list[tuple[float, float, tuple[float, float]]], scan: np.ndarray, autopilot: str
+) -> None:
+    cfg = ShieldConfig()
+    shield = SafetyShield(cfg, MAX_RANGE, autopilot)
+    front = float(scan[sector_bins(0.0, cfg.forward_sector_deg)].min()) * MAX_RANGE
+    rear = float(scan[sector_bins(180.0, cfg.rear_sector_deg)].min()) * MAX_RANGE
+    for forward, yaw, velocity in requests:
+        out = shield.filter(Command(forward, yaw), scan, 0.1, velocity=velocity)
+        assert math.isfinite(out.forward) and math.isfinite(out.yaw_rate)
+        assert -cfg.max_reverse_speed <= out.forward <= cfg.max_speed
+        assert abs(out.yaw_rate) <= shield.max_yaw_rate
+        if front < cfg.estop_distance:
+            assert out.forward <= 0.0
+        if rear < cfg.estop_distance + cfg.rear_clear_margin:
+            assert out.forward >= 0.0
+        v_forward, v_left = velocity
+        if not (math.isfinite(v_forward) and math.isfinite(v_left)):
+            assert out.forward == 0.0
+        if math.isfinite(v_forward) and math.isfinite(v_left) and math.hypot(v_forward, v_left) >= 0.1:
+            course = math.degrees(math.atan2(v_left, v_forward))
+            heading = 180.0 if math.isfinite(forward) and forward < 0 else 0.0
+            along = float(scan[arc_bins(course, heading, cfg.travel_sector_deg)].min()) * MAX_RANGE
+            cap = stopping_speed(along - cfg.estop_distance, shield.max_decel, shield.reaction_time)
+            if v_forward >= 0.0:  # (moving backwards, a forward setpoint is the brake)
+                assert out.forward <= cap + 1e-9
+            if stopping_distance(math.hypot(v_forward, v_left), shield.max_decel,
+                                 shield.reaction_time) >= along - cfg.estop_distance:
+                assert out.forward * v_forward <= 0.0  # stopping: never along the motion
