@@ -147,15 +147,17 @@ def pymavlink_connection(config: CompanionConfig) -> tuple[str, int]:
     return f"{mapping[scheme]}:{rest}", ap.baud
 
 
-def check_parameters(config: CompanionConfig) -> list[str]:
+def check_parameters(config: CompanionConfig) -> tuple[list[str], float | None]:
     """Run the configured autopilot parameter check before the link takes the port.
 
-    :return: one line per mismatch (``warn``: the caller logs and STATUSTEXTs them)
+    :return: one line per mismatch (``warn``: the caller logs and STATUSTEXTs them), and the
+        autopilot's yaw-rate cap as read (rad/s; None: not read, the shield assumes the firmware's
+        default)
     :raises UserError: ``refuse`` and something differs, or the check could not run
     """
     pc = config.params_check
     if pc.mode == "off":
-        return []
+        return [], None
     from companion import params
 
     wanted = params.load_param_file(pc.file, config.autopilot.type)
@@ -170,7 +172,7 @@ def check_parameters(config: CompanionConfig) -> list[str]:
         if pc.mode == "refuse":
             raise UserError(f"params_check: {exc}") from None
         log.warning("parameter check could not run: %s", exc)
-        return [f"param check failed: {exc}"]
+        return [f"param check failed: {exc}"], None
     bad = [r for r in report.results if not r.ok]
     lines = [
         f"param {r.name}: wanted {params.format_value(r.wanted.value, r.wanted.param_type)}, "
@@ -180,10 +182,18 @@ def check_parameters(config: CompanionConfig) -> list[str]:
     if bad and pc.mode == "refuse":
         raise UserError(f"params_check: {len(bad)} autopilot parameter(s) differ from {pc.file}: "
                         + "; ".join(lines))
+    yaw_cap = params.yaw_rate_limit(report, config.autopilot.type)
+    if yaw_cap is not None and yaw_cap < config.policy.max_yaw_rate - 1e-3:
+        trained = math.degrees(config.policy.max_yaw_rate)
+        lines.append(
+            f"yaw limit {params.YAW_RATE_LIMIT_PARAMS[config.autopilot.type]} "
+            f"{math.degrees(yaw_cap):.0f} deg/s < the policy's {trained:.0f}: "
+            f"shield caps yaw at {yaw_cap:.2f} rad/s"
+        )
     for line in lines:
         log.warning("%s", line)
     log.info("parameter check: %d/%d as wanted", len(report.results) - len(bad), len(report.results))
-    return lines
+    return lines, yaw_cap
 
 
 # ---- the loop ----------------------------------------------------------------------------------
@@ -212,7 +222,7 @@ class Companion:
             config.policy.providers or None,
             trt_cache_dir=config.policy.trt_cache_dir or None,
         )
-        self._param_messages = check_parameters(config)
+        self._param_messages, autopilot_yaw_rate = check_parameters(config)
         self.lidar = open_lidar(config, clock)
         try:
             self.link = open_link(config, clock)
@@ -220,7 +230,10 @@ class Companion:
             self.lidar.close()
             raise
         self.supervisor = Supervisor(config.supervisor, clock)
-        self.shield = SafetyShield(config.shield, config.scan.max_range)
+        # braking and yaw limits of this autopilot (measured), the yaw cap as read from it if known
+        self.shield = SafetyShield(
+            config.shield, config.scan.max_range, config.autopilot.type, autopilot_yaw_rate
+        )
         self.stack = FrameStack(config.policy.stack, N_BINS)
         self._od_limits = obstacle_distance_limits(config)
         # PX4 only accepts a switch to OFFBOARD while setpoints already stream.
@@ -302,7 +315,8 @@ class Companion:
                 scan, requested = self._latest
                 last = self._last_filter
                 dt = min(max(now - last, 1e-3), 0.5) if last is not None else 0.1
-                command = self.shield.filter(requested, scan, dt)
+                # the supervisor only commands while the measured velocity is fresh
+                command = self.shield.filter(requested, scan, dt, self._status.velocity_body)
                 self._last_filter = now
                 self.link.send_velocity(command.forward, command.yaw_rate)
                 self.counters["setpoints_policy"] += 1

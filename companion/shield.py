@@ -86,10 +86,10 @@ class ShieldConfig:
     :param max_yaw_rate: rad/s, either direction
     :param max_accel: how fast the forward speed may grow, m/s²
     :param max_yaw_accel: how fast the yaw rate may grow, rad/s²
-    :param max_decel: braking the stopping-distance limit assumes, m/s²; unset: the autopilot's
+    :param max_decel: braking the stopping-distance limit assumes, m/s²; 0: the autopilot's
         measured value (:data:`AUTOPILOT_LIMITS`)
     :param reaction_time: delay before braking starts (scan age, control period and the autopilot's
-        velocity-loop lag), s; unset: the autopilot's measured value. 0.8 s is what the simulated
+        velocity-loop lag), s; 0: the autopilot's measured value. 0.8 s is what the simulated
         quad needs to stop at ``estop_distance`` from a wall it meets at 2 m/s
         (``tests/flightsim/test_env.py``); measure a real vehicle's.
     :param estop_distance: a forward return closer than this stops all forward motion, m
@@ -105,8 +105,8 @@ class ShieldConfig:
     max_yaw_rate: float = field(default=1.5, metadata={"min": 0.0, "max": 6.0})
     max_accel: float = field(default=2.0, metadata={"min": 0.01, "max": 20.0})
     max_yaw_accel: float = field(default=4.0, metadata={"min": 0.01, "max": 50.0})
-    max_decel: float | None = field(default=None, metadata={"min": 0.1, "max": 20.0})
-    reaction_time: float | None = field(default=None, metadata={"min": 0.0, "max": 5.0})
+    max_decel: float = field(default=0.0, metadata={"min": 0.0, "max": 20.0})
+    reaction_time: float = field(default=0.0, metadata={"min": 0.0, "max": 5.0})
     estop_distance: float = field(default=0.3, metadata={"min": 0.0, "max": 10.0})
     rear_clear_margin: float = field(default=0.2, metadata={"min": 0.0, "max": 10.0})
     forward_sector_deg: float = field(default=30.0, metadata={"min": 1.0, "max": 90.0})
@@ -192,7 +192,7 @@ class SafetyShield:
     :param config: the limits
     :param max_range: metres that a scan value of 1.0 stands for
     :param autopilot: what the autopilot does with a setpoint: a key of :data:`AUTOPILOT_LIMITS`
-        or the limits themselves (``max_decel`` and ``reaction_time`` in ``config`` win when set)
+        or the limits themselves (``max_decel`` and ``reaction_time`` in ``config`` win when not 0)
     :param autopilot_yaw_rate: the autopilot's yaw-rate limit as read from it (rad/s), when known;
         otherwise its firmware default from ``autopilot``
     """
@@ -210,10 +210,8 @@ class SafetyShield:
         self.config = config
         self.max_range = float(max_range)
         #: braking the stopping distances assume, m/s², and the delay before it starts, s
-        self.max_decel = config.max_decel if config.max_decel is not None else limits.decel
-        self.reaction_time = (
-            config.reaction_time if config.reaction_time is not None else limits.reaction_time
-        )
+        self.max_decel = config.max_decel or limits.decel
+        self.reaction_time = config.reaction_time or limits.reaction_time
         ap_yaw = autopilot_yaw_rate if autopilot_yaw_rate is not None else limits.max_yaw_rate
         #: the yaw rate never asked above this, rad/s: the shield's limit or the autopilot's
         self.max_yaw_rate = min(config.max_yaw_rate, ap_yaw)

@@ -3,7 +3,8 @@
 What goes out: SET_POSITION_TARGET_LOCAL_NED in MAV_FRAME_BODY_OFFSET_NED with only velocity and
 yaw rate enabled (type mask 0x05C7), OBSTACLE_DISTANCE for ArduPilot's own proximity avoidance,
 the companion's HEARTBEAT and STATUSTEXT. What comes in: HEARTBEAT (armed, mode),
-EXTENDED_SYS_STATE (landed state), GLOBAL_POSITION_INT / LOCAL_POSITION_NED (altitude above home)
+EXTENDED_SYS_STATE (landed state), GLOBAL_POSITION_INT / LOCAL_POSITION_NED (altitude above home),
+LOCAL_POSITION_NED + ATTITUDE (the measured velocity, turned into the body frame by the heading)
 and VFR_HUD (climb rate); the link asks for those streams with MAV_CMD_SET_MESSAGE_INTERVAL because
 ArduPilot's default SRx_ rates may be zero on a companion port.
 """
@@ -19,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.autopilot.link import LandedState, VehicleStatus
+from companion.autopilot.link import LandedState, VehicleStatus, body_velocity
 from companion.autopilot.mavlink_adapter import MavlinkEndpoint, mavlink, mode_name
 from companion.obstacle_distance import sector_distances
 
@@ -33,9 +34,11 @@ COPTER_GUIDED = 4
 #: OBSTACLE_DISTANCE sector width, degrees (72 sectors cover the circle).
 SECTOR_INCREMENT_DEG = 5
 #: Messages the supervisor needs, requested at ``stream_rate_hz``.
-STATUS_STREAMS = ("EXTENDED_SYS_STATE", "GLOBAL_POSITION_INT", "LOCAL_POSITION_NED", "VFR_HUD")
+STATUS_STREAMS = ("EXTENDED_SYS_STATE", "GLOBAL_POSITION_INT", "LOCAL_POSITION_NED", "VFR_HUD", "ATTITUDE")
 #: A position source older than this no longer counts as current, seconds.
 POSITION_FRESH_S = 2.0
+#: A heading older than this does not turn a velocity into the body frame, seconds.
+ATTITUDE_FRESH_S = 0.5
 #: STATUSTEXT carries 50 bytes per message; longer texts are chunked, up to this many chunks.
 STATUSTEXT_CHUNK = 50
 STATUSTEXT_MAX_CHUNKS = 4
@@ -93,6 +96,7 @@ class ArduPilotLink:
         self._target: tuple[int, int] | None = None
         self._status = VehicleStatus()
         self._last_seen: dict[str, float] = {}
+        self._yaw_ned = math.nan
         self._last_stream_request = -math.inf
         self._statustext_id = 0
         self.counters: dict[str, int] = {
@@ -158,12 +162,24 @@ class ArduPilotLink:
                 self._status.altitude = -float(msg.z)
             if not self._fresh("VFR_HUD", now):
                 self._status.climb_rate = -float(msg.vz)
+            self._on_velocity(float(msg.vx), float(msg.vy), now)
+        elif kind == "ATTITUDE":
+            self._yaw_ned = float(msg.yaw)
         elif kind == "VFR_HUD":
             # VFR_HUD.alt may be above sea level depending on firmware; only its climb rate is used.
             self._status.climb_rate = float(msg.climb)
         elif kind == "COMMAND_ACK" and msg.result != mavlink.MAV_RESULT_ACCEPTED:
             self.counters["command_nacks"] += 1
             log.debug("command %d refused by the autopilot: result %d", msg.command, msg.result)
+
+    def _on_velocity(self, v_north: float, v_east: float, now: float) -> None:
+        """LOCAL_POSITION_NED's velocity into the body frame, if the heading is current."""
+        if now - self._last_seen.get("ATTITUDE", -math.inf) > ATTITUDE_FRESH_S:
+            return
+        body = body_velocity(v_north, v_east, self._yaw_ned)
+        if body is not None:
+            self._status.velocity_body = body
+            self._status.velocity_time = now
 
     def _fresh(self, kind: str, now: float) -> bool:
         return now - self._last_seen.get(kind, -math.inf) < POSITION_FRESH_S

@@ -65,10 +65,19 @@ class AutopilotPeer:
         )
 
     def flying(
-        self, altitude: float = 1.5, climb: float = 0.0, landed: int = mavlink.MAV_LANDED_STATE_IN_AIR
+        self,
+        altitude: float = 1.5,
+        climb: float = 0.0,
+        landed: int = mavlink.MAV_LANDED_STATE_IN_AIR,
+        velocity_ned: tuple[float, float] | None = (0.0, 0.0),
+        yaw_ned: float = 0.0,
     ) -> None:
-        """One round of the status streams of a vehicle hovering at ``altitude``."""
+        """One round of the status streams of a vehicle hovering at ``altitude`` (moving at
+        ``velocity_ned``, north and east m/s; None: no velocity measurement is sent)."""
         self.mav.extended_sys_state_send(0, landed)
+        if velocity_ned is not None:
+            self.mav.attitude_send(0, 0.0, 0.0, yaw_ned, 0.0, 0.0, 0.0)
+            self.mav.local_position_ned_send(0, 0.0, 0.0, -altitude, *velocity_ned, -climb)
         self.mav.global_position_int_send(0, 0, 0, int(altitude * 1000) + 100_000, int(altitude * 1000),
                                           0, 0, int(-climb * 100), 0)
         self.mav.vfr_hud_send(0.0, 0.0, 0, 0, 100.0 + altitude, climb)
@@ -136,6 +145,8 @@ class SimulatedAutopilot:
         self.altitude = 1.5
         self.climb = 0.0
         self.landed = mavlink.MAV_LANDED_STATE_IN_AIR
+        self.velocity_ned: tuple[float, float] | None = (0.0, 0.0)  # None: no velocity measurement
+        self.yaw_ned = 0.0
         self.sending = True  # False: go silent (heartbeat loss)
         self.params: dict[str, float] = {}  # answered to PARAM_REQUEST_READ (REAL32, C-cast)
         self._period = 1.0 / rate_hz
@@ -153,7 +164,8 @@ class SimulatedAutopilot:
                 next_send = now + self._period
                 if self.sending:
                     self.peer.heartbeat(armed=self.armed, custom_mode=self.custom_mode)
-                    self.peer.flying(self.altitude, self.climb, self.landed)
+                    self.peer.flying(self.altitude, self.climb, self.landed, self.velocity_ned,
+                                     self.yaw_ned)
             got = False
             while True:
                 msg = self.peer.conn.recv_msg()

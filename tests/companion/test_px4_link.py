@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
@@ -56,6 +57,18 @@ def test_status_from_telemetry(px4):
     assert not status.guided
     vehicle.custom_mode = px4_custom_mode(PX4_MAIN_OFFBOARD)
     _wait(lambda: link.poll().guided)
+
+
+def test_measured_velocity_turned_into_the_body_frame(px4):
+    link, vehicle = px4
+    vehicle.yaw_ned, vehicle.velocity_ned = math.radians(90.0), (1.0, 2.0)  # nose east
+    try:
+        status = _wait(lambda: (s := link.poll()).velocity_body is not None
+                       and abs(s.velocity_body[0] - 2.0) < 1e-3 and s)
+        assert status.velocity_body == pytest.approx((2.0, 1.0), abs=1e-3)  # forward east, left north
+        assert time.monotonic() - status.velocity_time < 0.5
+    finally:
+        vehicle.yaw_ned, vehicle.velocity_ned = 0.0, (0.0, 0.0)
 
 
 def test_companion_heartbeat_is_an_onboard_controller(px4):
