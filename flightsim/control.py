@@ -52,6 +52,10 @@ class Setpoint:
     :param yaw_rate: rad/s counter-clockwise (FLU); ``None`` holds ``yaw``.
     :param yaw: heading target (rad, CCW from +x) used when ``yaw_rate`` is None; both None hold
         the heading the vehicle had when it entered this hold.
+    :param ax: acceleration feedforward East, m/s^2: the slope of a shaped velocity reference
+        (:mod:`flightsim.autopilot_response`), added to the velocity loop's output so the vehicle
+        follows the reference instead of lagging it by its own loop.
+    :param ay: acceleration feedforward North, m/s^2.
     """
 
     vx: float = 0.0
@@ -60,6 +64,8 @@ class Setpoint:
     altitude: float | None = None
     yaw_rate: float | None = 0.0
     yaw: float | None = None
+    ax: float = 0.0
+    ay: float = 0.0
 
     @staticmethod
     def from_body(forward: float, lateral: float, yaw: float, **kw: float | None) -> Setpoint:
@@ -217,8 +223,8 @@ def _mix(
     )
 
 
-def setpoint_values(setpoint: Setpoint) -> tuple[float, float, float, float, float, float]:
-    """(vx, vy, vz, altitude, yaw_rate, yaw) of a setpoint as floats, NaN for None.
+def setpoint_values(setpoint: Setpoint) -> tuple[float, float, float, float, float, float, float, float]:
+    """(vx, vy, vz, altitude, yaw_rate, yaw, ax, ay) of a setpoint as floats, NaN for None.
 
     :param setpoint: the setpoint to flatten for :func:`control_step`.
     """
@@ -230,6 +236,8 @@ def setpoint_values(setpoint: Setpoint) -> tuple[float, float, float, float, flo
         nan if setpoint.altitude is None else float(setpoint.altitude),
         nan if setpoint.yaw_rate is None else float(setpoint.yaw_rate),
         nan if setpoint.yaw is None else float(setpoint.yaw),
+        float(setpoint.ax),
+        float(setpoint.ay),
     )
 
 
@@ -243,6 +251,8 @@ def control_step(
     altitude_sp: float,
     yaw_rate_sp: float,
     yaw_sp: float,
+    ax_ff: float,
+    ay_ff: float,
     dt: float,
     z: float,
     vx: float,
@@ -310,8 +320,8 @@ def control_step(
     # --- horizontal velocity -> acceleration, tilt-limited, integrating only when unsaturated
     ex = vx_sp - vx
     ey = vy_sp - vy
-    ax = g[_G_VEL_P] * ex + m[_M_VEL_I_X]
-    ay = g[_G_VEL_P] * ey + m[_M_VEL_I_Y]
+    ax = g[_G_VEL_P] * ex + m[_M_VEL_I_X] + ax_ff
+    ay = g[_G_VEL_P] * ey + m[_M_VEL_I_Y] + ay_ff
     a_max = fz * g[_G_TAN_TILT]
     a_norm = math.sqrt(ax * ax + ay * ay)
     if a_norm > a_max:

@@ -13,7 +13,7 @@ from gymnasium import spaces
 
 from companion.scan import N_BINS, ScanConfig, scan_from_points
 from companion.shield import SafetyShield, ShieldConfig, command_from_action
-from flightsim.control import Setpoint
+from flightsim.autopilot_response import AutopilotResponse, fly, response_params
 from flightsim.raycast import LidarConfig, VLP16Raycaster
 from flightsim.render import render_rgb
 from flightsim.reward import REWARDS, StepOutcome
@@ -56,6 +56,10 @@ class EnvConfig:
     :param overspeed_penalty: reward cost per step of asking for more forward speed than the
         shield lets through (:meth:`SafetyShield.forward_cap`), per ``max_speed`` of excess: a
         policy trained behind the shield then brakes by itself instead of leaving it to the shield
+    :param autopilot_response: how the autopilot answers the setpoints (:mod:`flightsim.autopilot_response`):
+        ``"ideal"`` flies them as given (the vehicle of every result so far), ``"px4"`` and
+        ``"ardupilot"`` as those firmwares do (calibrated on recordings of real SITL), ``"random"``
+        a response drawn per episode over both firmwares plus a margin (domain randomisation)
     """
 
     world_file: str | None = None
@@ -74,6 +78,7 @@ class EnvConfig:
     shield: bool = False
     unshielded_fraction: float = field(default=0.0, metadata={"min": 0.0, "max": 1.0})
     overspeed_penalty: float = field(default=0.0, metadata={"min": 0.0, "max": 100.0})
+    autopilot_response: Literal["ideal", "px4", "ardupilot", "random"] = "ideal"
 
 
 def _clip_unit(v: float) -> float:
@@ -144,7 +149,8 @@ class LidarAvoidEnv(gym.Env):
     ## Info
     ``collision`` (bool), ``min_distance`` (current clearance, m), ``distance`` (path flown so far,
     m), ``position`` ((3,) world ENU, m), ``yaw`` (rad, CCW from +x), ``world`` (its name),
-    ``steps``.
+    ``steps``, ``measured_velocity_body`` ((2,) forward, left m/s: what the autopilot would report,
+    estimate error included, see :meth:`LidarAvoidEnv.measured_body_velocity`).
 
     ## Arguments
     ``LidarAvoidEnv(config: EnvConfig | None = None, render_mode: "rgb_array" | None = None)``, or
@@ -201,6 +207,11 @@ class LidarAvoidEnv(gym.Env):
         start = np.asarray(self.world.start_position, dtype=np.float64)
         yaw0 = math.radians(self.world.start_yaw_deg)
         self._state = self._vehicle.reset(start, yaw0, mass_kg=mass)
+        self._response = None
+        params = response_params(cfg.autopilot_response, rng)
+        if params is not None:  # drawn only when used (same streams for "ideal")
+            self._response = AutopilotResponse(params, rng)
+            self._response.reset(yaw0)
         self._altitude = float(start[2])
         self._wind_steps_left = 0
         if cfg.wind_gust_max > 0.0:
@@ -238,10 +249,10 @@ class LidarAvoidEnv(gym.Env):
         if cfg.wind_gust_max > 0.0:
             self._update_wind()
         previous = self._state.position
-        setpoint = Setpoint.from_body(
-            a0 * cfg.max_speed, 0.0, self._state.yaw, yaw_rate=a1 * cfg.max_yaw_rate, altitude=self._altitude
-        )
-        self._state = self._vehicle.step(setpoint)
+        self._state = fly(
+            self._vehicle, self._response, a0 * cfg.max_speed, a1 * cfg.max_yaw_rate,
+            altitude=self._altitude, duration=1.0 / CONTROL_HZ,
+        )  # fmt: skip
         position = self._state.position
         self._distance += math.dist(position.tolist(), previous.tolist())
         self._trajectory.append(position.copy())
@@ -260,6 +271,19 @@ class LidarAvoidEnv(gym.Env):
         observation = self._previous_scan if cfg.latency_scans else self._scan
         truncated = self._steps >= cfg.max_steps and not self._collided
         return observation.copy(), reward, self._collided, truncated, self._info()
+
+    def measured_body_velocity(self) -> np.ndarray:
+        """The horizontal velocity the autopilot would report now: (forward, left) m/s, body FLU.
+
+        With an autopilot response it carries that firmware's estimate error; ideal: the truth.
+        """
+        if self.world is None:
+            raise RuntimeError("call reset() before measured_body_velocity()")
+        if self._response is not None:
+            return self._response.measured_body_velocity(self._state)
+        c, s = math.cos(self._state.yaw), math.sin(self._state.yaw)
+        vx, vy = float(self._state.velocity[0]), float(self._state.velocity[1])
+        return np.array([c * vx + s * vy, -s * vx + c * vy])
 
     def render(self) -> np.ndarray | None:
         if self.render_mode != "rgb_array" or self.world is None:
@@ -333,4 +357,5 @@ class LidarAvoidEnv(gym.Env):
             "yaw": float(self._state.yaw),
             "world": self.world.name,
             "steps": self._steps,
+            "measured_velocity_body": self.measured_body_velocity(),
         }

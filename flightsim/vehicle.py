@@ -305,7 +305,7 @@ class Vehicle:
         set_yaw = self._set_yaw_moment
         run = self._run
         memory, gains = self.controller.memory, self.controller.gains
-        vx_sp, vy_sp, vz_sp, altitude_sp, yaw_rate_sp, yaw_sp = setpoint_values(setpoint)
+        vx_sp, vy_sp, vz_sp, altitude_sp, yaw_rate_sp, yaw_sp, ax_ff, ay_ff = setpoint_values(setpoint)
         dt = self._dt
         lag = self._lag
         km = YAW_MOMENT_PER_THRUST_M * _LBFFT_PER_NM
@@ -318,7 +318,7 @@ class Vehicle:
         for _ in range(n):
             if armed:
                 c0, c1, c2, c3 = control_step(
-                    memory, gains, vx_sp, vy_sp, vz_sp, altitude_sp, yaw_rate_sp, yaw_sp, dt,
+                    memory, gains, vx_sp, vy_sp, vz_sp, altitude_sp, yaw_rate_sp, yaw_sp, ax_ff, ay_ff, dt,
                     get_h() * _FT, get_ve() * _FT, get_vn() * _FT, -get_vd() * _FT,
                     get_phi(), -get_theta(), half_pi - get_psi(),
                     get_p(), -get_q(), -get_r(),
