@@ -188,7 +188,11 @@ class LidarAvoidEnv(gym.Env):
         self._vehicle = Vehicle(VehicleConfig(mass_kg=VEHICLE_MASS_KG, physics_hz=120, control_hz=CONTROL_HZ))
         self._caster = VLP16Raycaster(self.config.lidar)
         needs_shield = self.config.shield or self.config.overspeed_penalty > 0.0
-        self._shield = SafetyShield(ShieldConfig(), self.config.scan.max_range) if needs_shield else None
+        self._shield = (
+            SafetyShield(ShieldConfig(), self.config.scan.max_range, self.config.autopilot_response)
+            if needs_shield
+            else None
+        )
         self._fixed_world = load_world(self.config.world_file) if self.config.world_file else None
         self._scan_mount = self.config.scan.rotation()
         self._mount_xyz = np.asarray(self.config.scan.mount_xyz, dtype=np.float64)
@@ -241,8 +245,11 @@ class LidarAvoidEnv(gym.Env):
         if cfg.overspeed_penalty > 0.0:
             overspeed = max(0.0, a0 - self._shield.forward_cap(seen) / cfg.max_speed)
         if self._shielded:
+            # as in flight: the shield also watches the velocity the autopilot measures
+            velocity = self.measured_body_velocity()
             safe = self._shield.filter(
-                command_from_action((a0, a1), cfg.max_speed, cfg.max_yaw_rate), seen, 1.0 / CONTROL_HZ
+                command_from_action((a0, a1), cfg.max_speed, cfg.max_yaw_rate), seen, 1.0 / CONTROL_HZ,
+                velocity=(float(velocity[0]), float(velocity[1])),
             )
             a0, a1 = safe.forward / cfg.max_speed, safe.yaw_rate / cfg.max_yaw_rate
         a = np.array([a0, a1], dtype=np.float32)

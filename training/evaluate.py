@@ -75,14 +75,22 @@ class ShieldedController:
     :param shield: the companion's shield (its limits are the flight configuration's)
     :param max_speed: m/s that an action of 1 stands for (the env's action scaling)
     :param max_yaw_rate: rad/s that an action of 1 stands for
+    :param velocity: the measured body velocity (forward, left) now, as the companion reads it from
+        the autopilot (the env's :meth:`~flightsim.env.LidarAvoidEnv.measured_body_velocity`)
     """
 
     def __init__(
-        self, inner: Controller, shield: SafetyShield, max_speed: float, max_yaw_rate: float
+        self,
+        inner: Controller,
+        shield: SafetyShield,
+        max_speed: float,
+        max_yaw_rate: float,
+        velocity: Callable[[], np.ndarray] | None = None,
     ) -> None:
         self._inner = inner
         self.shield = shield
         self._scale = (max_speed, max_yaw_rate)
+        self._velocity = velocity
 
     def reset(self, scan: np.ndarray) -> np.ndarray:
         self.shield.reset()
@@ -93,7 +101,13 @@ class ShieldedController:
 
     def _filter(self, action: np.ndarray, scan: np.ndarray) -> np.ndarray:
         max_speed, max_yaw_rate = self._scale
-        safe = self.shield.filter(command_from_action(action, max_speed, max_yaw_rate), scan, STEP_SECONDS)
+        measured = None
+        if self._velocity is not None:
+            v = self._velocity()
+            measured = (float(v[0]), float(v[1]))
+        safe = self.shield.filter(
+            command_from_action(action, max_speed, max_yaw_rate), scan, STEP_SECONDS, measured
+        )
         return np.array([safe.forward / max_speed, safe.yaw_rate / max_yaw_rate], dtype=np.float32)
 
 
@@ -230,13 +244,22 @@ def _xy(info: dict[str, Any]) -> tuple[float, float]:
 _WORKER_CACHE: dict[Any, Any] = {}
 
 
-def build_controller(spec: ControllerSpec, env_config: Any, seed: int, n_stack: int = 4) -> Controller:
-    """Build the controller ``spec`` describes, behind the shield if it says so."""
+def build_controller(
+    spec: ControllerSpec,
+    env_config: Any,
+    seed: int,
+    n_stack: int = 4,
+    velocity: Callable[[], np.ndarray] | None = None,
+) -> Controller:
+    """Build the controller ``spec`` describes, behind the shield if it says so (the shield braking
+    and capping yaw as the env's autopilot response does, watching ``velocity`` as in flight)."""
     controller = _bare_controller(spec, env_config, seed, n_stack)
     if not spec.shield:
         return controller
-    shield = SafetyShield(ShieldConfig(), max_range=float(env_config.scan.max_range))
-    return ShieldedController(controller, shield, float(env_config.max_speed), float(env_config.max_yaw_rate))
+    shield = SafetyShield(ShieldConfig(), float(env_config.scan.max_range), env_config.autopilot_response)
+    return ShieldedController(
+        controller, shield, float(env_config.max_speed), float(env_config.max_yaw_rate), velocity
+    )
 
 
 def _bare_controller(spec: ControllerSpec, env_config: Any, seed: int, n_stack: int) -> Controller:
@@ -314,7 +337,9 @@ def make_eval_env(env_dict: dict[str, Any]) -> Any:
 def run_task(task: EpisodeTask) -> EpisodeResult:
     """Run one :class:`EpisodeTask` (in a worker process or in-line)."""
     env = _worker_env(task.env)
-    controller = build_controller(task.controller, env.unwrapped.config, task.seed)
+    controller = build_controller(
+        task.controller, env.unwrapped.config, task.seed, velocity=env.unwrapped.measured_body_velocity
+    )
     result = run_episode(env, controller, task.world.reset_options(), seed=task.seed)
     result.controller, result.world, result.episode = task.controller.label, task.world.name, task.episode
     return result

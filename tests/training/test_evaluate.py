@@ -147,6 +147,21 @@ def test_shield_ramps_forward_speed_at_its_acceleration_limit_in_action_units():
     assert controller.shield.interventions["accel_limit"] == 2
 
 
+def test_shield_watches_the_measured_velocity_it_is_given():
+    """Sliding right at 1.1 m/s into a return 57° right of the nose: the nose sector alone would let
+    full speed through; with the measured velocity the shield stops and brakes."""
+    scan = np.ones(360, np.float32)
+    scan[300:306] = 0.08  # 0.8 m, 55-60° right of the nose
+    sliding = ShieldedController(FullAhead(), SafetyShield(ShieldConfig(), 10.0, "ardupilot"), 2.0, 1.5,
+                                 velocity=lambda: np.array([0.9, -0.6]))
+    blind = shielded()
+    for _ in range(30):
+        blind_action, action = blind.act(scan), sliding.act(scan)
+    assert blind_action[0] == pytest.approx(1.0)
+    assert action[0] < 0.0  # braking against the motion
+    assert sliding.shield.interventions["motion_stop"] == 30
+
+
 def test_shielded_rows_are_labelled_as_such():
     assert ControllerSpec("gap_follower", shield=True).label == "gap_follower+shield"
     assert ControllerSpec("policy", "p.onnx", "policy").label == "policy"
