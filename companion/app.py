@@ -318,7 +318,7 @@ class Companion:
                 # the supervisor only commands while the measured velocity is fresh
                 command = self.shield.filter(requested, scan, dt, self._status.velocity_body)
                 self._last_filter = now
-                self.link.send_velocity(command.forward, command.yaw_rate)
+                self.link.send_velocity(command.forward, command.yaw_rate, command.lateral)
                 self.counters["setpoints_policy"] += 1
         else:
             # Leaving ACTIVE: the next engagement ramps up from standstill, with a fresh stack.

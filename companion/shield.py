@@ -14,8 +14,10 @@ and slide 25-35° off the heading in a turn (``../shared/fixtures/autopilot-resp
 the *measured* body velocity, the shield also watches the direction of travel: the clearance over
 the arc from the course to the nose limits the speed, and when the measured speed could not stop
 before that clearance (braking distance from the autopilot's own deceleration and lag,
-:data:`AUTOPILOT_LIMITS`) it commands a stop, braking actively against the motion when the rear
-is clear. The yaw rate is never asked above what the autopilot will fly.
+:data:`AUTOPILOT_LIMITS`) it commands a stop: a setpoint against the measured motion, forward and
+sideways, at most ``max_reverse_speed`` and only as far as the clearance behind the motion allows
+(on the PX4 response this halves the stopping distance of a slide: 0.9 m instead of 1.6 m).
+The yaw rate is never asked above what the autopilot will fly.
 """
 
 from __future__ import annotations
@@ -35,10 +37,14 @@ class Command:
 
     :param forward: body x velocity, m/s (negative = backwards)
     :param yaw_rate: rad/s, FLU: counter-clockwise (to the left) positive
+    :param lateral: body y velocity, m/s, left positive. The policy never asks for one; only the
+        shield's active brake sets it, against a measured sideways slide the autopilot would
+        otherwise let creep on (PX4 SIH: 0.3-0.45 m/s for seconds after a zero setpoint)
     """
 
     forward: float
     yaw_rate: float
+    lateral: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -289,42 +295,46 @@ class SafetyShield:
             count["yaw_accel_limit"] += 1
         # The clearance caps bound the slewed value too: a slew never holds speed towards an obstacle.
         forward = min(max(slewed, -reverse_cap), forward_cap)
+        lateral = 0.0
         if brake is not None:
             # The measured motion cannot stop before what lies along it: stop, braking against the
-            # motion as far as the sector the brake drives towards allows (never slew-limited).
+            # motion (never slew-limited), forward no further than the forward and rear caps allow.
             lowest = -min(reverse_cap, cfg.max_reverse_speed)
-            forward = min(max(brake, lowest), max(min(forward_cap, cfg.max_speed), 0.0))
-        out = Command(forward=forward, yaw_rate=slewed_yaw)
+            forward = min(max(brake[0], lowest), max(min(forward_cap, cfg.max_speed), 0.0))
+            lateral = brake[1]
+        out = Command(forward=forward, yaw_rate=slewed_yaw, lateral=lateral)
         self._previous = out
         return out
 
     def _travel_limit(
         self, values: np.ndarray, velocity: tuple[float, float] | None, forward: float
-    ) -> tuple[float, float | None]:
-        """What the measured motion allows: the forward speed cap from the clearance along the
-        travel (over the arc from the course round to where the command points), and None while
-        the motion can stop before that clearance, else the forward setpoint that brakes against
-        the motion (m/s, before the clearance caps).
+    ) -> tuple[float, tuple[float, float] | None]:
+        """What the measured motion allows: the speed cap from the clearance along the travel (over
+        the arc from the course round to where the command points), and None while the motion can
+        stop before that clearance, else the brake: the (forward, left) setpoint against the motion.
         """
         if velocity is None:
             return math.inf, None
         v_forward, v_left = float(velocity[0]), float(velocity[1])
         if not (math.isfinite(v_forward) and math.isfinite(v_left)):
             self.interventions["velocity_nan"] += 1
-            return 0.0, 0.0
+            return 0.0, (0.0, 0.0)
         speed = math.hypot(v_forward, v_left)
         if speed < MIN_TRAVEL_SPEED:
             return math.inf, None
         course = math.degrees(math.atan2(v_left, v_forward))
         heading = 0.0 if forward >= 0.0 else 180.0
-        clearance = float(values[arc_bins(course, heading, self.config.travel_sector_deg)].min())
-        clearance *= self.max_range
+        width = self.config.travel_sector_deg
+        clearance = float(values[arc_bins(course, heading, width)].min()) * self.max_range
         cap = self._clearance_cap(abs(forward), clearance, "estop_travel")
         margin = clearance - self.config.estop_distance
         if stopping_distance(speed, self.max_decel, self.reaction_time) < margin:
             return cap, None
         self.interventions["motion_stop"] += 1
-        return cap, -v_forward
+        # brake against the motion, no faster than max_reverse_speed nor than the room behind it allows
+        behind = float(values[sector_bins((course + 180.0) % 360.0, width)].min()) * self.max_range
+        magnitude = min(speed, self.config.max_reverse_speed, self._allowed_speed(behind))
+        return cap, (-v_forward / speed * magnitude, -v_left / speed * magnitude)
 
     def _allowed_speed(self, clearance: float) -> float:
         """Largest speed towards a sector with ``clearance`` metres: 0 inside ``estop_distance``,

@@ -77,6 +77,8 @@ class ShieldedController:
     :param max_yaw_rate: rad/s that an action of 1 stands for
     :param velocity: the measured body velocity (forward, left) now, as the companion reads it from
         the autopilot (the env's :meth:`~flightsim.env.LidarAvoidEnv.measured_body_velocity`)
+    :param lateral: where the shield's sideways brake goes (the env's
+        :meth:`~flightsim.env.LidarAvoidEnv.command_lateral`), since an action carries none
     """
 
     def __init__(
@@ -86,11 +88,13 @@ class ShieldedController:
         max_speed: float,
         max_yaw_rate: float,
         velocity: Callable[[], np.ndarray] | None = None,
+        lateral: Callable[[float], None] | None = None,
     ) -> None:
         self._inner = inner
         self.shield = shield
         self._scale = (max_speed, max_yaw_rate)
         self._velocity = velocity
+        self._lateral = lateral
 
     def reset(self, scan: np.ndarray) -> np.ndarray:
         self.shield.reset()
@@ -108,6 +112,8 @@ class ShieldedController:
         safe = self.shield.filter(
             command_from_action(action, max_speed, max_yaw_rate), scan, STEP_SECONDS, measured
         )
+        if self._lateral is not None:
+            self._lateral(safe.lateral)
         return np.array([safe.forward / max_speed, safe.yaw_rate / max_yaw_rate], dtype=np.float32)
 
 
@@ -250,6 +256,7 @@ def build_controller(
     seed: int,
     n_stack: int = 4,
     velocity: Callable[[], np.ndarray] | None = None,
+    lateral: Callable[[float], None] | None = None,
 ) -> Controller:
     """Build the controller ``spec`` describes, behind the shield if it says so (the shield braking
     and capping yaw as the env's autopilot response does, watching ``velocity`` as in flight)."""
@@ -258,7 +265,7 @@ def build_controller(
         return controller
     shield = SafetyShield(ShieldConfig(), float(env_config.scan.max_range), env_config.autopilot_response)
     return ShieldedController(
-        controller, shield, float(env_config.max_speed), float(env_config.max_yaw_rate), velocity
+        controller, shield, float(env_config.max_speed), float(env_config.max_yaw_rate), velocity, lateral
     )
 
 
@@ -337,9 +344,11 @@ def make_eval_env(env_dict: dict[str, Any]) -> Any:
 def run_task(task: EpisodeTask) -> EpisodeResult:
     """Run one :class:`EpisodeTask` (in a worker process or in-line)."""
     env = _worker_env(task.env)
+    unwrapped = env.unwrapped
     controller = build_controller(
-        task.controller, env.unwrapped.config, task.seed, velocity=env.unwrapped.measured_body_velocity
-    )
+        task.controller, unwrapped.config, task.seed,
+        velocity=unwrapped.measured_body_velocity, lateral=unwrapped.command_lateral,
+    )  # fmt: skip
     result = run_episode(env, controller, task.world.reset_options(), seed=task.seed)
     result.controller, result.world, result.episode = task.controller.label, task.world.name, task.episode
     return result

@@ -119,6 +119,9 @@ def test_velocity_setpoint_on_the_wire(linked):
     assert msg.vy == 0.0 and msg.vz == 0.0
     assert msg.yaw_rate == pytest.approx(-0.4)  # FRD: clockwise positive
     assert link.counters["setpoints_sent"] == 1
+    link.send_velocity(-0.3, 0.0, lateral=0.2)  # the shield's brake: back and to the left
+    msg = peer.wait_for("SET_POSITION_TARGET_LOCAL_NED")
+    assert msg.vx == pytest.approx(-0.3) and msg.vy == pytest.approx(-0.2)  # FRD: right positive
 
 
 def test_non_finite_setpoint_goes_out_as_zero(linked):

@@ -94,6 +94,10 @@ def test_velocity_setpoint_on_the_wire(px4):
     assert (msg.target_system, msg.target_component) == (1, 1)
     assert msg.vx == pytest.approx(1.5) and msg.vy == 0.0 and msg.vz == 0.0
     assert msg.yaw_rate == pytest.approx(-0.4, abs=1e-5)  # FRD, clockwise positive
+    t1 = time.monotonic()
+    link.send_velocity(-0.3, 0.0, lateral=0.2)  # the shield's brake: back and to the left
+    msg = vehicle.wait_for("SET_POSITION_TARGET_LOCAL_NED", since=t1, condition=lambda m: m.vx < 0)
+    assert msg.vx == pytest.approx(-0.3) and msg.vy == pytest.approx(-0.2)  # FRD: right positive
 
 
 def test_setpoint_repetition_stops_when_the_companion_stops(px4):

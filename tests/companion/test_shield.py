@@ -270,17 +270,20 @@ def test_motion_sliding_into_an_obstacle_off_the_nose_stops() -> None:
     assert settled(shield, Command(1.0, 0.5), wall) == Command(1.0, 0.5)  # the nose alone: let through
     sliding = (0.9, -0.6)  # 1.08 m/s on a course 34° right of the nose
     out = shield.filter(Command(1.0, 0.5), wall, 0.1, velocity=sliding)
-    assert out.forward < 0.0  # stopped, and braking against the motion (the rear is clear)
+    # stopped: a setpoint against the motion, forward and sideways, at max_reverse_speed
+    assert (out.forward, out.lateral) == pytest.approx((-0.5 * 0.9 / 1.0817, 0.5 * 0.6 / 1.0817), abs=1e-3)
     assert out.yaw_rate == 0.5  # turning stays allowed
     assert shield.interventions["motion_stop"] == 1
+    assert settled(shield, Command(1.0, 0.5), wall).lateral == 0.0  # the policy itself never slides
 
 
-def test_braking_reverse_only_as_far_as_the_rear_allows() -> None:
-    wall = scan_with({**{b: 0.8 for b in bins_around(-57.0)}, 180: 0.45})  # rear inside its margin
+def test_braking_only_as_far_as_the_room_behind_the_motion_allows() -> None:
+    behind_the_slide = [b for b in bins_around(146.0, 30.0)]  # opposite the −34° course
+    wall = scan_with({**{b: 0.8 for b in bins_around(-57.0)}, **{b: 0.25 for b in behind_the_slide}})
     shield = SafetyShield(ShieldConfig(), MAX_RANGE, "ardupilot")
-    out = settled(shield, Command(1.0, 0.0), wall)
+    settled(shield, Command(1.0, 0.0), wall)
     out = shield.filter(Command(1.0, 0.0), wall, 0.1, velocity=(0.9, -0.6))
-    assert out.forward == 0.0
+    assert (out.forward, out.lateral) == (0.0, 0.0)  # a plain stop
 
 
 def test_motion_that_can_stop_in_time_is_left_alone() -> None:
@@ -365,7 +368,8 @@ def test_with_measured_motion_output_stays_finite_and_never_drives_towards_a_clo
     rear = float(scan[sector_bins(180.0, cfg.rear_sector_deg)].min()) * MAX_RANGE
     for forward, yaw, velocity in requests:
         out = shield.filter(Command(forward, yaw), scan, 0.1, velocity=velocity)
-        assert math.isfinite(out.forward) and math.isfinite(out.yaw_rate)
+        assert math.isfinite(out.forward) and math.isfinite(out.yaw_rate) and math.isfinite(out.lateral)
+        assert abs(out.lateral) <= cfg.max_reverse_speed + 1e-9  # only ever a brake
         assert -cfg.max_reverse_speed <= out.forward <= cfg.max_speed
         assert abs(out.yaw_rate) <= shield.max_yaw_rate
         if front < cfg.estop_distance:
