@@ -104,6 +104,16 @@ class ShieldConfig:
     :param rear_sector_deg: half-width of the rear sector, degrees
     :param travel_sector_deg: half-width of the sector around each direction between the measured
         course and the nose, degrees
+    :param keepout_distance: a return closer than this, in any direction, pushes the vehicle away
+        from it and removes what the command asks towards it, m (0: no keep-out at all). The push
+        is what stops the drift a velocity estimate cannot show: PX4's velocity loop closes on an
+        estimate that wanders 0.2-0.4 m/s off the truth, so with a zero setpoint the true vehicle
+        drifts that fast
+    :param keepout_gain: push speed per metre inside ``keepout_distance``, 1/s; the push adds twice
+        the speed at which that return came closer since the previous scan (the scan sees the true
+        motion, which the estimate may not)
+    :param keepout_max_speed: the push's limit, m/s: above PX4's worst estimate bias (2σ 0.5 m/s),
+        which the autopilot's own velocity loop would otherwise hold against the push
     """
 
     max_speed: float = field(default=2.0, metadata={"min": 0.0, "max": 20.0})
@@ -118,6 +128,9 @@ class ShieldConfig:
     forward_sector_deg: float = field(default=30.0, metadata={"min": 1.0, "max": 90.0})
     rear_sector_deg: float = field(default=30.0, metadata={"min": 1.0, "max": 90.0})
     travel_sector_deg: float = field(default=30.0, metadata={"min": 1.0, "max": 90.0})
+    keepout_distance: float = field(default=0.6, metadata={"min": 0.0, "max": 10.0})
+    keepout_gain: float = field(default=2.0, metadata={"min": 0.0, "max": 20.0})
+    keepout_max_speed: float = field(default=1.0, metadata={"min": 0.0, "max": 5.0})
 
 
 def sector_bins(centre_deg: float, half_width_deg: float) -> np.ndarray:
@@ -225,10 +238,12 @@ class SafetyShield:
         self._forward_bins = sector_bins(0.0, config.forward_sector_deg)
         self._rear_bins = sector_bins(180.0, config.rear_sector_deg)
         self._previous = Command(0.0, 0.0)
+        self._previous_nearest: float | None = None  # nearest return of the previous scan, m
 
     def reset(self) -> None:
         """Forget the previous command, so the next one ramps up from standstill (e.g. after HOLD)."""
         self._previous = Command(0.0, 0.0)
+        self._previous_nearest = None
 
     def forward_cap(self, scan: np.ndarray) -> float:
         """The fastest forward speed the shield lets through against ``scan`` (0 inside
@@ -302,6 +317,8 @@ class SafetyShield:
             lowest = -min(reverse_cap, cfg.max_reverse_speed)
             forward = min(max(brake[0], lowest), max(min(forward_cap, cfg.max_speed), 0.0))
             lateral = brake[1]
+        forward, lateral = self._keep_out(values, forward, lateral, step)
+        forward = min(max(forward, -reverse_cap), max(forward_cap, 0.0))  # the sector caps hold for all
         out = Command(forward=forward, yaw_rate=slewed_yaw, lateral=lateral)
         self._previous = out
         return out
@@ -335,6 +352,45 @@ class SafetyShield:
         behind = float(values[sector_bins((course + 180.0) % 360.0, width)].min()) * self.max_range
         magnitude = min(speed, self.config.max_reverse_speed, self._allowed_speed(behind))
         return cap, (-v_forward / speed * magnitude, -v_left / speed * magnitude)
+
+    def _keep_out(
+        self, values: np.ndarray, forward: float, lateral: float, dt: float
+    ) -> tuple[float, float]:
+        """Near the nearest return: drop what the setpoint asks towards it and push away from it,
+        no faster than the room on the far side allows.
+
+        It acts inside ``keepout_distance``, and farther out too when the scan shows the vehicle
+        closing on that return faster than it could stop: the nearest distance of two scans is the
+        true closing speed, whatever the velocity estimate says, and turning does not change it.
+        """
+        cfg = self.config
+        if cfg.keepout_distance <= 0.0:
+            return forward, lateral
+        previous, self._previous_nearest = self._previous_nearest, float(values.min()) * self.max_range
+        nearest = int(np.argmin(values))
+        distance = self._previous_nearest
+        closing = 0.0
+        if previous is not None and dt > 0.0:
+            closing = max(0.0, (previous - distance) / dt)
+        stopping = stopping_distance(closing, self.max_decel, self.reaction_time)
+        too_fast = stopping >= distance - cfg.estop_distance
+        if distance >= cfg.keepout_distance and not (closing > 0.0 and too_fast):
+            return forward, lateral
+        self.interventions["keepout"] += 1
+        towards = math.radians(nearest + 0.5)
+        ux, uy = math.cos(towards), math.sin(towards)
+        along = forward * ux + lateral * uy
+        if along > 0.0:
+            forward, lateral = forward - along * ux, lateral - along * uy
+        away = float(values[sector_bins((nearest + 180.5) % 360.0, cfg.travel_sector_deg)].min())
+        push = min(
+            cfg.keepout_max_speed,
+            cfg.keepout_gain * max(cfg.keepout_distance - distance, 0.0) + 2.0 * closing,
+            self._allowed_speed(away * self.max_range),
+        )
+        forward, lateral = forward - push * ux, lateral - push * uy
+        limit = max(cfg.max_reverse_speed, cfg.keepout_max_speed)
+        return min(max(forward, -limit), cfg.max_speed), min(max(lateral, -limit), limit)
 
     def _allowed_speed(self, clearance: float) -> float:
         """Largest speed towards a sector with ``clearance`` metres: 0 inside ``estop_distance``,

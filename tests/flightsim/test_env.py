@@ -254,7 +254,8 @@ def test_overspeed_penalty_charges_asking_for_more_than_the_shield_allows() -> N
 
     free, charged = rewards(0.0, 1.0), rewards(2.0, 1.0)
     assert all(c <= f for c, f in zip(charged, free, strict=True))
-    assert free[-1] - charged[-1] == pytest.approx(2.0, abs=0.1)  # stopped at the wall, asking 2 m/s
+    # held off the wall by the shield's keep-out push, asking 2 m/s where it lets under 0.5 m/s through
+    assert 1.5 < free[-1] - charged[-1] <= 2.0
     assert rewards(2.0, 0.0) == rewards(0.0, 0.0)  # asking for nothing costs nothing
 
 
