@@ -133,7 +133,7 @@ def test_shield_stops_forward_motion_at_a_wall_but_lets_the_vehicle_turn():
     scan[:5] = 0.02  # 0.2 m dead ahead: inside the 0.3 m emergency-stop distance
     controller = shielded()
     for action in [controller.reset(scan)] + [controller.act(scan) for _ in range(20)]:
-        assert action[0] == pytest.approx(-0.4)  # no forward motion: the keep-out backs it off at 0.8 m/s
+        assert action[0] == pytest.approx(-0.4, abs=1e-3)  # keep-out: backs off at 0.8 m/s
     assert action[1] == pytest.approx(1.0)  # turning in place stays allowed, up to the full rate
 
 
