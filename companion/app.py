@@ -38,7 +38,7 @@ from companion.config import CompanionConfig, load_config
 from companion.errors import UserError
 from companion.framestack import FrameStack
 from companion.notify import SystemdNotifier
-from companion.obstacle_distance import obstacle_distance_from_scan
+from companion.obstacle_distance import obstacle_distance_allowed, obstacle_distance_from_scan
 from companion.policy import InferenceFault, OnnxPolicy, PolicySpec
 from companion.scan import BIN_CONVENTION, N_BINS, scan_from_points
 from companion.shield import Command, SafetyShield, command_from_action
@@ -304,6 +304,9 @@ class Companion:
         """
         scan, self._unsent_scan = self._unsent_scan, None
         if scan is None or not self.config.autopilot.obstacle_distance:
+            return
+        if not obstacle_distance_allowed(self._status, self.config.supervisor.min_engage_altitude):
+            self.counters["obstacle_distance_on_ground"] += 1  # floor returns: never sent
             return
         sectors = obstacle_distance_from_scan(scan, self.config.scan.max_range, *self._od_limits)
         self.link.send_obstacle_distance(sectors)

@@ -291,6 +291,21 @@ def test_stale_velocity_holds_and_fresh_velocity_flies_again(rig):
     _wait(lambda: any(m.vx > 0 for m in vehicle.messages(SETPOINT, since=t_back)), what="recovery")
 
 
+def test_no_obstacle_distance_before_the_vehicle_is_airborne(rig):
+    """On the ground and during take-off the slice cuts the floor: no OBSTACLE_DISTANCE then."""
+    vehicle, lidar = rig.vehicle, rig.lidar
+    vehicle.landed, vehicle.altitude = mavlink.MAV_LANDED_STATE_ON_GROUND, 0.0
+    lidar.on = True
+    time.sleep(1.5)
+    assert vehicle.messages("OBSTACLE_DISTANCE") == []
+    vehicle.landed, vehicle.altitude = mavlink.MAV_LANDED_STATE_TAKEOFF, 1.2
+    time.sleep(0.8)
+    assert vehicle.messages("OBSTACLE_DISTANCE") == []
+    vehicle.landed, vehicle.altitude = mavlink.MAV_LANDED_STATE_IN_AIR, 1.5
+    t_air = time.monotonic()
+    assert _wait(lambda: vehicle.messages("OBSTACLE_DISTANCE", since=t_air), what="OBSTACLE_DISTANCE")
+
+
 def test_yaw_rate_capped_at_the_autopilots_limit_read_at_start_up(tmp_path):
     """ArduPilot flies at most ATC_RATE_WPY_MAX; the start-up check reads it, warns, and the shield
     never asks more (75 deg/s here: neither the firmware default 60 nor the policy's 86)."""
