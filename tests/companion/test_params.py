@@ -7,6 +7,7 @@ the AUTOPILOT_VERSION request, so every byte the companion exchanges is real MAV
 
 from __future__ import annotations
 
+import math
 import os
 import struct
 import threading
@@ -32,6 +33,7 @@ from companion.params import (
     run_params,
     values_match,
     wait_for_autopilot,
+    yaw_rate_limit,
 )
 from flightsim.sim_autopilot.params import ParameterTable, default_table
 
@@ -136,6 +138,20 @@ def test_every_file_parameter_exists_in_the_simulated_firmware():
         for p in load_param_file(REPO / "firmware_params" / name, personality):
             assert table.get(p.name) is not None, p.name
             assert p.param_type in (None, table.param_type(p.name)), p.name
+
+
+def test_yaw_rate_limit_read_from_a_check_report():
+    from companion.params import CheckReport, ParamResult
+
+    def report(name, actual):
+        wanted = WantedParam(name, 86.0, None, 1, "f")
+        return CheckReport([ParamResult(wanted, Status.DIFFERS, actual, REAL32)], False, "test")
+
+    assert yaw_rate_limit(report("ATC_RATE_WPY_MAX", 60.0), "ardupilot") == pytest.approx(math.radians(60.0))
+    assert yaw_rate_limit(report("ATC_RATE_WPY_MAX", 0.0), "ardupilot") is None  # 0: no cap of its own
+    assert yaw_rate_limit(report("ATC_RATE_WPY_MAX", None), "ardupilot") is None  # no reply
+    assert yaw_rate_limit(report("MC_YAWRATE_MAX", 200.0), "px4") == pytest.approx(math.radians(200.0))
+    assert yaw_rate_limit(report("GUID_TIMEOUT", 1.0), "ardupilot") is None  # not in the file
 
 
 def test_default_file_is_the_checkout_copy():

@@ -150,3 +150,44 @@ def test_external_pose_prefers_ground_truth_over_the_estimate():
     assert state.position[:2] == pytest.approx([x0, y0 + 1.0], abs=0.02)
     assert state.yaw == pytest.approx(0.0, abs=1e-9)
     assert pose.truth_source == "SIMSTATE"
+
+
+@pytest.mark.parametrize("personality", ["ardupilot", "px4"])
+def test_simulated_ground_truth_round_trips_through_the_external_mirror(personality):
+    """What ``avoid-sim autopilot`` streams as truth (SIMSTATE / HIL_STATE_QUATERNION), read back by
+    the external-SITL mirror, is where the simulated vehicle really is (start yaw rotated away)."""
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+    from flightsim.external_sitl import ExternalPose
+    from flightsim.sim_autopilot.server import ground_truth_message, make_autopilot
+
+    def state(x, y, z, yaw):
+        return VehicleState(time=0.0, position=np.array([x, y, z]), velocity=np.array([0.3, -0.2, 0.0]),
+                            roll=0.0, pitch=0.0, yaw=yaw, angular_rate=np.zeros(3), on_ground=z < 0.1,
+                            armed=True)
+
+    autopilot = make_autopilot(personality, boot_time=0.0)
+    start = state(0.0, 0.0, 0.0, math.radians(90.0))  # the SITL boots facing North
+    autopilot.observe(start)
+    world = load_world("flightsim/worlds/two-pillars.json")  # start yaw 0: East
+    pose = ExternalPose(world)
+    pose.update(mavlink.MAVLink_local_position_ned_message(0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
+    pose.update(mavlink.MAVLink_attitude_message(0, 0.0, 0.0, 0.0, 0, 0, 0))
+    truth = ground_truth_message(personality, autopilot, start, 1.0)
+    assert truth.get_type() == ("SIMSTATE" if personality == "ardupilot" else "HIL_STATE_QUATERNION")
+    assert pose.update(wire(truth)) == "truth"
+    pose.anchor()
+    moved = state(0.0, 2.0, 1.5, math.radians(120.0))  # 2 m North of the start, turned 30° left
+    pose.update(mavlink.MAVLink_local_position_ned_message(0, 2.0, 0.0, -1.5, 0.0, 0.0, 0.0))
+    pose.update(wire(ground_truth_message(personality, autopilot, moved, 2.0)))
+    mirrored = pose.state()
+    x0, y0, _ = world.start_position
+    assert mirrored.position[:2] == pytest.approx([x0 + 2.0, y0], abs=0.02)  # North became East
+    assert mirrored.yaw == pytest.approx(math.radians(30.0), abs=1e-3)
+
+
+def wire(msg):
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+    mav = mavlink.MAVLink(None, 1, 1)
+    return mav.decode(bytearray(msg.pack(mav)))
