@@ -8,7 +8,7 @@ the yaw rate at 60 deg/s; both slide 24-35 deg sideways in that turn. This modul
 with each firmware's controller structure, so the simulated vehicle is as hard to fly as the real
 one (never easier), and training can see it.
 
-Spec (the whole API; pure numpy/math, no I/O, no JSBSim):
+Spec (the whole API; pure logic: numpy, and a numba-compiled core as in control.py; no I/O, no JSBSim):
 
 * :class:`ResponseParams`: one firmware personality's limits and gains. Presets :data:`PX4` and
   :data:`ARDUPILOT` (calibrated against the recordings), :func:`random_params` (drawn per episode
@@ -17,7 +17,8 @@ Spec (the whole API; pure numpy/math, no I/O, no JSBSim):
 * :class:`AutopilotResponse`: the stateful model. ``reset(yaw, velocity_xy)`` at the start of a
   flight (or when velocity control begins); ``command(forward, lateral, yaw_rate, yaw)`` each time
   a setpoint message arrives (body FLU m/s and rad/s CCW; rotated into the world by the heading at
-  that moment, as MAV_FRAME_BODY_NED/BODY_OFFSET_NED do); and every physics chunk
+  that moment, as MAV_FRAME_BODY_NED/BODY_OFFSET_NED do; ``command_world(vx, vy, yaw_rate)`` if
+  it is already rotated); and every physics chunk
   (:data:`CHUNK_S`, 3/120 s) ``setpoint(state, dt, altitude=..)`` returns the
   :class:`flightsim.control.Setpoint` the vehicle's cascaded controller should fly now: the
   firmware's shaped world-frame velocity reference with its acceleration as feedforward, and a
@@ -55,6 +56,7 @@ from dataclasses import dataclass, fields, replace
 from typing import Any
 
 import numpy as np
+from numba import njit
 
 from flightsim.control import Setpoint, wrap_angle
 
@@ -114,6 +116,9 @@ class ResponseParams:
         return replace(self, est_vel_sigma=0.0)
 
 
+# Fitted to the recordings (tests/fixtures/autopilot-response, bench/bench_response.py): the delays,
+# lags and drag. The rest are the defaults the SITLs reported (px4-sih-params.txt,
+# ardupilot-sitl-params.txt in the shared fixture set), except where a comment says otherwise.
 PX4 = ResponseParams(
     name="px4",
     command_delay_s=0.05,
@@ -122,11 +127,14 @@ PX4 = ResponseParams(
     vel_p=1.8,  # MPC_XY_VEL_P_ACC
     vel_i=0.4,  # MPC_XY_VEL_I_ACC
     vel_d=0.2,  # MPC_XY_VEL_D_ACC
-    accel_max=5.0,  # MPC_ACC_HOR_MAX
+    accel_max=5.0,  # MPC_ACC_HOR_MAX (MPC_ACC_HOR 3 and MPC_JERK_AUTO 4 shape auto modes, not offboard)
     tilt_lag_s=0.20,
-    drag_per_s=0.9,
+    drag_per_s=1.5,
     yaw_rate_gain=0.91,  # the recordings hold 94 %; the JSBSim vehicle adds 3 %
-    yaw_rate_max=math.radians(200.0),  # MC_YAWRATE_MAX; MPC_YAWRAUTO_MAX is not applied in offboard
+    # MC_YAWRATE_MAX. The auto-mode limits do not act on an offboard yaw rate: the recording holds
+    # 1.40 rad/s (MPC_YAWRAUTO_MAX is 60 deg/s = 1.05) and is at 90 % of it in 1.1 s (MPC_YAWRAUTO_ACC
+    # 20 deg/s^2 would take 4 s); MC_YAW_P acts on a heading error, and offboard rate-only control has none.
+    yaw_rate_max=math.radians(200.0),
     yaw_accel_max=10.0,
     yaw_input_tc=0.0,
     yaw_angle_p=0.0,  # offboard yaw rate only: the yaw setpoint follows the heading
@@ -213,6 +221,7 @@ def random_params(rng: np.random.Generator, margin: float = 0.25) -> ResponsePar
     return ResponseParams(**values)
 
 
+@njit(cache=True)
 def _sqrt_controller(error: float, p: float, second_order_limit: float, dt: float) -> float:
     """ArduPilot's ``sqrt_controller``: linear near zero, square root beyond, never overshooting in dt."""
     if second_order_limit <= 0.0:
@@ -231,6 +240,82 @@ def _sqrt_controller(error: float, p: float, second_order_limit: float, dt: floa
     return correction
 
 
+# Layout of the parameter vector _advance reads and of the model's state vector.
+_P_NAMES = ("shape_accel_max", "shape_jerk_max", "vel_p", "vel_i", "vel_d", "accel_max", "tilt_lag_s",
+            "drag_per_s", "yaw_rate_gain", "yaw_rate_max", "yaw_accel_max", "yaw_input_tc", "yaw_angle_p",
+            "yaw_lag_s")  # fmt: skip
+_SHAPE_A, _SHAPE_J, _VP, _VI, _VD, _AMAX, _TILT, _DRAG, _YGAIN, _YMAX, _YACC, _YTC, _YANG, _YLAG = range(14)
+_S_SVX, _S_SVY, _S_SAX, _S_SAY, _S_VX, _S_VY, _S_AX, _S_AY, _S_IX, _S_IY = range(10)
+_S_EX, _S_EY, _S_HAS_E, _S_BX, _S_BY, _S_RT, _S_YT, _S_R = range(10, 18)
+_N_STATE = 18
+
+
+@njit(cache=True)
+def _advance(
+    x: np.ndarray, p: np.ndarray, cmd_vx: float, cmd_vy: float, cmd_r: float, yaw: float, h: float, n: int
+) -> None:
+    """``n`` steps of ``h`` s of the model (state ``x`` in place) with one command in force.
+
+    Velocity: optional ArduPilot shaping (shape_vel_accel_xy), then the firmware's velocity PID on
+    a point mass with tilt lag and drag, closing on velocity + estimate error. Yaw: gain, cap,
+    input shaping, acceleration limit, heading target, attitude loop on the vehicle's ``yaw``, lag.
+    """
+    shaping = p[_SHAPE_A] > 0.0 and p[_SHAPE_J] > 0.0
+    tilt = 1.0 - math.exp(-h / p[_TILT]) if p[_TILT] > 0.0 else 1.0
+    ylag = 1.0 - math.exp(-h / p[_YLAG]) if p[_YLAG] > 0.0 else 1.0
+    for _ in range(n):
+        # --- velocity: the target the PID sees (shaped or raw) and its feedforward
+        tx, ty, fx, fy = cmd_vx, cmd_vy, 0.0, 0.0
+        if shaping:
+            kpa = p[_SHAPE_J] / p[_SHAPE_A]
+            ex, ey = cmd_vx - x[_S_SVX], cmd_vy - x[_S_SVY]
+            e = math.sqrt(ex * ex + ey * ey)
+            wx = wy = 0.0
+            if e > 0.0:
+                size = min(_sqrt_controller(e, kpa, p[_SHAPE_J], h), p[_SHAPE_A])
+                wx, wy = ex / e * size, ey / e * size
+            dx, dy = wx - x[_S_SAX], wy - x[_S_SAY]
+            step = math.sqrt(dx * dx + dy * dy)
+            jerk = p[_SHAPE_J] * h
+            if step > jerk:
+                dx, dy = dx * jerk / step, dy * jerk / step
+            x[_S_SAX] += dx
+            x[_S_SAY] += dy
+            x[_S_SVX] += x[_S_SAX] * h
+            x[_S_SVY] += x[_S_SAY] * h
+            tx, ty, fx, fy = x[_S_SVX], x[_S_SVY], x[_S_SAX], x[_S_SAY]
+        ex = tx - (x[_S_VX] + x[_S_BX])
+        ey = ty - (x[_S_VY] + x[_S_BY])
+        if x[_S_HAS_E] == 0.0:
+            x[_S_EX], x[_S_EY], x[_S_HAS_E] = ex, ey, 1.0
+        dx = fx + p[_VP] * ex + x[_S_IX] + p[_VD] * (ex - x[_S_EX]) / h
+        dy = fy + p[_VP] * ey + x[_S_IY] + p[_VD] * (ey - x[_S_EY]) / h
+        x[_S_EX], x[_S_EY] = ex, ey
+        norm = math.sqrt(dx * dx + dy * dy)
+        if norm > p[_AMAX]:
+            dx, dy = dx * p[_AMAX] / norm, dy * p[_AMAX] / norm
+        else:  # integrate only while unsaturated, as both firmwares do
+            x[_S_IX] += p[_VI] * ex * h
+            x[_S_IY] += p[_VI] * ey * h
+        x[_S_AX] += tilt * (dx - x[_S_AX])
+        x[_S_AY] += tilt * (dy - x[_S_AY])
+        x[_S_VX] += (x[_S_AX] - p[_DRAG] * x[_S_VX]) * h
+        x[_S_VY] += (x[_S_AY] - p[_DRAG] * x[_S_VY]) * h
+        # --- yaw
+        desired = max(-p[_YMAX], min(p[_YMAX], p[_YGAIN] * cmd_r))
+        target = x[_S_RT]
+        if p[_YTC] > 0.0:
+            desired = target + _sqrt_controller(desired - target, 1.0 / p[_YTC], 0.0, h) * h
+        step = p[_YACC] * h
+        x[_S_RT] = max(target - step, min(target + step, desired))
+        if p[_YANG] > 0.0:
+            x[_S_YT] = wrap_angle(x[_S_YT] + x[_S_RT] * h)
+        else:
+            x[_S_YT] = yaw  # rate-only control: the heading target follows the vehicle
+        demand = x[_S_RT] + p[_YANG] * wrap_angle(x[_S_YT] - yaw)
+        x[_S_R] += ylag * (demand - x[_S_R])
+
+
 class AutopilotResponse:
     """A firmware's response to body-frame velocity + yaw-rate setpoints (see the module docstring)."""
 
@@ -239,7 +324,9 @@ class AutopilotResponse:
         :param rng: drives the velocity-estimate error (None: no estimate error whatever params say)
         """
         self.params = params
-        self._rng = rng
+        self._p = np.array([getattr(params, name) for name in _P_NAMES], dtype=np.float64)
+        self._rng = rng if params.est_vel_sigma > 0.0 else None
+        self._x = np.zeros(_N_STATE)
         self.reset(0.0)
 
     def reset(self, yaw: float, velocity_xy: tuple[float, float] | np.ndarray = (0.0, 0.0)) -> None:
@@ -252,18 +339,11 @@ class AutopilotResponse:
         self._pending: deque[tuple[float, float, float, float]] = deque()  # (due, vx, vy, rate)
         self._time = 0.0
         self._cmd = (vx, vy, 0.0)  # the command the loops act on (world velocity, yaw rate)
-        self._shaped_v = [vx, vy]
-        self._shaped_a = [0.0, 0.0]
-        self._v = [vx, vy]  # the modelled airframe's velocity and achieved acceleration
-        self._a = [0.0, 0.0]
-        self._integral = [0.0, 0.0]
-        self._previous_error: list[float] | None = None
-        self._bias = [0.0, 0.0]
-        if self._rng is not None and self.params.est_vel_sigma > 0.0:
-            self._bias = [float(b) for b in self._rng.normal(0.0, self.params.est_vel_sigma, 2)]
-        self._rate_target = 0.0
-        self._yaw_target = yaw
-        self._rate = 0.0  # the yaw rate demand after the firmware's rate-loop lag
+        x = self._x
+        x[:] = 0.0
+        x[_S_SVX], x[_S_SVY], x[_S_VX], x[_S_VY], x[_S_YT] = vx, vy, vx, vy, yaw
+        if self._rng is not None:
+            x[_S_BX], x[_S_BY] = self._rng.normal(0.0, self.params.est_vel_sigma, 2)
 
     # ----------------------------------------------------------------- public API
     def command(self, forward: float, lateral: float, yaw_rate: float, yaw: float) -> None:
@@ -276,10 +356,17 @@ class AutopilotResponse:
         :param yaw: the vehicle's heading as the autopilot knows it, rad CCW from East
         """
         c, s = math.cos(yaw), math.sin(yaw)
-        self._pending.append(
-            (self._time + self.params.command_delay_s, forward * c - lateral * s, forward * s + lateral * c,
-             float(yaw_rate))
-        )  # fmt: skip
+        self.command_world(forward * c - lateral * s, forward * s + lateral * c, yaw_rate)
+
+    def command_world(self, vx: float, vy: float, yaw_rate: float) -> None:
+        """A setpoint already rotated into the world (ENU m/s, yaw rate rad/s CCW) arrives now.
+
+        :param vx: velocity East, m/s
+        :param vy: velocity North, m/s
+        :param yaw_rate: rad/s CCW
+        """
+        due = self._time + self.params.command_delay_s
+        self._pending.append((due, float(vx), float(vy), float(yaw_rate)))
 
     def setpoint(self, state: Any, dt: float = CHUNK_S, *, altitude: float | None = None,
                  vz: float | None = None) -> Setpoint:  # fmt: skip
@@ -292,16 +379,30 @@ class AutopilotResponse:
         """
         n = max(1, round(dt / _INNER_DT))
         h = dt / n
-        for _ in range(n):
-            self._time += h
-            while self._pending and self._pending[0][0] <= self._time + 1e-9:
-                self._cmd = self._pending.popleft()[1:]
-            self._step_velocity(h)
-            self._step_yaw(h, state.yaw)
+        x, yaw = self._x, float(state.yaw)
+        if self._rng is not None:  # Ornstein-Uhlenbeck estimate error, exact over the chunk
+            decay = math.exp(-dt / self.params.est_vel_tau_s)
+            kick = self.params.est_vel_sigma * math.sqrt(1.0 - decay * decay)
+            noise = self._rng.standard_normal(2)
+            x[_S_BX] = x[_S_BX] * decay + kick * noise[0]
+            x[_S_BY] = x[_S_BY] * decay + kick * noise[1]
+        done = 0
+        while done < n:
+            # inner step i (1-based) acts on the last command due by time + i h
+            todo = n - done
+            if self._pending:
+                until_due = math.ceil((self._pending[0][0] - self._time) / h - 1e-9)
+                if until_due <= 1:
+                    self._cmd = self._pending.popleft()[1:]
+                    continue
+                todo = min(todo, until_due - 1)
+            _advance(x, self._p, *self._cmd, yaw, h, todo)
+            self._time += todo * h
+            done += todo
+        drag = self.params.drag_per_s
         return Setpoint(
-            vx=self._v[0], vy=self._v[1], ax=self._a[0] - self.params.drag_per_s * self._v[0],
-            ay=self._a[1] - self.params.drag_per_s * self._v[1], yaw_rate=self._rate,
-            altitude=altitude, vz=vz,
+            vx=x[_S_VX], vy=x[_S_VY], ax=x[_S_AX] - drag * x[_S_VX], ay=x[_S_AY] - drag * x[_S_VY],
+            yaw_rate=x[_S_R], altitude=altitude, vz=vz,
         )  # fmt: skip
 
     def measured_body_velocity(self, state: Any) -> np.ndarray:
@@ -309,81 +410,20 @@ class AutopilotResponse:
 
         :param state: the vehicle now (``velocity`` world ENU and ``yaw`` are read)
         """
-        vx = float(state.velocity[0]) + self._bias[0]
-        vy = float(state.velocity[1]) + self._bias[1]
+        vx = float(state.velocity[0]) + self._x[_S_BX]
+        vy = float(state.velocity[1]) + self._x[_S_BY]
         c, s = math.cos(state.yaw), math.sin(state.yaw)
         return np.array([c * vx + s * vy, -s * vx + c * vy])
 
     @property
+    def estimate_error(self) -> np.ndarray:
+        """(2,) the velocity estimate's error now, world ENU m/s (reported = true + this)."""
+        return self._x[[_S_BX, _S_BY]].copy()
+
+    @property
     def reference_velocity(self) -> tuple[float, float]:
         """The modelled airframe's true velocity (world ENU, m/s): what the vehicle is steered to fly."""
-        return self._v[0], self._v[1]
-
-    # ----------------------------------------------------------------- the model
-    def _step_velocity(self, h: float) -> None:
-        p = self.params
-        target = self._cmd[:2]
-        if p.shape_accel_max > 0.0 and p.shape_jerk_max > 0.0:
-            target = self._shape(target, h)
-        rng = self._rng
-        if rng is not None and p.est_vel_sigma > 0.0:  # Ornstein-Uhlenbeck estimate error
-            k = h / p.est_vel_tau_s
-            noise = p.est_vel_sigma * math.sqrt(2.0 * k)
-            self._bias = [b - k * b + noise * float(rng.standard_normal()) for b in self._bias]
-        error = [target[i] - (self._v[i] + self._bias[i]) for i in range(2)]
-        previous = self._previous_error or error
-        self._previous_error = error
-        ff = self._shaped_a if p.shape_accel_max > 0.0 else [0.0, 0.0]
-        demand = [
-            ff[i] + p.vel_p * error[i] + self._integral[i] + p.vel_d * (error[i] - previous[i]) / h
-            for i in range(2)
-        ]
-        norm = math.hypot(*demand)
-        if norm > p.accel_max:
-            demand = [d * p.accel_max / norm for d in demand]
-        else:  # integrate only while unsaturated, as both firmwares do
-            self._integral = [self._integral[i] + p.vel_i * error[i] * h for i in range(2)]
-        lag = 1.0 - math.exp(-h / p.tilt_lag_s) if p.tilt_lag_s > 0.0 else 1.0
-        for i in range(2):
-            self._a[i] += lag * (demand[i] - self._a[i])
-            self._v[i] += (self._a[i] - p.drag_per_s * self._v[i]) * h
-
-    def _shape(self, target: tuple[float, float], h: float) -> list[float]:
-        """ArduPilot's shape_vel_accel_xy: a jerk-limited acceleration toward the commanded velocity."""
-        p = self.params
-        kpa = p.shape_jerk_max / p.shape_accel_max
-        ex = target[0] - self._shaped_v[0]
-        ey = target[1] - self._shaped_v[1]
-        e = math.hypot(ex, ey)
-        want = [0.0, 0.0]
-        if e > 0.0:
-            size = min(_sqrt_controller(e, kpa, p.shape_jerk_max, h), p.shape_accel_max)
-            want = [ex / e * size, ey / e * size]
-        dx, dy = want[0] - self._shaped_a[0], want[1] - self._shaped_a[1]
-        step = math.hypot(dx, dy)
-        if step > p.shape_jerk_max * h:
-            dx, dy = dx * p.shape_jerk_max * h / step, dy * p.shape_jerk_max * h / step
-        self._shaped_a = [self._shaped_a[0] + dx, self._shaped_a[1] + dy]
-        self._shaped_v = [self._shaped_v[i] + self._shaped_a[i] * h for i in range(2)]
-        return self._shaped_v
-
-    def _step_yaw(self, h: float, yaw: float) -> None:
-        """Shape the commanded rate into a heading target; the attitude loop closes on the vehicle's
-        heading ``yaw``; its demand, lagged, is the yaw rate the vehicle's own rate loop flies."""
-        p = self.params
-        desired = max(-p.yaw_rate_max, min(p.yaw_rate_max, p.yaw_rate_gain * self._cmd[2]))
-        target = self._rate_target
-        if p.yaw_input_tc > 0.0:
-            desired = target + _sqrt_controller(desired - target, 1.0 / p.yaw_input_tc, 0.0, h) * h
-        step = p.yaw_accel_max * h
-        self._rate_target = max(target - step, min(target + step, desired))
-        if p.yaw_angle_p > 0.0:
-            self._yaw_target = wrap_angle(self._yaw_target + self._rate_target * h)
-        else:
-            self._yaw_target = yaw  # rate-only control: the heading target follows the vehicle
-        demand = self._rate_target + p.yaw_angle_p * wrap_angle(self._yaw_target - yaw)
-        lag = 1.0 - math.exp(-h / p.yaw_lag_s) if p.yaw_lag_s > 0.0 else 1.0
-        self._rate += lag * (demand - self._rate)
+        return float(self._x[_S_VX]), float(self._x[_S_VY])
 
 
 def fly(

@@ -45,6 +45,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         default="sim-ardupilot",
         help="simulated autopilot personality (sim-ardupilot)",
     )
+    parser.add_argument(
+        "--ideal-response",
+        action="store_true",
+        help="fly setpoints as given, not with the firmware's calibrated (slower) response",
+    )
 
 
 def command(args: argparse.Namespace) -> int:
@@ -74,6 +79,7 @@ def command(args: argparse.Namespace) -> int:
             policy=policy,
             duration=args.duration,
             workdir=out / world.name,
+            ideal_response=args.ideal_response,
         )
         try:
             report = run_flight(options, plot=out / f"{world.name}.png", vehicle=vehicle)

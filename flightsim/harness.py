@@ -134,6 +134,8 @@ class FlightOptions:
     :param companion_overrides: section -> {field: value} applied to the generated companion config
     :param autopilot_params: parameter overrides for the simulated autopilot
     :param engage_timeout: seconds to wait for the companion to go ACTIVE
+    :param ideal_response: simulated autopilots only: fly setpoints as given instead of through the
+        firmware's calibrated response (:mod:`flightsim.autopilot_response`)
     """
 
     autopilot: str
@@ -146,6 +148,7 @@ class FlightOptions:
     companion_overrides: dict[str, Any] = field(default_factory=dict)
     autopilot_params: dict[str, float] = field(default_factory=dict)
     engage_timeout: float = 20.0
+    ideal_response: bool = False
 
 
 @dataclass
@@ -368,6 +371,7 @@ class SitlFlight:
             start_yaw=math.radians(self.world.start_yaw_deg),
             params=self.options.autopilot_params,
             vehicle=self.vehicle,
+            response=not self.options.ideal_response,
         )
         self.recorder.t0 = self.server.t0
         self.server.message_hooks.append(self._on_autopilot_message)
@@ -763,6 +767,11 @@ def configure_parser(parser: Any) -> None:
         choices=(0.2, 1.0),
         help="ray-cast azimuth step in degrees: 0.2 like the VLP-16, 1.0 to save CPU",
     )
+    parser.add_argument(
+        "--ideal-response",
+        action="store_true",
+        help="simulated autopilots: fly setpoints as given, not with the firmware's calibrated response",
+    )
     parser.add_argument("--json", help="write the flight report as JSON here")
     parser.add_argument("--plot", help="write a top-down PNG of the flight here")
     parser.add_argument("--workdir", help="where the companion's config and log go (default: a temp dir)")
@@ -784,6 +793,7 @@ def command(args: Any) -> int:
         connect=args.connect,
         lidar_step_deg=args.lidar_step,
         workdir=workdir,
+        ideal_response=args.ideal_response,
     )
     try:
         report = run_flight(options, plot=Path(args.plot) if args.plot else None)

@@ -149,3 +149,48 @@ def compare(sim: Trajectory, real: Trajectory, duration: float, step: float = 0.
         yaw_rate=float(np.sqrt(np.mean((a.yaw_rate - b.yaw_rate) ** 2))),
         slip_deg=float(np.degrees(np.sqrt(np.mean(slip**2)))) if moving.any() else math.nan,
     )
+
+
+@dataclass(frozen=True)
+class Hardness:
+    """How hard a response is to fly, the figures the recordings' analysis uses (truth).
+
+    :param t90_s: forward step 0 -> 1 m/s at t = 2 s: time to 90 %, s (inf: not within the 4 s hold)
+    :param steady_speed: mean forward speed over the last second of that 1 m/s hold, m/s
+    :param yaw_cap: mean yaw rate over the last second of the 1.5 rad/s yaw command (t = 10-13 s), rad/s
+    :param turn_speed: median ground speed in the 2 m/s, +-1 rad/s turn (t = 3-11 s), m/s
+    :param turn_slip_deg: median |sideslip| there where faster than SLIP_MIN_SPEED, degrees
+    """
+
+    t90_s: float
+    steady_speed: float
+    yaw_cap: float
+    turn_speed: float
+    turn_slip_deg: float
+
+
+def hardness(forward: Trajectory, yaw: Trajectory, turn: Trajectory) -> Hardness:
+    """The :class:`Hardness` figures of three trajectories flown on the ``forward``, ``yaw`` and
+    ``turn`` sequences (simulated or recorded).
+
+    :param forward: motion on the forward sequence
+    :param yaw: motion on the yaw sequence
+    :param turn: motion on the turn sequence
+    """
+    t = np.arange(1.8, 6.0, 0.01)
+    f = forward.at(t)
+    u = f.forward_speed
+    y0 = float(np.mean(u[t < 2.0]))
+    reached = np.nonzero((t >= 2.0) & ((u - y0) / (1.0 - y0) >= 0.9))[0]
+    t90 = float(t[reached[0]] - 2.0) if reached.size else math.inf
+    steady = float(np.mean(u[t >= 5.0]))
+    yaw_cap = float(np.mean(yaw.at(np.arange(12.0, 13.0, 0.01)).yaw_rate))
+    g = turn.at(np.arange(3.0, 11.0, 0.01))
+    moving = g.speed > SLIP_MIN_SPEED
+    return Hardness(
+        t90_s=t90,
+        steady_speed=steady,
+        yaw_cap=yaw_cap,
+        turn_speed=float(np.median(g.speed)),
+        turn_slip_deg=float(np.degrees(np.median(np.abs(g.slip[moving])))),
+    )

@@ -563,6 +563,12 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="fly every controller behind the companion's safety shield (default limits), as in flight",
     )
+    parser.add_argument(
+        "--autopilot-response",
+        metavar="NAME",
+        help="how the autopilot answers the setpoints (sets env.autopilot_response): ideal, the calibrated "
+        "px4 or ardupilot firmware response, or random per episode (default: the config's, else ideal)",
+    )
     parser.add_argument("--workers", type=int, default=0, help="worker processes (0 = one per core)")
     parser.add_argument("--per-world", action="store_true", help="print a row per world, not only the totals")
     parser.add_argument("--json", type=Path, help="write the full report here")
@@ -574,7 +580,10 @@ def command(args: argparse.Namespace) -> int:
 
     if args.episodes < 1:
         raise UserError("--episodes must be at least 1")
-    config = load_train_config(args.config, args.overrides)
+    overrides = list(args.overrides)
+    if args.autopilot_response:
+        overrides.append(f"env.autopilot_response={args.autopilot_response}")
+    config = load_train_config(args.config, overrides)
     worlds = worlds_from_args(args)
     env_config = config.env_config()
     workers = args.workers or (os.cpu_count() or 1)

@@ -62,6 +62,7 @@ STREAM_GROUPS = {
 class ArduCopterAutopilot(SimAutopilot):
     """A simulated ArduCopter (custom modes, GUIDED, GUID_TIMEOUT, simple proximity avoidance)."""
 
+    RESPONSE = "ardupilot"
     AUTOPILOT = mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
     DEFAULT_INTERVALS: ClassVar[dict[str, float]] = {
         "HEARTBEAT": 1.0,
@@ -74,8 +75,9 @@ class ArduCopterAutopilot(SimAutopilot):
     }
     CAPABILITIES = SimAutopilot.CAPABILITIES | mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT
 
-    def __init__(self, params: Any, *, system_id: int = 1, boot_time: float = 0.0) -> None:
-        super().__init__(params, system_id=system_id, boot_time=boot_time)
+    def __init__(self, params: Any, **kw: Any) -> None:
+        """:param params: the parameter table; ``kw``: see :class:`SimAutopilot`."""
+        super().__init__(params, **kw)
         self.mode = CopterMode.STABILIZE
         self.obstacles: np.ndarray | None = None  # (K, 3): unit direction (ENU x, y) and distance m
         self.obstacles_time = -math.inf

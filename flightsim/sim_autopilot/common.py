@@ -13,6 +13,7 @@ body FLU), MAVLink in NED (x North, y East, z Down; yaw clockwise from North, bo
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass, field
@@ -22,6 +23,7 @@ from typing import Any, ClassVar
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from flightsim.autopilot_response import CHUNK_S, PRESETS, AutopilotResponse
 from flightsim.control import Setpoint
 
 log = logging.getLogger(__name__)
@@ -242,9 +244,15 @@ class SimAutopilot:
     :param params: the parameter table (:class:`flightsim.sim_autopilot.params.ParameterTable`)
     :param system_id: this autopilot's MAVLink system id
     :param boot_time: clock time of "boot" (time_boot_ms counts from here)
+    :param response: fly velocity control through the firmware's calibrated response
+        (:mod:`flightsim.autopilot_response`, preset :attr:`RESPONSE`) and report its velocity
+        estimate; False flies setpoints as given with a perfect estimate (the ideal autopilot)
+    :param seed: seeds the velocity-estimate error (None: fresh entropy)
     """
 
     AUTOPILOT: int = mavlink.MAV_AUTOPILOT_GENERIC
+    #: the :data:`flightsim.autopilot_response.PRESETS` entry this firmware flies
+    RESPONSE: str = ""
     #: message name -> default stream interval (s) on every link
     DEFAULT_INTERVALS: ClassVar[dict[str, float]] = {}
     #: message names this autopilot can stream or send on request
@@ -270,8 +278,17 @@ class SimAutopilot:
         | mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
     )
 
-    def __init__(self, params: Any, *, system_id: int = 1, boot_time: float = 0.0) -> None:
+    def __init__(
+        self, params: Any, *, system_id: int = 1, boot_time: float = 0.0, response: bool = True,
+        seed: int | None = None,
+    ) -> None:  # fmt: skip
         self.params = params
+        self.response = (
+            AutopilotResponse(PRESETS[self.RESPONSE], np.random.default_rng(seed))
+            if response and self.RESPONSE
+            else None
+        )
+        self._response_input: tuple[float, ...] | None = None
         self.system_id = system_id
         self.component_id = mavlink.MAV_COMP_ID_AUTOPILOT1
         self.boot_time = boot_time
@@ -589,6 +606,9 @@ class SimAutopilot:
             and self.guidance not in (Guidance.VELOCITY, Guidance.POSITION)
         ):
             self.hold_yaw = self.snap.yaw
+        if self.response is not None and target.velocity is not None and self.guidance != Guidance.VELOCITY:
+            self.response.reset(self.snap.yaw, self.snap.velocity[:2])  # velocity control starts here
+            self._response_input = None
         self.target = target
         self.guidance = Guidance.VELOCITY if target.velocity is not None else Guidance.POSITION
         if target.position is None:
@@ -692,11 +712,43 @@ class SimAutopilot:
             return True, _setpoint(vx=vx, vy=vy, altitude=float(target.position[2]), **yaw_kw)
         assert target.velocity is not None
         vx, vy = self.limit_velocity(float(target.velocity[0]), float(target.velocity[1]))
+        vertical: dict[str, float]
         if self.target_altitude is not None:
-            return True, _setpoint(vx=vx, vy=vy, altitude=self.target_altitude, **yaw_kw)
-        if target.vz_used:
-            return True, _setpoint(vx=vx, vy=vy, vz=float(target.velocity[2]), **yaw_kw)
-        return True, _setpoint(vx=vx, vy=vy, altitude=float(self.hold_position[2]), **yaw_kw)
+            vertical = {"altitude": self.target_altitude}
+        elif target.vz_used:
+            vertical = {"vz": float(target.velocity[2])}
+        else:
+            vertical = {"altitude": float(self.hold_position[2])}
+        if self.response is not None:
+            return True, self._respond(vx, vy, target, yaw_kw, vertical)
+        return True, _setpoint(vx=vx, vy=vy, **vertical, **yaw_kw)
+
+    def _respond(
+        self, vx: float, vy: float, target: ExternalTarget, yaw_kw: dict[str, float],
+        vertical: dict[str, float],
+    ) -> Setpoint:  # fmt: skip
+        """Velocity control through the firmware's response; called once per physics chunk.
+
+        Each new target (a setpoint message, or a change the avoidance hook makes to it) reaches the
+        response once, as a message reaches the firmware's position controller.
+        """
+        assert self.response is not None
+        rate = target.yaw_rate if target.yaw_rate is not None else 0.0
+        received = (target.time, vx, vy, rate)
+        if received != self._response_input:
+            self._response_input = received
+            self.response.command_world(vx, vy, rate)
+        setpoint = self.response.setpoint(self.snap, CHUNK_S, **vertical)
+        if target.yaw_rate is None:  # an absolute or held heading: the ideal heading hold flies it
+            setpoint = dataclasses.replace(setpoint, yaw_rate=None, **yaw_kw)
+        return setpoint
+
+    def reported_velocity(self) -> np.ndarray:
+        """(3,) world ENU velocity as this autopilot's estimator reports it (truth + the estimate error)."""
+        v = self.snap.velocity.copy()
+        if self.response is not None:
+            v[:2] += self.response.estimate_error
+        return v
 
     def limit_velocity(self, vx: float, vy: float) -> tuple[float, float]:
         """Hook for the firmware's own obstacle avoidance (ENU horizontal velocity in and out)."""
@@ -743,12 +795,12 @@ class SimAutopilot:
             )
         if name == "LOCAL_POSITION_NED":
             pos = enu_to_ned(s.position - self.home)
-            vel = enu_to_ned(s.velocity)
+            vel = enu_to_ned(self.reported_velocity())
             return mavlink.MAVLink_local_position_ned_message(t, *map(float, pos), *map(float, vel))
         if name == "GLOBAL_POSITION_INT":
             rel = s.position - self.home
             lat, lon = self.lat_lon(rel)
-            vel = enu_to_ned(s.velocity)
+            vel = enu_to_ned(self.reported_velocity())
             hdg = round(math.degrees(yaw_enu_to_ned(s.yaw)) % 360.0 * 100) % 36000
             return mavlink.MAVLink_global_position_int_message(
                 t,

@@ -96,6 +96,7 @@ OFFBOARD_LOSS_ACTIONS: dict[int, tuple[int, int] | None] = {
 class PX4Autopilot(SimAutopilot):
     """A simulated PX4 multicopter (custom modes, OFFBOARD, offboard-loss failsafe)."""
 
+    RESPONSE = "px4"
     AUTOPILOT = mavlink.MAV_AUTOPILOT_PX4
     MODE_REFUSED = mavlink.MAV_RESULT_TEMPORARILY_REJECTED  # commander: transition denied
     DEFAULT_INTERVALS: ClassVar[dict[str, float]] = {
@@ -114,8 +115,9 @@ class PX4Autopilot(SimAutopilot):
         | mavlink.MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET
     )
 
-    def __init__(self, params: Any, *, system_id: int = 1, boot_time: float = 0.0) -> None:
-        super().__init__(params, system_id=system_id, boot_time=boot_time)
+    def __init__(self, params: Any, **kw: Any) -> None:
+        """:param params: the parameter table; ``kw``: see :class:`SimAutopilot`."""
+        super().__init__(params, **kw)
         self.main = int(MainMode.AUTO)
         self.sub = int(AutoSubMode.LOITER)
         self.stream_start: float | None = None

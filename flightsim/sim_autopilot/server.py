@@ -42,9 +42,10 @@ MessageHook = Callable[[int, Any, float], None]
 StepHook = Callable[[VehicleState], None]
 
 
-def make_autopilot(personality: str, boot_time: float) -> SimAutopilot:
-    """A personality (``"ardupilot"`` or ``"px4"``) with its firmware's default parameter table."""
-    return PERSONALITIES[personality](default_table(personality), boot_time=boot_time)
+def make_autopilot(personality: str, boot_time: float, response: bool = True) -> SimAutopilot:
+    """A personality (``"ardupilot"`` or ``"px4"``) with its firmware's default parameter table;
+    ``response`` False flies setpoints as given (the ideal autopilot) instead of the firmware's response."""
+    return PERSONALITIES[personality](default_table(personality), boot_time=boot_time, response=response)
 
 
 def ground_truth_message(personality: str, autopilot: SimAutopilot, state: VehicleState, now: float) -> Any:
@@ -78,6 +79,7 @@ class SimAutopilotServer:
     :param params: parameter overrides applied before the first message (name -> value)
     :param vehicle: an existing vehicle to reuse (JSBSim load is the slow part); reset here
     :param ground_truth: stream the simulator's truth on every link after each physics chunk
+    :param response: fly the firmware's calibrated response (False: the ideal autopilot)
     """
 
     def __init__(
@@ -89,12 +91,13 @@ class SimAutopilotServer:
         params: dict[str, float] | None = None,
         vehicle: Vehicle | None = None,
         ground_truth: bool = False,
+        response: bool = True,
     ) -> None:
         self.endpoint = MavlinkEndpoint(links)
         self.personality = personality
         self.ground_truth = ground_truth
         self.t0 = time.monotonic()
-        self.autopilot = make_autopilot(personality, boot_time=0.0)
+        self.autopilot = make_autopilot(personality, boot_time=0.0, response=response)
         for name, value in (params or {}).items():
             self.autopilot.params.set(name, value)
         self.vehicle = vehicle or Vehicle(VehicleConfig())
@@ -217,6 +220,11 @@ def configure_parser(parser: Any) -> None:
         metavar="NAME=VALUE",
         help="set a parameter before start, e.g. COM_OBL_RC_ACT=5; repeatable",
     )
+    parser.add_argument(
+        "--ideal-response",
+        action="store_true",
+        help="fly velocity setpoints as given, not with the firmware's calibrated (slower) response",
+    )
 
 
 def command(args: Any) -> int:
@@ -243,6 +251,7 @@ def command(args: Any) -> int:
         start_yaw=math.radians(args.start_yaw),
         params=params,
         ground_truth=not args.no_ground_truth,
+        response=not args.ideal_response,
     )
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):  # Ctrl-C, or a supervisor's/test's SIGTERM

@@ -28,8 +28,10 @@ ACCEPTED = mavlink.MAV_RESULT_ACCEPTED
 FAILED = mavlink.MAV_RESULT_FAILED
 
 
-def make(state=None) -> ArduCopterAutopilot:
-    ap = ArduCopterAutopilot(default_table("ardupilot"))
+def make(state=None, response: bool = False) -> ArduCopterAutopilot:
+    """Without the firmware response by default: these tests check the target the firmware's
+    position controller is given (the response to it is tested in test_autopilot_response.py)."""
+    ap = ArduCopterAutopilot(default_table("ardupilot"), response=response)
     ap.observe(state or on_ground())
     return ap
 

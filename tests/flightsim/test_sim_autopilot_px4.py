@@ -19,8 +19,10 @@ REJECTED = mavlink.MAV_RESULT_TEMPORARILY_REJECTED
 FLAG = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
 
 
-def make(state=None) -> PX4Autopilot:
-    ap = PX4Autopilot(default_table("px4"))
+def make(state=None, response: bool = False) -> PX4Autopilot:
+    """Without the firmware response by default: these tests check the target the firmware's
+    position controller is given (the response to it is tested in test_autopilot_response.py)."""
+    ap = PX4Autopilot(default_table("px4"), response=response)
     ap.observe(state or on_ground())
     return ap
 

@@ -34,6 +34,12 @@ def test_name_defaults_to_the_file_stem_and_sets_the_run_directory(tmp_path):
     assert str(c.run_dir) == "out/mine-s7"
 
 
+def test_autopilot_response_reaches_the_env(tmp_path):
+    c = load_train_config(_write(tmp_path, '[env]\nautopilot_response = "random"\n'))
+    assert c.env_config().autopilot_response == "random"
+    assert load_train_config(None, ["env.autopilot_response=px4"]).env_config().autopilot_response == "px4"
+
+
 def test_overrides_reach_nested_tables_and_env(tmp_path):
     c = load_train_config(
         _write(tmp_path, "[ppo]\nn_steps = 512\n"), ["ppo.n_steps=128", "env.max_steps=200", "seed=3"]
@@ -55,6 +61,7 @@ def test_overrides_reach_nested_tables_and_env(tmp_path):
         ("", ["ppo.batch_size=4096", "ppo.n_steps=16", "n_envs=2"], "ppo.batch_size"),
         ("name = 'a b'\n", [], "name"),
         ("[ppo]\nlearning_rate_schedule = 'cosine'\n", [], "ppo.learning_rate_schedule"),
+        ("[env]\nautopilot_response = 'fast'\n", [], "env.autopilot_response"),
     ],
 )
 def test_mistakes_name_the_key(tmp_path, text, overrides, named):

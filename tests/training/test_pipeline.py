@@ -173,6 +173,19 @@ def test_evaluate_behind_the_shield_flies_every_controller_through_it(pipeline, 
     assert data["shield"]["estop_distance"] == 0.3
 
 
+def test_evaluate_through_a_firmware_response_flies_differently(pipeline, capsys, tmp_path):
+    """``--autopilot-response px4`` reaches the env: the same episodes fly less far than ideal."""
+    flown = {}
+    for name in ("ideal", "px4"):
+        report = tmp_path / f"{name}.json"
+        argv = ["evaluate", "--policy", str(pipeline["onnx"]), "--seeds", "1", "--workers", "1",
+                "--set", "env.max_steps=30", "--autopilot-response", name, "--json", str(report)]  # fmt: skip
+        assert main(argv) == 0
+        episodes = json.loads(report.read_text())["episodes"]
+        flown[name] = sorted((e["controller"], e["distance"]) for e in episodes)
+    assert flown["px4"] != flown["ideal"]
+
+
 def test_evaluate_on_the_example_worlds(pipeline, capsys):
     model = pipeline["run_dir"] / "final_model.zip"
     assert main(["evaluate", "--policy", str(model), "--worlds", str(WORLDS), "--set", "env.max_steps=30",
@@ -192,6 +205,7 @@ def test_evaluate_on_the_example_worlds(pipeline, capsys):
         ["evaluate", "--policy", "{tmp}/tiny.toml", "--seeds", "1"],
         ["evaluate", "--policy", "{tmp}/policy.onnx", "--seeds", "1", "--set", "env.max_speed=3.0"],
         ["evaluate", "--policy", "{tmp}/policy.onnx", "--seeds", "2", "--first-seed", "999999"],
+        ["evaluate", "--policy", "{tmp}/policy.onnx", "--seeds", "1", "--autopilot-response", "fast"],
     ],
 )
 def test_user_mistakes_are_one_line_errors(pipeline, capsys, argv):
