@@ -47,7 +47,7 @@ from companion.framestack import FrameStack
 from companion.goal import GoalOutput
 from companion.goal_source import GOAL_STREAMS, GoalSource, completion_mode_command, request_message
 from companion.notify import SystemdNotifier
-from companion.obstacle_distance import obstacle_distance_from_scan
+from companion.obstacle_distance import obstacle_distance_allowed, obstacle_distance_from_scan
 from companion.policy import InferenceFault, OnnxPolicy, PolicySpec
 from companion.recording.recorder import FlightRecorder, open_recorder
 from companion.recording.taps import tap_parts
@@ -179,15 +179,17 @@ def open_goal(config: CompanionConfig, link: Any, clock: Callable[[], float]) ->
     return goal
 
 
-def check_parameters(config: CompanionConfig) -> list[str]:
+def check_parameters(config: CompanionConfig) -> tuple[list[str], float | None]:
     """Run the configured autopilot parameter check before the link takes the port.
 
-    :return: one line per mismatch (``warn``: the caller logs and STATUSTEXTs them)
+    :return: one line per mismatch (``warn``: the caller logs and STATUSTEXTs them), and the
+        autopilot's yaw-rate cap as read (rad/s; None: not read, the shield assumes the firmware's
+        default)
     :raises UserError: ``refuse`` and something differs, or the check could not run
     """
     pc = config.params_check
     if pc.mode == "off":
-        return []
+        return [], None
     from companion import params
 
     wanted = params.load_param_file(pc.file, config.autopilot.type)
@@ -213,7 +215,7 @@ def check_parameters(config: CompanionConfig) -> list[str]:
         if pc.mode == "refuse":
             raise UserError(f"params_check: {exc}") from None
         log.warning("parameter check could not run: %s", exc)
-        return [f"param check failed: {exc}"]
+        return [f"param check failed: {exc}"], None
     bad = [r for r in report.results if not r.ok]
     lines = [
         f"param {r.name}: wanted {params.format_value(r.wanted.value, r.wanted.param_type)}, "
@@ -223,10 +225,18 @@ def check_parameters(config: CompanionConfig) -> list[str]:
     if bad and pc.mode == "refuse":
         raise UserError(f"params_check: {len(bad)} autopilot parameter(s) differ from {pc.file}: "
                         + "; ".join(lines))
+    yaw_cap = params.yaw_rate_limit(report, config.autopilot.type)
+    if yaw_cap is not None and yaw_cap < config.policy.max_yaw_rate - 1e-3:
+        trained = math.degrees(config.policy.max_yaw_rate)
+        lines.append(
+            f"yaw limit {params.YAW_RATE_LIMIT_PARAMS[config.autopilot.type]} "
+            f"{math.degrees(yaw_cap):.0f} deg/s < the policy's {trained:.0f}: "
+            f"shield caps yaw at {yaw_cap:.2f} rad/s"
+        )
     for line in lines:
         log.warning("%s", line)
     log.info("parameter check: %d/%d as wanted", len(report.results) - len(bad), len(report.results))
-    return lines
+    return lines, yaw_cap
 
 
 # ---- the loop ----------------------------------------------------------------------------------
@@ -256,7 +266,7 @@ class Companion:
             trt_cache_dir=config.policy.trt_cache_dir or None,
             sha256=config.policy.sha256 or None,
         )
-        self._param_messages = check_parameters(config)
+        self._param_messages, autopilot_yaw_rate = check_parameters(config)
         self.lidar = open_lidar(config, clock)
         try:
             self.link = open_link(config, clock)
@@ -264,7 +274,10 @@ class Companion:
             self.lidar.close()
             raise
         self.supervisor = Supervisor(config.supervisor, clock)
-        self.shield = SafetyShield(config.shield, config.scan.max_range)
+        # braking and yaw limits of this autopilot (measured), the yaw cap as read from it if known
+        self.shield = SafetyShield(
+            config.shield, config.scan.max_range, config.autopilot.type, autopilot_yaw_rate
+        )
         self.stack = FrameStack(config.policy.stack, N_BINS)
         self._od_limits = obstacle_distance_limits(config)
         # PX4 only accepts a switch to OFFBOARD while setpoints already stream.
@@ -385,6 +398,9 @@ class Companion:
         scan, self._unsent_scan = self._unsent_scan, None
         if scan is None or not self.config.autopilot.obstacle_distance:
             return
+        if not obstacle_distance_allowed(self._status, self.config.supervisor.min_engage_altitude):
+            self.counters["obstacle_distance_on_ground"] += 1  # floor returns: never sent
+            return
         sectors = obstacle_distance_from_scan(scan, self.config.scan.max_range, *self._od_limits)
         self.link.send_obstacle_distance(sectors)
 
@@ -398,9 +414,10 @@ class Companion:
                 scan, requested = self._latest
                 last = self._last_filter
                 dt = min(max(now - last, 1e-3), 0.5) if last is not None else 0.1
-                command = self.shield.filter(requested, scan, dt)
+                # the supervisor only commands while the measured velocity is fresh
+                command = self.shield.filter(requested, scan, dt, self._status.velocity_body)
                 self._last_filter = now
-                self.link.send_velocity(command.forward, command.yaw_rate)
+                self.link.send_velocity(command.forward, command.yaw_rate, command.lateral)
                 self._last_setpoint, self._last_command = now, command
                 self.counters["setpoints_policy"] += 1
             elif now - self._last_setpoint > LATE_SCAN_AFTER:

@@ -15,12 +15,18 @@ clockwise. Sector edges at ``±2.5°`` cut bins in half, so each sector takes th
 bin that overlaps it: 6 bins, ``(−5j − 3) … (−5j + 2) mod 360``, covering exactly ``[−3°, +3°)``
 counter-clockwise around the sector's centre. A bin on an edge feeds both neighbours, so no return
 is ever lost and each sector's window is centred on the angle ArduPilot assigns it.
+
+What is sent is the scan and nothing else: the horizontal slice the policy sees (points outside
+``slice_height`` never reach it), and only while the vehicle is airborne
+(:func:`obstacle_distance_allowed`): on the ground and during take-off the slice still cuts the
+floor, and real SITL runs showed OBSTACLE_DISTANCE of 0.10-0.29 m all round during take-off.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from companion.autopilot.link import LandedState, VehicleStatus
 from companion.scan import N_BINS
 
 N_SECTORS = 72
@@ -71,3 +77,11 @@ def sector_distances(sectors_cm: np.ndarray) -> list[int]:
     if len(distances) != N_SECTORS:
         raise ValueError(f"OBSTACLE_DISTANCE needs {N_SECTORS} sectors, got {len(distances)}")
     return distances
+
+
+def obstacle_distance_allowed(status: VehicleStatus, min_altitude: float) -> bool:
+    """Whether OBSTACLE_DISTANCE may go out: the vehicle is airborne (landed state IN_AIR where the
+    autopilot reports it, never TAKEOFF) and at least ``min_altitude`` metres above home."""
+    if status.landed_state is not None and status.landed_state is not LandedState.IN_AIR:
+        return False
+    return status.altitude is not None and status.altitude >= min_altitude

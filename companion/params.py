@@ -64,6 +64,10 @@ REBOOT_PATTERNS = {
 }
 _NAME = re.compile(r"[A-Za-z0-9_]{1,16}")
 REFUSED = object()  # the autopilot said it does not know the parameter
+#: The firmware parameter (deg/s) that caps the yaw rate the autopilot flies for a companion's
+#: setpoint. ArduCopter 4.8 holds 1.05 rad/s when 1.5 is asked: ATC_RATE_WPY_MAX, 60°/s by default
+#: (../shared/fixtures/autopilot-response); PX4 offboard is bounded by MC_YAWRATE_MAX (200°/s).
+YAW_RATE_LIMIT_PARAMS = {"ardupilot": "ATC_RATE_WPY_MAX", "px4": "MC_YAWRATE_MAX"}
 # MAVLink component id of an onboard computer; the companion's identity on the link.
 COMPANION_SYSTEM_ID = 1
 COMPANION_COMPONENT_ID = 191
@@ -598,6 +602,16 @@ def run_params(
         else check_parameters(client, wanted, allow_missing)
     )
     return CheckReport(results, client.bytewise, client.encoding_source, client.stats)
+
+
+def yaw_rate_limit(report: CheckReport, autopilot: str) -> float | None:
+    """The autopilot's yaw-rate cap as read in ``report``, rad/s; None when the parameter was not
+    in the file, got no reply, or is 0 (ArduPilot: no cap of its own)."""
+    name = YAW_RATE_LIMIT_PARAMS[autopilot]
+    for r in report.results:
+        if r.name == name and r.actual is not None and r.actual > 0:
+            return math.radians(r.actual)
+    return None
 
 
 def _check_firmware_family(autopilot: str, heartbeat_autopilot: int) -> None:

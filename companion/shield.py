@@ -8,6 +8,16 @@ never delayed by the acceleration limit: braking is always allowed at once.
 Emergency stop (a forward-sector return closer than ``estop_distance``): no forward motion, but
 turning in place stays allowed and backing up too when the rear sector is clear, so the vehicle
 can get itself out.
+
+The vehicle does not go where its nose points: real autopilots lag the setpoint by up to a second
+and slide 25-35° off the heading in a turn (``../shared/fixtures/autopilot-response``). So, given
+the *measured* body velocity, the shield also watches the direction of travel: the clearance over
+the arc from the course to the nose limits the speed, and when the measured speed could not stop
+before that clearance (braking distance from the autopilot's own deceleration and lag,
+:data:`AUTOPILOT_LIMITS`) it commands a stop: a setpoint against the measured motion, forward and
+sideways, at most ``max_reverse_speed`` and only as far as the clearance behind the motion allows
+(on the PX4 response this halves the stopping distance of a slide: 0.9 m instead of 1.6 m).
+The yaw rate is never asked above what the autopilot will fly.
 """
 
 from __future__ import annotations
@@ -27,10 +37,50 @@ class Command:
 
     :param forward: body x velocity, m/s (negative = backwards)
     :param yaw_rate: rad/s, FLU: counter-clockwise (to the left) positive
+    :param lateral: body y velocity, m/s, left positive. The policy never asks for one; only the
+        shield's active brake sets it, against a measured sideways slide the autopilot would
+        otherwise let creep on (PX4 SIH: 0.3-0.45 m/s for seconds after a zero setpoint)
     """
 
     forward: float
     yaw_rate: float
+    lateral: float = 0.0
+
+
+@dataclass(frozen=True)
+class AutopilotLimits:
+    """How an autopilot answers a setpoint, as far as the shield must assume.
+
+    :param decel: deceleration it brakes with from a zero-velocity (or reversed) setpoint, m/s²
+    :param reaction_time: delay before braking starts: scan age, control period and the
+        autopilot's velocity-loop lag together, s
+    :param max_yaw_rate: the highest yaw rate it flies, rad/s (a firmware parameter caps it)
+    """
+
+    decel: float
+    reaction_time: float
+    max_yaw_rate: float
+
+
+#: Per autopilot, from the real-firmware recordings (``../shared/fixtures/autopilot-response``):
+#: - ``ardupilot`` (ArduCopter 4.8-dev): 2 → 0 m/s stops in 1.30 s over 1.68 m (true); 10 % delay
+#:   0.4-0.5 s, peak decel 3.0 m/s². 0.7 s + 2.5 m/s² gives 2.2 m from 2 m/s. Yaw is capped at
+#:   ATC_RATE_WPY_MAX, 60°/s by default (1.05 rad/s flown for 1.5 asked); firmware_params raises it.
+#: - ``px4`` (SIH, main May 2026): 1.8 → 0 m/s takes 1.2 m to reach 0.5 m/s and then creeps at
+#:   0.3-0.45 m/s for seconds (2.7 m after 4.9 s); 2 → −1 m/s stops in 0.66 m. 0.8 s + 1.2 m/s²
+#:   gives 2.8 m from 1.8 m/s, and the shield brakes with a reverse setpoint. Yaw: MC_YAWRATE_MAX,
+#:   200°/s (PX4 flies 94 % of any rate asked).
+#: - ``ideal``: the project's own simulated quad (the shield's original tuning).
+#: - ``random``: the env's randomised response: the worst of both.
+AUTOPILOT_LIMITS: dict[str, AutopilotLimits] = {
+    "ideal": AutopilotLimits(decel=2.0, reaction_time=0.8, max_yaw_rate=math.inf),
+    "ardupilot": AutopilotLimits(decel=2.5, reaction_time=0.7, max_yaw_rate=math.radians(60.0)),
+    "px4": AutopilotLimits(decel=1.2, reaction_time=0.8, max_yaw_rate=math.radians(200.0)),
+    "random": AutopilotLimits(decel=1.2, reaction_time=0.8, max_yaw_rate=math.radians(60.0)),
+}
+
+#: Below this measured speed the direction of travel is noise, m/s.
+MIN_TRAVEL_SPEED = 0.1
 
 
 @dataclass(frozen=True)
@@ -42,14 +92,28 @@ class ShieldConfig:
     :param max_yaw_rate: rad/s, either direction
     :param max_accel: how fast the forward speed may grow, m/s²
     :param max_yaw_accel: how fast the yaw rate may grow, rad/s²
-    :param max_decel: braking the stopping-distance limit assumes, m/s²
+    :param max_decel: braking the stopping-distance limit assumes, m/s²; 0: the autopilot's
+        measured value (:data:`AUTOPILOT_LIMITS`)
     :param reaction_time: delay before braking starts (scan age, control period and the autopilot's
-        velocity-loop lag), s. 0.8 s is what the simulated quad needs to stop at ``estop_distance``
-        from a wall it meets at 2 m/s (``tests/flightsim/test_env.py``); measure a real vehicle's.
+        velocity-loop lag), s; 0: the autopilot's measured value. 0.8 s is what the simulated
+        quad needs to stop at ``estop_distance`` from a wall it meets at 2 m/s
+        (``tests/flightsim/test_env.py``); measure a real vehicle's.
     :param estop_distance: a forward return closer than this stops all forward motion, m
     :param rear_clear_margin: backing up needs the rear sector clear beyond ``estop_distance`` plus this, m
     :param forward_sector_deg: half-width of the forward sector, degrees
     :param rear_sector_deg: half-width of the rear sector, degrees
+    :param travel_sector_deg: half-width of the sector around each direction between the measured
+        course and the nose, degrees
+    :param keepout_distance: a return closer than this, in any direction, pushes the vehicle away
+        from it and removes what the command asks towards it, m (0: no keep-out at all). The push
+        is what stops the drift a velocity estimate cannot show: PX4's velocity loop closes on an
+        estimate that wanders 0.2-0.4 m/s off the truth, so with a zero setpoint the true vehicle
+        drifts that fast
+    :param keepout_gain: push speed per metre inside ``keepout_distance``, 1/s; the push adds twice
+        the speed at which that return came closer since the previous scan (the scan sees the true
+        motion, which the estimate may not)
+    :param keepout_max_speed: the push's limit, m/s: above PX4's worst estimate bias (2σ 0.5 m/s),
+        which the autopilot's own velocity loop would otherwise hold against the push
     """
 
     max_speed: float = field(default=2.0, metadata={"min": 0.0, "max": 20.0})
@@ -57,12 +121,16 @@ class ShieldConfig:
     max_yaw_rate: float = field(default=1.5, metadata={"min": 0.0, "max": 6.0})
     max_accel: float = field(default=2.0, metadata={"min": 0.01, "max": 20.0})
     max_yaw_accel: float = field(default=4.0, metadata={"min": 0.01, "max": 50.0})
-    max_decel: float = field(default=2.0, metadata={"min": 0.1, "max": 20.0})
-    reaction_time: float = field(default=0.8, metadata={"min": 0.0, "max": 5.0})
+    max_decel: float = field(default=0.0, metadata={"min": 0.0, "max": 20.0})
+    reaction_time: float = field(default=0.0, metadata={"min": 0.0, "max": 5.0})
     estop_distance: float = field(default=0.3, metadata={"min": 0.0, "max": 10.0})
     rear_clear_margin: float = field(default=0.2, metadata={"min": 0.0, "max": 10.0})
     forward_sector_deg: float = field(default=30.0, metadata={"min": 1.0, "max": 90.0})
     rear_sector_deg: float = field(default=30.0, metadata={"min": 1.0, "max": 90.0})
+    travel_sector_deg: float = field(default=30.0, metadata={"min": 1.0, "max": 90.0})
+    keepout_distance: float = field(default=0.6, metadata={"min": 0.0, "max": 10.0})
+    keepout_gain: float = field(default=2.0, metadata={"min": 0.0, "max": 20.0})
+    keepout_max_speed: float = field(default=1.0, metadata={"min": 0.0, "max": 5.0})
 
 
 def sector_bins(centre_deg: float, half_width_deg: float) -> np.ndarray:
@@ -73,6 +141,24 @@ def sector_bins(centre_deg: float, half_width_deg: float) -> np.ndarray:
     centres = np.arange(N_BINS) + 0.5
     offset = (centres - centre_deg + 180.0) % 360.0 - 180.0
     return np.flatnonzero(np.abs(offset) <= half_width_deg)
+
+
+def arc_bins(from_deg: float, to_deg: float, half_width_deg: float) -> np.ndarray:
+    """Scan bins within ``half_width_deg`` of some direction on the shorter arc from ``from_deg`` to
+    ``to_deg`` (counter-clockwise degrees): the directions the vehicle travels in while its course
+    swings from ``from_deg`` round to ``to_deg``."""
+    span = (to_deg - from_deg + 180.0) % 360.0 - 180.0
+    centres = np.arange(N_BINS) + 0.5
+    # offset of each bin from the arc's start, measured in the arc's own direction
+    offset = ((centres - from_deg) * (1.0 if span >= 0 else -1.0) + 180.0) % 360.0 - 180.0
+    beyond = np.where(offset > abs(span), offset - abs(span), np.where(offset < 0.0, -offset, 0.0))
+    return np.flatnonzero(beyond <= half_width_deg)
+
+
+def stopping_distance(speed: float, decel: float, reaction_time: float) -> float:
+    """Distance flown while stopping from ``speed``: ``v·t_r + v²/(2a)``."""
+    v = max(speed, 0.0)
+    return v * reaction_time + v * v / (2.0 * decel)
 
 
 def stopping_speed(distance: float, max_decel: float, reaction_time: float) -> float:
@@ -120,25 +206,44 @@ def _slew(target: float, previous: float, step: float) -> float:
 
 
 class SafetyShield:
-    """Filters every policy command against the latest scan.
+    """Filters every policy command against the latest scan and the measured motion.
 
     :param config: the limits
     :param max_range: metres that a scan value of 1.0 stands for
+    :param autopilot: what the autopilot does with a setpoint: a key of :data:`AUTOPILOT_LIMITS`
+        or the limits themselves (``max_decel`` and ``reaction_time`` in ``config`` win when not 0)
+    :param autopilot_yaw_rate: the autopilot's yaw-rate limit as read from it (rad/s), when known;
+        otherwise its firmware default from ``autopilot``
     """
 
-    def __init__(self, config: ShieldConfig, max_range: float) -> None:
+    def __init__(
+        self,
+        config: ShieldConfig,
+        max_range: float,
+        autopilot: str | AutopilotLimits = "ideal",
+        autopilot_yaw_rate: float | None = None,
+    ) -> None:
         if not max_range > 0:
             raise ValueError(f"max_range must be positive, got {max_range}")
+        limits = AUTOPILOT_LIMITS[autopilot] if isinstance(autopilot, str) else autopilot
         self.config = config
         self.max_range = float(max_range)
+        #: braking the stopping distances assume, m/s², and the delay before it starts, s
+        self.max_decel = config.max_decel or limits.decel
+        self.reaction_time = config.reaction_time or limits.reaction_time
+        ap_yaw = autopilot_yaw_rate if autopilot_yaw_rate is not None else limits.max_yaw_rate
+        #: the yaw rate never asked above this, rad/s: the shield's limit or the autopilot's
+        self.max_yaw_rate = min(config.max_yaw_rate, ap_yaw)
         self.interventions: collections.Counter[str] = collections.Counter()
         self._forward_bins = sector_bins(0.0, config.forward_sector_deg)
         self._rear_bins = sector_bins(180.0, config.rear_sector_deg)
         self._previous = Command(0.0, 0.0)
+        self._previous_nearest: float | None = None  # nearest return of the previous scan, m
 
     def reset(self) -> None:
         """Forget the previous command, so the next one ramps up from standstill (e.g. after HOLD)."""
         self._previous = Command(0.0, 0.0)
+        self._previous_nearest = None
 
     def forward_cap(self, scan: np.ndarray) -> float:
         """The fastest forward speed the shield lets through against ``scan`` (0 inside
@@ -149,13 +254,21 @@ class SafetyShield:
         values, _ = _finite_scan(scan)
         return self._allowed_speed(float(values[self._forward_bins].min()) * self.max_range)
 
-    def filter(self, requested: Command, scan: np.ndarray, dt: float) -> Command:
+    def filter(
+        self,
+        requested: Command,
+        scan: np.ndarray,
+        dt: float,
+        velocity: tuple[float, float] | None = None,
+    ) -> Command:
         """Return the command that is safe to send.
 
         :param requested: what the policy asked for
         :param scan: ``(360,)`` normalised ranges, bins counter-clockwise from forward
         :param dt: seconds since the previous command (for the acceleration limits); a
             non-positive or non-finite ``dt`` allows no increase at all
+        :param velocity: the measured body velocity (forward, left), m/s; None: not known, the
+            nose alone is watched (the companion HOLDs instead of flying without it)
         """
         cfg = self.config
         count = self.interventions
@@ -176,12 +289,17 @@ class SafetyShield:
         elif forward < -cfg.max_reverse_speed:
             count["speed_limit"] += 1
             forward = -cfg.max_reverse_speed
-        if abs(yaw_rate) > cfg.max_yaw_rate:
+        if abs(yaw_rate) > self.max_yaw_rate:
             count["yaw_limit"] += 1
-            yaw_rate = math.copysign(cfg.max_yaw_rate, yaw_rate)
+            yaw_rate = math.copysign(self.max_yaw_rate, yaw_rate)
 
         forward_cap = self._clearance_cap(forward, front, "estop")
         reverse_cap = self._clearance_cap(-forward, rear - cfg.rear_clear_margin, "reverse_blocked")
+        travel_cap, brake = self._travel_limit(values, velocity, forward)
+        if forward >= 0.0:
+            forward_cap = min(forward_cap, travel_cap)
+        else:
+            reverse_cap = min(reverse_cap, travel_cap)
 
         step = max(dt, 0.0) if math.isfinite(dt) else 0.0
         slewed = _slew(forward, self._previous.forward, cfg.max_accel * step)
@@ -191,9 +309,88 @@ class SafetyShield:
         if slewed_yaw != yaw_rate:
             count["yaw_accel_limit"] += 1
         # The clearance caps bound the slewed value too: a slew never holds speed towards an obstacle.
-        out = Command(forward=min(max(slewed, -reverse_cap), forward_cap), yaw_rate=slewed_yaw)
+        forward = min(max(slewed, -reverse_cap), forward_cap)
+        lateral = 0.0
+        if brake is not None:
+            # The measured motion cannot stop before what lies along it: stop, braking against the
+            # motion (never slew-limited), forward no further than the forward and rear caps allow.
+            lowest = -min(reverse_cap, cfg.max_reverse_speed)
+            forward = min(max(brake[0], lowest), max(min(forward_cap, cfg.max_speed), 0.0))
+            lateral = brake[1]
+        forward, lateral = self._keep_out(values, forward, lateral, step)
+        forward = min(max(forward, -reverse_cap), max(forward_cap, 0.0))  # the sector caps hold for all
+        out = Command(forward=forward, yaw_rate=slewed_yaw, lateral=lateral)
         self._previous = out
         return out
+
+    def _travel_limit(
+        self, values: np.ndarray, velocity: tuple[float, float] | None, forward: float
+    ) -> tuple[float, tuple[float, float] | None]:
+        """What the measured motion allows: the speed cap from the clearance along the travel (over
+        the arc from the course round to where the command points), and None while the motion can
+        stop before that clearance, else the brake: the (forward, left) setpoint against the motion.
+        """
+        if velocity is None:
+            return math.inf, None
+        v_forward, v_left = float(velocity[0]), float(velocity[1])
+        if not (math.isfinite(v_forward) and math.isfinite(v_left)):
+            self.interventions["velocity_nan"] += 1
+            return 0.0, (0.0, 0.0)
+        speed = math.hypot(v_forward, v_left)
+        if speed < MIN_TRAVEL_SPEED:
+            return math.inf, None
+        course = math.degrees(math.atan2(v_left, v_forward))
+        heading = 0.0 if forward >= 0.0 else 180.0
+        width = self.config.travel_sector_deg
+        clearance = float(values[arc_bins(course, heading, width)].min()) * self.max_range
+        cap = self._clearance_cap(abs(forward), clearance, "estop_travel")
+        margin = clearance - self.config.estop_distance
+        if stopping_distance(speed, self.max_decel, self.reaction_time) < margin:
+            return cap, None
+        self.interventions["motion_stop"] += 1
+        # brake against the motion, no faster than max_reverse_speed nor than the room behind it allows
+        behind = float(values[sector_bins((course + 180.0) % 360.0, width)].min()) * self.max_range
+        magnitude = min(speed, self.config.max_reverse_speed, self._allowed_speed(behind))
+        return cap, (-v_forward / speed * magnitude, -v_left / speed * magnitude)
+
+    def _keep_out(
+        self, values: np.ndarray, forward: float, lateral: float, dt: float
+    ) -> tuple[float, float]:
+        """Near the nearest return: drop what the setpoint asks towards it and push away from it,
+        no faster than the room on the far side allows.
+
+        It acts inside ``keepout_distance``, and farther out too when the scan shows the vehicle
+        closing on that return faster than it could stop: the nearest distance of two scans is the
+        true closing speed, whatever the velocity estimate says, and turning does not change it.
+        """
+        cfg = self.config
+        if cfg.keepout_distance <= 0.0:
+            return forward, lateral
+        previous, self._previous_nearest = self._previous_nearest, float(values.min()) * self.max_range
+        nearest = int(np.argmin(values))
+        distance = self._previous_nearest
+        closing = 0.0
+        if previous is not None and dt > 0.0:
+            closing = max(0.0, (previous - distance) / dt)
+        stopping = stopping_distance(closing, self.max_decel, self.reaction_time)
+        too_fast = stopping >= distance - cfg.estop_distance
+        if distance >= cfg.keepout_distance and not (closing > 0.0 and too_fast):
+            return forward, lateral
+        self.interventions["keepout"] += 1
+        towards = math.radians(nearest + 0.5)
+        ux, uy = math.cos(towards), math.sin(towards)
+        along = forward * ux + lateral * uy
+        if along > 0.0:
+            forward, lateral = forward - along * ux, lateral - along * uy
+        away = float(values[sector_bins((nearest + 180.5) % 360.0, cfg.travel_sector_deg)].min())
+        push = min(
+            cfg.keepout_max_speed,
+            cfg.keepout_gain * max(cfg.keepout_distance - distance, 0.0) + 2.0 * closing,
+            self._allowed_speed(away * self.max_range),
+        )
+        forward, lateral = forward - push * ux, lateral - push * uy
+        limit = max(cfg.max_reverse_speed, cfg.keepout_max_speed)
+        return min(max(forward, -limit), cfg.max_speed), min(max(lateral, -limit), limit)
 
     def _allowed_speed(self, clearance: float) -> float:
         """Largest speed towards a sector with ``clearance`` metres: 0 inside ``estop_distance``,
@@ -201,7 +398,7 @@ class SafetyShield:
         cfg = self.config
         if clearance < cfg.estop_distance:
             return 0.0
-        return stopping_speed(clearance - cfg.estop_distance, cfg.max_decel, cfg.reaction_time)
+        return stopping_speed(clearance - cfg.estop_distance, self.max_decel, self.reaction_time)
 
     def _clearance_cap(self, speed: float, clearance: float, blocked_reason: str) -> float:
         """:meth:`_allowed_speed`, counting when it bites.

@@ -8,7 +8,7 @@ autopilot's mode: the pilot (or the autopilot's own failsafes) own that.
 ::
 
     STARTING ─start()→ WAITING_FOR_AUTOPILOT ─heartbeat→ STANDBY ─all engage conditions→ ACTIVE
-    ACTIVE ─lidar stale / inference fault→ HOLD ─recover_scans good scans→ ACTIVE
+    ACTIVE ─lidar stale / inference fault / velocity stale→ HOLD ─recover_scans good scans→ ACTIVE
     ACTIVE, HOLD ─mode left GUIDED/OFFBOARD→ PILOT_OVERRIDE ─mode back to GUIDED/OFFBOARD→ STANDBY
     ACTIVE, HOLD ─disarmed / landed / landing→ STANDBY
     any (but STARTING) ─heartbeat lost→ WAITING_FOR_AUTOPILOT
@@ -23,7 +23,8 @@ summed up in one "N transitions not announced" line that brings the pilot's view
 Engaging needs: armed, guided, airborne (landed_state IN_AIR where the autopilot reports it, never
 TAKEOFF), altitude ≥ ``min_engage_altitude``, the climb settled (|climb rate| <
 ``climb_settled_rate`` for ``climb_settled_time``), the lidar fresh with ``recover_scans``
-consecutive good scans. On ArduPilot a velocity setpoint ends GUIDED's take-off, so engaging
+consecutive good scans, the measured velocity fresh (the shield watches where the vehicle really
+goes, so it never flies without it). On ArduPilot a velocity setpoint ends GUIDED's take-off, so engaging
 during the climb would freeze the vehicle at whatever height it had reached: hence the settling.
 """
 
@@ -81,6 +82,7 @@ class SupervisorConfig:
         this long before it engages again, s (a mode flapping faster never re-engages)
     :param announce_burst: transitions announced back to back before the rate limit applies
     :param announce_interval: one more announcement per this many seconds once the burst is spent
+    :param velocity_timeout: a measured velocity older than this (or none) is "velocity stale", s
     """
 
     lidar_timeout: float = field(default=0.3, metadata={"min": 0.05, "max": 5.0})
@@ -92,6 +94,7 @@ class SupervisorConfig:
     reengage_delay: float = field(default=1.0, metadata={"min": 0.0, "max": 60.0})
     announce_burst: int = field(default=10, metadata={"min": 1, "max": 100})
     announce_interval: float = field(default=1.0, metadata={"min": 0.0, "max": 60.0})
+    velocity_timeout: float = field(default=0.5, metadata={"min": 0.05, "max": 5.0})
 
 
 @dataclass(frozen=True)
@@ -256,6 +259,10 @@ class Supervisor:
         t = self._last_scan_time
         return t is not None and now - t <= self.config.lidar_timeout
 
+    def _velocity_fresh(self, now: float) -> bool:
+        t = self._status.velocity_time
+        return t is not None and now - t <= self.config.velocity_timeout
+
     def _lidar_ready(self, now: float) -> bool:
         return self._lidar_fresh(now) and self._good_scans >= self.config.recover_scans
 
@@ -276,6 +283,8 @@ class Supervisor:
             blockers.append("lidar stale")
         elif self._good_scans < cfg.recover_scans:
             blockers.append(f"{self._good_scans}/{cfg.recover_scans} good scans")
+        if not self._velocity_fresh(now):
+            blockers.append("velocity stale")
         return blockers
 
     def _reengage_wait(self, now: float) -> float:
@@ -310,7 +319,9 @@ class Supervisor:
                 self._go(SupervisorState.HOLD, "lidar stale")
             elif problem is not None:
                 self._go(SupervisorState.HOLD, problem)
-        elif problem is None and self._lidar_ready(now):  # HOLD, cause cleared long enough
+            elif not self._velocity_fresh(now):
+                self._go(SupervisorState.HOLD, "velocity stale")
+        elif problem is None and self._lidar_ready(now) and self._velocity_fresh(now):  # HOLD, cleared
             self._go(SupervisorState.ACTIVE, "recovered", f"{self._good_scans} good scans")
 
     def _go(self, new: SupervisorState, reason: str, detail: str = "") -> None:

@@ -187,7 +187,11 @@ class LidarAvoidEnv(gym.Env):
         self._vehicle = Vehicle(VehicleConfig(mass_kg=VEHICLE_MASS_KG, physics_hz=120, control_hz=CONTROL_HZ))
         self._caster = VLP16Raycaster(self.config.lidar)
         needs_shield = self.config.shield or self.config.overspeed_penalty > 0.0
-        self._shield = SafetyShield(ShieldConfig(), self.config.scan.max_range) if needs_shield else None
+        self._shield = (
+            SafetyShield(ShieldConfig(), self.config.scan.max_range, self.config.autopilot_response)
+            if needs_shield
+            else None
+        )
         self._fixed_world = load_world(self.config.world_file) if self.config.world_file else None
         self._scan_mount = self.config.scan.rotation()
         self._mount_xyz = np.asarray(self.config.scan.mount_xyz, dtype=np.float64)
@@ -227,6 +231,7 @@ class LidarAvoidEnv(gym.Env):
             self._shielded = bool(rng.uniform() >= cfg.unshielded_fraction)
         if self._shield is not None:
             self._shield.reset()
+        self._lateral = 0.0
         return self._scan.copy(), self._info()
 
     def step(self, action: np.ndarray):
@@ -239,18 +244,23 @@ class LidarAvoidEnv(gym.Env):
         overspeed = 0.0
         if cfg.overspeed_penalty > 0.0:
             overspeed = max(0.0, a0 - self._shield.forward_cap(seen) / cfg.max_speed)
+        lateral, self._lateral = self._lateral, 0.0
         if self._shielded:
+            # as in flight: the shield also watches the velocity the autopilot measures
+            velocity = self.measured_body_velocity()
             safe = self._shield.filter(
-                command_from_action((a0, a1), cfg.max_speed, cfg.max_yaw_rate), seen, 1.0 / CONTROL_HZ
+                command_from_action((a0, a1), cfg.max_speed, cfg.max_yaw_rate), seen, 1.0 / CONTROL_HZ,
+                velocity=(float(velocity[0]), float(velocity[1])),
             )
             a0, a1 = safe.forward / cfg.max_speed, safe.yaw_rate / cfg.max_yaw_rate
+            lateral = safe.lateral
         a = np.array([a0, a1], dtype=np.float32)
         if cfg.wind_gust_max > 0.0:
             self._update_wind()
         previous = self._state.position
         self._state = fly(
             self._vehicle, self._response, a0 * cfg.max_speed, a1 * cfg.max_yaw_rate,
-            altitude=self._altitude, duration=1.0 / CONTROL_HZ,
+            altitude=self._altitude, duration=1.0 / CONTROL_HZ, lateral=lateral,
         )  # fmt: skip
         position = self._state.position
         self._distance += math.dist(position.tolist(), previous.tolist())
@@ -270,6 +280,11 @@ class LidarAvoidEnv(gym.Env):
         observation = self._previous_scan if cfg.latency_scans else self._scan
         truncated = self._steps >= cfg.max_steps and not self._collided
         return observation.copy(), reward, self._collided, truncated, self._info()
+
+    def command_lateral(self, lateral: float) -> None:
+        """Fly ``lateral`` (m/s, body left) with the next step's action: the companion shield's
+        active brake against a sideways slide, which the policy's 2-D action cannot carry."""
+        self._lateral = float(lateral)
 
     def measured_body_velocity(self) -> np.ndarray:
         """The horizontal velocity the autopilot would report now: (forward, left) m/s, body FLU.

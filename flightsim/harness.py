@@ -8,8 +8,8 @@ take off to 1.5 m; on PX4 it streams zero setpoints as proof of life, switches t
 stops streaming once the companion's own setpoints arrive. The companion then flies; the harness
 watches (collision, clearance, setpoint rate, latency, the companion's STATUSTEXTs) and reports.
 
-With ``autopilot="external"`` a real ArduPilot/PX4 SITL flies its own physics; the harness
-mirrors its pose (LOCAL_POSITION_NED + ATTITUDE) into the world and casts the lidar from there.
+With ``autopilot="external"`` a SITL flies its own physics; :mod:`flightsim.external_sitl` mirrors
+its pose (ground truth where it sends it) into the world and the lidar is cast from there.
 """
 
 from __future__ import annotations
@@ -35,6 +35,7 @@ from companion.config import CompanionConfig
 from companion.errors import UserError
 from companion.scan import ScanConfig
 from companion.tomlconfig import to_dict
+from flightsim import external_sitl
 from flightsim.cosim import LidarCosim
 from flightsim.raycast import LidarConfig
 from flightsim.recording import FlightRecording
@@ -184,6 +185,8 @@ class FlightReport:
     mission_complete: bool = False
     mission_time_s: float = -1.0
     goal_events: list[str] = field(default_factory=list)
+    ground_truth: str = ""  # what collisions and clearance were judged on
+    warnings: list[str] = field(default_factory=list)
 
     def to_json(self) -> str:
         return json.dumps(dataclasses.asdict(self), indent=2)
@@ -269,46 +272,6 @@ def latency_ms(
 
 
 # ------------------------------------------------------------------------------------ the flight
-class ExternalPose:
-    """Mirror a real SITL's pose into the world frame from LOCAL_POSITION_NED and ATTITUDE.
-
-    The SITL's local origin (home) is put at the world's start position; heading is the SITL's own.
-    """
-
-    def __init__(self, world: World) -> None:
-        self.origin = np.array([world.start_position[0], world.start_position[1], 0.0])
-        self.ned = np.zeros(3)
-        self.vel_ned = np.zeros(3)
-        self.rpy_frd = (0.0, 0.0, 0.0)
-        self.received = threading.Event()
-
-    def update(self, msg: Any) -> None:
-        kind = msg.get_type()
-        if kind == "LOCAL_POSITION_NED":
-            self.ned = np.array([msg.x, msg.y, msg.z])
-            self.vel_ned = np.array([msg.vx, msg.vy, msg.vz])
-            self.received.set()
-        elif kind == "ATTITUDE":
-            self.rpy_frd = (msg.roll, msg.pitch, msg.yaw)
-
-    def state(self) -> Any:
-        from flightsim.vehicle import VehicleState
-
-        n, e, d = self.ned
-        roll, pitch, yaw_ned = self.rpy_frd
-        return VehicleState(
-            time=0.0,
-            position=self.origin + np.array([e, n, -d]),
-            velocity=np.array([self.vel_ned[1], self.vel_ned[0], -self.vel_ned[2]]),
-            roll=roll,
-            pitch=-pitch,
-            yaw=math.atan2(math.sin(math.pi / 2 - yaw_ned), math.cos(math.pi / 2 - yaw_ned)),
-            angular_rate=np.zeros(3),
-            on_ground=-d < 0.1,
-            armed=True,
-        )
-
-
 class SitlFlight:
     """All the moving parts of one SITL flight; use as a context manager (it always cleans up).
 
@@ -332,7 +295,8 @@ class SitlFlight:
         self.cosim: LidarCosim | None = None
         self.gcs: GroundStation | None = None
         self.companion: subprocess.Popen[bytes] | None = None
-        self.external: ExternalPose | None = None
+        self.external: external_sitl.ExternalPose | None = None
+        self.ground_truth = "simulator"  # external: the SITL's truth message, or "estimate"
         self.recorder = Recorder(t0=time.monotonic())
         self.recording = FlightRecording(self.workdir, self.world, options.lidar_step_deg)  # MCAP + truth
         self.lidar_port = free_udp_port()
@@ -454,22 +418,21 @@ class SitlFlight:
         self.gcs.wait_heartbeat()
 
     def _start_external(self) -> None:
-        """Connect the GCS to a running SITL and relay it to the companion (MAVLink router role)."""
+        """Connect the GCS to a running SITL, relay it to the companion (MAVLink router role) from
+        now on, land and disarm it if a previous flight left it armed, anchor the world to its pose."""
         if not self.options.connect:
             raise UserError("--autopilot external needs --connect (e.g. tcp:127.0.0.1:5760)")
-        self.external = ExternalPose(self.world)
-        self.gcs = GroundStation(self.options.connect)
-        self.gcs.wait_heartbeat(timeout=30.0)
+        self.external = external = external_sitl.ExternalPose(self.world)
+        self.gcs = gcs = GroundStation(self.options.connect)
+        gcs.wait_heartbeat(timeout=30.0)
         from pymavlink import mavutil
 
         relay = mavutil.mavlink_connection(f"udpout:127.0.0.1:{self.companion_port}", source_system=255)
-        gcs = self.gcs
-
-        external = self.external
 
         def forward_to_companion(msg: Any) -> None:
-            external.update(msg)
-            if msg.get_type() == "LOCAL_POSITION_NED":
+            changed = external.update(msg)
+            # judge on truth once the SITL sends it, on the estimate only while it does not
+            if changed == "truth" or (changed == "estimate" and external.truth_source is None):
                 state = external.state()
                 speed = float(np.linalg.norm(state.velocity[:2]))
                 self.recorder.on_pose(time.monotonic(), state.position, state.yaw, speed, self.world)
@@ -480,7 +443,18 @@ class SitlFlight:
         self._relay = relay
         self._relay_thread = threading.Thread(target=self._relay_back, daemon=True)
         self._relay_thread.start()
-        gcs.mav.mav.request_data_stream_send(gcs.target_system, 1, 0, 10, 1)
+        external_sitl.request_streams(gcs)
+        self.pump_gcs()  # from connect onwards: the companion must hear the autopilot before take-off
+        end = time.monotonic() + 10.0
+        while not external.has_estimate:
+            if time.monotonic() > end:
+                raise RuntimeError("external SITL: no LOCAL_POSITION_NED / ATTITUDE within 10 s")
+            time.sleep(0.05)
+        self.pilot(external_sitl.land_and_disarm)
+        self.ground_truth = self.pilot(lambda g: external_sitl.wait_for_truth(external, g.pump))
+        if self.ground_truth == "estimate":
+            log.warning("%s", external_sitl.ESTIMATE_WARNING)
+        external.anchor()
 
     def _relay_back(self) -> None:
         """External SITL: companion → autopilot (setpoints, heartbeats, STATUSTEXT), recorded on the way."""
@@ -563,7 +537,9 @@ class SitlFlight:
 
     # ------------------------------------------------------------------ the pilot
     def pump_gcs(self) -> None:
-        """Keep the GCS link alive (heartbeats, telemetry) from a background thread."""
+        """Keep the GCS link alive (heartbeats, telemetry) from a background thread (once)."""
+        if self._pump_thread is not None:
+            return
 
         def run() -> None:
             while not self._stop.is_set():
@@ -612,6 +588,8 @@ class SitlFlight:
         with self._gcs_lock:
             gcs.pump(0.3)
             if gcs.is_px4:
+                # PX4 refuses to arm after a flight that ended in OFFBOARD: Hold first
+                gcs.set_mode("HOLD")
                 self._arm(gcs)
                 gcs.takeoff(TAKEOFF_ALTITUDE)
             else:
@@ -718,6 +696,8 @@ class SitlFlight:
             malformed=malformed,
             error=error,
             recording=str(self.recording.path),
+            ground_truth=self.ground_truth,
+            warnings=[external_sitl.ESTIMATE_WARNING] if self.ground_truth == "estimate" else [],
         )
         if self.options.mission:
             reached = waypoints_reached(self.world, traj, self.engaged_at)
@@ -952,10 +932,12 @@ def print_report(r: FlightReport) -> None:
     print(f"world {r.world}, autopilot {r.autopilot}")
     if r.error:
         print(f"  error: {r.error}")
+    for warning in r.warnings:
+        print(f"  warning: {warning}")
     print(f"  engaged: {r.engaged}   collision: {r.collision}   flight {r.flight_time_s:.1f} s")
-    print(
-        f"  distance flown {r.distance_m:.1f} m, minimum clearance {measured(r.min_clearance_m, '.2f', 'm')}"
-    )
+    clearance = measured(r.min_clearance_m, ".2f", "m")
+    print(f"  distance flown {r.distance_m:.1f} m, minimum clearance {clearance} "
+          f"(judged on {r.ground_truth or 'the simulator'})")
     print(
         f"  setpoints {r.setpoint_rate_hz:.1f} Hz, latency revolution end → setpoint "
         f"p50 {measured(r.latency_p50_ms, '.1f', 'ms')}, p99 {measured(r.latency_p99_ms, '.1f', 'ms')}"

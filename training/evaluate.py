@@ -91,14 +91,26 @@ class ShieldedController:
     :param shield: the companion's shield (its limits are the flight configuration's)
     :param max_speed: m/s that an action of 1 stands for (the env's action scaling)
     :param max_yaw_rate: rad/s that an action of 1 stands for
+    :param velocity: the measured body velocity (forward, left) now, as the companion reads it from
+        the autopilot (the env's :meth:`~flightsim.env.LidarAvoidEnv.measured_body_velocity`)
+    :param lateral: where the shield's sideways brake goes (the env's
+        :meth:`~flightsim.env.LidarAvoidEnv.command_lateral`), since an action carries none
     """
 
     def __init__(
-        self, inner: Controller, shield: SafetyShield, max_speed: float, max_yaw_rate: float
+        self,
+        inner: Controller,
+        shield: SafetyShield,
+        max_speed: float,
+        max_yaw_rate: float,
+        velocity: Callable[[], np.ndarray] | None = None,
+        lateral: Callable[[float], None] | None = None,
     ) -> None:
         self._inner = inner
         self.shield = shield
         self._scale = (max_speed, max_yaw_rate)
+        self._velocity = velocity
+        self._lateral = lateral
 
     def reset(self, scan: np.ndarray) -> np.ndarray:
         self.shield.reset()
@@ -110,7 +122,15 @@ class ShieldedController:
     def _filter(self, action: np.ndarray, scan: np.ndarray) -> np.ndarray:
         max_speed, max_yaw_rate = self._scale
         scan = scan[:N_BINS]  # a goal frame's scan part
-        safe = self.shield.filter(command_from_action(action, max_speed, max_yaw_rate), scan, STEP_SECONDS)
+        measured = None
+        if self._velocity is not None:
+            v = self._velocity()
+            measured = (float(v[0]), float(v[1]))
+        safe = self.shield.filter(
+            command_from_action(action, max_speed, max_yaw_rate), scan, STEP_SECONDS, measured
+        )
+        if self._lateral is not None:
+            self._lateral(safe.lateral)
         return np.array([safe.forward / max_speed, safe.yaw_rate / max_yaw_rate], dtype=np.float32)
 
 
@@ -282,13 +302,23 @@ def _xy(info: dict[str, Any]) -> tuple[float, float]:
 _WORKER_CACHE: dict[Any, Any] = {}
 
 
-def build_controller(spec: ControllerSpec, env_config: Any, seed: int, n_stack: int = 4) -> Controller:
-    """Build the controller ``spec`` describes, behind the shield if it says so."""
+def build_controller(
+    spec: ControllerSpec,
+    env_config: Any,
+    seed: int,
+    n_stack: int = 4,
+    velocity: Callable[[], np.ndarray] | None = None,
+    lateral: Callable[[float], None] | None = None,
+) -> Controller:
+    """Build the controller ``spec`` describes, behind the shield if it says so (the shield braking
+    and capping yaw as the env's autopilot response does, watching ``velocity`` as in flight)."""
     controller = _bare_controller(spec, env_config, seed, n_stack)
     if not spec.shield:
         return controller
-    shield = SafetyShield(ShieldConfig(), max_range=float(env_config.scan.max_range))
-    return ShieldedController(controller, shield, float(env_config.max_speed), float(env_config.max_yaw_rate))
+    shield = SafetyShield(ShieldConfig(), float(env_config.scan.max_range), env_config.autopilot_response)
+    return ShieldedController(
+        controller, shield, float(env_config.max_speed), float(env_config.max_yaw_rate), velocity, lateral
+    )
 
 
 def _bare_controller(spec: ControllerSpec, env_config: Any, seed: int, n_stack: int) -> Controller:
@@ -393,7 +423,11 @@ def make_eval_env(env_dict: dict[str, Any], env_id: str = AVOID_ENV_ID) -> Any:
 def run_task(task: EpisodeTask) -> EpisodeResult:
     """Run one :class:`EpisodeTask` (in a worker process or in-line)."""
     env = _worker_env(task.env, task.env_id)
-    controller = build_controller(task.controller, env.unwrapped.config, task.seed)
+    unwrapped = env.unwrapped
+    controller = build_controller(
+        task.controller, unwrapped.config, task.seed,
+        velocity=unwrapped.measured_body_velocity, lateral=unwrapped.command_lateral,
+    )  # fmt: skip
     result = run_episode(env, controller, task.world.reset_options(), seed=task.seed)
     result.controller, result.world, result.episode = task.controller.label, task.world.name, task.episode
     return result

@@ -3,7 +3,8 @@
 What goes out: SET_POSITION_TARGET_LOCAL_NED in MAV_FRAME_BODY_OFFSET_NED with only velocity and
 yaw rate enabled (type mask 0x05C7), OBSTACLE_DISTANCE for ArduPilot's own proximity avoidance,
 the companion's HEARTBEAT and STATUSTEXT. What comes in: HEARTBEAT (armed, mode),
-EXTENDED_SYS_STATE (landed state), GLOBAL_POSITION_INT / LOCAL_POSITION_NED (altitude above home)
+EXTENDED_SYS_STATE (landed state), GLOBAL_POSITION_INT / LOCAL_POSITION_NED (altitude above home),
+LOCAL_POSITION_NED + ATTITUDE (the measured velocity, turned into the body frame by the heading)
 and VFR_HUD (climb rate); the link asks for those streams with MAV_CMD_SET_MESSAGE_INTERVAL because
 ArduPilot's default SRx_ rates may be zero on a companion port.
 """
@@ -19,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.autopilot.link import LandedState, VehicleStatus
+from companion.autopilot.link import LandedState, VehicleStatus, body_velocity
 from companion.autopilot.mavlink_adapter import MavlinkEndpoint, mavlink, mode_name
 from companion.obstacle_distance import sector_distances
 
@@ -33,9 +34,11 @@ COPTER_GUIDED = 4
 #: OBSTACLE_DISTANCE sector width, degrees (72 sectors cover the circle).
 SECTOR_INCREMENT_DEG = 5
 #: Messages the supervisor needs, requested at ``stream_rate_hz``.
-STATUS_STREAMS = ("EXTENDED_SYS_STATE", "GLOBAL_POSITION_INT", "LOCAL_POSITION_NED", "VFR_HUD")
+STATUS_STREAMS = ("EXTENDED_SYS_STATE", "GLOBAL_POSITION_INT", "LOCAL_POSITION_NED", "VFR_HUD", "ATTITUDE")
 #: A position source older than this no longer counts as current, seconds.
 POSITION_FRESH_S = 2.0
+#: A heading older than this does not turn a velocity into the body frame, seconds.
+ATTITUDE_FRESH_S = 0.5
 #: STATUSTEXT carries 50 bytes per message; longer texts are chunked, up to this many chunks.
 STATUSTEXT_CHUNK = 50
 STATUSTEXT_MAX_CHUNKS = 4
@@ -104,6 +107,7 @@ class ArduPilotLink:
         self._target: tuple[int, int] | None = None
         self._status = VehicleStatus()
         self._last_seen: dict[str, float] = {}
+        self._yaw_ned = math.nan
         self._last_stream_request = -math.inf
         self._statustext_id = 0
         self._streams: tuple[str, ...] = STATUS_STREAMS
@@ -177,6 +181,9 @@ class ArduPilotLink:
                 self._status.altitude = -float(msg.z)
             if not self._fresh("VFR_HUD", now):
                 self._status.climb_rate = -float(msg.vz)
+            self._on_velocity(float(msg.vx), float(msg.vy), now)
+        elif kind == "ATTITUDE":
+            self._yaw_ned = float(msg.yaw)
         elif kind == "VFR_HUD":
             # VFR_HUD.alt may be above sea level depending on firmware; only its climb rate is used.
             self._status.climb_rate = float(msg.climb)
@@ -191,6 +198,15 @@ class ArduPilotLink:
         if msg.result != mavlink.MAV_RESULT_ACCEPTED:
             self.counters["command_nacks"] += 1
             log.debug("command %d refused by the autopilot: result %d", msg.command, msg.result)
+
+    def _on_velocity(self, v_north: float, v_east: float, now: float) -> None:
+        """LOCAL_POSITION_NED's velocity into the body frame, if the heading is current."""
+        if now - self._last_seen.get("ATTITUDE", -math.inf) > ATTITUDE_FRESH_S:
+            return
+        body = body_velocity(v_north, v_east, self._yaw_ned)
+        if body is not None:
+            self._status.velocity_body = body
+            self._status.velocity_time = now
 
     def _fresh(self, kind: str, now: float) -> bool:
         return now - self._last_seen.get(kind, -math.inf) < POSITION_FRESH_S
@@ -263,17 +279,18 @@ class ArduPilotLink:
         self.counters[counter] += 1
         return True
 
-    def send_velocity(self, forward: float, yaw_rate: float) -> None:
+    def send_velocity(self, forward: float, yaw_rate: float, lateral: float = 0.0) -> None:
         """Send one body-frame velocity + yaw-rate setpoint to the autopilot.
 
         :param forward: body x velocity, m/s
         :param yaw_rate: rad/s, FLU (counter-clockwise positive); sent negated, as FRD
+        :param lateral: body y velocity, m/s, left positive (the shield's brake); sent negated, as FRD
         """
         if self._target is None:
             self.counters["setpoints_without_target"] += 1
             return
-        if not (math.isfinite(forward) and math.isfinite(yaw_rate)):
-            forward, yaw_rate = 0.0, 0.0  # the shield should never let this through; never send NaN
+        if not (math.isfinite(forward) and math.isfinite(yaw_rate) and math.isfinite(lateral)):
+            forward, yaw_rate, lateral = 0.0, 0.0, 0.0  # the shield never lets this through; never NaN
         time_boot_ms = int((self._clock() - self._start) * 1000) & 0xFFFFFFFF
         self._send(
             "setpoints_sent",
@@ -283,7 +300,7 @@ class ArduPilotLink:
             mavlink.MAV_FRAME_BODY_OFFSET_NED,
             VELOCITY_YAW_RATE_TYPE_MASK,
             0.0, 0.0, 0.0,
-            float(forward), 0.0, 0.0,
+            float(forward), -float(lateral), 0.0,
             0.0, 0.0, 0.0,
             0.0,
             -float(yaw_rate),

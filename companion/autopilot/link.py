@@ -6,6 +6,7 @@ application loop can be written (and tested) against one shape whichever autopil
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from enum import IntEnum
@@ -35,6 +36,10 @@ class VehicleStatus:
     :param landed_state: from EXTENDED_SYS_STATE; None when the autopilot does not send it
     :param altitude: metres above home, up positive (None: not known yet)
     :param climb_rate: metres per second, up positive (None: not known yet)
+    :param velocity_body: the measured horizontal velocity in the body frame, (forward, left) m/s,
+        from the autopilot's velocity estimate turned by its heading (None: not known yet)
+    :param velocity_time: clock time that measurement arrived (None: never); the supervisor HOLDs
+        when it is too old, because the shield watches where the vehicle really goes
     """
 
     heartbeat_time: float | None = None
@@ -44,6 +49,17 @@ class VehicleStatus:
     landed_state: LandedState | None = None
     altitude: float | None = None
     climb_rate: float | None = None
+    velocity_body: tuple[float, float] | None = None
+    velocity_time: float | None = None
+
+
+def body_velocity(v_north: float, v_east: float, yaw_ned: float) -> tuple[float, float] | None:
+    """A NED horizontal velocity as (forward, left) in the body frame of a vehicle heading
+    ``yaw_ned`` (radians clockwise from north); None when any input is not finite."""
+    if not (math.isfinite(v_north) and math.isfinite(v_east) and math.isfinite(yaw_ned)):
+        return None
+    c, s = math.cos(yaw_ned), math.sin(yaw_ned)
+    return (v_north * c + v_east * s, -(-v_north * s + v_east * c))
 
 
 class AutopilotLink(Protocol):
@@ -58,11 +74,13 @@ class AutopilotLink(Protocol):
         """Read whatever is waiting (never blocks) and return the updated status."""
         ...
 
-    def send_velocity(self, forward: float, yaw_rate: float) -> None:
+    def send_velocity(self, forward: float, yaw_rate: float, lateral: float = 0.0) -> None:
         """Send one body-frame setpoint.
 
-        :param forward: body x velocity, m/s (lateral and vertical velocity are zero)
+        :param forward: body x velocity, m/s (vertical velocity is zero)
         :param yaw_rate: rad/s, FLU convention (counter-clockwise positive); the link converts to FRD
+        :param lateral: body y velocity, m/s, left positive (only the shield's brake sets it); the
+            link sends it as FRD (right positive)
         """
         ...
 

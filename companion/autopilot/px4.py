@@ -4,7 +4,8 @@ MAVSDK runs its own I/O thread. The link configures it as a companion computer w
 191, so MAVSDK's own 1 Hz HEARTBEAT is already MAV_TYPE_ONBOARD_CONTROLLER (``send_heartbeat`` has
 nothing to add). Setpoints go through the Offboard plugin as VelocityBodyYawspeed (MAVSDK sends
 SET_POSITION_TARGET_LOCAL_NED, MAV_FRAME_BODY_NED, type mask 0x05C7). Armed state, flight mode,
-landed state, altitude and climb rate come from the Telemetry plugin; the autopilot's HEARTBEAT
+landed state, altitude, climb rate and the measured velocity (NED velocity turned into the body
+frame by the attitude's yaw) come from the Telemetry plugin; the autopilot's HEARTBEAT
 time, OBSTACLE_DISTANCE and STATUSTEXT go through the MavlinkDirect plugin.
 
 The companion never starts OFFBOARD itself: the pilot switches to it, which PX4 only accepts while
@@ -45,7 +46,7 @@ from mavsdk.plugins.offboard.offboard import Offboard, VelocityBodyYawspeed
 from mavsdk.plugins.telemetry.telemetry import FlightMode, Telemetry
 
 from companion.autopilot.ardupilot import SECTOR_INCREMENT_DEG, statustext_chunks
-from companion.autopilot.link import LandedState, VehicleStatus
+from companion.autopilot.link import LandedState, VehicleStatus, body_velocity
 from companion.autopilot.mavlink_adapter import mavlink
 from companion.autopilot.px4_transport import RawMavlinkTransport
 from companion.errors import UserError
@@ -58,6 +59,8 @@ _MAV_DISTANCE_SENSOR_LASER = 0
 _MAV_FRAME_BODY_FRD = 12
 #: A position source older than this no longer counts as current, seconds.
 _POSITION_FRESH_S = 2.0
+#: A heading older than this does not turn a velocity into the body frame, seconds.
+_ATTITUDE_FRESH_S = 0.5
 
 _MAVSDK_LOG_LEVELS = {
     LogLevel.DEBUG: logging.DEBUG,
@@ -160,6 +163,7 @@ class Px4Link:
         self._last_setpoint = -math.inf
         self._status = VehicleStatus()
         self._seen: dict[str, float] = {}
+        self._yaw_ned = math.nan
         self._statustext_id = 0
         self._extra_streams: tuple[str, ...] = ()
 
@@ -198,7 +202,8 @@ class Px4Link:
         telemetry.subscribe_position(self._on_position)
         telemetry.subscribe_velocity_ned(self._on_velocity)
         telemetry.subscribe_position_velocity_ned(self._on_local_position)
-        for name in ("position", "velocity_ned", "landed_state", "position_velocity_ned"):
+        telemetry.subscribe_attitude_euler(self._on_attitude)
+        for name in ("position", "velocity_ned", "landed_state", "position_velocity_ned", "attitude_euler"):
             getattr(telemetry, f"set_rate_{name}_async")(self._stream_rate_hz, self._on_rate_result)
         direct = MavlinkDirect(system)
         direct.subscribe_message("HEARTBEAT", self._on_heartbeat)
@@ -249,10 +254,23 @@ class Px4Link:
             self._seen["velocity"] = self._clock()
             self._status.climb_rate = -float(velocity.down_m_s)
 
+    def _on_attitude(self, euler: Any, _user_data: Any) -> None:
+        if not math.isfinite(euler.yaw_deg):
+            return
+        with self._status_lock:
+            self._seen["attitude"] = self._clock()
+            self._yaw_ned = math.radians(float(euler.yaw_deg))
+
     def _on_local_position(self, pv: Any, _user_data: Any) -> None:
-        """LOCAL_POSITION_NED: the altitude source when there is no global position (indoors)."""
+        """LOCAL_POSITION_NED: the measured velocity, and the altitude source when there is no
+        global position (indoors)."""
         now = self._clock()
         with self._status_lock:
+            if now - self._seen.get("attitude", -math.inf) <= _ATTITUDE_FRESH_S:
+                body = body_velocity(pv.velocity.north_m_s, pv.velocity.east_m_s, self._yaw_ned)
+                if body is not None:
+                    self._status.velocity_body = body
+                    self._status.velocity_time = now
             if now - self._seen.get("position", -math.inf) >= _POSITION_FRESH_S and math.isfinite(
                 pv.position.down_m
             ):
@@ -283,18 +301,19 @@ class Px4Link:
         with self._status_lock:
             return dataclasses.replace(self._status)
 
-    def send_velocity(self, forward: float, yaw_rate: float) -> None:
+    def send_velocity(self, forward: float, yaw_rate: float, lateral: float = 0.0) -> None:
         """Send one OFFBOARD body-frame setpoint.
 
         :param forward: body x velocity, m/s
         :param yaw_rate: rad/s, FLU (counter-clockwise positive); sent as FRD yaw speed in deg/s
+        :param lateral: body y velocity, m/s, left positive (the shield's brake); sent as right_m_s
         """
         if self._system is None:
             self.counters["setpoints_without_autopilot"] += 1
             return
-        if not (math.isfinite(forward) and math.isfinite(yaw_rate)):
-            forward, yaw_rate = 0.0, 0.0
-        setpoint = VelocityBodyYawspeed(float(forward), 0.0, 0.0, -math.degrees(yaw_rate))
+        if not (math.isfinite(forward) and math.isfinite(yaw_rate) and math.isfinite(lateral)):
+            forward, yaw_rate, lateral = 0.0, 0.0, 0.0
+        setpoint = VelocityBodyYawspeed(float(forward), -float(lateral), 0.0, -math.degrees(yaw_rate))
         with self._offboard_lock:
             if self._offboard is None:
                 self._offboard = Offboard(self._system)

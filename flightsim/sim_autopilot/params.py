@@ -188,6 +188,7 @@ ARDUPILOT_DEFAULTS: dict[str, tuple[float, int]] = {
     "AVOID_ENABLE": (3, INT8),
     "AVOID_MARGIN": (2.0, REAL32),
     "AVOID_BEHAVE": (0, INT8),
+    "ATC_RATE_WPY_MAX": (60.0, REAL32),
 }
 
 PX4_DEFAULTS: dict[str, tuple[float, int]] = {
@@ -199,6 +200,7 @@ PX4_DEFAULTS: dict[str, tuple[float, int]] = {
     "COM_OBL_RC_ACT": (0, INT32),
     "COM_RC_OVERRIDE": (1, INT32),
     "CP_DIST": (-1.0, REAL32),
+    "MC_YAWRATE_MAX": (200.0, REAL32),
 }
 
 

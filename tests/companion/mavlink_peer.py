@@ -70,10 +70,22 @@ class AutopilotPeer:
         )
 
     def flying(
-        self, altitude: float = 1.5, climb: float = 0.0, landed: int = mavlink.MAV_LANDED_STATE_IN_AIR
+        self,
+        altitude: float = 1.5,
+        climb: float = 0.0,
+        landed: int = mavlink.MAV_LANDED_STATE_IN_AIR,
+        velocity_ned: tuple[float, float] | None = (0.0, 0.0),
+        yaw_ned: float = 0.0,
+        position_ned: tuple[float, float, float] | None = None,
     ) -> None:
-        """One round of the status streams of a vehicle hovering at ``altitude``."""
+        """One round of the status streams of a vehicle hovering at ``altitude`` (at ``position_ned``,
+        default over the origin; moving at ``velocity_ned``, north and east m/s; None: no
+        LOCAL_POSITION_NED and ATTITUDE, so neither position nor velocity is measured)."""
         self.mav.extended_sys_state_send(0, landed)
+        if velocity_ned is not None:
+            position = position_ned if position_ned is not None else (0.0, 0.0, -altitude)
+            self.mav.attitude_send(0, 0.0, 0.0, yaw_ned, 0.0, 0.0, 0.0)
+            self.mav.local_position_ned_send(0, *position, *velocity_ned, -climb)
         self.mav.global_position_int_send(0, 0, 0, int(altitude * 1000) + 100_000, int(altitude * 1000),
                                           0, 0, int(-climb * 100), 0)
         self.mav.vfr_hud_send(0.0, 0.0, 0, 0, 100.0 + altitude, climb)
@@ -141,9 +153,12 @@ class SimulatedAutopilot:
         self.altitude = 1.5
         self.climb = 0.0
         self.landed = mavlink.MAV_LANDED_STATE_IN_AIR
-        #: (north, east, down) m and heading rad streamed as LOCAL_POSITION_NED and ATTITUDE (None: not sent)
+        #: north and east m/s streamed in LOCAL_POSITION_NED beside ATTITUDE's yaw (None: neither is sent,
+        #: as when the autopilot has no position estimate)
+        self.velocity_ned: tuple[float, float] | None = (0.0, 0.0)
+        self.yaw_ned = 0.0
+        #: (north, east, down) m in that LOCAL_POSITION_NED (None: hovering over the origin)
         self.local_position: tuple[float, float, float] | None = None
-        self.heading = 0.0
         self.sending = True  # False: go silent (heartbeat loss)
         self.params: dict[str, float] = {}  # answered to PARAM_REQUEST_READ (REAL32, C-cast)
         self._period = 1.0 / rate_hz
@@ -161,10 +176,8 @@ class SimulatedAutopilot:
                 next_send = now + self._period
                 if self.sending:
                     self.peer.heartbeat(armed=self.armed, custom_mode=self.custom_mode)
-                    self.peer.flying(self.altitude, self.climb, self.landed)
-                    if self.local_position is not None:
-                        self.peer.mav.local_position_ned_send(0, *self.local_position, 0.0, 0.0, 0.0)
-                        self.peer.mav.attitude_send(0, 0.0, 0.0, self.heading, 0.0, 0.0, 0.0)
+                    self.peer.flying(self.altitude, self.climb, self.landed, self.velocity_ned,
+                                     self.yaw_ned, self.local_position)
             got = False
             while True:
                 msg = self.peer.conn.recv_msg()

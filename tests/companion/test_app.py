@@ -7,6 +7,7 @@ streams VLP-16 revolutions; an AF_UNIX socket stands in for systemd.
 from __future__ import annotations
 
 import hashlib
+import math
 import signal
 import socket
 import time
@@ -309,6 +310,66 @@ def test_parameter_check_warn_tells_the_pilot_and_flies_on(tmp_path):
         vehicle.close()
     assert code == 0, err
     assert "param PRX1_TYPE: wanted 2, autopilot 0" in err
+
+
+def test_stale_velocity_holds_and_fresh_velocity_flies_again(rig):
+    vehicle, lidar = rig.vehicle, rig.lidar
+    lidar.on = True
+    _wait(lambda: any(m.vx > 0 for m in vehicle.messages(SETPOINT)), timeout=20, what="engaged")
+    vehicle.velocity_ned = None  # LOCAL_POSITION_NED and ATTITUDE stop
+    t_stale = time.monotonic()
+    _wait(lambda: any("velocity stale" in m.text for m in vehicle.messages("STATUSTEXT", since=t_stale)),
+          what="HOLD on stale velocity")
+    t_hold = time.monotonic()
+    time.sleep(0.5)
+    held = vehicle.messages(SETPOINT, since=t_hold)
+    assert len(held) >= 3 and all(m.vx == 0.0 and m.yaw_rate == 0.0 for m in held)
+    vehicle.velocity_ned = (0.0, 0.0)
+    t_back = time.monotonic()
+    _wait(lambda: any(m.vx > 0 for m in vehicle.messages(SETPOINT, since=t_back)), what="recovery")
+
+
+def test_no_obstacle_distance_before_the_vehicle_is_airborne(rig):
+    """On the ground and during take-off the slice cuts the floor: no OBSTACLE_DISTANCE then."""
+    vehicle, lidar = rig.vehicle, rig.lidar
+    vehicle.landed, vehicle.altitude = mavlink.MAV_LANDED_STATE_ON_GROUND, 0.0
+    lidar.on = True
+    time.sleep(1.5)
+    assert vehicle.messages("OBSTACLE_DISTANCE") == []
+    vehicle.landed, vehicle.altitude = mavlink.MAV_LANDED_STATE_TAKEOFF, 1.2
+    time.sleep(0.8)
+    assert vehicle.messages("OBSTACLE_DISTANCE") == []
+    vehicle.landed, vehicle.altitude = mavlink.MAV_LANDED_STATE_IN_AIR, 1.5
+    t_air = time.monotonic()
+    assert _wait(lambda: vehicle.messages("OBSTACLE_DISTANCE", since=t_air), what="OBSTACLE_DISTANCE")
+
+
+def test_yaw_rate_capped_at_the_autopilots_limit_read_at_start_up(tmp_path):
+    """ArduPilot flies at most ATC_RATE_WPY_MAX; the start-up check reads it, warns, and the shield
+    never asks more (75 deg/s here: neither the firmware default 60 nor the policy's 86)."""
+    lidar_port, mavlink_port = free_udp_port(), free_udp_port()
+    model = write_policy(tmp_path / "left.onnx", kind="turn_left")
+    parm = tmp_path / "copter.parm"
+    parm.write_text("ATC_RATE_WPY_MAX 86\n")
+    config = write_config(tmp_path, model, lidar_port, mavlink_port,
+                          extra=f'[params_check]\nmode = "warn"\nfile = "{parm.name}"\ntimeout = 5.0\n')
+    vehicle = SimulatedAutopilot(f"udpout:127.0.0.1:{mavlink_port}")
+    vehicle.params = {"ATC_RATE_WPY_MAX": 75.0}
+    proc = start_companion(config)
+    lidar = LidarSender(lidar_port)
+    try:
+        lidar.on = True
+        text = vehicle.wait_for("STATUSTEXT", timeout=20, condition=lambda m: "yaw limit" in m.text)
+        assert text is not None and "ATC_RATE_WPY_MAX 75 deg/s" in text.text
+        _wait(lambda: vehicle.messages(SETPOINT), timeout=20, what="setpoints")
+        time.sleep(1.5)  # the yaw rate ramps up at max_yaw_accel
+        turning = vehicle.messages(SETPOINT)[-3:]
+        assert all(m.yaw_rate == pytest.approx(-math.radians(75.0), abs=1e-4) for m in turning)
+    finally:
+        lidar.close()
+        code, _out, err = stop(proc)
+        vehicle.close()
+    assert code == 0, err
 
 
 def test_px4_streams_before_offboard_then_flies(tmp_path):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import socket
 import time
@@ -77,6 +78,33 @@ def test_local_position_used_without_gps(linked):
     assert status.climb_rate == pytest.approx(0.4)
 
 
+def test_measured_velocity_turned_into_the_body_frame(linked):
+    link, peer, clock = linked
+    peer.mav.attitude_send(0, 0.0, 0.0, math.radians(90.0), 0.0, 0.0, 0.0)  # nose east
+    peer.mav.local_position_ned_send(0, 0.0, 0.0, -1.5, 1.0, 2.0, 0.0)  # 1 m/s north, 2 m/s east
+    status = _poll_until(link, lambda s: s.velocity_body is not None)
+    assert status.velocity_body == pytest.approx((2.0, 1.0))  # forward = east, left = north
+    assert status.velocity_time == clock.t
+    assert "ATTITUDE" in {mavlink.mavlink_map[int(m.param1)].msgname
+                          for m in peer.drain(0.2) if m.get_type() == "COMMAND_LONG"}
+
+
+def test_velocity_without_a_current_heading_is_not_measured(linked):
+    link, peer, clock = linked
+    peer.mav.local_position_ned_send(0, 0.0, 0.0, -1.5, 1.0, 0.0, 0.0)
+    status = _poll_until(link, lambda s: s.altitude is not None)
+    assert status.velocity_body is None and status.velocity_time is None  # no ATTITUDE yet
+    peer.mav.attitude_send(0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    peer.mav.local_position_ned_send(0, 0.0, 0.0, -1.5, 1.0, 0.0, 0.0)
+    status = _poll_until(link, lambda s: s.velocity_body is not None)
+    measured_at = status.velocity_time
+    clock.t += 0.6  # the heading is now too old to turn the next velocity
+    peer.mav.local_position_ned_send(0, 0.0, 0.0, -1.5, 0.0, 1.0, 0.0)
+    time.sleep(0.1)
+    status = link.poll()
+    assert status.velocity_body == pytest.approx((1.0, 0.0)) and status.velocity_time == measured_at
+
+
 def test_velocity_setpoint_on_the_wire(linked):
     link, peer, _ = linked
     link.send_velocity(1.5, 0.4)  # FLU: turning left
@@ -91,6 +119,9 @@ def test_velocity_setpoint_on_the_wire(linked):
     assert msg.vy == 0.0 and msg.vz == 0.0
     assert msg.yaw_rate == pytest.approx(-0.4)  # FRD: clockwise positive
     assert link.counters["setpoints_sent"] == 1
+    link.send_velocity(-0.3, 0.0, lateral=0.2)  # the shield's brake: back and to the left
+    msg = peer.wait_for("SET_POSITION_TARGET_LOCAL_NED")
+    assert msg.vx == pytest.approx(-0.3) and msg.vy == pytest.approx(-0.2)  # FRD: right positive
 
 
 def test_non_finite_setpoint_goes_out_as_zero(linked):
@@ -160,22 +191,24 @@ def test_requests_status_streams_until_they_arrive(linked):
     link, peer, clock = linked
     requests = []
     deadline = time.monotonic() + 2.0
-    while len(requests) < 4 and time.monotonic() < deadline:
+    while len(requests) < 5 and time.monotonic() < deadline:
         requests += [m for m in peer.drain(0.01) if m.get_type() == "COMMAND_LONG"]
     assert all(m.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL for m in requests)
     assert all((m.target_system, m.target_component) == (7, 1) for m in requests)
     assert sorted(int(m.param1) for m in requests) == sorted(
         [mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
-         mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mavlink.MAVLINK_MSG_ID_VFR_HUD])
+         mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mavlink.MAVLINK_MSG_ID_VFR_HUD,
+         mavlink.MAVLINK_MSG_ID_ATTITUDE])
     assert all(m.param2 == 100_000 for m in requests)  # 10 Hz
     # Streams that are arriving are not asked for again; the missing one is, 5 s later.
     clock.t += 5.5
-    peer.flying()
+    peer.flying(velocity_ned=None)
     time.sleep(0.05)  # loopback delivery
     status = link.poll()  # reads the streams first, then asks for what is still missing
     assert status.landed_state is not None
     again = [m for m in peer.drain(0.2) if m.get_type() == "COMMAND_LONG"]
-    assert [int(m.param1) for m in again] == [mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED]
+    assert [int(m.param1) for m in again] == [mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
+                                               mavlink.MAVLINK_MSG_ID_ATTITUDE]
 
 
 def test_refused_command_is_counted(linked):

@@ -52,7 +52,7 @@ def test_fixed_goal_position_loss_and_completion_hold(tmp_path):
         _wait(lambda: any("goal: tracking" in t for t in _texts(vehicle, 0.0)), 5.0, "goal: tracking")
 
         # position lost: after 1 s the goal says hold, the setpoints are zero, the pilot is told why
-        vehicle.local_position = None
+        vehicle.velocity_ned = None  # no LOCAL_POSITION_NED: neither position nor velocity
         t_lost = time.monotonic()
         _wait(lambda: any("hold (no position)" in t for t in _texts(vehicle, t_lost)), what="position hold")
         t_held = time.monotonic() + 0.2
@@ -61,7 +61,7 @@ def test_fixed_goal_position_loss_and_completion_hold(tmp_path):
         assert len(held) >= 3 and all(m.vx == 0.0 for m in held)
 
         # position back: tracking again, the policy's setpoints resume
-        vehicle.local_position = (1.0, 0.0, -1.5)
+        vehicle.local_position, vehicle.velocity_ned = (1.0, 0.0, -1.5), (0.0, 0.0)
         t_back = time.monotonic()
         _wait(lambda: any(m.vx > 0 for m in vehicle.messages(SETPOINT, since=t_back)), what="tracking again")
 

@@ -141,3 +141,30 @@ def test_sector_distances_are_72_plain_ints_and_a_wrong_count_is_refused() -> No
     assert len(out) == 72 and all(type(v) is int and v == 1001 for v in out)
     with pytest.raises(ValueError, match="72 sectors, got 71"):
         sector_distances(np.zeros(71, np.uint16))
+
+
+def test_sent_only_while_airborne():
+    from companion.autopilot.link import LandedState, VehicleStatus
+    from companion.obstacle_distance import obstacle_distance_allowed
+
+    def status(landed, altitude):
+        return VehicleStatus(landed_state=landed, altitude=altitude)
+
+    assert obstacle_distance_allowed(status(LandedState.IN_AIR, 1.5), 1.0)
+    assert not obstacle_distance_allowed(status(LandedState.ON_GROUND, 0.0), 1.0)
+    assert not obstacle_distance_allowed(status(LandedState.TAKEOFF, 1.2), 1.0)  # still climbing
+    assert not obstacle_distance_allowed(status(LandedState.IN_AIR, 0.6), 1.0)  # the slice cuts the floor
+    assert not obstacle_distance_allowed(status(LandedState.IN_AIR, None), 1.0)
+    assert obstacle_distance_allowed(status(None, 1.5), 1.0)  # no EXTENDED_SYS_STATE: altitude alone
+    assert not obstacle_distance_allowed(status(None, 0.2), 1.0)
+
+
+def test_floor_below_the_slice_never_reaches_the_sectors():
+    """Airborne at 1.5 m, the floor returns of the low lasers are outside the slice: no sector
+    reports them; only the wall 2 m ahead is there."""
+    azimuths = np.radians(np.arange(0.0, 360.0, 1.0))
+    floor = np.stack([1.4 * np.cos(azimuths), 1.4 * np.sin(azimuths), np.full_like(azimuths, -1.5)], axis=1)
+    wall = np.array([[2.0, 0.0, 0.0]])
+    scan = scan_from_points(np.vstack([floor, wall]), ScanConfig())
+    sectors = obstacle_distance_from_scan(scan, 10.0)
+    assert sectors[0] == 200 and np.count_nonzero(sectors <= 1000) == 1

@@ -7,6 +7,7 @@ the AUTOPILOT_VERSION request, so every byte the companion exchanges is real MAV
 
 from __future__ import annotations
 
+import math
 import os
 import struct
 import threading
@@ -33,6 +34,7 @@ from companion.params import (
     run_params,
     values_match,
     wait_for_autopilot,
+    yaw_rate_limit,
 )
 from flightsim.sim_autopilot.params import ParameterTable, default_table
 
@@ -119,14 +121,14 @@ def write(tmp_path: Path, name: str, text: str) -> Path:
 def test_repository_files_parse_with_their_types():
     parm = REPO / "firmware_params/ardupilot-copter.parm"
     ardupilot = {p.name: p for p in load_param_file(parm, "ardupilot")}
-    assert ardupilot["SERIAL2_BAUD"].value == 921 and ardupilot["PRX1_TYPE"].value == 2
-    assert {"SERIAL2_PROTOCOL", "GUID_TIMEOUT", "AVOID_ENABLE", "AVOID_MARGIN", "AVOID_BEHAVE"} <= set(
-        ardupilot
-    )
+    assert ardupilot["SERIAL2_BAUD"].value == 921 and ardupilot["PRX1_TYPE"].value == 0
+    assert ardupilot["ATC_RATE_WPY_MAX"].value == 86  # the policy's 1.5 rad/s
+    assert {"SERIAL2_PROTOCOL", "GUID_TIMEOUT"} <= set(ardupilot)
     assert all(p.param_type is None for p in ardupilot.values())
     px4 = {p.name: p for p in load_param_file(REPO / "firmware_params/px4.params", "px4")}
     assert px4["COM_OBL_RC_ACT"].value == 5 and px4["COM_OBL_RC_ACT"].param_type == INT32
     assert px4["MAV_1_CONFIG"].value == 102 and px4["CP_DIST"].param_type == REAL32
+    assert px4["CP_DIST"].value == -1.0 and px4["MC_YAWRATE_MAX"].value >= 86
     assert {"MAV_1_MODE", "MAV_1_FORWARD", "SER_TEL2_BAUD", "COM_OF_LOSS_T"} <= set(px4)
 
 
@@ -137,6 +139,20 @@ def test_every_file_parameter_exists_in_the_simulated_firmware():
         for p in load_param_file(REPO / "firmware_params" / name, personality):
             assert table.get(p.name) is not None, p.name
             assert p.param_type in (None, table.param_type(p.name)), p.name
+
+
+def test_yaw_rate_limit_read_from_a_check_report():
+    from companion.params import CheckReport, ParamResult
+
+    def report(name, actual):
+        wanted = WantedParam(name, 86.0, None, 1, "f")
+        return CheckReport([ParamResult(wanted, Status.DIFFERS, actual, REAL32)], False, "test")
+
+    assert yaw_rate_limit(report("ATC_RATE_WPY_MAX", 60.0), "ardupilot") == pytest.approx(math.radians(60.0))
+    assert yaw_rate_limit(report("ATC_RATE_WPY_MAX", 0.0), "ardupilot") is None  # 0: no cap of its own
+    assert yaw_rate_limit(report("ATC_RATE_WPY_MAX", None), "ardupilot") is None  # no reply
+    assert yaw_rate_limit(report("MC_YAWRATE_MAX", 200.0), "px4") == pytest.approx(math.radians(200.0))
+    assert yaw_rate_limit(report("GUID_TIMEOUT", 1.0), "ardupilot") is None  # not in the file
 
 
 def test_default_file_is_the_checkout_copy():
@@ -233,9 +249,9 @@ def test_check_fails_on_fresh_autopilot_apply_fixes_check_passes(peer_factory, c
     peer = peer_factory(personality)
     assert main(cli("check", personality, peer.url)) == 1
     out = capsys.readouterr().out
-    first = "PRX1_TYPE" if personality == "ardupilot" else "COM_OBL_RC_ACT"
+    first = "ATC_RATE_WPY_MAX" if personality == "ardupilot" else "COM_OBL_RC_ACT"
     row = next(line for line in out.splitlines() if line.startswith(first))
-    assert row.split()[1:4] == (["2", "0", "NO"] if personality == "ardupilot" else ["5", "0", "NO"])
+    assert row.split()[1:4] == (["86", "60", "NO"] if personality == "ardupilot" else ["5", "0", "NO"])
     encoding = "bytewise" if personality == "px4" else "C cast"
     assert f"value encoding: {encoding} (from AUTOPILOT_VERSION capabilities)" in out
     assert "PARAM_SET" not in peer.received  # check never writes
@@ -243,9 +259,9 @@ def test_check_fails_on_fresh_autopilot_apply_fixes_check_passes(peer_factory, c
     assert main(cli("apply", personality, peer.url)) == 0
     out = capsys.readouterr().out
     if personality == "ardupilot":
-        assert "changed PRX1_TYPE: 0 -> 2 (needs reboot)" in out
-        assert "changed AVOID_MARGIN: 2 -> 1" in out and "AVOID_MARGIN: 2 -> 1 (needs reboot)" not in out
-        assert peer.table.get("PRX1_TYPE") == 2 and peer.table.get("GUID_TIMEOUT") == 1.0
+        assert "changed SERIAL2_BAUD: 57 -> 921 (needs reboot)" in out
+        assert "changed ATC_RATE_WPY_MAX: 60 -> 86" in out and "WPY_MAX: 60 -> 86 (needs reboot)" not in out
+        assert peer.table.get("ATC_RATE_WPY_MAX") == 86 and peer.table.get("GUID_TIMEOUT") == 1.0
     else:
         assert "changed COM_OBL_RC_ACT: 0 -> 5" in out
         assert "changed MAV_1_CONFIG: 0 -> 102 (needs reboot)" in out

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
@@ -58,6 +59,18 @@ def test_status_from_telemetry(px4):
     _wait(lambda: link.poll().guided)
 
 
+def test_measured_velocity_turned_into_the_body_frame(px4):
+    link, vehicle = px4
+    vehicle.yaw_ned, vehicle.velocity_ned = math.radians(90.0), (1.0, 2.0)  # nose east
+    try:
+        status = _wait(lambda: (s := link.poll()).velocity_body is not None
+                       and abs(s.velocity_body[0] - 2.0) < 1e-3 and s)
+        assert status.velocity_body == pytest.approx((2.0, 1.0), abs=1e-3)  # forward east, left north
+        assert time.monotonic() - status.velocity_time < 0.5
+    finally:
+        vehicle.yaw_ned, vehicle.velocity_ned = 0.0, (0.0, 0.0)
+
+
 def test_companion_heartbeat_is_an_onboard_controller(px4):
     link, vehicle = px4
     link.send_heartbeat()  # MAVSDK sends it on its own; the call must not add a second stream
@@ -81,6 +94,10 @@ def test_velocity_setpoint_on_the_wire(px4):
     assert (msg.target_system, msg.target_component) == (1, 1)
     assert msg.vx == pytest.approx(1.5) and msg.vy == 0.0 and msg.vz == 0.0
     assert msg.yaw_rate == pytest.approx(-0.4, abs=1e-5)  # FRD, clockwise positive
+    t1 = time.monotonic()
+    link.send_velocity(-0.3, 0.0, lateral=0.2)  # the shield's brake: back and to the left
+    msg = vehicle.wait_for("SET_POSITION_TARGET_LOCAL_NED", since=t1, condition=lambda m: m.vx < 0)
+    assert msg.vx == pytest.approx(-0.3) and msg.vy == pytest.approx(-0.2)  # FRD: right positive
 
 
 def test_setpoint_repetition_stops_when_the_companion_stops(px4):

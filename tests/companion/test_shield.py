@@ -12,17 +12,22 @@ from hypothesis.extra import numpy as hnp
 
 from companion.errors import UserError
 from companion.shield import (
+    AUTOPILOT_LIMITS,
     Command,
     SafetyShield,
     ShieldConfig,
+    arc_bins,
     command_from_action,
     sector_bins,
+    stopping_distance,
     stopping_speed,
 )
 from companion.tomlconfig import from_dict
 
 MAX_RANGE = 10.0
 CLEAR = np.ones(360, dtype=np.float32)
+#: the nose, travel and estop layers alone (the keep-out push has its own tests at the end)
+BASE = ShieldConfig(keepout_distance=0.0)
 
 
 def scan_with(bins: dict[int, float] | None = None) -> np.ndarray:
@@ -56,13 +61,13 @@ def test_stopping_speed_formula() -> None:
 
 
 def test_clear_scan_passes_request_through() -> None:
-    shield = SafetyShield(ShieldConfig(), MAX_RANGE)
+    shield = SafetyShield(BASE, MAX_RANGE)
     assert settled(shield, Command(1.5, -0.7), CLEAR) == Command(1.5, -0.7)
     assert not shield.interventions["stopping_distance"] and not shield.interventions["estop"]
 
 
 def test_nan_and_inf_requests_become_zero() -> None:
-    shield = SafetyShield(ShieldConfig(), MAX_RANGE)
+    shield = SafetyShield(BASE, MAX_RANGE)
     settled(shield, Command(1.0, 0.5), CLEAR)
     for bad in (Command(float("nan"), 0.0), Command(0.5, float("inf")), Command(-math.inf, math.nan)):
         assert shield.filter(bad, CLEAR, 0.1) == Command(0.0, 0.0)
@@ -70,7 +75,7 @@ def test_nan_and_inf_requests_become_zero() -> None:
 
 
 def test_nan_scan_bins_count_as_obstacles() -> None:
-    shield = SafetyShield(ShieldConfig(), MAX_RANGE)
+    shield = SafetyShield(BASE, MAX_RANGE)
     scan = CLEAR.copy()
     scan[0] = np.nan
     assert settled(shield, Command(2.0, 0.0), scan).forward == 0.0
@@ -78,7 +83,7 @@ def test_nan_scan_bins_count_as_obstacles() -> None:
 
 
 def test_speed_and_yaw_rate_limits() -> None:
-    cfg = ShieldConfig(max_speed=2.0, max_reverse_speed=0.5, max_yaw_rate=1.5)
+    cfg = ShieldConfig(keepout_distance=0.0, max_speed=2.0, max_reverse_speed=0.5, max_yaw_rate=1.5)
     shield = SafetyShield(cfg, MAX_RANGE)
     assert settled(shield, Command(5.0, 9.0), CLEAR) == Command(2.0, 1.5)
     assert settled(shield, Command(-5.0, -9.0), CLEAR) == Command(-0.5, -1.5)
@@ -87,20 +92,20 @@ def test_speed_and_yaw_rate_limits() -> None:
 
 @pytest.mark.parametrize("distance", [0.8, 1.5, 3.0, 5.0])
 def test_forward_speed_lets_the_vehicle_stop_before_the_return(distance: float) -> None:
-    cfg = ShieldConfig(max_speed=10.0)
+    cfg = ShieldConfig(keepout_distance=0.0, max_speed=10.0)
     shield = SafetyShield(cfg, MAX_RANGE)
     out = settled(shield, Command(10.0, 0.0), scan_with({10: distance}))
-    expected = stopping_speed(distance - cfg.estop_distance, cfg.max_decel, cfg.reaction_time)
+    expected = stopping_speed(distance - cfg.estop_distance, shield.max_decel, shield.reaction_time)
     assert out.forward == pytest.approx(expected)
     # and that speed indeed stops before estop_distance from the return
-    v, a, t = out.forward, cfg.max_decel, cfg.reaction_time
+    v, a, t = out.forward, shield.max_decel, shield.reaction_time
     assert v * t + v * v / (2 * a) == pytest.approx(distance - cfg.estop_distance)
     assert shield.interventions["stopping_distance"] > 0
 
 
 @pytest.mark.parametrize("bins", [{10: 0.8}, {350: 1.5}, {0: 3.0, 90: 0.4}, {5: 0.2}, {}])
 def test_forward_cap_is_the_speed_the_filter_lets_through(bins: dict[int, float]) -> None:
-    shield = SafetyShield(ShieldConfig(max_speed=20.0), MAX_RANGE)
+    shield = SafetyShield(ShieldConfig(keepout_distance=0.0, max_speed=20.0), MAX_RANGE)
     scan = scan_with(bins)
     assert shield.forward_cap(scan) == pytest.approx(settled(shield, Command(20.0, 0.0), scan).forward)
     assert shield.forward_cap(np.full(360, np.nan)) == 0.0  # unknown = blocked, as in filter
@@ -110,7 +115,7 @@ def test_forward_cap_is_the_speed_the_filter_lets_through(bins: dict[int, float]
 
 
 def test_returns_outside_the_forward_sector_do_not_slow_forward_flight() -> None:
-    shield = SafetyShield(ShieldConfig(), MAX_RANGE)
+    shield = SafetyShield(BASE, MAX_RANGE)
     # 0.5 m at 31°-left and at 31°-right (bins 31 and 328) are outside ±30°
     out = settled(shield, Command(2.0, 0.0), scan_with({31: 0.5, 328: 0.5}))
     assert out.forward == 2.0
@@ -120,7 +125,7 @@ def test_returns_outside_the_forward_sector_do_not_slow_forward_flight() -> None
 
 
 def test_estop_blocks_forward_but_allows_turning_in_place() -> None:
-    shield = SafetyShield(ShieldConfig(), MAX_RANGE)
+    shield = SafetyShield(BASE, MAX_RANGE)
     blocked = scan_with({0: 0.2})
     out = settled(shield, Command(2.0, 1.0), blocked)
     assert out.forward == 0.0
@@ -129,13 +134,13 @@ def test_estop_blocks_forward_but_allows_turning_in_place() -> None:
 
 
 def test_estop_allows_backing_up_when_the_rear_is_clear() -> None:
-    shield = SafetyShield(ShieldConfig(), MAX_RANGE)
+    shield = SafetyShield(BASE, MAX_RANGE)
     out = settled(shield, Command(-0.5, 0.0), scan_with({0: 0.2}))
     assert out.forward == pytest.approx(-0.5)
 
 
 def test_estop_blocks_backing_up_when_the_rear_is_close_too() -> None:
-    cfg = ShieldConfig()
+    cfg = BASE
     shield = SafetyShield(cfg, MAX_RANGE)
     rear = cfg.estop_distance + cfg.rear_clear_margin - 0.05  # inside estop + margin
     out = settled(shield, Command(-0.5, 0.3), scan_with({0: 0.2, 180: rear}))
@@ -144,15 +149,16 @@ def test_estop_blocks_backing_up_when_the_rear_is_close_too() -> None:
 
 
 def test_backing_up_is_limited_by_rear_clearance() -> None:
-    cfg = ShieldConfig(max_reverse_speed=5.0)
+    cfg = ShieldConfig(keepout_distance=0.0, max_reverse_speed=5.0)
     shield = SafetyShield(cfg, MAX_RANGE)
     out = settled(shield, Command(-5.0, 0.0), scan_with({170: 1.0}))
-    cap = stopping_speed(1.0 - cfg.rear_clear_margin - cfg.estop_distance, cfg.max_decel, cfg.reaction_time)
+    margin = 1.0 - cfg.rear_clear_margin - cfg.estop_distance
+    cap = stopping_speed(margin, shield.max_decel, shield.reaction_time)
     assert out.forward == pytest.approx(-cap)
 
 
 def test_acceleration_is_slew_limited() -> None:
-    cfg = ShieldConfig(max_accel=2.0, max_yaw_accel=4.0)
+    cfg = ShieldConfig(keepout_distance=0.0, max_accel=2.0, max_yaw_accel=4.0)
     shield = SafetyShield(cfg, MAX_RANGE)
     first = shield.filter(Command(2.0, 1.5), CLEAR, 0.1)
     assert first == Command(pytest.approx(0.2), pytest.approx(0.4))
@@ -162,7 +168,7 @@ def test_acceleration_is_slew_limited() -> None:
 
 
 def test_braking_is_never_slew_limited() -> None:
-    shield = SafetyShield(ShieldConfig(), MAX_RANGE)
+    shield = SafetyShield(BASE, MAX_RANGE)
     settled(shield, Command(2.0, 1.5), CLEAR)
     # policy asks to slow down: at once
     assert shield.filter(Command(0.3, 0.1), CLEAR, 0.1) == Command(0.3, 0.1)
@@ -172,19 +178,19 @@ def test_braking_is_never_slew_limited() -> None:
 
 
 def test_reversing_direction_goes_through_zero_then_ramps() -> None:
-    shield = SafetyShield(ShieldConfig(max_yaw_accel=4.0), MAX_RANGE)
+    shield = SafetyShield(ShieldConfig(keepout_distance=0.0, max_yaw_accel=4.0), MAX_RANGE)
     settled(shield, Command(0.0, 1.5), CLEAR)
     assert shield.filter(Command(0.0, -1.5), CLEAR, 0.1).yaw_rate == pytest.approx(-0.4)
 
 
 def test_zero_or_bad_dt_allows_no_increase() -> None:
-    shield = SafetyShield(ShieldConfig(), MAX_RANGE)
+    shield = SafetyShield(BASE, MAX_RANGE)
     for dt in (0.0, -1.0, float("nan"), float("inf")):
         assert shield.filter(Command(2.0, 1.0), CLEAR, dt) == Command(0.0, 0.0)
 
 
 def test_reset_forgets_the_previous_command() -> None:
-    shield = SafetyShield(ShieldConfig(), MAX_RANGE)
+    shield = SafetyShield(BASE, MAX_RANGE)
     settled(shield, Command(2.0, 0.0), CLEAR)
     shield.reset()
     assert shield.filter(Command(2.0, 0.0), CLEAR, 0.1).forward == pytest.approx(0.2)
@@ -218,7 +224,7 @@ scans = hnp.arrays(np.float32, 360, elements=st.floats(0.0, 1.0, width=32))
 def test_output_is_always_finite_within_limits_and_never_faster_than_asked(
     requests: list[tuple[float, float]], scan: np.ndarray, dt: float
 ) -> None:
-    cfg = ShieldConfig()
+    cfg = BASE
     shield = SafetyShield(cfg, MAX_RANGE)
     front = float(scan[sector_bins(0.0, cfg.forward_sector_deg)].min()) * MAX_RANGE
     rear = float(scan[sector_bins(180.0, cfg.rear_sector_deg)].min()) * MAX_RANGE
@@ -235,9 +241,217 @@ def test_output_is_always_finite_within_limits_and_never_faster_than_asked(
         if rear < cfg.estop_distance + cfg.rear_clear_margin:
             assert out.forward >= 0.0
         # never faster towards the front than the vehicle can stop from
-        cap = stopping_speed(front - cfg.estop_distance, cfg.max_decel, cfg.reaction_time)
+        cap = stopping_speed(front - cfg.estop_distance, shield.max_decel, shield.reaction_time)
         assert out.forward <= cap + 1e-9
         # growth away from zero bounded by the acceleration limits
         assert abs(out.forward) <= abs(previous.forward) + cfg.max_accel * dt + 1e-9
         assert abs(out.yaw_rate) <= abs(previous.yaw_rate) + cfg.max_yaw_accel * dt + 1e-9
         previous = out
+
+
+# ---- the measured motion ----------------------------------------------------------------------
+
+
+def bins_around(centre_deg: float, half_width: float = 3.0) -> list[int]:
+    """Counter-clockwise scan bins within ``half_width`` of ``centre_deg``."""
+    return sector_bins(centre_deg % 360.0, half_width).tolist()
+
+
+def test_arc_bins_cover_the_swing_from_course_to_nose() -> None:
+    # course 35° right of the nose, ±30° around every direction in between: −65° … +30°
+    assert sorted(arc_bins(-35.0, 0.0, 30.0).tolist()) == [*range(30), *range(295, 360)]
+    assert arc_bins(0.0, 0.0, 30.0).tolist() == sector_bins(0.0, 30.0).tolist()
+    assert sorted(arc_bins(170.0, -170.0, 5.0).tolist()) == list(range(165, 195))  # the short way
+
+
+def test_motion_sliding_into_an_obstacle_off_the_nose_stops() -> None:
+    """The u-trap on real ArduPilot: the nose swung left, the vehicle kept travelling right of it,
+    and the wall end 57° right of the nose was outside the ±30° forward sector."""
+    wall = scan_with({b: 0.8 for b in bins_around(-57.0)})
+    shield = SafetyShield(BASE, MAX_RANGE, "ardupilot")
+    assert settled(shield, Command(1.0, 0.5), wall) == Command(1.0, 0.5)  # the nose alone: let through
+    sliding = (0.9, -0.6)  # 1.08 m/s on a course 34° right of the nose
+    out = shield.filter(Command(1.0, 0.5), wall, 0.1, velocity=sliding)
+    # stopped: a setpoint against the motion, forward and sideways, at max_reverse_speed
+    assert (out.forward, out.lateral) == pytest.approx((-0.5 * 0.9 / 1.0817, 0.5 * 0.6 / 1.0817), abs=1e-3)
+    assert out.yaw_rate == 0.5  # turning stays allowed
+    assert shield.interventions["motion_stop"] == 1
+    assert settled(shield, Command(1.0, 0.5), wall).lateral == 0.0  # the policy itself never slides
+
+
+def test_braking_only_as_far_as_the_room_behind_the_motion_allows() -> None:
+    behind_the_slide = [b for b in bins_around(146.0, 30.0)]  # opposite the −34° course
+    wall = scan_with({**{b: 0.8 for b in bins_around(-57.0)}, **{b: 0.25 for b in behind_the_slide}})
+    shield = SafetyShield(BASE, MAX_RANGE, "ardupilot")
+    settled(shield, Command(1.0, 0.0), wall)
+    out = shield.filter(Command(1.0, 0.0), wall, 0.1, velocity=(0.9, -0.6))
+    assert (out.forward, out.lateral) == (0.0, 0.0)  # a plain stop
+
+
+def test_motion_that_can_stop_in_time_is_left_alone() -> None:
+    wall = scan_with({b: 5.0 for b in bins_around(-40.0)})
+    shield = SafetyShield(BASE, MAX_RANGE, "ardupilot")
+    settled(shield, Command(1.0, 0.0), wall)
+    assert shield.filter(Command(1.0, 0.0), wall, 0.1, velocity=(0.9, -0.6)) == Command(1.0, 0.0)
+    assert shield.interventions["motion_stop"] == 0
+
+
+def test_speed_along_the_course_is_limited_by_the_clearance_there() -> None:
+    wall = scan_with({b: 2.0 for b in bins_around(-60.0)})
+    shield = SafetyShield(BASE, MAX_RANGE, "ardupilot")
+    out = settled(shield, Command(2.0, 0.0), wall)
+    assert out.forward == 2.0  # nothing ahead of the nose
+    slow_slide = (0.0, -0.3)  # drifting right at 0.3 m/s: can stop, but the speed is capped
+    for _ in range(30):
+        out = shield.filter(Command(2.0, 0.0), wall, 0.1, velocity=slow_slide)
+    cap = stopping_speed(2.0 - 0.3, shield.max_decel, shield.reaction_time)
+    assert out.forward == pytest.approx(cap)
+    assert cap < 2.0
+
+
+def test_motion_slower_than_the_noise_floor_gives_no_direction() -> None:
+    wall = scan_with({b: 0.5 for b in bins_around(-90.0)})
+    shield = SafetyShield(BASE, MAX_RANGE)
+    assert settled(shield, Command(1.0, 0.0), wall) == Command(1.0, 0.0)
+    assert shield.filter(Command(1.0, 0.0), wall, 0.1, velocity=(0.0, -0.05)) == Command(1.0, 0.0)
+
+
+def test_non_finite_velocity_stops() -> None:
+    shield = SafetyShield(BASE, MAX_RANGE)
+    settled(shield, Command(1.0, 0.0), CLEAR)
+    assert shield.filter(Command(1.0, 0.0), CLEAR, 0.1, velocity=(math.nan, 0.0)).forward == 0.0
+    assert shield.interventions["velocity_nan"] == 1
+
+
+def test_backing_into_an_obstacle_behind_stops() -> None:
+    behind = scan_with({b: 0.6 for b in bins_around(150.0)})  # 30° off the tail: in the rear arc too
+    shield = SafetyShield(ShieldConfig(keepout_distance=0.0, max_reverse_speed=1.0), MAX_RANGE, "px4")
+    out = shield.filter(Command(-1.0, 0.0), behind, 0.1, velocity=(-0.8, 0.4))
+    assert out.forward == 0.8  # braking forwards against the motion: the front is clear
+    blocked = scan_with({**{b: 0.6 for b in bins_around(150.0)}, 0: 0.2})
+    assert shield.filter(Command(-1.0, 0.0), blocked, 0.1, velocity=(-0.8, 0.4)).forward == 0.0
+
+
+def test_braking_figures_per_autopilot() -> None:
+    """The fixture's ArduPilot stop from 2 m/s took 1.68 m; PX4 reached 0.5 m/s after 1.2 m from
+    1.8 m/s and then crept: each assumed braking distance covers what was measured."""
+    ap, px4 = AUTOPILOT_LIMITS["ardupilot"], AUTOPILOT_LIMITS["px4"]
+    assert stopping_distance(2.0, ap.decel, ap.reaction_time) > 1.68
+    assert stopping_distance(1.8, px4.decel, px4.reaction_time) > 2.5
+    shield = SafetyShield(ShieldConfig(keepout_distance=0.0, max_decel=3.0), MAX_RANGE, "px4")
+    assert (shield.max_decel, shield.reaction_time) == (3.0, px4.reaction_time)  # config wins
+
+
+def test_yaw_rate_never_above_what_the_autopilot_flies() -> None:
+    cfg = BASE
+    ardupilot = SafetyShield(cfg, MAX_RANGE, "ardupilot")
+    assert ardupilot.max_yaw_rate == pytest.approx(math.radians(60.0))  # ATC_RATE_WPY_MAX default
+    assert settled(ardupilot, Command(0.0, 1.5), CLEAR).yaw_rate == pytest.approx(math.radians(60.0))
+    raised = SafetyShield(cfg, MAX_RANGE, "ardupilot", autopilot_yaw_rate=math.radians(86.0))
+    assert settled(raised, Command(0.0, -1.5), CLEAR).yaw_rate == -1.5  # the shield's own limit
+    assert SafetyShield(cfg, MAX_RANGE, "px4").max_yaw_rate == cfg.max_yaw_rate
+
+
+velocities = st.tuples(finite_or_not, finite_or_not)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    requests=st.lists(st.tuples(finite_or_not, finite_or_not, velocities), min_size=1, max_size=8),
+    scan=scans,
+    autopilot=st.sampled_from(sorted(AUTOPILOT_LIMITS)),
+)
+def test_with_measured_motion_output_stays_finite_and_never_drives_towards_a_close_return(
+    requests: list[tuple[float, float, tuple[float, float]]], scan: np.ndarray, autopilot: str
+) -> None:
+    cfg = BASE
+    shield = SafetyShield(cfg, MAX_RANGE, autopilot)
+    front = float(scan[sector_bins(0.0, cfg.forward_sector_deg)].min()) * MAX_RANGE
+    rear = float(scan[sector_bins(180.0, cfg.rear_sector_deg)].min()) * MAX_RANGE
+    for forward, yaw, velocity in requests:
+        out = shield.filter(Command(forward, yaw), scan, 0.1, velocity=velocity)
+        assert math.isfinite(out.forward) and math.isfinite(out.yaw_rate) and math.isfinite(out.lateral)
+        assert abs(out.lateral) <= cfg.max_reverse_speed + 1e-9  # only ever a brake
+        assert -cfg.max_reverse_speed <= out.forward <= cfg.max_speed
+        assert abs(out.yaw_rate) <= shield.max_yaw_rate
+        if front < cfg.estop_distance:
+            assert out.forward <= 0.0
+        if rear < cfg.estop_distance + cfg.rear_clear_margin:
+            assert out.forward >= 0.0
+        v_forward, v_left = velocity
+        if not (math.isfinite(v_forward) and math.isfinite(v_left)):
+            assert out.forward == 0.0
+        if math.isfinite(v_forward) and math.isfinite(v_left) and math.hypot(v_forward, v_left) >= 0.1:
+            course = math.degrees(math.atan2(v_left, v_forward))
+            heading = 180.0 if math.isfinite(forward) and forward < 0 else 0.0
+            along = float(scan[arc_bins(course, heading, cfg.travel_sector_deg)].min()) * MAX_RANGE
+            cap = stopping_speed(along - cfg.estop_distance, shield.max_decel, shield.reaction_time)
+            if v_forward >= 0.0:  # (moving backwards, a forward setpoint is the brake)
+                assert out.forward <= cap + 1e-9
+            if stopping_distance(math.hypot(v_forward, v_left), shield.max_decel,
+                                 shield.reaction_time) >= along - cfg.estop_distance:
+                assert out.forward * v_forward <= 0.0  # stopping: never along the motion
+
+
+# ---- the keep-out push -----------------------------------------------------------------------
+
+
+def test_keepout_pushes_away_from_a_close_return_and_drops_what_points_at_it() -> None:
+    """A wall 0.4 m to the left: nothing is asked towards it, and the push goes right."""
+    cfg = ShieldConfig()
+    shield = SafetyShield(cfg, MAX_RANGE)
+    wall = scan_with({b: 0.4 for b in bins_around(90.0, 1.0)})
+    out = settled(shield, Command(1.0, 0.3), wall)
+    push = cfg.keepout_gain * (cfg.keepout_distance - 0.4)
+    assert out.forward == pytest.approx(1.0, abs=0.02)  # along the wall: untouched
+    assert out.lateral == pytest.approx(-push, abs=0.02)  # away from it
+    assert out.yaw_rate == 0.3
+    assert shield.interventions["keepout"] > 0
+    assert settled(SafetyShield(cfg, MAX_RANGE), Command(1.0, 0.0), CLEAR).lateral == 0.0
+
+
+def test_keepout_acts_early_when_the_scan_closes_faster_than_the_vehicle_can_stop() -> None:
+    """The estimate may say nothing moves (PX4 closes its loop on a biased estimate); two scans
+    0.1 s apart show the wall 0.06 m closer: 0.6 m/s, too fast to stop in the 0.3 m left."""
+    shield = SafetyShield(ShieldConfig(), MAX_RANGE, "px4")
+    ahead = [*range(0, 5), *range(355, 360)]
+    shield.filter(Command(0.0, 0.0), scan_with({b: 0.96 for b in ahead}), 0.1, velocity=(0.0, 0.0))
+    out = shield.filter(Command(0.0, 0.0), scan_with({b: 0.90 for b in ahead}), 0.1, velocity=(0.0, 0.0))
+    assert out.forward == pytest.approx(-min(1.0, 2 * 0.6), abs=0.05)  # pushed back at up to 1 m/s
+    still = SafetyShield(ShieldConfig(), MAX_RANGE, "px4")  # the same wall, not closing: no push
+    for _ in range(2):
+        out = still.filter(Command(0.0, 0.0), scan_with({b: 0.90 for b in ahead}), 0.1, velocity=(0.0, 0.0))
+    assert out == Command(0.0, 0.0) and still.interventions["keepout"] == 0
+
+
+def test_keepout_never_pushes_into_what_is_behind_the_push() -> None:
+    cfg = ShieldConfig()
+    left, right = bins_around(90.0, 1.0), bins_around(-90.0)
+    squeezed = scan_with({**{b: 0.2 for b in left}, **{b: 0.25 for b in right}})
+    out = settled(SafetyShield(cfg, MAX_RANGE), Command(0.0, 0.0), squeezed)
+    assert out.lateral == 0.0  # pushed off the nearest (left), but the right is inside estop_distance
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    requests=st.lists(st.tuples(finite_or_not, finite_or_not, velocities), min_size=1, max_size=8),
+    scan=scans,
+    autopilot=st.sampled_from(sorted(AUTOPILOT_LIMITS)),
+)
+def test_with_keepout_output_stays_finite_bounded_and_within_the_sector_caps(
+    requests: list[tuple[float, float, tuple[float, float]]], scan: np.ndarray, autopilot: str
+) -> None:
+    cfg = ShieldConfig()
+    shield = SafetyShield(cfg, MAX_RANGE, autopilot)
+    front = float(scan[sector_bins(0.0, cfg.forward_sector_deg)].min()) * MAX_RANGE
+    rear = float(scan[sector_bins(180.0, cfg.rear_sector_deg)].min()) * MAX_RANGE
+    for forward, yaw, velocity in requests:
+        out = shield.filter(Command(forward, yaw), scan, 0.1, velocity=velocity)
+        assert math.isfinite(out.forward) and math.isfinite(out.yaw_rate) and math.isfinite(out.lateral)
+        assert -cfg.keepout_max_speed <= out.forward <= cfg.max_speed
+        assert abs(out.lateral) <= cfg.keepout_max_speed + 1e-9
+        assert abs(out.yaw_rate) <= shield.max_yaw_rate
+        if front < cfg.estop_distance:
+            assert out.forward <= 0.0
+        if rear < cfg.estop_distance + cfg.rear_clear_margin:
+            assert out.forward >= 0.0

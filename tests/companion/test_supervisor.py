@@ -35,6 +35,7 @@ class Rig:
         self.set(climb_rate=0.0)
         self.set(**vehicle)
         self.heartbeat = True
+        self.velocity = True  # the link measures the velocity every loop
 
     def set(self, **changes: object) -> None:
         self.vehicle = dataclasses.replace(self.vehicle, **changes)
@@ -44,6 +45,8 @@ class Rig:
         self.clock.now += dt
         if self.heartbeat:
             self.set(heartbeat_time=self.clock.now)
+        if self.velocity:
+            self.set(velocity_body=(0.0, 0.0), velocity_time=self.clock.now)
         self.sup.on_vehicle(self.vehicle)
         if scan:
             self.sup.on_scan(ok)
@@ -410,3 +413,26 @@ def test_announcements_are_rate_limited_and_summed_up() -> None:
     assert last == [] or last[-1].new is rig.sup.state
     shown = (announced + last)[-1]
     assert shown.new is rig.sup.state is S.ACTIVE
+
+
+def test_stale_velocity_holds_and_fresh_velocity_recovers() -> None:
+    rig = Rig()
+    rig.to_active()
+    rig.velocity = False
+    assert rig.steps(5) is CommandKind.POLICY  # 0.5 s old: still fresh
+    assert rig.step() is CommandKind.ZERO  # 0.6 s: the shield cannot see where the vehicle goes
+    assert rig.transitions() == [(S.ACTIVE, S.HOLD, "velocity stale")]
+    assert rig.steps(10) is CommandKind.ZERO  # good scans alone do not recover
+    rig.velocity = True
+    assert rig.step() is CommandKind.POLICY
+    assert rig.transitions() == [(S.HOLD, S.ACTIVE, "recovered (29 good scans)")]
+
+
+def test_never_engages_without_a_measured_velocity() -> None:
+    rig = Rig()
+    rig.velocity = False
+    rig.sup.start()
+    assert rig.steps(30) is CommandKind.NONE
+    assert rig.sup.engage_blockers() == ["velocity stale"]
+    rig.velocity = True
+    assert rig.step() is CommandKind.POLICY

@@ -3,6 +3,7 @@ lidar co-simulation's packets read back by the companion's own UDP source (real 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 
@@ -107,18 +108,88 @@ def test_cosim_streams_revolutions_the_companion_decodes_into_the_right_scan(ste
 
 
 def test_external_pose_mirrors_ned_telemetry_into_the_world_frame():
+    """Anchored on the ground facing East, the SITL's frame is rotated onto the world's start yaw."""
     from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-    from flightsim.harness import ExternalPose
+    from flightsim.external_sitl import ExternalPose
 
-    world = load_world("flightsim/worlds/two-pillars.json")
+    world = dataclasses.replace(load_world("flightsim/worlds/two-pillars.json"), start_yaw_deg=90.0)
     pose = ExternalPose(world)
-    pose.update(mavlink.MAVLink_local_position_ned_message(0, 1.0, 2.0, -1.5, 0.5, 0.0, -0.1))
-    pose.update(mavlink.MAVLink_attitude_message(0, 0.1, 0.2, math.pi / 2, 0, 0, 0))  # facing East
+    pose.update(mavlink.MAVLink_local_position_ned_message(0, 5.0, 7.0, 0.0, 0.0, 0.0, 0.0))
+    pose.update(mavlink.MAVLink_attitude_message(0, 0.0, 0.0, math.pi / 2, 0, 0, 0))  # facing East
+    pose.anchor()
+    pose.update(mavlink.MAVLink_local_position_ned_message(0, 6.0, 9.0, -1.5, 0.5, 0.0, -0.1))
+    pose.update(mavlink.MAVLink_attitude_message(0, 0.1, 0.2, math.pi / 2, 0, 0, 0))
     state = pose.state()
     x0, y0, _ = world.start_position
-    np.testing.assert_allclose(state.position, [x0 + 2.0, y0 + 1.0, 1.5])  # NED (N 1, E 2, D -1.5)
-    np.testing.assert_allclose(state.velocity, [0.0, 0.5, 0.1])
-    assert state.yaw == pytest.approx(0.0, abs=1e-9)  # ENU yaw 0 = East
+    # moved N 1, E 2 in the SITL; its East is the world's start yaw (+y): E 2 → +y, N 1 → −x
+    np.testing.assert_allclose(state.position, [x0 - 1.0, y0 + 2.0, 1.5], atol=1e-9)
+    np.testing.assert_allclose(state.velocity[:2], [-0.5, 0.0], atol=1e-9)  # N 0.5 → −x
+    assert state.yaw == pytest.approx(math.pi / 2, abs=1e-9)
     assert state.roll == pytest.approx(0.1) and state.pitch == pytest.approx(-0.2)  # FLU pitch: nose down
     assert not state.on_ground
+
+
+def test_external_pose_prefers_ground_truth_over_the_estimate():
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+    from flightsim.external_sitl import EARTH_RADIUS_M, ExternalPose
+
+    world = load_world("flightsim/worlds/two-pillars.json")  # start yaw 0 (East)
+    pose = ExternalPose(world)
+    lat0, lon0 = 473977420, 85455940  # degE7
+    pose.update(mavlink.MAVLink_local_position_ned_message(0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
+    pose.update(mavlink.MAVLink_attitude_message(0, 0.0, 0.0, 0.3, 0, 0, 0))  # estimate: 0.3 rad off
+    truth = mavlink.MAVLink_simstate_message(0, 0, math.pi / 2, 0, 0, 0, 0, 0, 0, lat0, lon0)
+    assert pose.update(truth) == "truth"
+    pose.anchor()
+    # the estimate says nothing moved; the truth says 1 m north (and the heading is East)
+    north = 1.0 / EARTH_RADIUS_M
+    pose.update(mavlink.MAVLink_simstate_message(0, 0, math.pi / 2, 0, 0, 0, 0, 0, 0,
+                                                 lat0 + round(math.degrees(north) * 1e7), lon0))
+    state = pose.state()
+    x0, y0, _ = world.start_position
+    assert state.position[:2] == pytest.approx([x0, y0 + 1.0], abs=0.02)
+    assert state.yaw == pytest.approx(0.0, abs=1e-9)
+    assert pose.truth_source == "SIMSTATE"
+
+
+@pytest.mark.parametrize("personality", ["ardupilot", "px4"])
+def test_simulated_ground_truth_round_trips_through_the_external_mirror(personality):
+    """What ``avoid-sim autopilot`` streams as truth (SIMSTATE / HIL_STATE_QUATERNION), read back by
+    the external-SITL mirror, is where the simulated vehicle really is (start yaw rotated away)."""
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+    from flightsim.external_sitl import ExternalPose
+    from flightsim.sim_autopilot.server import ground_truth_message, make_autopilot
+
+    def state(x, y, z, yaw):
+        return VehicleState(time=0.0, position=np.array([x, y, z]), velocity=np.array([0.3, -0.2, 0.0]),
+                            roll=0.0, pitch=0.0, yaw=yaw, angular_rate=np.zeros(3), on_ground=z < 0.1,
+                            armed=True)
+
+    autopilot = make_autopilot(personality, boot_time=0.0)
+    start = state(0.0, 0.0, 0.0, math.radians(90.0))  # the SITL boots facing North
+    autopilot.observe(start)
+    world = load_world("flightsim/worlds/two-pillars.json")  # start yaw 0: East
+    pose = ExternalPose(world)
+    pose.update(mavlink.MAVLink_local_position_ned_message(0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
+    pose.update(mavlink.MAVLink_attitude_message(0, 0.0, 0.0, 0.0, 0, 0, 0))
+    truth = ground_truth_message(personality, autopilot, start, 1.0)
+    assert truth.get_type() == ("SIMSTATE" if personality == "ardupilot" else "HIL_STATE_QUATERNION")
+    assert pose.update(wire(truth)) == "truth"
+    pose.anchor()
+    moved = state(0.0, 2.0, 1.5, math.radians(120.0))  # 2 m North of the start, turned 30° left
+    pose.update(mavlink.MAVLink_local_position_ned_message(0, 2.0, 0.0, -1.5, 0.0, 0.0, 0.0))
+    pose.update(wire(ground_truth_message(personality, autopilot, moved, 2.0)))
+    mirrored = pose.state()
+    x0, y0, _ = world.start_position
+    assert mirrored.position[:2] == pytest.approx([x0 + 2.0, y0], abs=0.02)  # North became East
+    assert mirrored.yaw == pytest.approx(math.radians(30.0), abs=1e-3)
+
+
+def wire(msg):
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+    mav = mavlink.MAVLink(None, 1, 1)
+    return mav.decode(bytearray(msg.pack(mav)))

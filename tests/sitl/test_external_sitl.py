@@ -1,58 +1,157 @@
-"""``--autopilot external``: a real ArduPilot/PX4 SITL flies its own physics, the harness mirrors its
-pose into the world and casts the lidar from it.
+"""``--autopilot external`` end to end, in CI: the project's own simulated autopilot runs as a SEPARATE
+process (``avoid-sim autopilot``, the way an external SITL runs: its own physics, MAVLink sockets,
+ground truth as SIMSTATE / HIL_STATE_QUATERNION), and ``avoid-sim fly --autopilot external`` flies the
+real companion against it through the harness's ground-station relay.
 
-Runs only where a SITL is installed: set ``LIDAR_AVOID_EXTERNAL_SITL`` to the command that starts
-it (for example ``arducopter --model quad --defaults copter.parm -I0``, or PX4's
-``make px4_sitl sih``) and, when it is not ArduPilot's ``tcp:127.0.0.1:5760``,
-``LIDAR_AVOID_EXTERNAL_CONNECT`` to the pymavlink address of its GCS port.
+A real ArduPilot/PX4 SITL plugs in the same way: set ``LIDAR_AVOID_EXTERNAL_SITL`` to the command
+that starts it and ``LIDAR_AVOID_EXTERNAL_CONNECT`` to its GCS port to fly the last test against it.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import json
+import math
 import os
 import shlex
 import subprocess
+import sys
 import time
+from pathlib import Path
 
 import pytest
 
 from flightsim.harness import FlightOptions, SitlFlight
+from flightsim.world import save_world
+from tests.companion.mavlink_peer import free_tcp_port, free_udp_port
 from tests.sitl.helpers import OPEN_ROOM, write_constant_policy
+
+pytestmark = pytest.mark.sitl
 
 SITL_COMMAND = os.environ.get("LIDAR_AVOID_EXTERNAL_SITL", "")
 CONNECT = os.environ.get("LIDAR_AVOID_EXTERNAL_CONNECT", "tcp:127.0.0.1:5760")
-
-pytestmark = [
-    pytest.mark.sitl,
-    pytest.mark.skipif(not SITL_COMMAND, reason="LIDAR_AVOID_EXTERNAL_SITL does not name a SITL to start"),
-]
+#: the world starts facing 30° right of East; the separate autopilot boots facing North
+ROOM = dataclasses.replace(OPEN_ROOM, start_yaw_deg=-30.0)
 
 
-@pytest.fixture(scope="module")
-def sitl(tmp_path_factory):
-    log = open(tmp_path_factory.mktemp("external") / "sitl.log", "wb")  # noqa: SIM115
-    proc = subprocess.Popen(shlex.split(SITL_COMMAND), stdout=log, stderr=subprocess.STDOUT)
-    time.sleep(3.0)
-    yield proc
+def start_autopilot(tmp_path: Path, personality: str, link: str, *extra: str) -> subprocess.Popen[bytes]:
+    """``avoid-sim autopilot`` as its own process, logging to a file; waits until it listens."""
+    log = open(tmp_path / f"autopilot-{personality}.log", "wb")  # noqa: SIM115 - closed by the test
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "flightsim", "autopilot", "--personality", personality, "--link", link,
+         "--start-yaw", "90", *extra],
+        stdout=log, stderr=subprocess.STDOUT,
+    )  # fmt: skip
+    proc.log = log  # type: ignore[attr-defined]
+    end = time.monotonic() + 30.0
+    while b"running on" not in (tmp_path / f"autopilot-{personality}.log").read_bytes():
+        assert proc.poll() is None, (tmp_path / f"autopilot-{personality}.log").read_text()
+        assert time.monotonic() < end, "the simulated autopilot did not start"
+        time.sleep(0.1)
+    return proc
+
+
+def stop_autopilot(proc: subprocess.Popen[bytes]) -> None:
     proc.terminate()
-    proc.wait(timeout=20)
-    log.close()
+    try:
+        proc.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(timeout=5)
+    proc.log.close()  # type: ignore[attr-defined]
 
 
-def test_companion_flies_an_external_sitl(sitl, tmp_path):
-    assert sitl.poll() is None, "the SITL exited at start-up"
-    options = FlightOptions(
-        autopilot="external",
-        connect=CONNECT,
-        world=OPEN_ROOM,
-        policy=write_constant_policy(tmp_path / "circle.onnx", 0.5, 0.4),
-        workdir=tmp_path,
-    )
-    with SitlFlight(options) as f:
-        f.take_off()
-        assert f.wait_engaged(60.0), f.companion_log()
-        t0 = time.monotonic()
-        f.fly(5.0)
-        assert f.recorder.setpoints_since(t0) >= 30
-        report = f.report()
-    assert report.engaged and report.distance_m > 1.0
+def fly_cli(tmp_path: Path, name: str, connect: str, policy: Path, world: Path) -> dict:
+    """``avoid-sim fly --autopilot external`` as the user runs it; returns its JSON report."""
+    report = tmp_path / f"{name}.json"
+    result = subprocess.run(
+        [sys.executable, "-m", "flightsim", "fly", "--autopilot", "external", "--connect", connect,
+         "--world", str(world), "--policy", str(policy), "--duration", "6", "--lidar-step", "1.0",
+         "--json", str(report), "--workdir", str(tmp_path / name)],
+        capture_output=True, text=True, timeout=240,
+    )  # fmt: skip
+    assert report.exists(), result.stdout + result.stderr
+    data = json.loads(report.read_text())
+    assert result.returncode == 0, result.stdout + result.stderr
+    return data
+
+
+@pytest.fixture
+def world_file(tmp_path: Path) -> Path:
+    path = tmp_path / "room.json"
+    save_world(ROOM, path)
+    return path
+
+
+def test_fly_external_ardupilot_twice_on_one_sitl(tmp_path, world_file):
+    """Two flights on one running SITL: the second finds the vehicle still flying from the first,
+    lands and disarms it, then flies again; both are judged on SIMSTATE ground truth."""
+    port = free_tcp_port()
+    policy = write_constant_policy(tmp_path / "circle.onnx", 0.5, 0.4)
+    sitl = start_autopilot(tmp_path, "ardupilot", f"tcpin:127.0.0.1:{port}")
+    try:
+        for name in ("first", "second"):
+            report = fly_cli(tmp_path, name, f"tcp:127.0.0.1:{port}", policy, world_file)
+            assert report["error"] == "", report
+            assert report["engaged"] and not report["collision"], report
+            assert report["ground_truth"] == "SIMSTATE" and report["warnings"] == []
+            assert report["distance_m"] > 1.5 and report["setpoint_rate_hz"] > 5.0, report  # (loaded CI)
+    finally:
+        stop_autopilot(sitl)
+
+
+def test_fly_external_px4_switches_to_hold_and_judges_on_hil_state_quaternion(tmp_path, world_file):
+    port = free_udp_port()
+    policy = write_constant_policy(tmp_path / "circle.onnx", 0.5, 0.4)
+    sitl = start_autopilot(tmp_path, "px4", f"udpin:127.0.0.1:{port}")
+    try:
+        report = fly_cli(tmp_path, "px4", f"udpout:127.0.0.1:{port}", policy, world_file)
+    finally:
+        stop_autopilot(sitl)
+    assert report["error"] == "", report
+    assert report["engaged"] and not report["collision"], report
+    assert report["ground_truth"] == "HIL_STATE_QUATERNION"
+    assert report["distance_m"] > 2.0
+
+
+def test_world_rotated_into_the_sitls_heading_and_estimate_fallback_warns(tmp_path):
+    """The SITL boots facing North (90°), the world starts at −30°: the mirrored pose starts at the
+    world's start, facing its start yaw. Without truth messages the report says it judged on the
+    estimate."""
+    port = free_tcp_port()
+    sitl = start_autopilot(tmp_path, "ardupilot", f"tcpin:127.0.0.1:{port}", "--no-ground-truth")
+    try:
+        options = FlightOptions(
+            autopilot="external",
+            connect=f"tcp:127.0.0.1:{port}",
+            world=ROOM,
+            policy=write_constant_policy(tmp_path / "stop.onnx", 0.0, 0.0),
+            workdir=tmp_path / "flight",
+            lidar_step_deg=1.0,
+        )
+        with SitlFlight(options) as flight:
+            state = flight.external.state()
+            assert state.yaw == pytest.approx(math.radians(-30.0), abs=math.radians(1.0))
+            assert state.position[:2] == pytest.approx(ROOM.start_position[:2], abs=0.05)
+            flight.wait_companion_up()  # the companion hears the autopilot before any take-off
+            report = flight.report()
+    finally:
+        stop_autopilot(sitl)
+    assert report.ground_truth == "estimate"
+    assert report.warnings and "estimate" in report.warnings[0]
+
+
+@pytest.mark.skipif(not SITL_COMMAND, reason="LIDAR_AVOID_EXTERNAL_SITL does not name a real SITL to start")
+def test_companion_flies_a_real_external_sitl(tmp_path, world_file):
+    log = open(tmp_path / "sitl.log", "wb")  # noqa: SIM115
+    proc = subprocess.Popen(shlex.split(SITL_COMMAND), stdout=log, stderr=subprocess.STDOUT)
+    try:
+        time.sleep(3.0)
+        assert proc.poll() is None, "the SITL exited at start-up"
+        report = fly_cli(tmp_path, "real", CONNECT, write_constant_policy(tmp_path / "c.onnx", 0.5, 0.4),
+                         world_file)
+        assert report["engaged"] and report["distance_m"] > 1.0, report
+    finally:
+        proc.terminate()
+        proc.wait(timeout=20)
+        log.close()

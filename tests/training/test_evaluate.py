@@ -133,7 +133,7 @@ def test_shield_stops_forward_motion_at_a_wall_but_lets_the_vehicle_turn():
     scan[:5] = 0.02  # 0.2 m dead ahead: inside the 0.3 m emergency-stop distance
     controller = shielded()
     for action in [controller.reset(scan)] + [controller.act(scan) for _ in range(20)]:
-        assert action[0] == 0.0
+        assert action[0] == pytest.approx(-0.4, abs=1e-3)  # keep-out: backs off at 0.8 m/s
     assert action[1] == pytest.approx(1.0)  # turning in place stays allowed, up to the full rate
 
 
@@ -145,6 +145,21 @@ def test_shield_ramps_forward_speed_at_its_acceleration_limit_in_action_units():
     assert first == pytest.approx([0.1, 0.4 / 1.5])
     assert controller.act(clear)[0] == pytest.approx(0.2)
     assert controller.shield.interventions["accel_limit"] == 2
+
+
+def test_shield_watches_the_measured_velocity_it_is_given():
+    """Sliding right at 1.1 m/s into a return 57° right of the nose: the nose sector alone would let
+    full speed through; with the measured velocity the shield stops and brakes."""
+    scan = np.ones(360, np.float32)
+    scan[300:306] = 0.08  # 0.8 m, 55-60° right of the nose
+    sliding = ShieldedController(FullAhead(), SafetyShield(ShieldConfig(), 10.0, "ardupilot"), 2.0, 1.5,
+                                 velocity=lambda: np.array([0.9, -0.6]))
+    blind = shielded()
+    for _ in range(30):
+        blind_action, action = blind.act(scan), sliding.act(scan)
+    assert blind_action[0] == pytest.approx(1.0)
+    assert action[0] < 0.0  # braking against the motion
+    assert sliding.shield.interventions["motion_stop"] == 30
 
 
 def test_shielded_rows_are_labelled_as_such():
