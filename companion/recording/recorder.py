@@ -158,9 +158,9 @@ class FlightRecorder:
             self._hold(s.SHIELD, self._clock(), _shield_step, scan_seq, float(dt), reset, requested,
                        output, limits, extra)
 
-    def on_setpoint(self, forward: float, yaw_rate: float) -> None:
+    def on_setpoint(self, forward: float, yaw_rate: float, lateral: float = 0.0) -> None:
         if self.active:
-            self._hold(s.SETPOINT, self._clock(), _setpoint, float(forward), float(yaw_rate))
+            self._hold(s.SETPOINT, self._clock(), _setpoint, float(forward), float(yaw_rate), float(lateral))
 
     def on_statustext(self, text: str, severity: int) -> None:
         if self.active:
@@ -229,8 +229,8 @@ def _shield_step(t: float, scan_seq: int | None, dt: float, reset: bool, request
             "extra": None if not extra else m.plain(extra)}
 
 
-def _setpoint(t: float, forward: float, yaw_rate: float) -> dict[str, Any]:
-    return {"timestamp": m.stamp(t), **m.command(forward, yaw_rate)}
+def _setpoint(t: float, forward: float, yaw_rate: float, lateral: float) -> dict[str, Any]:
+    return {"timestamp": m.stamp(t), **m.command(forward, yaw_rate), "lateral": lateral}
 
 
 def _log(t: float, text: str, severity: int) -> dict[str, Any]:

@@ -112,7 +112,8 @@ OWN_SCHEMAS: dict[str, dict[str, Any]] = {
         extra=_nullable({"type": "object"}),
     ),
     # Every velocity setpoint that went to the autopilot (policy or zero).
-    "lidar_avoid.Setpoint": _obj("lidar_avoid.Setpoint", timestamp=TIME, forward=_num(), yaw_rate=_num()),
+    "lidar_avoid.Setpoint": _obj("lidar_avoid.Setpoint", timestamp=TIME, forward=_num(), yaw_rate=_num(),
+                                  lateral=_num()),
     "lidar_avoid.Transition": _obj(
         "lidar_avoid.Transition", timestamp=TIME, old=_str(), new=_str(), reason=_str(), counters=_COUNTS,
     ),

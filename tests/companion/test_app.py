@@ -290,7 +290,7 @@ def test_parameter_check_at_start_accepts_only_the_allowed_missing_names(tmp_pat
     try:
         config = load_config(config_path, allowed)
         if allow:
-            assert check_parameters(config) == []
+            assert check_parameters(config)[0] == []
         else:
             with pytest.raises(UserError, match=r"SERIAL2_PROTOCOL: wanted 2, autopilot - \(unknown to the"):
                 check_parameters(config)

@@ -232,7 +232,7 @@ def test_unsigned_and_wrongly_signed_frames_are_dropped_and_counted(port):
         unsigned.heartbeat(armed=True)  # the autopilot's own ids, GUIDED, armed: but unsigned
         unsigned.flying(altitude=3.0)
         wrong_key.heartbeat(armed=True)
-        _poll_until(link, lambda s: link.counters["signature_rejected"] == 5)
+        _poll_until(link, lambda s: link.counters["signature_rejected"] == 7)  # 1 + flying()'s 5 + 1
         status = link.poll()
         assert status.heartbeat_time is None and not status.armed and status.altitude is None
         assert link.target is None and link._endpoint.reply_address is None
@@ -243,7 +243,7 @@ def test_unsigned_and_wrongly_signed_frames_are_dropped_and_counted(port):
         status = _poll_until(link, lambda s: s.heartbeat_time is not None)
         assert status.mode == "LOITER" and not status.armed
         unsigned.heartbeat(armed=True)  # an unsigned GUIDED+armed heartbeat changes nothing now either
-        _poll_until(link, lambda s: link.counters["signature_rejected"] == 6)
+        _poll_until(link, lambda s: link.counters["signature_rejected"] == 8)
         assert link.poll().mode == "LOITER"
     finally:
         for end in (link, unsigned, wrong_key, genuine):

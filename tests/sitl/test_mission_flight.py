@@ -1,7 +1,7 @@
 """SITL: missions through both simulated autopilots, the real companion process, a mission changed in flight.
 
-No goal-conditioned policy exists yet (issue 12): a constant policy flies a circle of ~1.7 m radius
-about the room's centre, and the in-flight mission puts its waypoints on that circle. What is
+No goal-conditioned policy exists yet: a constant policy flies a loop, and the in-flight mission
+puts its waypoints on two points of that loop the vehicle has just passed. What is
 tested is the plumbing: the ground station's uploads, the companion's downloads (the second one in
 flight), its progress announcements, and the hold at completion that stops the vehicle.
 """
@@ -9,6 +9,7 @@ flight), its progress announcements, and the hold at completion that stops the v
 from __future__ import annotations
 
 import dataclasses
+import time
 
 import pytest
 
@@ -18,7 +19,6 @@ from tests.sitl.helpers import OPEN_ROOM, speed, wait_for, write_constant_policy
 pytestmark = pytest.mark.sitl
 
 FAR = dataclasses.replace(OPEN_ROOM, waypoints=((5.0, 5.0, 1.5),))  # never reached by the circle
-ON_CIRCLE = dataclasses.replace(OPEN_ROOM, waypoints=((1.7, 0.0, 1.5), (0.0, 1.7, 1.5)))
 
 
 def _said(f: SitlFlight, mark: str) -> bool:
@@ -41,7 +41,13 @@ def test_mission_changed_in_flight_tracked_to_completion(tmp_path, autopilot):
         assert _said(f, "mission downloaded: 1 items")
         wait_for(lambda: speed(f) > 0.6, 5.0, "the vehicle flying its circle")
 
-        f.pilot(lambda gcs: gcs.upload_mission(mission_items(ON_CIRCLE, gcs.home_position())))
+        # the new mission's waypoints lie on the loop the vehicle is flying: two points it has just
+        # passed, 2 s apart (where the loop lies depends on the response and the shield)
+        first = tuple(f.server.state.position[:2])
+        time.sleep(2.0)
+        second = tuple(f.server.state.position[:2])
+        on_loop = dataclasses.replace(OPEN_ROOM, waypoints=((*first, 1.5), (*second, 1.5)))
+        f.pilot(lambda gcs: gcs.upload_mission(mission_items(on_loop, gcs.home_position())))
         wait_for(lambda: _said(f, "mission downloaded: 2 items"), 10.0, "the download in flight")
         assert _said(f, "mission changed")
         wait_for(lambda: _said(f, "goal: complete, holding"), 30.0, "the mission's completion")
