@@ -297,7 +297,8 @@ class Companion:
         self._last_log = clock()
         self._stopping = False
         self.goal = open_goal(config, self.link, clock)
-        self._goal_output = GoalOutput(None)
+        # with a goal source: hold until the goal is first evaluated, and announce what it says then
+        self._goal_output = GoalOutput(None if self.goal is None else "starting")
         self._completion_requested = False
         self.recorder = self._start_recorder()
 

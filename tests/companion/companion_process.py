@@ -12,7 +12,9 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -223,3 +225,14 @@ def stop(proc: subprocess.Popen[str], timeout: float = 10.0) -> tuple[int, str, 
 
 __all__ = ["LidarSender", "NotifySocket", "free_udp_port", "revolution_packets", "run_to_exit",
            "start_companion", "start_lidar_traffic", "stop", "write_config"]
+
+
+def wait_until(condition: Callable[[], Any], timeout: float = 10.0, what: str = "condition") -> Any:
+    """Poll ``condition()`` every 10 ms until it is truthy and return it; AssertionError naming ``what``."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = condition()
+        if value:
+            return value
+        time.sleep(0.01)
+    raise AssertionError(f"timed out waiting for {what}")

@@ -26,20 +26,14 @@ from tests.companion.companion_process import (
     stop,
     write_config,
 )
+from tests.companion.companion_process import (
+    wait_until as _wait,
+)
 from tests.companion.mavlink_peer import COPTER_GUIDED, COPTER_LOITER, SimulatedAutopilot
 from tests.onnx_models import write_policy
 
 SETPOINT = "SET_POSITION_TARGET_LOCAL_NED"
 
-
-def _wait(condition, timeout=10.0, what="condition"):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = condition()
-        if value:
-            return value
-        time.sleep(0.01)
-    raise AssertionError(f"timed out waiting for {what}")
 
 
 @pytest.fixture

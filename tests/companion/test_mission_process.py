@@ -9,6 +9,7 @@ from __future__ import annotations
 import time
 
 from tests.companion.companion_process import LidarSender, free_udp_port, start_companion, stop, write_config
+from tests.companion.companion_process import wait_until as _wait
 from tests.companion.mavlink_peer import SimulatedAutopilot
 from tests.onnx_models import write_policy
 
@@ -23,15 +24,6 @@ east = 0.0
 down = -1.5
 """
 
-
-def _wait(condition, timeout=10.0, what="condition"):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = condition()
-        if value:
-            return value
-        time.sleep(0.01)
-    raise AssertionError(f"timed out waiting for {what}")
 
 
 def _texts(vehicle, since):
