@@ -5,8 +5,6 @@ firmware's own (RADIO_STATUS on ArduPilot; RADIO_STATUS, ADSB_VEHICLE, COLLISION
 
 from __future__ import annotations
 
-import time
-
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
@@ -14,6 +12,7 @@ from companion.autopilot.ardupilot import ArduPilotLink
 from companion.autopilot.signing import enable_signing
 from flightsim.sim_autopilot.server import SimAutopilotServer
 from flightsim.vehicle import Vehicle, VehicleConfig
+from tests.companion.companion_process import wait_until
 from tests.companion.mavlink_peer import AutopilotPeer, free_udp_port
 
 KEY = bytes(range(1, 33))
@@ -26,13 +25,7 @@ def vehicle():
 
 
 def _wait(condition, timeout=5.0, what="condition"):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = condition()
-        if value:
-            return value
-        time.sleep(0.01)
-    raise AssertionError(f"{what} not reached")
+    return wait_until(condition, timeout, what)
 
 
 class Rig:
