@@ -77,6 +77,25 @@ class CurriculumConfig:
 
 
 @dataclass(frozen=True)
+class PretrainConfig:
+    """Behaviour cloning warm start before PPO (:mod:`training.pretrain`); ``steps = 0``: none.
+
+    :param steps: env steps of demonstrations to record (all envs together; not counted in
+        ``total_timesteps``)
+    :param demonstrator: the classical controller imitated
+    :param epochs: passes over the demonstrations
+    :param batch_size: demonstrations per gradient step
+    :param learning_rate: Adam's, for the warm start only
+    """
+
+    steps: int = field(default=0, metadata={"min": 0, "max": 10_000_000})
+    demonstrator: Literal["goal_follower", "gap_follower"] = "goal_follower"
+    epochs: int = field(default=10, metadata={"min": 1, "max": 1000})
+    batch_size: int = field(default=256, metadata={"min": 1})
+    learning_rate: float = field(default=1e-3, metadata={"min": 1e-7, "max": 1.0})
+
+
+@dataclass(frozen=True)
 class TrainConfig:
     """One training run.
 
@@ -97,6 +116,7 @@ class TrainConfig:
         ``flightsim/LidarNav-v0`` (fly to waypoints; ``difficulty_spread``, ``narrow_room_*`` and the
         curriculum do not apply: the env draws its own families and difficulties)
     :param env: the simulator's ``EnvConfig`` table (domain randomisation switches included)
+    :param pretrain: the behaviour cloning warm start (a fresh run only, not on ``--resume``)
     """
 
     env_id: Literal["flightsim/LidarAvoid-v0", "flightsim/LidarNav-v0"] = "flightsim/LidarAvoid-v0"
@@ -115,10 +135,16 @@ class TrainConfig:
     ppo: PPOConfig = field(default_factory=PPOConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     curriculum: CurriculumConfig = field(default_factory=CurriculumConfig)
+    pretrain: PretrainConfig = field(default_factory=PretrainConfig)
 
     def __post_init__(self) -> None:
         if not isinstance(self.env, dict):
             raise ValueError("env must be a table")
+        if self.pretrain.steps and (self.pretrain.demonstrator == "goal_follower") != self.is_goal_task:
+            task = "goal" if self.is_goal_task else "avoid"
+            raise ValueError(
+                f"pretrain.demonstrator {self.pretrain.demonstrator} does not fly the {task} task"
+            )
         if not self.name or any(c in self.name for c in "/\\ "):
             raise ValueError(f"name {self.name!r} must be non-empty without spaces or slashes")
 

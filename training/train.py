@@ -394,6 +394,22 @@ def build_model(config: TrainConfig, venv: Any, run_dir: Path, resume: Path | No
     )
 
 
+def warm_start(config: TrainConfig, venv: Any, model: Any) -> None:
+    """Behaviour cloning before PPO (:mod:`training.pretrain`): record the demonstrator in the
+    training envs, fit the fresh model's actor and critic to it."""
+    from training import pretrain
+
+    p = config.pretrain
+    data = pretrain.collect(
+        venv, config.n_stack, p.demonstrator, config.env_config(), p.steps, config.ppo.gamma
+    )
+    log.info(
+        "warm start: %d steps of %s, %d episodes ended, %d of them successes",
+        len(data.actions), p.demonstrator, data.episodes, data.successes,
+    )  # fmt: skip
+    pretrain.fit(model.policy, data, p.epochs, p.batch_size, p.learning_rate, config.seed)
+
+
 class TrainingInterrupted(Exception):
     """Ctrl-C during ``learn``: the model was saved as ``path`` after ``steps`` steps."""
 
@@ -436,6 +452,8 @@ def train(config: TrainConfig, resume: Path | None = None) -> Path:
     )
     try:
         model = build_model(config, venv, run_dir, resume)
+        if config.pretrain.steps and resume is None:
+            warm_start(config, venv, model)
         remaining = config.total_timesteps - (model.num_timesteps if resume else 0)
         if remaining <= 0:
             raise UserError(f"{resume} already has {model.num_timesteps} steps >= total_timesteps")

@@ -62,6 +62,8 @@ def test_overrides_reach_nested_tables_and_env(tmp_path):
         ("name = 'a b'\n", [], "name"),
         ("[ppo]\nlearning_rate_schedule = 'cosine'\n", [], "ppo.learning_rate_schedule"),
         ("[env]\nautopilot_response = 'fast'\n", [], "env.autopilot_response"),
+        ("[pretrain]\nsteps = 10\n", [], "pretrain.demonstrator"),  # goal_follower on the avoid task
+        ("[pretrain]\nsteps = -1\n", [], "pretrain.steps"),
     ],
 )
 def test_mistakes_name_the_key(tmp_path, text, overrides, named):

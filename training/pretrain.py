@@ -1,0 +1,143 @@
+"""Behaviour cloning warm start: PPO begins from a policy that imitates a classical controller.
+
+PPO from scratch on the goal task learns first not to crash and then, slowly, that goals pay: for
+its first half million steps it circles in open space. A warm start skips that phase. The
+classical controller (:class:`~training.baselines.GoalFollower` on the goal task,
+:class:`~training.baselines.GapFollower` on the avoid task) flies the training environments, its
+own (stacked) observations and actions are recorded, and before ``learn`` the PPO actor's mean is
+fitted to its actions (mean squared error; the exploration noise ``log_std`` stays as configured)
+and the critic to the discounted returns it earned. PPO then improves on the demonstrator, which
+collides where it misjudges the autopilot's lag; nothing keeps the policy close to it afterwards.
+
+The demonstrations come from the training worlds (:data:`flightsim.seeds.TRAIN`), so training and
+selection seeds stay apart. Read top to bottom: :func:`collect`, :func:`discounted_returns`,
+:func:`fit`.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Demonstrations:
+    """What the demonstrator saw and did, one row per env step.
+
+    :param obs: stacked observations, as the policy sees them
+    :param actions: the demonstrator's actions, in ``[-1, 1]``
+    :param returns: discounted return from each step to its episode's end (or the data's end)
+    :param episodes: episodes that ended within the data
+    :param successes: of those, how many reached their goal (goal task) or flew the whole time
+    """
+
+    obs: np.ndarray
+    actions: np.ndarray
+    returns: np.ndarray
+    episodes: int
+    successes: int
+
+
+def collect(
+    venv: Any, n_stack: int, demonstrator: str, env_config: Any, n_steps: int, gamma: float
+) -> Demonstrations:
+    """Fly ``demonstrator`` in every env of ``venv`` (frame-stacked) for ``n_steps`` steps in all.
+
+    :param venv: the training VecEnv (monitored, frame-stacked), freshly built
+    :param n_stack: frames per observation (the newest is the demonstrator's)
+    :param demonstrator: a baseline's name (``goal_follower`` or ``gap_follower``)
+    :param env_config: the envs' config (the demonstrator reads the frame with its layout)
+    :param n_steps: env steps to record, all envs together
+    :param gamma: discount of the recorded returns (PPO's)
+    """
+    from training.evaluate import ControllerSpec, build_controller
+
+    n_envs = venv.num_envs
+    frame = venv.observation_space.shape[0] // n_stack
+    controllers = [build_controller(ControllerSpec(demonstrator), env_config, seed=i) for i in range(n_envs)]
+    obs = venv.reset()
+    actions = np.stack([c.reset(o[-frame:]) for c, o in zip(controllers, obs, strict=True)])
+    rows = max(1, n_steps // n_envs)
+    all_obs = np.empty((rows, *obs.shape), dtype=np.float32)
+    all_actions = np.empty((rows, n_envs, 2), dtype=np.float32)
+    rewards = np.empty((rows, n_envs), dtype=np.float32)
+    dones = np.empty((rows, n_envs), dtype=bool)
+    episodes = successes = 0
+    for t in range(rows):
+        all_obs[t], all_actions[t] = obs, actions
+        obs, rewards[t], dones[t], infos = venv.step(actions)
+        next_actions = []
+        for i, (controller, o, info) in enumerate(zip(controllers, obs, infos, strict=True)):
+            if dones[t, i]:
+                episodes += 1
+                successes += bool(info.get("success", not info.get("collision", False)))
+                next_actions.append(controller.reset(o[-frame:]))
+            else:
+                next_actions.append(controller.act(o[-frame:]))
+        actions = np.clip(np.stack(next_actions), -1.0, 1.0).astype(np.float32)
+    returns = discounted_returns(rewards, dones, gamma)
+    return Demonstrations(
+        all_obs.reshape(-1, obs.shape[1]),
+        all_actions.reshape(-1, 2),
+        returns.reshape(-1),
+        episodes,
+        successes,
+    )
+
+
+def discounted_returns(rewards: np.ndarray, dones: np.ndarray, gamma: float) -> np.ndarray:
+    """Per step, ``sum_k gamma^k r_{t+k}`` up to its episode's end (``dones[t]``: step ``t`` ended it).
+
+    An episode still running when the data ends is cut there (its last returns are short by what
+    would have followed; a warm start does not need better).
+    """
+    returns = np.zeros_like(rewards, dtype=np.float32)
+    running = np.zeros(rewards.shape[1], dtype=np.float32)
+    for t in range(len(rewards) - 1, -1, -1):
+        running = rewards[t] + gamma * running * ~dones[t]
+        returns[t] = running
+    return returns
+
+
+def fit(
+    policy: Any, data: Demonstrations, epochs: int, batch_size: int, learning_rate: float, seed: int
+) -> dict[str, float]:
+    """Fit ``policy``'s action mean to the demonstrations and its value to their returns.
+
+    :param policy: an SB3 ``ActorCriticPolicy`` (the PPO model's ``policy``)
+    :returns: the last epoch's mean losses (``action_mse``, ``value_mse``)
+    """
+    import torch
+
+    generator = torch.Generator().manual_seed(seed)
+    obs = torch.as_tensor(data.obs)
+    actions = torch.as_tensor(data.actions)
+    returns = torch.as_tensor(data.returns)
+    parameters = [p for name, p in policy.named_parameters() if name != "log_std"]
+    optimizer = torch.optim.Adam(parameters, lr=learning_rate)
+    policy.set_training_mode(True)
+    losses: dict[str, float] = {}
+    for epoch in range(epochs):
+        order = torch.randperm(len(obs), generator=generator)
+        totals = np.zeros(2)
+        for start in range(0, len(obs), batch_size):
+            index = order[start : start + batch_size]
+            distribution = policy.get_distribution(obs[index])
+            action_mse = torch.nn.functional.mse_loss(distribution.distribution.mean, actions[index])
+            value_mse = torch.nn.functional.mse_loss(
+                policy.predict_values(obs[index]).squeeze(-1), returns[index]
+            )
+            optimizer.zero_grad()
+            (action_mse + 0.5 * value_mse).backward()
+            torch.nn.utils.clip_grad_norm_(parameters, 0.5)
+            optimizer.step()
+            totals += (action_mse.item() * len(index), value_mse.item() * len(index))
+        losses = {"action_mse": totals[0] / len(obs), "value_mse": totals[1] / len(obs)}
+        log.info("pretrain epoch %d/%d: action mse %.4f, value mse %.2f", epoch + 1, epochs, *losses.values())
+    policy.set_training_mode(False)
+    return losses
