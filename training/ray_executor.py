@@ -17,8 +17,8 @@ from typing import Any
 
 from companion.errors import UserError
 
-#: how long to wait for a TCP connection to ``--address`` before calling it unreachable (Ray's own
-#: connection attempts take 30 s for ``ray://`` and two minutes for a GCS address before giving up)
+#: how long to wait for a TCP connection to ``--address``, and then for a gRPC handshake, before
+#: calling it unreachable (Ray's own attempts take 30 s for ``ray://``, minutes for a GCS address)
 CONNECT_TIMEOUT_S = 5.0
 
 INSTALL_HINT = "pip install -e '.[ray]' (or pip install 'ray[client]')"
@@ -39,15 +39,18 @@ class RayExecutor(Executor):
             raise UserError(f"--executor ray needs Ray, the [ray] extra: {INSTALL_HINT}") from None
         self._ray = ray
         self._remotes: dict[Callable[..., Any], Any] = {}
-        if address is None:
-            ray.init(num_cpus=num_cpus, include_dashboard=False, logging_level=logging.ERROR)
+        if address is None:  # "local": a new Ray even where `ray start` left a cluster to join
+            ray.init("local", num_cpus=num_cpus, include_dashboard=False, logging_level=logging.ERROR)
             return
         if address != "auto":
             check_reachable(address)
         try:
             ray.init(address=address, logging_level=logging.ERROR)
         except ConnectionError as exc:
-            raise UserError(f"--address {address}: cannot join the Ray cluster: {exc}") from None
+            raise UserError(
+                f"--address {address}: cannot join the Ray cluster: {exc} (a cluster with token "
+                "authentication needs RAY_AUTH_MODE=token and its token here too: README, Evaluation on Ray)"
+            ) from None
 
     def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future:
         remote = self._remotes.get(fn)
@@ -61,8 +64,9 @@ class RayExecutor(Executor):
 
 
 def check_reachable(address: str) -> None:
-    """Raise :class:`UserError` unless ``[ray://]HOST:PORT`` takes a TCP connection within
-    :data:`CONNECT_TIMEOUT_S` (an unreachable head fails in seconds, as one line)."""
+    """Raise :class:`UserError` unless ``[ray://]HOST:PORT`` takes a TCP connection and completes a
+    gRPC (HTTP/2) handshake, each within :data:`CONNECT_TIMEOUT_S`: Ray's own attempts on a dead or
+    foreign address take from 30 s to minutes and may end the process instead of raising."""
     host, sep, port = address.removeprefix("ray://").rpartition(":")
     if not sep or not host or not port.isdigit():
         raise UserError(f"--address {address}: expected auto, HOST:PORT or ray://HOST:PORT")
@@ -71,3 +75,14 @@ def check_reachable(address: str) -> None:
             pass
     except OSError as exc:
         raise UserError(f"--address {address}: no Ray head reachable there ({exc})") from None
+    try:
+        import grpc  # Ray's transport; the [ray] extra's ray[client] brings its Python binding
+    except ImportError:
+        raise UserError(f"--address needs grpcio, part of the [ray] extra: {INSTALL_HINT}") from None
+    with grpc.insecure_channel(f"{host}:{port}") as channel:
+        try:
+            grpc.channel_ready_future(channel).result(timeout=CONNECT_TIMEOUT_S)
+        except grpc.FutureTimeoutError:
+            raise UserError(
+                f"--address {address}: something listens there but does not speak gRPC as a Ray head does"
+            ) from None

@@ -1,11 +1,16 @@
 """``avoid-train evaluate --executor ray``: the same report as the local process pool, from Ray tasks on
-a real local Ray; and one-line errors for a missing extra and an unreachable cluster."""
+a real local Ray and on a real `ray start --head` cluster joined by address (GCS and Ray Client), all
+on loopback; and one-line errors for a missing extra and an unreachable or foreign address."""
 
 from __future__ import annotations
 
 import json
+import os
+import secrets
 import socket
+import subprocess
 import sys
+import time
 
 import pytest
 
@@ -18,9 +23,9 @@ CONFIG = (
 )
 
 
-@pytest.fixture
-def config(tmp_path):
-    path = tmp_path / "nav.toml"
+@pytest.fixture(scope="module")
+def config(tmp_path_factory):
+    path = tmp_path_factory.mktemp("ray-evaluation") / "nav.toml"
     path.write_text(CONFIG)
     return path
 
@@ -29,15 +34,12 @@ def _evaluate(config, *extra: str) -> list[str]:
     return ["evaluate", "--config", str(config), "--seeds", "1", "--episodes", "2", "--shield", *extra]
 
 
-@pytest.mark.timeout(240)
-def test_ray_tasks_give_the_local_pools_report_in_the_same_order(config, tmp_path, capsys):
-    import ray  # the [ray] extra is part of [test]: this runs in CI
-    local, on_ray = tmp_path / "local.json", tmp_path / "ray.json"
-    assert main([*_evaluate(config, "--workers", "2"), "--json", str(local)]) == 0
-    assert main([*_evaluate(config, "--workers", "2", "--executor", "ray"), "--json", str(on_ray)]) == 0
-    assert not ray.is_initialized()  # the local Ray it started is shut down again
-    assert on_ray.read_text() == local.read_text()
-    episodes = json.loads(on_ray.read_text())["episodes"]
+@pytest.fixture(scope="module")
+def local_report(config) -> str:
+    """The reference: the JSON report of the local process pool (two processes)."""
+    out = config.parent / "local.json"
+    assert main([*_evaluate(config, "--workers", "2"), "--json", str(out)]) == 0
+    episodes = json.loads(out.read_text())["episodes"]
     assert [(e["controller"], e["world"], e["episode"]) for e in episodes] == [
         (c, w, k)
         for c in ("goal_follower+shield", "straight_line+shield")
@@ -45,6 +47,60 @@ def test_ray_tasks_give_the_local_pools_report_in_the_same_order(config, tmp_pat
         for k in (0, 1)
     ]
     assert len({(e["steps"], e["distance"]) for e in episodes}) > 2  # real, different episodes
+    return out.read_text()
+
+
+@pytest.mark.timeout(240)
+def test_ray_tasks_on_a_local_ray_give_the_local_pools_report(config, local_report, tmp_path):
+    import ray  # the [ray] extra is part of [test]: this runs in CI
+
+    out = tmp_path / "ray.json"
+    assert main([*_evaluate(config, "--workers", "2", "--executor", "ray"), "--json", str(out)]) == 0
+    assert not ray.is_initialized()  # the local Ray it started is shut down again
+    assert out.read_text() == local_report
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def ray_head(tmp_path):
+    """A real one-node Ray cluster on loopback, as `ray start --head` makes one, with token
+    authentication: ``(gcs_port, client_port, env)``, ``env`` holding the token for the driver as
+    the README says to give it to every machine."""
+    gcs, client = _free_port(), _free_port()
+    env = {**os.environ, "RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(32)}
+    log = tmp_path / "head.log"
+    argv = [sys.executable, "-m", "ray.scripts.scripts", "start", "--head", "--block", "--node-ip-address",
+            "127.0.0.1", "--port", str(gcs), "--ray-client-server-port", str(client), "--num-cpus", "2",
+            "--include-dashboard=false", "--disable-usage-stats"]  # fmt: skip
+    with log.open("w") as sink:
+        head = subprocess.Popen(argv, env=env, stdout=sink, stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 90
+        while "Ray runtime started" not in log.read_text():
+            assert head.poll() is None and time.monotonic() < deadline, log.read_text()
+            time.sleep(0.2)
+        yield gcs, client, env
+    finally:
+        head.terminate()  # --block: `ray start` stops the cluster's processes on SIGTERM
+        head.wait(timeout=60)
+
+
+@pytest.mark.timeout(240)
+def test_a_cluster_joined_by_address_gives_the_local_pools_report(config, local_report, ray_head, tmp_path):
+    gcs, client, env = ray_head
+    for address in (f"127.0.0.1:{gcs}", f"ray://127.0.0.1:{client}"):
+        out = tmp_path / "cluster.json"
+        # a process of its own, as on a user's machine: Ray reads the token once per process
+        argv = [sys.executable, "-m", "training"]
+        argv += _evaluate(config, "--executor", "ray", "--address", address, "--json", str(out))
+        done = subprocess.run(argv, env=env, capture_output=True, text=True)
+        assert done.returncode == 0, done.stderr
+        assert out.read_text() == local_report, address
 
 
 def test_without_ray_installed_the_error_names_the_extra(config, monkeypatch, capsys):
@@ -52,12 +108,6 @@ def test_without_ray_installed_the_error_names_the_extra(config, monkeypatch, ca
     assert main(_evaluate(config, "--executor", "ray")) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--executor ray needs Ray" in err[0] and "pip install -e '.[ray]'" in err[0]
-
-
-def _closed_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.mark.timeout(60)  # Ray itself would try a dead GCS address for two minutes
@@ -71,7 +121,7 @@ def _closed_port() -> int:
     ],
 )
 def test_an_unreachable_address_is_one_line_and_exit_2(config, capsys, address, message):
-    address = address.format(port=_closed_port())
+    address = address.format(port=_free_port())
     assert main(_evaluate(config, "--executor", "ray", "--address", address)) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"--address {address}" in err[0] and message in err[0]
