@@ -16,10 +16,11 @@ import pytest
 
 from training.__main__ import main
 
-# two families, two controllers, two episodes: eight episodes whose order the report must keep
+# two families, two controllers, two episodes: eight episodes (at most 15 s each) whose order the
+# report must keep
 CONFIG = (
     'env_id = "flightsim/LidarNav-v0"\n[eval]\nfirst_seed = 500000\n'
-    '[env]\nfamilies = ["gaps", "pillars"]\ndifficulty_range = [0.0, 0.3]\n'
+    '[env]\nfamilies = ["gaps", "pillars"]\ndifficulty_range = [0.0, 0.3]\nmax_steps = 150\n'
 )
 
 
@@ -125,6 +126,17 @@ def test_an_unreachable_address_is_one_line_and_exit_2(config, capsys, address, 
     assert main(_evaluate(config, "--executor", "ray", "--address", address)) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"--address {address}" in err[0] and message in err[0]
+
+
+@pytest.mark.timeout(60)
+def test_an_address_where_no_ray_head_answers_is_one_line_and_exit_2(config, capsys):
+    with socket.socket() as listener:  # takes TCP connections (the kernel's backlog) but says nothing
+        listener.bind(("127.0.0.1", 0))
+        listener.listen()
+        address = "{}:{}".format(*listener.getsockname())
+        assert main(_evaluate(config, "--executor", "ray", "--address", address)) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "does not speak gRPC as a Ray head does" in err[0]
 
 
 @pytest.mark.parametrize(
