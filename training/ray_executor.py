@@ -44,6 +44,8 @@ class RayExecutor(Executor):
             return
         if address != "auto":
             check_reachable(address)
+        elif found := _auto_address(ray):  # a stale record would hang ray.init as a dead address does
+            check_reachable(found, f"auto (found {found})")
         try:
             ray.init(address=address, logging_level=logging.ERROR)
         except ConnectionError as exc:
@@ -63,18 +65,29 @@ class RayExecutor(Executor):
         self._ray.shutdown()
 
 
-def check_reachable(address: str) -> None:
+def _auto_address(ray: Any) -> str | None:
+    """The cluster Ray means by ``auto`` (``RAY_ADDRESS``, else the last ``ray start`` on this
+    machine), or ``None`` when it finds none (``ray.init`` then says so at once)."""
+    try:
+        return ray._private.services.canonicalize_bootstrap_address("auto")
+    except Exception:  # none found (ConnectionError), or a Ray without this helper: ray.init decides
+        return None
+
+
+def check_reachable(address: str, label: str | None = None) -> None:
     """Raise :class:`UserError` unless ``[ray://]HOST:PORT`` takes a TCP connection and completes a
     gRPC (HTTP/2) handshake, each within :data:`CONNECT_TIMEOUT_S`: Ray's own attempts on a dead or
-    foreign address take from 30 s to minutes and may end the process instead of raising."""
+    foreign address take from 30 s to minutes and may end the process instead of raising.
+    ``label``: how the messages name the address (default: ``address``)."""
+    label = label or address
     host, sep, port = address.removeprefix("ray://").rpartition(":")
     if not sep or not host or not port.isdigit():
-        raise UserError(f"--address {address}: expected auto, HOST:PORT or ray://HOST:PORT")
+        raise UserError(f"--address {label}: expected auto, HOST:PORT or ray://HOST:PORT")
     try:
         with socket.create_connection((host.strip("[]"), int(port)), timeout=CONNECT_TIMEOUT_S):
             pass
     except OSError as exc:
-        raise UserError(f"--address {address}: no Ray head reachable there ({exc})") from None
+        raise UserError(f"--address {label}: no Ray head reachable there ({exc})") from None
     try:
         import grpc  # Ray's transport; the [ray] extra's ray[client] brings its Python binding
     except ImportError:
@@ -84,5 +97,5 @@ def check_reachable(address: str) -> None:
             grpc.channel_ready_future(channel).result(timeout=CONNECT_TIMEOUT_S)
         except grpc.FutureTimeoutError:
             raise UserError(
-                f"--address {address}: something listens there but does not speak gRPC as a Ray head does"
+                f"--address {label}: something listens there but does not speak gRPC as a Ray head does"
             ) from None

@@ -10,7 +10,9 @@ import secrets
 import socket
 import subprocess
 import sys
+import tempfile
 import time
+from pathlib import Path
 
 import pytest
 
@@ -89,6 +91,9 @@ def ray_head(tmp_path):
     finally:
         head.terminate()  # --block: `ray start` stops the cluster's processes on SIGTERM
         head.wait(timeout=60)
+        record = Path(tempfile.gettempdir(), "ray", "ray_current_cluster")  # what `auto` would join
+        if record.is_file() and record.read_text().strip().endswith(f":{gcs}"):
+            record.unlink()
 
 
 @pytest.mark.timeout(240)
@@ -126,6 +131,14 @@ def test_an_unreachable_address_is_one_line_and_exit_2(config, capsys, address, 
     assert main(_evaluate(config, "--executor", "ray", "--address", address)) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"--address {address}" in err[0] and message in err[0]
+
+
+@pytest.mark.timeout(60)
+def test_auto_finding_a_dead_cluster_is_one_line_and_exit_2(config, capsys, monkeypatch):
+    monkeypatch.setenv("RAY_ADDRESS", f"127.0.0.1:{_free_port()}")  # as a stale `ray start` record
+    assert main(_evaluate(config, "--executor", "ray", "--address", "auto")) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--address auto (found " in err[0] and "no Ray head reachable there" in err[0]
 
 
 @pytest.mark.timeout(60)
