@@ -22,7 +22,9 @@ flies, not of the training framework. With ``--shield`` every controller's actio
 through the companion's :class:`SafetyShield` (default ``[shield]`` limits), as they do in flight;
 the report labels those rows ``<controller>+shield``.
 
-Episodes are independent tasks run in a process pool (one process per core by default).
+Episodes are independent tasks run in a process pool (one process per core by default) or, with
+``--executor ray``, as Ray tasks on a local Ray or a cluster (``--address``); both feed the same
+:func:`run_tasks`, so the report is the same, in the same order.
 """
 
 from __future__ import annotations
@@ -433,8 +435,18 @@ def run_task(task: EpisodeTask) -> EpisodeResult:
     return result
 
 
-def make_executor(workers: int) -> Executor:
-    """A process pool for episodes (forkserver: safe with torch's threads in the parent)."""
+#: where ``avoid-train evaluate`` runs its episodes
+EXECUTORS = ("local", "ray")
+
+
+def make_executor(workers: int, kind: str = "local", address: str | None = None) -> Executor:
+    """Where episodes run: a process pool of ``workers`` (forkserver: safe with torch's threads in
+    the parent), or Ray tasks (:class:`~training.ray_executor.RayExecutor`) on a local Ray of
+    ``workers`` CPUs or on the cluster at ``address``."""
+    if kind == "ray":
+        from training.ray_executor import RayExecutor
+
+        return RayExecutor(address, None if address else workers)
     return ProcessPoolExecutor(max_workers=workers, mp_context=get_context("forkserver"))
 
 
@@ -732,12 +744,17 @@ def evaluate(
     baselines: Sequence[str] | None = None,
     shield: bool = False,
     env_id: str = AVOID_ENV_ID,
+    executor: str = "local",
+    address: str | None = None,
 ) -> tuple[dict[str, Any], list[EpisodeResult]]:
     """Evaluate ``policy`` (optional) and ``baselines`` on ``worlds``: (report dict, episode results).
 
     :param baselines: default: the task's (:data:`BASELINES` or :data:`GOAL_BASELINES`)
     :param shield: every controller behind the companion's safety shield
     :param env_id: the task
+    :param executor: one of :data:`EXECUTORS` (see :func:`make_executor`; ``local`` with one worker
+        runs in this process)
+    :param address: the Ray cluster to join (``ray`` only; default: start a local Ray)
     """
     if baselines is None:
         baselines = GOAL_BASELINES if env_id == NAV_ENV_ID else BASELINES
@@ -745,11 +762,11 @@ def evaluate(
         ControllerSpec(b, shield=shield) for b in baselines
     ]
     tasks = make_tasks(controllers, worlds, episodes, env, env_id)
-    if workers <= 1:
+    if workers <= 1 and executor == "local":
         results = run_tasks(tasks)
     else:
-        with make_executor(workers) as executor:
-            results = run_tasks(tasks, executor)
+        with make_executor(workers, executor, address) as pool:
+            results = run_tasks(tasks, pool)
     return report(results, worlds), results
 
 
@@ -797,7 +814,24 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         help="how the autopilot answers the setpoints (sets env.autopilot_response): ideal, the calibrated "
         "px4 or ardupilot firmware response, or random per episode (default: the config's, else ideal)",
     )
-    parser.add_argument("--workers", type=int, default=0, help="worker processes (0 = one per core)")
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=0,
+        help="episodes at once: processes or a local Ray's CPUs (0: one per core)",
+    )
+    parser.add_argument(
+        "--executor",
+        choices=EXECUTORS,
+        default="local",
+        help="run episodes in a local process pool, or as Ray tasks (the [ray] extra)",
+    )
+    parser.add_argument(
+        "--address",
+        metavar="ADDR",
+        help="with --executor ray: the cluster to join (auto, HOST:PORT or ray://HOST:10001; "
+        "default: start a local Ray)",
+    )
     parser.add_argument("--per-world", action="store_true", help="print a row per world, not only the totals")
     parser.add_argument("--json", type=Path, help="write the full report here")
     parser.add_argument("--png", type=Path, help="draw the trajectories over each world here")
@@ -808,6 +842,10 @@ def command(args: argparse.Namespace) -> int:
 
     if args.episodes < 1:
         raise UserError("--episodes must be at least 1")
+    if args.address is not None and args.executor != "ray":
+        raise UserError("--address names a Ray cluster: it needs --executor ray")
+    if args.address is not None and args.workers:
+        raise UserError("--workers sizes a local pool or Ray; with --address the cluster's CPUs decide")
     overrides = list(args.overrides)
     if args.autopilot_response:
         overrides.append(f"env.autopilot_response={args.autopilot_response}")
@@ -818,8 +856,9 @@ def command(args: argparse.Namespace) -> int:
     if args.policy is not None:
         load_policy(args.policy, env_config, config.n_stack)  # fail fast, with a one-line error
     summary, results = evaluate(
-        args.policy, worlds, args.episodes, config.env, workers, shield=args.shield, env_id=config.env_id
-    )
+        args.policy, worlds, args.episodes, config.env, workers, shield=args.shield, env_id=config.env_id,
+        executor=args.executor, address=args.address,
+    )  # fmt: skip
     summary["env_id"] = config.env_id
     summary["policy"] = None if args.policy is None else str(args.policy)
     summary["shield"] = asdict(ShieldConfig()) if args.shield else None
