@@ -62,6 +62,7 @@ def test_overrides_reach_nested_tables_and_env(tmp_path):
         ("name = 'a b'\n", [], "name"),
         ("[ppo]\nlearning_rate_schedule = 'cosine'\n", [], "ppo.learning_rate_schedule"),
         ("[env]\nautopilot_response = 'fast'\n", [], "env.autopilot_response"),
+        ("vec_env = 'threads'\n", [], "vec_env"),
     ],
 )
 def test_mistakes_name_the_key(tmp_path, text, overrides, named):
