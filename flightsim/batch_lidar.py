@@ -128,7 +128,7 @@ def _draw_corruption(
         if cfg.noise_std > 0.0:
             noise_parts.append(rng.normal(0.0, cfg.noise_std, int(hits[i])).astype(np.float32))
         if drop is not None:
-            drop[i] = rng.random(shape[1:])
+            rng.random(out=drop[i])  # the same draws as rng.random(shape), without the copy
     if noise_parts:
         offsets[1:] = np.cumsum(hits)
         return np.concatenate(noise_parts), offsets, drop
@@ -247,8 +247,7 @@ def _scan_kernel(points, offsets, slice_height, min_r2, max_range, bins_per_rad,
             if not r2 >= min_r2:
                 continue
             rng = np.float32(np.float32(math.sqrt(xy2)) / max_range)
-            b = np.float32(np.float32(math.atan2(y, x)) * bins_per_rad)
-            index = math.floor(b)
+            index = math.floor(np.float32(np.float32(math.atan2(y, x)) * bins_per_rad))
             if index < 0:
                 index += scan.shape[0]
             if rng < scan[index]:
