@@ -8,7 +8,8 @@ Figures (issue 16), each measured side by side in this one run on this machine:
    process per env), for LidarNav-v0 with nav.toml's env settings and LidarAvoid-v0 with
    shipped.toml's (training's TrainingWorlds included), at N = 1, 2, 4, 8, 16, 32. Episodes that
    end are reset (a new generated world each time) inside the timing. The batched/subproc ratio
-   is printed beside both absolute rates.
+   is printed beside both absolute rates, and beside it the CPU time one env step costs (all
+   processes: this one and SubprocVecEnv's workers), which the neighbours' load moves far less.
 2. Training throughput during ``learn`` (PPO with the config's hyperparameters and n_envs,
    checkpoints and evaluation off), batched against subproc: env steps per second including
    inference and the PPO updates.
@@ -47,20 +48,33 @@ def load() -> str:
     return f"load {os.getloadavg()[0]:.1f}"
 
 
-def env_rate(config: TrainConfig, n: int, seconds: float) -> float:
-    """Env steps/s (wall clock) of ``make_vec_env`` with random actions, resets included."""
+def cpu_seconds(pids: list[int]) -> float:
+    """User + system CPU seconds used so far by these processes (Linux ``/proc``)."""
+    tick = os.sysconf("SC_CLK_TCK")
+    total = 0.0
+    for pid in pids:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        total += (int(fields[11]) + int(fields[12])) / tick  # utime, stime
+    return total
+
+
+def env_rate(config: TrainConfig, n: int, seconds: float) -> tuple[float, float]:
+    """Env steps/s (wall clock) of ``make_vec_env`` with random actions, resets included, and the
+    CPU time per env step of every process involved (this one and the workers), in µs."""
     venv = make_vec_env(config, n, seed=0)
+    pids = [os.getpid(), *(p.pid for p in getattr(venv.unwrapped, "processes", []))]
     try:
         venv.reset()
         rng = np.random.default_rng(0)
         for _ in range(max(3, 30 // n)):  # warm-up: compiled kernels loaded, workers running
             venv.step(rng.uniform(-1.0, 1.0, (n, 2)).astype(np.float32))
-        steps, start = 0, time.perf_counter()
+        steps, start, cpu = 0, time.perf_counter(), cpu_seconds(pids)
         while time.perf_counter() - start < seconds:
             for _ in range(10):
                 venv.step(rng.uniform(-1.0, 1.0, (n, 2)).astype(np.float32))
             steps += 10 * n
-        return steps / (time.perf_counter() - start)
+        wall, cpu = time.perf_counter() - start, cpu_seconds(pids) - cpu
+        return steps / wall, cpu / steps * 1e6
     finally:
         venv.close()
 
@@ -98,11 +112,14 @@ def main() -> None:
     print("1. env steps/s, random actions, make_vec_env (VecMonitor + VecFrameStack), resets included")
     for name, path in ENVS.items():
         print(f"  {name}")
-        print(f"    {'N':>3}  {'batched':>9}  {'subproc':>9}  ratio")
+        print(f"    {'N':>3}  {'batched':>9}  {'subproc':>9}  ratio   CPU µs/step batched, subproc, ratio")
         for n in args.n:
-            batched = env_rate(load_train_config(path, ["vec_env='batched'"]), n, args.seconds)
-            subproc = env_rate(load_train_config(path, ["vec_env='subproc'"]), n, args.seconds)
-            print(f"    {n:>3}  {batched:>9.0f}  {subproc:>9.0f}  {batched / subproc:4.1f}x  ({load()})")
+            batched, b_cpu = env_rate(load_train_config(path, ["vec_env='batched'"]), n, args.seconds)
+            subproc, s_cpu = env_rate(load_train_config(path, ["vec_env='subproc'"]), n, args.seconds)
+            print(
+                f"    {n:>3}  {batched:>9.0f}  {subproc:>9.0f}  {batched / subproc:4.1f}x   "
+                f"{b_cpu:6.0f} {s_cpu:6.0f}  {s_cpu / b_cpu:4.1f}x  ({load()})"
+            )
     if args.skip_learn:
         return
     print("2. training throughput during learn (PPO updates included; checkpoints and evaluation off)")
