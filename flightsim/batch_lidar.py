@@ -86,6 +86,7 @@ class BatchLidar:
         self.worlds = PackedWorlds(n)
         self._identity = scan.mount_rpy_deg == (0.0, 0.0, 0.0) and scan.mount_xyz == (0.0, 0.0, 0.0)
         self._no_drop = np.zeros((n, 0, 0))
+        self.column_bins = column_bins(caster.azimuth_deg, self._unit) if self._identity else None
 
     def scans(
         self, worlds: list[World], origins: np.ndarray, rotations: np.ndarray, rngs: list[np.random.Generator]
@@ -107,11 +108,39 @@ class BatchLidar:
         noise, noise_offsets, drop = _draw_corruption(cfg, hits, self._ranges.shape, rngs)
         if drop is None:
             drop = self._no_drop
-        points, offsets = _corrupt_and_points(
-            self._ranges, noise, noise_offsets, drop, cfg.noise_std > 0.0, cfg.dropout > 0.0,
-            np.float32(cfg.min_range), np.float32(cfg.max_range), cfg.dropout, self._unit, *self._band,
+        corrupt = (
+            noise, noise_offsets, drop, cfg.noise_std > 0.0, cfg.dropout > 0.0, np.float32(cfg.min_range),
+            np.float32(cfg.max_range), cfg.dropout,
         )  # fmt: skip
+        if self.column_bins is not None:  # the cloud's points go straight into their column's bin
+            out = np.empty((self.n, N_BINS), dtype=np.float32)
+            _corrupt_and_scan(
+                self._ranges, *corrupt, self._unit, *self._band, self.column_bins,
+                *_scan_floats(self.scan), out,
+            )  # fmt: skip
+            return out
+        points, offsets = _corrupt_and_points(self._ranges, *corrupt, self._unit, *self._band)
         return scans_from_points(points.view(np.float32), offsets, self.scan, self._identity)
+
+
+def column_bins(azimuth_deg: np.ndarray, unit: np.ndarray) -> np.ndarray | None:
+    """The scan bin of every return of each (column, laser), or None where that is not fixed.
+
+    A return's direction in the sensor frame is its column's, whatever its range, noise or the
+    vehicle's pose: ``scan_from_points`` bins it by ``atan2f`` of its float32 x, y, which float32
+    rounding moves by under 1e-4 bin. Columns at least 1e-3 bin from a bin edge (the 1° caster's
+    sit mid-bin, 0.5 bin away) therefore always land in the bin ``atan2f`` gives their unit
+    vector; a caster with a column nearer an edge gets None (the scan then bins point by point).
+    """
+    angle = (-np.asarray(azimuth_deg, dtype=np.float64)) % 360.0  # azimuth runs clockwise
+    if np.min(np.abs(angle - np.round(angle))) < 1e-3:
+        return None
+    return _unit_bins(unit, _BINS_PER_RAD)
+
+
+def _scan_floats(config: ScanConfig) -> tuple[np.float32, np.float32, np.float32]:
+    """The float32 bounds ``scan_from_points`` compares with: slice height, min range², max range."""
+    return np.float32(config.slice_height), np.float32(config.min_range**2), np.float32(config.max_range)
 
 
 def _draw_corruption(
@@ -157,8 +186,7 @@ def scans_from_points(
     out = np.empty((n, N_BINS), dtype=np.float32)
     _scan_kernel(
         np.ascontiguousarray(points, dtype=np.float32), np.asarray(offsets, dtype=np.int64),
-        np.float32(config.slice_height), np.float32(config.min_range**2), np.float32(config.max_range),
-        _BINS_PER_RAD, out,
+        *_scan_floats(config), _BINS_PER_RAD, out,
     )  # fmt: skip
     return out
 
@@ -188,37 +216,40 @@ def _cast_batch(
     return hits
 
 
+@njit(cache=True, inline="always")
+def _corrupt_one(r, noise, k, d, noisy, dropping, min_range32, max_range32, dropout):  # pragma: no cover
+    """``_corrupt`` on one grid: the same float32 arithmetic on the same draws (noise from ``k``)."""
+    n_cols, n_el = r.shape
+    if noisy:
+        for j in range(n_cols):
+            for i in range(n_el):
+                if r[j, i] > 0.0:
+                    value = r[j, i] + noise[k]  # float32 + float32, as numpy adds them
+                    k += 1
+                    # numpy compares a float32 array with a Python float in float32 (NEP 50)
+                    r[j, i] = np.float32(0.0) if (value < min_range32) | (value > max_range32) else value
+    if dropping:
+        for j in range(n_cols):
+            for i in range(n_el):
+                if d[j, i] < dropout:
+                    r[j, i] = 0.0
+
+
 @njit(cache=True)
 def _corrupt_and_points(
     ranges, noise, noise_offsets, drop, noisy, dropping, min_range32, max_range32, dropout, unit,
     nx, ny, nz, offset, half,
 ):  # pragma: no cover - compiled
-    """``_corrupt`` (the same float32 arithmetic, the same draws) then ``_points_kernel``, all vehicles.
-
-    The clouds come back to back with ``(N + 1,)`` offsets.
-    """
+    """``_corrupt`` then ``_points_kernel``, all vehicles; clouds back to back, ``(N + 1,)`` offsets."""
     n, n_cols, n_el = ranges.shape
     points = np.empty((n * n_cols * n_el, 3), dtype=np.float32)
     offsets = np.zeros(n + 1, dtype=np.int64)
     total = 0
     for v in range(n):
+        d = drop[v] if dropping else drop[0]
         r = ranges[v]
-        if noisy:
-            k = noise_offsets[v]
-            for j in range(n_cols):
-                for i in range(n_el):
-                    if r[j, i] > 0.0:
-                        value = r[j, i] + noise[k]  # float32 + float32, as numpy adds them
-                        k += 1
-                        # numpy compares a float32 array with a Python float in float32 (NEP 50)
-                        r[j, i] = np.float32(0.0) if (value < min_range32) | (value > max_range32) else value
-        if dropping:
-            d = drop[v]
-            for j in range(n_cols):
-                for i in range(n_el):
-                    if d[j, i] < dropout:
-                        r[j, i] = 0.0
-        cloud = _points_kernel(r, unit, nx, ny, nz, offset, half)
+        _corrupt_one(r, noise, noise_offsets[v], d, noisy, dropping, min_range32, max_range32, dropout)
+        cloud = _points_kernel(ranges[v], unit, nx, ny, nz, offset, half)
         m = cloud.shape[0]
         points[total:total + m] = cloud
         total += m
@@ -227,29 +258,73 @@ def _corrupt_and_points(
 
 
 @njit(cache=True)
-def _scan_kernel(points, offsets, slice_height, min_r2, max_range, bins_per_rad, out):  # pragma: no cover
-    """``scan_from_points`` with the identity mount, per cloud, in its float32 operation order.
+def _corrupt_and_scan(
+    ranges, noise, noise_offsets, drop, noisy, dropping, min_range32, max_range32, dropout, unit,
+    nx, ny, nz, offset, half, bins, slice_height, min_r2, max_range, out,
+):  # pragma: no cover - compiled
+    """``_corrupt``, ``_points_kernel`` and ``_scan_kernel`` fused, all vehicles: each return that
+    the cloud would hold (the same float32 point, the same keep test) updates the scan as that
+    point would, in the bin of its column (:func:`column_bins`); no cloud is materialised."""
+    n, n_cols, n_el = ranges.shape
+    for v in range(n):
+        r = ranges[v]
+        d = drop[v] if dropping else drop[0]
+        _corrupt_one(r, noise, noise_offsets[v], d, noisy, dropping, min_range32, max_range32, dropout)
+        scan = out[v]
+        scan[:] = np.float32(1.0)
+        for j in range(n_cols):
+            for i in range(n_el):
+                rr = r[j, i]
+                x, y, z = rr * unit[j, i, 0], rr * unit[j, i, 1], rr * unit[j, i, 2]
+                if rr > 0.0 and abs(nx * x + ny * y + nz * z + offset) < half:  # _points_kernel's test
+                    _scan_point(scan, x, y, z, bins[j, i], slice_height, min_r2, max_range)
 
-    Per point: ``|z| < slice``; ``xy2 = x*x + y*y``; ``r2 = z*z + xy2 >= min_range²``; the range
-    ``sqrt(xy2) / max_range`` goes to bin ``floor(atan2(y, x) · 360/2π)`` (negative wraps), min.
+
+@njit(cache=True)
+def _unit_bins(unit, bins_per_rad):  # pragma: no cover - compiled
+    """The scan bin ``scan_from_points`` gives each (column, laser) unit vector."""
+    n_cols, n_el = unit.shape[0], unit.shape[1]
+    bins = np.empty((n_cols, n_el), dtype=np.int64)
+    for j in range(n_cols):
+        for i in range(n_el):
+            bins[j, i] = _bin(unit[j, i, 0], unit[j, i, 1], bins_per_rad, N_BINS)
+    return bins
+
+
+@njit(cache=True, inline="always")
+def _bin(x, y, bins_per_rad, n_bins):  # pragma: no cover - compiled
+    """``floor(atan2(y, x) · 360/2π)`` in float32, negative wrapped: ``scan_from_points``' bin."""
+    index = math.floor(np.float32(np.float32(math.atan2(y, x)) * bins_per_rad))
+    return index + n_bins if index < 0 else index
+
+
+@njit(cache=True, inline="always")
+def _scan_point(scan, x, y, z, index, slice_height, min_r2, max_range):  # pragma: no cover - compiled
+    """One point through ``scan_from_points``' tests and float32 arithmetic, into bin ``index``.
+
+    ``|z| < slice``; ``xy2 = x*x + y*y``; ``r2 = z*z + xy2 >= min_range²``; the bin keeps the least
+    ``sqrt(xy2) / max_range``.
     """
-    one = np.float32(1.0)
+    if not abs(z) < slice_height:
+        return
+    xy2 = np.float32(x * x)
+    xy2 = np.float32(xy2 + np.float32(y * y))
+    r2 = np.float32(np.float32(z * z) + xy2)
+    if not r2 >= min_r2:
+        return
+    rng = np.float32(np.float32(math.sqrt(xy2)) / max_range)
+    if rng < scan[index]:
+        scan[index] = rng
+
+
+@njit(cache=True)
+def _scan_kernel(points, offsets, slice_height, min_r2, max_range, bins_per_rad, out):  # pragma: no cover
+    """``scan_from_points`` with the identity mount, per cloud, point by point in its float32 order."""
     for v in range(offsets.shape[0] - 1):
         scan = out[v]
-        scan[:] = one
+        scan[:] = np.float32(1.0)
         for k in range(offsets[v], offsets[v + 1]):
             x, y, z = points[k, 0], points[k, 1], points[k, 2]
-            if not abs(z) < slice_height:
-                continue
-            xy2 = np.float32(x * x)
-            xy2 = np.float32(xy2 + np.float32(y * y))
-            r2 = np.float32(np.float32(z * z) + xy2)
-            if not r2 >= min_r2:
-                continue
-            rng = np.float32(np.float32(math.sqrt(xy2)) / max_range)
-            index = math.floor(np.float32(np.float32(math.atan2(y, x)) * bins_per_rad))
-            if index < 0:
-                index += scan.shape[0]
-            if rng < scan[index]:
-                scan[index] = rng
+            if abs(z) < slice_height:  # (NaN/inf x, y fall out in _scan_point before the bin matters)
+                _scan_point(scan, x, y, z, _bin(x, y, bins_per_rad, N_BINS), slice_height, min_r2, max_range)
 # fmt: on

@@ -64,7 +64,13 @@ def test_the_compiled_scan_refuses_a_mount_it_does_not_cover() -> None:
 
 @pytest.mark.parametrize(
     "lidar",
-    [LidarConfig(), LidarConfig(noise_std=0.02, dropout=0.02), LidarConfig(noise_std=0.3, dropout=0.5)],
+    [
+        LidarConfig(),
+        LidarConfig(noise_std=0.02, dropout=0.02),
+        LidarConfig(noise_std=0.3, dropout=0.5),
+        LidarConfig(azimuth_step_deg=0.2, noise_std=0.02),  # the real sensor's columns
+        LidarConfig(azimuth_step_deg=2.0, dropout=0.1),  # columns on bin edges: binned point by point
+    ],
 )
 def test_batched_lidar_equals_each_env_cast_and_scan(lidar: LidarConfig) -> None:
     """Cast, noise, dropout, cloud and scan of N poses in N worlds: each one's, from its own generator."""
@@ -74,6 +80,7 @@ def test_batched_lidar_equals_each_env_cast_and_scan(lidar: LidarConfig) -> None
     for i, env in enumerate(envs):
         env.reset(seed=100 + i)
     batch = BatchLidar(n, lidar, config.scan, slice_band(config.scan))
+    assert (batch.column_bins is None) == (lidar.azimuth_step_deg == 2.0)  # which path is tested
     rng = np.random.default_rng(0)
     for _ in range(3):
         poses = []
