@@ -12,7 +12,8 @@ Figures (issue 16), each measured side by side in this one run on this machine:
    processes: this one and SubprocVecEnv's workers), which the neighbours' load moves far less.
 2. Training throughput during ``learn`` (PPO with the config's hyperparameters and n_envs,
    checkpoints and evaluation off), batched against subproc: env steps per second including
-   inference and the PPO updates.
+   inference and the PPO updates, and how its wall-clock time splits between collecting rollouts
+   (what the vector env changes) and the PPO updates (which it does not).
 
 The machine is shared (a niced training run, other engineers): the load average is printed with
 every row, and only ratios measured in the same run mean anything.
@@ -79,8 +80,9 @@ def env_rate(config: TrainConfig, n: int, seconds: float) -> tuple[float, float]
         venv.close()
 
 
-def learn_rate(config_path: Path, vec_env: str, steps: int) -> float:
-    """Env steps/s during ``model.learn`` (inference and PPO updates included)."""
+def learn_rate(config_path: Path, vec_env: str, steps: int) -> tuple[float, float, float]:
+    """Env steps/s during ``model.learn`` (inference and PPO updates included), and the wall-clock
+    seconds of it spent collecting rollouts and in the PPO updates."""
     import torch
 
     torch.set_num_threads(1)  # as training.train does
@@ -90,11 +92,23 @@ def learn_rate(config_path: Path, vec_env: str, steps: int) -> float:
         try:
             model = build_model(config, venv, Path(tmp), None)
             model.verbose = 0
+            spent = {"collect_rollouts": 0.0, "train": 0.0}
+            for name in spent:  # time the two halves of learn where SB3 calls them
+                method = getattr(model, name)
+
+                def timed(*args, _method=method, _name=name, **kwargs):
+                    start = time.perf_counter()
+                    try:
+                        return _method(*args, **kwargs)
+                    finally:
+                        spent[_name] += time.perf_counter() - start
+
+                setattr(model, name, timed)
             rollout = config.ppo.n_steps * config.resolved_n_envs
             steps = max(rollout, steps // rollout * rollout)
             start = time.perf_counter()
             model.learn(total_timesteps=steps)
-            return steps / (time.perf_counter() - start)
+            return steps / (time.perf_counter() - start), spent["collect_rollouts"], spent["train"]
         finally:
             venv.close()
 
@@ -125,11 +139,13 @@ def main() -> None:
     print("2. training throughput during learn (PPO updates included; checkpoints and evaluation off)")
     for path in args.learn_configs:
         config = load_train_config(path)
-        batched = learn_rate(path, "batched", args.learn_steps)
-        subproc = learn_rate(path, "subproc", args.learn_steps)
+        batched, b_roll, b_train = learn_rate(path, "batched", args.learn_steps)
+        subproc, s_roll, s_train = learn_rate(path, "subproc", args.learn_steps)
         print(
             f"  {path.name} ({config.resolved_n_envs} envs, {args.learn_steps} steps): batched {batched:.0f} "
-            f"env steps/s, subproc {subproc:.0f}: {batched / subproc:.1f}x ({load()})"
+            f"env steps/s, subproc {subproc:.0f}: {batched / subproc:.1f}x ({load()})\n"
+            f"    of which collecting rollouts {b_roll:.1f} s vs {s_roll:.1f} s ({s_roll / b_roll:.1f}x), "
+            f"PPO updates {b_train:.1f} s vs {s_train:.1f} s (the same work either way)"
         )
 
 
