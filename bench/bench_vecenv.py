@@ -6,7 +6,8 @@ Figures (issue 16), each measured side by side in this one run on this machine:
    VecMonitor, VecFrameStack), ``vec_env = "batched"`` (all N in this process, flown and scanned
    in compiled batches) against ``vec_env = "subproc"`` (SB3's SubprocVecEnv, forkserver, one
    process per env), for LidarNav-v0 with nav.toml's env settings and LidarAvoid-v0 with
-   shipped.toml's (training's TrainingWorlds included), at N = 1, 2, 4, 8, 16, 32. Episodes that
+   shipped.toml's (training's TrainingWorlds included), at N = 1, 2, 4, 8, 16, 32 (at N = 1 the
+   "subproc" path is a DummyVecEnv in this process, as ``make_vec_env`` builds it). Episodes that
    end are reset (a new generated world each time) inside the timing. The batched/subproc ratio
    is printed beside both absolute rates, and beside it the CPU time one env step costs (all
    processes: this one and SubprocVecEnv's workers), which the neighbours' load moves far less.
