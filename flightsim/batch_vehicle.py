@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 import operator
+from collections import deque
 
 import numpy as np
 from numba import njit
@@ -149,11 +150,12 @@ class VehicleBatch:
         """
         for i, rng in enumerate(self._rngs):
             if rng is not None:  # one standard_normal(2) per chunk, as AutopilotResponse.setpoint draws
-                self._noise[i] = rng.standard_normal(self._noise[i].size).reshape(self._noise[i].shape)
+                rng.standard_normal(out=self._noise[i])
         get, put, runs = self._get, self._set, self._run
         call = operator.call
         setpoints = np.zeros((self.n, 8))
-        raw = np.array([g() for g in get]).reshape(self.n, _N_READ)
+        count = self.n * _N_READ
+        raw = np.fromiter(map(call, get), np.float64, count).reshape(self.n, _N_READ)
         _command_batch(
             raw, forward, lateral, yaw_rate, altitude, self.has_response, self._queue, self._queue_len,
             self._time, self._delay, setpoints,
@@ -161,7 +163,7 @@ class VehicleBatch:
         km = YAW_MOMENT_PER_THRUST_M * _LBFFT_PER_NM
         for k in range(self._steps):
             if k:
-                raw = np.array([g() for g in get]).reshape(self.n, _N_READ)
+                raw = np.fromiter(map(call, get), np.float64, count).reshape(self.n, _N_READ)
             chunk = k // self._chunk if k % self._chunk == 0 else -1
             out = _physics_step(
                 raw, setpoints, altitude, chunk, self.has_response, self.x, self.p, self._queue,
@@ -169,10 +171,8 @@ class VehicleBatch:
                 self._drag, self._inner, self._h, self.memory, self.gains, self._armed, self._limit,
                 self._lag, self.thrust, self._dt, km,
             )  # fmt: skip
-            for _ in map(call, put, out.tolist()):
-                pass
-            for _ in map(call, runs):
-                pass
+            deque(map(call, put, out.tolist()), maxlen=0)  # consume: set every property, then
+            deque(map(call, runs), maxlen=0)  # run every JSBSim instance one physics step
         for v, thrust, response in zip(
             self.vehicles, self.thrust.tolist(), self.has_response.tolist(), strict=True
         ):
