@@ -5,8 +5,10 @@ The numbers are those of :meth:`flightsim.raycast.VLP16Raycaster.cast_points` fo
 compiled kernels, the noise and dropout draw the same random numbers from each vehicle's own
 generator in the same order (:func:`flightsim.raycast._corrupt`), and the scan kernel repeats
 ``scan_from_points``' float32 arithmetic operation by operation (tests/flightsim/test_batch_lidar.py
-proves it on the same clouds). What batching removes is the per-call cost: numpy's boolean
-masks, ``np.minimum.at`` and some 20 small array allocations per vehicle and step.
+proves it on the same clouds). In the env's path no cloud is materialised: each return goes from
+the range grid straight into the scan bin its column fixes (:func:`column_bins`), through the same
+float32 tests. What batching removes is the per-call cost (numpy's boolean masks,
+``np.minimum.at``, some 20 small arrays per vehicle and step) and most ``atan2f`` calls.
 
 The compiled scan covers the sensor mounted at the body origin, level (the project's mount);
 any other mount reduces each cloud with ``scan_from_points`` itself.
