@@ -17,7 +17,7 @@ from flightsim.autopilot_response import AutopilotResponse, fly, response_params
 from flightsim.raycast import LidarConfig, VLP16Raycaster
 from flightsim.render import render_rgb
 from flightsim.reward import REWARDS, StepOutcome
-from flightsim.vehicle import Vehicle, VehicleConfig
+from flightsim.vehicle import Vehicle, VehicleConfig, VehicleState
 from flightsim.world import World, generate_world, load_world
 
 TRAIN_SEED_OFFSET = 1_000_000
@@ -79,6 +79,24 @@ class EnvConfig:
     unshielded_fraction: float = field(default=0.0, metadata={"min": 0.0, "max": 1.0})
     overspeed_penalty: float = field(default=0.0, metadata={"min": 0.0, "max": 100.0})
     autopilot_response: Literal["ideal", "px4", "ardupilot", "random"] = "ideal"
+
+
+@dataclass(frozen=True)
+class StepCommand:
+    """What one step flies, decided before the flight (:meth:`LidarAvoidEnv._command`).
+
+    :param action: the action after clipping and the shield, ``(a0, a1)`` float32
+    :param forward: commanded forward speed, m/s
+    :param yaw_rate: commanded yaw rate, rad/s CCW
+    :param lateral: commanded velocity to the left, m/s (the shield's brake; usually 0)
+    :param overspeed: forward speed asked beyond the shield's cap, per ``max_speed``
+    """
+
+    action: np.ndarray
+    forward: float
+    yaw_rate: float
+    lateral: float
+    overspeed: float
 
 
 def _clip_unit(v: float) -> float:
@@ -235,6 +253,19 @@ class LidarAvoidEnv(gym.Env):
         return self._scan.copy(), self._info()
 
     def step(self, action: np.ndarray):
+        command = self._command(action)
+        state = fly(
+            self._vehicle, self._response, command.forward, command.yaw_rate,
+            altitude=self._altitude, duration=1.0 / CONTROL_HZ, lateral=command.lateral,
+        )  # fmt: skip
+        self._arrive(state)
+        return self._conclude(command, self._fresh_scan())
+
+    # The three phases of a step. ``step`` runs them with this env's own vehicle and lidar; the
+    # batched env (flightsim.batch_env) runs the same phases for N envs and flies and scans all N
+    # in between in compiled batches, so both are one code path apart from those two.
+    def _command(self, action: np.ndarray) -> StepCommand:
+        """Before the flight: clip the action, apply the shield, the overspeed cost, the wind."""
         if self.world is None:
             raise RuntimeError("call reset() before step()")
         v0, v1 = np.asarray(action, dtype=np.float32).reshape(2).tolist()
@@ -254,29 +285,34 @@ class LidarAvoidEnv(gym.Env):
             )
             a0, a1 = safe.forward / cfg.max_speed, safe.yaw_rate / cfg.max_yaw_rate
             lateral = safe.lateral
-        a = np.array([a0, a1], dtype=np.float32)
         if cfg.wind_gust_max > 0.0:
             self._update_wind()
+        action = np.array([a0, a1], dtype=np.float32)
+        return StepCommand(action, a0 * cfg.max_speed, a1 * cfg.max_yaw_rate, lateral, overspeed)
+
+    def _arrive(self, state: VehicleState) -> None:
+        """After the flight: the new pose, the path flown, the clearance and collision."""
         previous = self._state.position
-        self._state = fly(
-            self._vehicle, self._response, a0 * cfg.max_speed, a1 * cfg.max_yaw_rate,
-            altitude=self._altitude, duration=1.0 / CONTROL_HZ, lateral=lateral,
-        )  # fmt: skip
-        position = self._state.position
+        self._state = state
+        position = state.position
         self._distance += math.dist(position.tolist(), previous.tolist())
         self._trajectory.append(position.copy())
         self._steps += 1
         self._clearance = self.world.clearance(position)
-        self._collided = self._clearance < cfg.vehicle_radius
-        self._previous_scan, self._scan = self._scan, self._fresh_scan()
+        self._collided = self._clearance < self.config.vehicle_radius
+
+    def _conclude(self, command: StepCommand, scan: np.ndarray):
+        """With the fresh scan from the new pose: reward, observation, episode end, info."""
+        cfg = self.config
+        self._previous_scan, self._scan = self._scan, scan
         outcome = StepOutcome(
-            action=a,
+            action=command.action,
             scan_min=float(self._scan.min()),
             forward_speed=self._state.forward_speed,
             max_speed=cfg.max_speed,
             collision=self._collided,
         )
-        reward = self._reward(outcome) - cfg.overspeed_penalty * overspeed
+        reward = self._reward(outcome) - cfg.overspeed_penalty * command.overspeed
         observation = self._previous_scan if cfg.latency_scans else self._scan
         truncated = self._steps >= cfg.max_steps and not self._collided
         return observation.copy(), reward, self._collided, truncated, self._info()
@@ -345,13 +381,15 @@ class LidarAvoidEnv(gym.Env):
             room_width=None if room_width is None else float(room_width),
         )
 
+    def _sensor_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """The lidar's origin (world ENU, m) and sensor-to-world rotation at the current pose."""
+        body = self._state.rotation()
+        return self._state.position + body @ self._mount_xyz, body @ self._sensor_to_body
+
     def _fresh_scan(self) -> np.ndarray:
         """Cast the lidar from the current pose and reduce it with the companion's scan code."""
-        body = self._state.rotation()
-        origin = self._state.position + body @ self._mount_xyz
-        points = self._caster.cast_points(
-            self.world, origin, body @ self._sensor_to_body, self.np_random, self._slice_band
-        )
+        origin, rotation = self._sensor_pose()
+        points = self._caster.cast_points(self.world, origin, rotation, self.np_random, self._slice_band)
         return scan_from_points(points, self.config.scan)
 
     def _update_wind(self) -> None:

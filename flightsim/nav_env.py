@@ -11,7 +11,7 @@ from gymnasium import spaces
 
 from companion.observation import ObservationLayout, build_frame, goal_features, goal_in_body
 from flightsim import seeds
-from flightsim.env import CONTROL_HZ, EnvConfig, LidarAvoidEnv
+from flightsim.env import CONTROL_HZ, EnvConfig, LidarAvoidEnv, StepCommand
 from flightsim.families import FAMILIES, generate_family_world
 from flightsim.planner import shortest_safe_path
 from flightsim.render import render_rgb
@@ -175,8 +175,8 @@ class LidarNavEnv(LidarAvoidEnv):
         self._goal_distance = self._distance_to_goal()
         return self._frame(scan), self._nav_info(info)
 
-    def step(self, action: np.ndarray):
-        scan, reward, collided, truncated, info = super().step(action)
+    def _conclude(self, command: StepCommand, scan: np.ndarray):
+        scan, reward, collided, truncated, info = super()._conclude(command, scan)
         finished = self._waypoint >= len(self.world.waypoints)
         terminated = collided or finished
         truncated = not terminated and (truncated or self._steps >= self.time_limit_steps)

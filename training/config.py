@@ -116,6 +116,11 @@ class TrainConfig:
         ``flightsim/LidarNav-v0`` (fly to waypoints; ``difficulty_spread``, ``narrow_room_*`` and the
         curriculum do not apply: the env draws its own families and difficulties)
     :param env: the simulator's ``EnvConfig`` table (domain randomisation switches included)
+    :param vec_env: how the ``n_envs`` simulators run: ``"batched"`` all in the training process,
+        their vehicles and lidars stepped together in compiled batches
+        (``training/batched_vec_env.py``, several times the steps per second), or ``"subproc"``
+        one process each (SB3's ``SubprocVecEnv``, the earlier path); the same episodes
+        for the same seeds either way
     :param pretrain: the behaviour cloning warm start (a fresh run only, not on ``--resume``)
     """
 
@@ -128,6 +133,7 @@ class TrainConfig:
     checkpoint_every: int = field(default=50_000, metadata={"min": 1})
     run_root: str = "runs"
     progress_bar: bool = True
+    vec_env: Literal["batched", "subproc"] = "batched"
     difficulty_spread: float = field(default=0.0, metadata={"min": 0.0, "max": 1.0})
     narrow_room_prob: float = field(default=0.0, metadata={"min": 0.0, "max": 1.0})
     narrow_room_widths: tuple[float, float] = (6.0, 9.0)

@@ -1,6 +1,7 @@
 """``avoid-train train``: PPO on the simulator with stacked scans, held-out evaluation and checkpoints.
 
-Read top to bottom: the environments (one simulator per process, monitored, 4 scans stacked —
+Read top to bottom: the environments (all simulators batched in this process, or one per
+process with ``vec_env = "subproc"``; monitored, 4 scans stacked —
 the same stacking the companion's FrameStack does in flight), the callbacks (checkpoints, the
 held-out evaluation that logs success rate and drives the curriculum), the model, ``learn``.
 
@@ -134,14 +135,24 @@ def make_env(config: TrainConfig, difficulty: float):
 def make_vec_env(
     config: TrainConfig, n_envs: int, seed: int, subprocess: bool = True, difficulty: float | None = None
 ):
-    """``n_envs`` simulators → VecMonitor → VecFrameStack(``config.n_stack``), seeded with ``seed``."""
+    """``n_envs`` simulators → VecMonitor → VecFrameStack(``config.n_stack``), seeded with ``seed``.
+
+    ``config.vec_env`` "batched": all in this process, stepped together (:class:`BatchedVecEnv`);
+    "subproc": one ``SubprocVecEnv`` worker each, or a ``DummyVecEnv`` in this process when
+    ``subprocess`` is false or there is one env.
+    """
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecFrameStack, VecMonitor
+
+    from training.batched_vec_env import BatchedVecEnv
 
     d = config.env_config().difficulty if difficulty is None else difficulty
     thunks = [make_env(config, d) for _ in range(n_envs)]
-    venv = (
-        SubprocVecEnv(thunks, start_method="forkserver") if subprocess and n_envs > 1 else DummyVecEnv(thunks)
-    )
+    if config.vec_env == "batched":
+        venv = BatchedVecEnv(thunks)
+    elif subprocess and n_envs > 1:
+        venv = SubprocVecEnv(thunks, start_method="forkserver")
+    else:
+        venv = DummyVecEnv(thunks)
     venv.seed(seed)
     return VecFrameStack(VecMonitor(venv), n_stack=config.n_stack)
 
@@ -474,7 +485,8 @@ def train(config: TrainConfig, resume: Path | None = None) -> Path:
             # SubprocVecEnv.close() would first wait for the step results of every worker, some of
             # which Ctrl-C's step_wait already read: forever. The workers ignore SIGINT, so they
             # read the close command right after the result nobody collects.
-            venv.unwrapped.waiting = False
+            if hasattr(venv.unwrapped, "waiting"):
+                venv.unwrapped.waiting = False
             raise TrainingInterrupted(interrupted, model.num_timesteps) from None
         final = run_dir / "final_model.zip"
         model.save(final)

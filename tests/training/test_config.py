@@ -64,6 +64,7 @@ def test_overrides_reach_nested_tables_and_env(tmp_path):
         ("[env]\nautopilot_response = 'fast'\n", [], "env.autopilot_response"),
         ("[pretrain]\nsteps = 10\n", [], "pretrain.demonstrator"),  # goal_follower on the avoid task
         ("[pretrain]\nsteps = -1\n", [], "pretrain.steps"),
+        ("vec_env = 'threads'\n", [], "vec_env"),
     ],
 )
 def test_mistakes_name_the_key(tmp_path, text, overrides, named):
