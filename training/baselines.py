@@ -29,6 +29,7 @@ from numba import njit
 
 from companion.observation import ObservationLayout
 from companion.scan import N_BINS
+from training.scan_motion import scan_motion
 
 _ANGLES = np.deg2rad(np.arange(N_BINS) + 0.5)  # bin centres, counter-clockwise from straight ahead
 _SIGNED = np.where(np.pi < _ANGLES, _ANGLES - 2 * np.pi, _ANGLES)  # in (-pi, pi]
@@ -147,8 +148,20 @@ def _goal(obs: np.ndarray, layout: ObservationLayout) -> tuple[np.ndarray, float
     return o[:n], math.atan2(o[n + 1], o[n]), float(o[n + 2]) * layout.goal_range
 
 
+def _velocity(obs: np.ndarray, layout: ObservationLayout) -> tuple[float, float]:
+    """(forward, left) measured body velocity, m/s, of one goal-layout frame."""
+    o = np.asarray(obs, dtype=np.float64).reshape(layout.frame_size)
+    n = layout.n_bins
+    return float(o[n + 3]) * layout.velocity_scale, float(o[n + 4]) * layout.velocity_scale
+
+
 def _wrap(angle: float | np.ndarray) -> float | np.ndarray:
     return (angle + np.pi) % (2 * np.pi) - np.pi
+
+
+def _rotation(angle: float) -> np.ndarray:
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, -s], [s, c]])
 
 
 @dataclass(frozen=True)
@@ -222,6 +235,14 @@ class GoalFollowerConfig:
     stall_progress: float = 0.5
     escape_steps: int = 200
     wall_lookahead: float = 1.5
+    stop_time: float = 1.7
+    course_min_speed: float = 0.2
+    step_s: float = 0.1
+    match_min_bins: int = 30
+    bias_time: float = 1.0
+    bias_max: float = 0.6
+    crab_min_speed: float = 0.2
+    crab_max: float = 0.6
 
 
 class GoalFollower:
@@ -259,6 +280,8 @@ class GoalFollower:
         self._escape_left = 0
         self._stuck_at = math.inf
         self._last_distance = math.inf
+        self._previous: tuple[np.ndarray, np.ndarray, float] | None = None  # ranges, velocity, bearing
+        self._bias = np.zeros(2)  # velocity estimate minus true velocity, body frame, m/s
         return self.act(obs)
 
     def act(self, obs: np.ndarray) -> np.ndarray:
@@ -266,6 +289,8 @@ class GoalFollower:
         scan, bearing, distance = _goal(obs, self.layout)
         ranges = np.where(scan >= 1.0, np.inf, scan * c.max_range)
         clear = corridor_clearance(ranges, c.body_radius)
+        jumped = distance > self._last_distance + 1.0
+        velocity = self._true_velocity(ranges, np.array(_velocity(obs, self.layout)), bearing, jumped)
         self._track_progress(distance)
         need = np.minimum(c.lookahead, distance)
         admissible = clear >= need
@@ -295,8 +320,50 @@ class GoalFollower:
         ahead = float(min(clear[0], clear[-1]))
         if ahead < c.stop_distance:
             speed = 0.0
+        speed = min(speed, self._stoppable(float(clear[k])))
+        if self._cannot_stop_along_course(clear, *velocity):
+            speed = 0.0
+        return self._command(speed, heading)
 
-        return np.array([speed, np.clip(c.turn_gain * heading, -1.0, 1.0)], dtype=np.float32)
+    def _command(self, speed: float, heading: float) -> np.ndarray:
+        """The action that makes the vehicle really travel at ``speed`` (action units) along
+        ``heading``: the autopilot flies its *estimate* to the command, so the true velocity falls
+        short of it by the estimate's error; command the wanted velocity plus that error instead.
+        Only its along-nose part can be commanded, so the nose leads by the crab angle too."""
+        c = self.config
+        scale = self.layout.velocity_scale
+        want = speed * scale * np.array([math.cos(heading), math.sin(heading)])
+        command = want + self._bias
+        steer = heading
+        if speed * scale >= c.crab_min_speed:
+            crab = float(_wrap(math.atan2(command[1], command[0]) - heading))
+            steer = heading + float(np.clip(crab, -c.crab_max, c.crab_max))
+        forward = float(command[0] / scale) if speed > 0 else float(np.clip(self._bias[0] / scale, -0.2, 0.2))
+        yaw = c.turn_gain * steer
+        return np.array([np.clip(forward, -1.0, 1.0), np.clip(yaw, -1.0, 1.0)], dtype=np.float32)
+
+    def _true_velocity(
+        self, ranges: np.ndarray, measured: np.ndarray, bearing: float, jumped: bool
+    ) -> np.ndarray:
+        """The vehicle's true body velocity (m/s): the measured one less the estimate's error, which
+        is tracked by comparing the measured velocity with the motion between consecutive scans
+        (:func:`training.scan_motion.scan_motion`), low-pass filtered over ``bias_time`` s."""
+        c = self.config
+        previous, self._previous = self._previous, (ranges, measured, bearing)
+        if previous is None:
+            return measured - self._bias
+        ranges0, measured0, bearing0 = previous
+        guess = 0.0 if jumped else float(_wrap(bearing0 - bearing))
+        dx, dy, turn, used = scan_motion(ranges0, ranges, guess, c.max_range)
+        if used < c.match_min_bins:
+            return measured - self._bias
+        rot = _rotation(turn)
+        moved = np.array([dx, dy]) / c.step_s
+        mean_measured = 0.5 * (measured0 + rot @ measured)  # in the previous body frame
+        error = np.clip(mean_measured - moved, -c.bias_max, c.bias_max)
+        bias = self._bias + (c.step_s / c.bias_time) * (error - self._bias)
+        self._bias = rot.T @ bias  # into the current body frame
+        return measured - self._bias
 
     def _ramp(self, clearance: float, distance: float) -> float:
         """Forward action for a clearance along the heading: 0 at ``stop_distance``, ``cruise`` at
@@ -304,6 +371,25 @@ class GoalFollower:
         c = self.config
         free = min(clearance, distance + c.stop_distance) - c.stop_distance
         return c.cruise * float(np.clip(free / (c.slow_distance - c.stop_distance), 0.0, 1.0))
+
+    def _stoppable(self, clearance: float) -> float:
+        """The fastest forward action the vehicle can still stop from within ``clearance``
+        (``stop_time`` s of travel at that speed, ``stop_distance`` kept)."""
+        c = self.config
+        return max(0.0, clearance - c.stop_distance) / (c.stop_time * self.layout.velocity_scale)
+
+    def _cannot_stop_along_course(self, clear: np.ndarray, forward: float, left: float) -> bool:
+        """The measured motion runs into something before the vehicle could stop: brake.
+
+        The vehicle does not go where its nose points: the autopilot's velocity lags the command
+        (it overshoots a lowered speed, and slides outward in a turn). So the corridor along the
+        measured course must be clear for the stopping distance at the measured speed."""
+        c = self.config
+        speed = math.hypot(forward, left)
+        if speed < c.course_min_speed:
+            return False
+        course = int(math.degrees(math.atan2(left, forward)) % 360.0)
+        return float(clear[course]) - c.stop_distance < c.stop_time * speed
 
     def _subgoal(self, ranges: np.ndarray, clear: np.ndarray, bearing: float, distance: float) -> float:
         """The direction to fly for: the goal's bearing if clear, else the best obstacle edge's."""
