@@ -235,6 +235,8 @@ class GoalFollowerConfig:
     stall_progress: float = 0.5
     escape_steps: int = 200
     wall_lookahead: float = 1.5
+    keep_out: float = 0.55
+    push_gain: float = 1.0
     stop_time: float = 1.7
     course_min_speed: float = 0.2
     step_s: float = 0.1
@@ -294,6 +296,9 @@ class GoalFollower:
         self._track_progress(distance)
         need = np.minimum(c.lookahead, distance)
         admissible = clear >= need
+        away = self._away_from(ranges)
+        if (admissible & away).any():
+            admissible &= away
         goal_bin = int(np.degrees(bearing) % 360.0)
         if self._escape_side:
             self._escape_left -= 1
@@ -323,7 +328,9 @@ class GoalFollower:
         speed = min(speed, self._stoppable(float(clear[k])))
         if self._cannot_stop_along_course(clear, *velocity):
             speed = 0.0
-        return self._command(speed, heading)
+        action = self._command(speed, heading)
+        action[0] = np.clip(action[0] + self._push_off(ranges), -1.0, 1.0)
+        return action
 
     def _command(self, speed: float, heading: float) -> np.ndarray:
         """The action that makes the vehicle really travel at ``speed`` (action units) along
@@ -371,6 +378,25 @@ class GoalFollower:
         c = self.config
         free = min(clearance, distance + c.stop_distance) - c.stop_distance
         return c.cruise * float(np.clip(free / (c.slow_distance - c.stop_distance), 0.0, 1.0))
+
+    def _away_from(self, ranges: np.ndarray) -> np.ndarray:
+        """Headings that do not close on any return inside ``keep_out``: near something, the
+        vehicle leaves it before anything else (a drift the estimate hides acts there first)."""
+        close = _SIGNED[ranges < self.config.keep_out]
+        if close.size == 0:
+            return np.ones(N_BINS, dtype=bool)
+        return (np.cos(_SIGNED[:, None] - close[None, :]) <= 0.0).all(axis=1)
+
+    def _push_off(self, ranges: np.ndarray) -> float:
+        """Forward action (negative: backward) away from returns inside ``keep_out``, in
+        proportion to how deep inside they are: the one escape that needs no turn first."""
+        c = self.config
+        close = ranges < c.keep_out
+        if not close.any():
+            return 0.0
+        depth = (c.keep_out - ranges[close]) / c.keep_out
+        push = -float(np.sum(depth * np.cos(_SIGNED[close])) / max(1, close.sum()) ** 0.5)
+        return float(np.clip(c.push_gain * push, -c.creep, c.creep))
 
     def _stoppable(self, clearance: float) -> float:
         """The fastest forward action the vehicle can still stop from within ``clearance``
