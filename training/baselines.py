@@ -22,6 +22,7 @@ counter-clockwise positive).
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -235,6 +236,11 @@ class GoalFollowerConfig:
     :param crab_min_speed: m/s of wanted travel from which the nose leads into the estimate's
         error (below it the vehicle turns to its heading and only the along-nose part is compensated)
     :param crab_max: the largest such lead, rad
+    :param gain_steady: steps a forward command must hold (within 10 %) before the measured speed
+        is compared with it; the forward command is divided by the learnt ratio
+    :param gain_min_speed: m/s below which a command is not compared
+    :param gain_range: bounds of that ratio
+    :param gain_time: time constant, s, of the filter on that ratio
     """
 
     max_range: float = 10.0
@@ -245,8 +251,8 @@ class GoalFollowerConfig:
     jump: float = 1.0
     edge_margin: float = 0.3
     subgoal_hysteresis: float = 1.0
-    swept_margin: float = 0.3
-    creep: float = 0.25
+    swept_margin: float = 0.2
+    creep: float = 0.3
     cruise: float = 0.7
     stop_distance: float = 0.6
     slow_distance: float = 3.5
@@ -266,6 +272,10 @@ class GoalFollowerConfig:
     bias_max: float = 0.6
     crab_min_speed: float = 0.2
     crab_max: float = 0.6
+    gain_steady: int = 5
+    gain_min_speed: float = 0.3
+    gain_range: tuple[float, float] = (0.6, 1.1)
+    gain_time: float = 2.0
 
 
 class GoalFollower:
@@ -326,6 +336,8 @@ class GoalFollower:
         self._last_distance = math.inf
         self._previous: tuple[np.ndarray, np.ndarray, float] | None = None  # ranges, velocity, bearing
         self._bias = np.zeros(2)  # velocity estimate minus true velocity, body frame, m/s
+        self._speed_gain = 1.0  # measured / commanded forward speed, steady state
+        self._commands: deque[float] = deque(maxlen=self.config.gain_steady)  # forward m/s sent
         return self.act(obs)
 
     def act(self, obs: np.ndarray) -> np.ndarray:
@@ -334,7 +346,9 @@ class GoalFollower:
         ranges = np.where(scan >= 1.0, np.inf, scan * c.max_range)
         clear = corridor_clearance(ranges, c.body_radius)
         jumped = distance > self._last_distance + 1.0
-        velocity = self._true_velocity(ranges, np.array(_velocity(obs, self.layout)), bearing, jumped)
+        measured = np.array(_velocity(obs, self.layout))
+        velocity = self._true_velocity(ranges, measured, bearing, jumped)
+        self._learn_speed_gain(float(measured[0]))
         self._track_progress(distance)
         need = np.minimum(c.lookahead, distance)
         admissible = clear >= need
@@ -348,7 +362,7 @@ class GoalFollower:
             if goal_free or self._escape_left <= 0:
                 self._escape_side = 0
                 self._best, self._since_progress = distance, 0
-        boundary = self._follow_boundary(ranges, clear) if self._escape_side else None
+        boundary = self._follow_boundary(ranges, clear, away) if self._escape_side else None
         if self._escape_side and boundary is None:  # nothing beside to follow: the trap is behind
             self._escape_side = 0
             self._best, self._since_progress = distance, 0
@@ -394,8 +408,23 @@ class GoalFollower:
         forward = float(command[0] / scale)
         if speed <= 0.0:  # stopping: only hold against the error, never fly on
             forward = float(np.clip(forward, -c.creep, c.creep))
+        elif forward > 0.0:  # an autopilot that falls short of the command is asked for more
+            forward /= self._speed_gain
+        self._commands.append(forward * scale)
         yaw = c.turn_gain * steer
         return np.array([np.clip(forward, -1.0, 1.0), np.clip(yaw, -1.0, 1.0)], dtype=np.float32)
+
+    def _learn_speed_gain(self, measured_forward: float) -> None:
+        """How much of a steady forward command the autopilot delivers (PX4's drag-limited loop
+        settles 10–35 % short), from the measured speed after ``gain_steady`` unchanged commands."""
+        c = self.config
+        recent = list(self._commands)[-c.gain_steady :]
+        if len(recent) < c.gain_steady or min(recent) < c.gain_min_speed:
+            return
+        if max(recent) - min(recent) > 0.1 * max(recent):
+            return
+        ratio = float(np.clip(measured_forward / recent[-1], c.gain_range[0], c.gain_range[1]))
+        self._speed_gain += (c.step_s / c.gain_time) * (ratio - self._speed_gain)
 
     def _true_velocity(
         self, ranges: np.ndarray, measured: np.ndarray, bearing: float, jumped: bool
@@ -504,10 +533,11 @@ class GoalFollower:
             self._escape_left = c.escape_steps
             self._stuck_at = distance
 
-    def _follow_boundary(self, ranges: np.ndarray, clear: np.ndarray) -> float | None:
+    def _follow_boundary(self, ranges: np.ndarray, clear: np.ndarray, away: np.ndarray) -> float | None:
         """The first free heading sweeping round from the nearest return on the boundary side, away
-        from it: the boundary stays beside. None when nothing lies within ``boundary_range`` on
-        that side (sweeping from a fixed bearing there only spins the vehicle on the spot)."""
+        from it: the boundary stays beside (but no closer than ``keep_out``: ``away``). None when
+        nothing lies within ``boundary_range`` on that side (sweeping from a fixed bearing there
+        only spins the vehicle on the spot)."""
         c = self.config
         side = self._escape_side
         beside = (side * _SIGNED < 0.0) & (ranges < c.boundary_range)  # +1: the right half
@@ -515,7 +545,9 @@ class GoalFollower:
             return None
         wall = int(np.degrees(_SIGNED[np.argmin(np.where(beside, ranges, np.inf))]))
         sweep = wall + side * np.arange(0, 360)  # degrees, from the wall round, away from it
-        free = clear[sweep % 360] >= c.wall_lookahead
+        free = (clear >= c.wall_lookahead)[sweep % 360]
+        if (free & away[sweep % 360]).any():
+            free &= away[sweep % 360]
         if not free.any():
             return float(_wrap(np.radians(wall) + side * np.pi / 2))
         return float(_wrap(np.radians(sweep[int(np.argmax(free))])))

@@ -180,3 +180,24 @@ def test_goal_follower_reaches_a_validation_forest_it_used_to_hit_a_tree_in():
         env, GoalFollower(layout), {"family": "forest", "world_seed": 500_000, "difficulty": 0.1}, seed=0
     )
     assert not result.collision and result.success
+
+
+def test_goal_follower_ends_an_escape_with_nothing_beside_instead_of_spinning():
+    controller = GoalFollower(GOAL_LAYOUT, GoalFollowerConfig(stall_steps=5))
+    trap = {i % 360: 1.5 for i in range(-100, 101)}
+    controller.reset(_frame(trap, 0.0, 8.0))
+    for _ in range(6):
+        controller.act(_frame(trap, 0.0, 8.0))
+    assert controller._escape_side != 0
+    action = controller.act(_frame({}, 0.0, 8.0))  # the open: no boundary left to follow
+    assert abs(action[1]) < 0.1 and action[0] > 0.3
+
+
+def test_goal_follower_asks_for_more_from_an_autopilot_that_settles_short():
+    # a PX4-like velocity loop that delivers 70 % of any steady forward command
+    controller = GoalFollower(GOAL_LAYOUT)
+    action = controller.reset(_moving_frame(np.full(360, np.inf), 0.0, 25.0, (0.0, 0.0)))
+    for _ in range(80):
+        delivered = 0.7 * float(action[0]) * GOAL_LAYOUT.velocity_scale
+        action = controller.act(_moving_frame(np.full(360, np.inf), 0.0, 25.0, (delivered, 0.0)))
+    assert float(action[0]) * 0.7 == pytest.approx(controller.config.cruise, abs=0.08)
