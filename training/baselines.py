@@ -350,32 +350,7 @@ class GoalFollower:
         velocity = self._true_velocity(ranges, measured, bearing, jumped)
         self._learn_speed_gain(float(measured[0]))
         self._track_progress(distance)
-        need = np.minimum(c.lookahead, distance)
-        admissible = clear >= need
-        away = self._away_from(ranges)
-        if (admissible & away).any():
-            admissible &= away
-        goal_bin = int(np.degrees(bearing) % 360.0)
-        if self._escape_side:
-            self._escape_left -= 1
-            goal_free = bool(admissible[goal_bin]) and distance < self._stuck_at - c.stall_progress
-            if goal_free or self._escape_left <= 0:
-                self._escape_side = 0
-                self._best, self._since_progress = distance, 0
-        boundary = self._follow_boundary(ranges, clear, away) if self._escape_side else None
-        if self._escape_side and boundary is None:  # nothing beside to follow: the trap is behind
-            self._escape_side = 0
-            self._best, self._since_progress = distance, 0
-        if boundary is not None:
-            heading = boundary
-        elif admissible.any():
-            target = self._subgoal(ranges, clear, bearing, distance)
-            self._subgoal_offset = float(_wrap(target - bearing))
-            offsets = _wrap(_SIGNED - target)
-            cost = np.abs(offsets) + c.hysteresis * np.abs(_wrap(_SIGNED - bearing) - self._offset)
-            heading = float(_SIGNED[int(np.argmin(np.where(admissible, cost, np.inf)))])
-        else:
-            heading = float(_SIGNED[int(np.argmax(np.minimum(clear, c.max_range)))])
+        heading = self._heading(ranges, clear, bearing, distance)
         self._offset = float(_wrap(heading - bearing))
         k = int(np.degrees(heading) % 360.0)
         wide = corridor_clearance(ranges, c.body_radius + c.swept_margin)
@@ -391,6 +366,35 @@ class GoalFollower:
         action = self._command(speed, heading)
         action[0] = np.clip(action[0] + self._push_off(ranges), -1.0, 1.0)
         return action
+
+    def _heading(self, ranges: np.ndarray, clear: np.ndarray, bearing: float, distance: float) -> float:
+        """The heading to fly (rad CCW from the nose): along the boundary while escaping, else
+        the admissible heading nearest the subgoal, else the freest."""
+        c = self.config
+        admissible = clear >= np.minimum(c.lookahead, distance)
+        away = self._away_from(ranges)
+        if (admissible & away).any():
+            admissible &= away
+        if self._escape_side:
+            self._escape_left -= 1
+            goal_bin = int(np.degrees(bearing) % 360.0)
+            goal_free = bool(admissible[goal_bin]) and distance < self._stuck_at - c.stall_progress
+            if goal_free or self._escape_left <= 0:
+                self._escape_side = 0
+                self._best, self._since_progress = distance, 0
+        boundary = self._follow_boundary(ranges, clear, away) if self._escape_side else None
+        if self._escape_side and boundary is None:  # nothing beside to follow: the trap is behind
+            self._escape_side = 0
+            self._best, self._since_progress = distance, 0
+        if boundary is not None:
+            return boundary
+        if not admissible.any():
+            return float(_SIGNED[int(np.argmax(np.minimum(clear, c.max_range)))])
+        target = self._subgoal(ranges, clear, bearing, distance)
+        self._subgoal_offset = float(_wrap(target - bearing))
+        change = np.abs(_wrap(_SIGNED - bearing) - self._offset)
+        cost = np.abs(_wrap(_SIGNED - target)) + c.hysteresis * change
+        return float(_SIGNED[int(np.argmin(np.where(admissible, cost, np.inf)))])
 
     def _command(self, speed: float, heading: float) -> np.ndarray:
         """The action that makes the vehicle really travel at ``speed`` (action units) along
