@@ -22,6 +22,7 @@ counter-clockwise positive).
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,6 +30,7 @@ from numba import njit
 
 from companion.observation import ObservationLayout
 from companion.scan import N_BINS
+from training.scan_motion import scan_motion
 
 _ANGLES = np.deg2rad(np.arange(N_BINS) + 0.5)  # bin centres, counter-clockwise from straight ahead
 _SIGNED = np.where(np.pi < _ANGLES, _ANGLES - 2 * np.pi, _ANGLES)  # in (-pi, pi]
@@ -147,8 +149,20 @@ def _goal(obs: np.ndarray, layout: ObservationLayout) -> tuple[np.ndarray, float
     return o[:n], math.atan2(o[n + 1], o[n]), float(o[n + 2]) * layout.goal_range
 
 
+def _velocity(obs: np.ndarray, layout: ObservationLayout) -> tuple[float, float]:
+    """(forward, left) measured body velocity, m/s, of one goal-layout frame."""
+    o = np.asarray(obs, dtype=np.float64).reshape(layout.frame_size)
+    n = layout.n_bins
+    return float(o[n + 3]) * layout.velocity_scale, float(o[n + 4]) * layout.velocity_scale
+
+
 def _wrap(angle: float | np.ndarray) -> float | np.ndarray:
     return (angle + np.pi) % (2 * np.pi) - np.pi
+
+
+def _rotation(angle: float) -> np.ndarray:
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, -s], [s, c]])
 
 
 @dataclass(frozen=True)
@@ -202,6 +216,31 @@ class GoalFollowerConfig:
     :param stall_progress: metres of progress that count as progress
     :param escape_steps: longest escape (boundary following) before trying the goal again
     :param wall_lookahead: clearance a heading needs to count as free while following a boundary
+    :param boundary_range: a boundary is followed only while a return on its side lies this close
+
+    What the autopilot really does (issue 11's response model: lag, overshoot, a capped yaw rate,
+    and a velocity loop closed on an estimate that may be 0.2–0.4 m/s off):
+
+    :param keep_out: returns closer than this (vehicle centre, m) are left first: only headings
+        that do not close on them are admissible, and the forward action gets a push away from them
+    :param push_gain: forward action per unit of that push (depth inside ``keep_out``), at most ``creep``
+    :param stop_time: seconds of travel at a speed that the slowest response needs to stop from it
+        (the randomised PX4-like responses' stopping distance is 1.1–1.7 s × speed; ideal 0.33 s):
+        no forward command the vehicle could not stop from within the clearance ahead, and a stop
+        when the measured course runs into something within that distance
+    :param course_min_speed: m/s below which the measured course is too uncertain to check
+    :param step_s: seconds between two frames (the env's 10 Hz)
+    :param match_min_bins: scan bins two frames must share for their motion to count
+    :param bias_time: time constant, s, of the filter on the velocity estimate's error
+    :param bias_max: m/s beyond which a single step's error is clipped (a bad scan match)
+    :param crab_min_speed: m/s of wanted travel from which the nose leads into the estimate's
+        error (below it the vehicle turns to its heading and only the along-nose part is compensated)
+    :param crab_max: the largest such lead, rad
+    :param gain_steady: steps a forward command must hold (within 10 %) before the measured speed
+        is compared with it; the forward command is divided by the learnt ratio
+    :param gain_min_speed: m/s below which a command is not compared
+    :param gain_range: bounds of that ratio
+    :param gain_time: time constant, s, of the filter on that ratio
     """
 
     max_range: float = 10.0
@@ -212,8 +251,8 @@ class GoalFollowerConfig:
     jump: float = 1.0
     edge_margin: float = 0.3
     subgoal_hysteresis: float = 1.0
-    swept_margin: float = 0.3
-    creep: float = 0.25
+    swept_margin: float = 0.2
+    creep: float = 0.3
     cruise: float = 0.7
     stop_distance: float = 0.6
     slow_distance: float = 3.5
@@ -222,6 +261,21 @@ class GoalFollowerConfig:
     stall_progress: float = 0.5
     escape_steps: int = 200
     wall_lookahead: float = 1.5
+    boundary_range: float = 3.0
+    keep_out: float = 0.55
+    push_gain: float = 1.0
+    stop_time: float = 1.2
+    course_min_speed: float = 0.2
+    step_s: float = 0.1
+    match_min_bins: int = 30
+    bias_time: float = 0.5
+    bias_max: float = 0.6
+    crab_min_speed: float = 0.2
+    crab_max: float = 0.6
+    gain_steady: int = 5
+    gain_min_speed: float = 0.3
+    gain_range: tuple[float, float] = (0.6, 1.1)
+    gain_time: float = 2.0
 
 
 class GoalFollower:
@@ -244,7 +298,28 @@ class GoalFollower:
     come no ``stall_progress`` closer for ``stall_steps``, the controller follows the obstacle's
     boundary (as Bug algorithms do), keeping it on the side it was already turning toward, until the
     goal's bearing is admissible again from closer than where it got stuck, or ``escape_steps``
-    pass. No map, no memory beyond these few numbers: it sees what the policy sees.
+    pass, or nothing is left beside to follow.
+
+    A real autopilot does not fly the command as given (:mod:`flightsim.autopilot_response`), and
+    geometry alone crashed in 43 % of the test worlds through the randomised response. So:
+
+    * **Drift the estimate hides.** PX4 closes its velocity loop on an estimate up to 0.2–0.4 m/s
+      off, so a vehicle told to hover drifts at that error while reporting zero. The controller
+      measures its true motion from the previous and the current scan
+      (:func:`training.scan_motion.scan_motion`), keeps the difference to the reported velocity
+      (the estimate's error, filtered over ``bias_time``) and commands the wanted velocity *plus*
+      that error: the along-nose part directly, the sideways part by leading with the nose
+      (a crab angle up to ``crab_max``).
+    * **Lag and overshoot.** No forward command faster than the vehicle can stop from within the
+      clearance along its heading (``stop_time`` s of travel), and a stop when the true course
+      (reported velocity less the error) runs into something within that stopping distance: in a
+      turn the vehicle slides outward, not along its nose.
+    * **Keep-out.** Within ``keep_out`` of a return, only headings that leave it are flown, and
+      the forward action is pushed away from it (backward when it is ahead): the one escape that
+      needs no turn first, for a capped yaw rate makes turns slow.
+
+    Memory: the previous frame, the estimate's error and the few numbers of the escape; no map.
+    The policy sees the same (four stacked frames carry the scan-to-scan motion too).
     """
 
     def __init__(self, layout: ObservationLayout, config: GoalFollowerConfig | None = None) -> None:
@@ -259,6 +334,10 @@ class GoalFollower:
         self._escape_left = 0
         self._stuck_at = math.inf
         self._last_distance = math.inf
+        self._previous: tuple[np.ndarray, np.ndarray, float] | None = None  # ranges, velocity, bearing
+        self._bias = np.zeros(2)  # velocity estimate minus true velocity, body frame, m/s
+        self._speed_gain = 1.0  # measured / commanded forward speed, steady state
+        self._commands: deque[float] = deque(maxlen=self.config.gain_steady)  # forward m/s sent
         return self.act(obs)
 
     def act(self, obs: np.ndarray) -> np.ndarray:
@@ -266,26 +345,12 @@ class GoalFollower:
         scan, bearing, distance = _goal(obs, self.layout)
         ranges = np.where(scan >= 1.0, np.inf, scan * c.max_range)
         clear = corridor_clearance(ranges, c.body_radius)
+        jumped = distance > self._last_distance + 1.0
+        measured = np.array(_velocity(obs, self.layout))
+        velocity = self._true_velocity(ranges, measured, bearing, jumped)
+        self._learn_speed_gain(float(measured[0]))
         self._track_progress(distance)
-        need = np.minimum(c.lookahead, distance)
-        admissible = clear >= need
-        goal_bin = int(np.degrees(bearing) % 360.0)
-        if self._escape_side:
-            self._escape_left -= 1
-            goal_free = bool(admissible[goal_bin]) and distance < self._stuck_at - c.stall_progress
-            if goal_free or self._escape_left <= 0:
-                self._escape_side = 0
-                self._best, self._since_progress = distance, 0
-        if self._escape_side:
-            heading = self._follow_boundary(clear)
-        elif admissible.any():
-            target = self._subgoal(ranges, clear, bearing, distance)
-            self._subgoal_offset = float(_wrap(target - bearing))
-            offsets = _wrap(_SIGNED - target)
-            cost = np.abs(offsets) + c.hysteresis * np.abs(_wrap(_SIGNED - bearing) - self._offset)
-            heading = float(_SIGNED[int(np.argmin(np.where(admissible, cost, np.inf)))])
-        else:
-            heading = float(_SIGNED[int(np.argmax(np.minimum(clear, c.max_range)))])
+        heading = self._heading(ranges, clear, bearing, distance)
         self._offset = float(_wrap(heading - bearing))
         k = int(np.degrees(heading) % 360.0)
         wide = corridor_clearance(ranges, c.body_radius + c.swept_margin)
@@ -295,8 +360,98 @@ class GoalFollower:
         ahead = float(min(clear[0], clear[-1]))
         if ahead < c.stop_distance:
             speed = 0.0
+        speed = min(speed, self._stoppable(float(clear[k])))
+        if self._cannot_stop_along_course(clear, *velocity):
+            speed = 0.0
+        action = self._command(speed, heading)
+        action[0] = np.clip(action[0] + self._push_off(ranges), -1.0, 1.0)
+        return action
 
-        return np.array([speed, np.clip(c.turn_gain * heading, -1.0, 1.0)], dtype=np.float32)
+    def _heading(self, ranges: np.ndarray, clear: np.ndarray, bearing: float, distance: float) -> float:
+        """The heading to fly (rad CCW from the nose): along the boundary while escaping, else
+        the admissible heading nearest the subgoal, else the freest."""
+        c = self.config
+        admissible = clear >= np.minimum(c.lookahead, distance)
+        away = self._away_from(ranges)
+        if (admissible & away).any():
+            admissible &= away
+        if self._escape_side:
+            self._escape_left -= 1
+            goal_bin = int(np.degrees(bearing) % 360.0)
+            goal_free = bool(admissible[goal_bin]) and distance < self._stuck_at - c.stall_progress
+            if goal_free or self._escape_left <= 0:
+                self._escape_side = 0
+                self._best, self._since_progress = distance, 0
+        boundary = self._follow_boundary(ranges, clear, away) if self._escape_side else None
+        if self._escape_side and boundary is None:  # nothing beside to follow: the trap is behind
+            self._escape_side = 0
+            self._best, self._since_progress = distance, 0
+        if boundary is not None:
+            return boundary
+        if not admissible.any():
+            return float(_SIGNED[int(np.argmax(np.minimum(clear, c.max_range)))])
+        target = self._subgoal(ranges, clear, bearing, distance)
+        self._subgoal_offset = float(_wrap(target - bearing))
+        change = np.abs(_wrap(_SIGNED - bearing) - self._offset)
+        cost = np.abs(_wrap(_SIGNED - target)) + c.hysteresis * change
+        return float(_SIGNED[int(np.argmin(np.where(admissible, cost, np.inf)))])
+
+    def _command(self, speed: float, heading: float) -> np.ndarray:
+        """The action that makes the vehicle really travel at ``speed`` (action units) along
+        ``heading``: the autopilot flies its *estimate* to the command, so the true velocity falls
+        short of it by the estimate's error; command the wanted velocity plus that error instead.
+        Only its along-nose part can be commanded, so the nose leads by the crab angle too."""
+        c = self.config
+        scale = self.layout.velocity_scale
+        want = speed * scale * np.array([math.cos(heading), math.sin(heading)])
+        command = want + self._bias
+        steer = heading
+        if speed * scale >= c.crab_min_speed:
+            crab = float(_wrap(math.atan2(command[1], command[0]) - heading))
+            steer = heading + float(np.clip(crab, -c.crab_max, c.crab_max))
+        forward = float(command[0] / scale)
+        if speed <= 0.0:  # stopping: only hold against the error, never fly on
+            forward = float(np.clip(forward, -c.creep, c.creep))
+        elif forward > 0.0:  # an autopilot that falls short of the command is asked for more
+            forward /= self._speed_gain
+        self._commands.append(forward * scale)
+        yaw = c.turn_gain * steer
+        return np.array([np.clip(forward, -1.0, 1.0), np.clip(yaw, -1.0, 1.0)], dtype=np.float32)
+
+    def _learn_speed_gain(self, measured_forward: float) -> None:
+        """How much of a steady forward command the autopilot delivers (PX4's drag-limited loop
+        settles 10–35 % short), from the measured speed after ``gain_steady`` unchanged commands."""
+        c = self.config
+        recent = list(self._commands)[-c.gain_steady :]
+        if len(recent) < c.gain_steady or min(recent) < c.gain_min_speed:
+            return
+        if max(recent) - min(recent) > 0.1 * max(recent):
+            return
+        ratio = float(np.clip(measured_forward / recent[-1], c.gain_range[0], c.gain_range[1]))
+        self._speed_gain += (c.step_s / c.gain_time) * (ratio - self._speed_gain)
+
+    def _true_velocity(
+        self, ranges: np.ndarray, measured: np.ndarray, bearing: float, jumped: bool
+    ) -> np.ndarray:
+        """The vehicle's true body velocity (m/s): the measured one less the estimate's error, which
+        is tracked by comparing the measured velocity with the motion between consecutive scans
+        (:func:`training.scan_motion.scan_motion`), low-pass filtered over ``bias_time`` s."""
+        c = self.config
+        previous, self._previous = self._previous, (ranges, measured, bearing)
+        if previous is None:
+            return measured - self._bias
+        ranges0, measured0, bearing0 = previous
+        guess = 0.0 if jumped else float(_wrap(bearing0 - bearing))
+        dx, dy, turn, used = scan_motion(ranges0, ranges, guess, c.max_range)
+        if used < c.match_min_bins:
+            return measured - self._bias
+        rot = _rotation(turn)
+        moved = np.array([dx, dy]) / c.step_s
+        mean_measured = 0.5 * (measured0 + rot @ measured)  # in the previous body frame
+        error = np.clip(mean_measured - moved, -c.bias_max, c.bias_max)
+        bias = self._bias + (c.step_s / c.bias_time) * (error - self._bias)
+        self._bias = rot.T @ bias  # into the current body frame
+        return measured - self._bias
 
     def _ramp(self, clearance: float, distance: float) -> float:
         """Forward action for a clearance along the heading: 0 at ``stop_distance``, ``cruise`` at
@@ -304,6 +459,44 @@ class GoalFollower:
         c = self.config
         free = min(clearance, distance + c.stop_distance) - c.stop_distance
         return c.cruise * float(np.clip(free / (c.slow_distance - c.stop_distance), 0.0, 1.0))
+
+    def _away_from(self, ranges: np.ndarray) -> np.ndarray:
+        """Headings that do not close on any return inside ``keep_out``: near something, the
+        vehicle leaves it before anything else (a drift the estimate hides acts there first)."""
+        close = _SIGNED[ranges < self.config.keep_out]
+        if close.size == 0:
+            return np.ones(N_BINS, dtype=bool)
+        return (np.cos(_SIGNED[:, None] - close[None, :]) <= 0.0).all(axis=1)
+
+    def _push_off(self, ranges: np.ndarray) -> float:
+        """Forward action (negative: backward) away from returns inside ``keep_out``, in
+        proportion to how deep inside they are: the one escape that needs no turn first."""
+        c = self.config
+        close = ranges < c.keep_out
+        if not close.any():
+            return 0.0
+        depth = (c.keep_out - ranges[close]) / c.keep_out
+        push = -float(np.sum(depth * np.cos(_SIGNED[close])) / max(1, close.sum()) ** 0.5)
+        return float(np.clip(c.push_gain * push, -c.creep, c.creep))
+
+    def _stoppable(self, clearance: float) -> float:
+        """The fastest forward action the vehicle can still stop from within ``clearance``
+        (``stop_time`` s of travel at that speed, ``stop_distance`` kept)."""
+        c = self.config
+        return max(0.0, clearance - c.stop_distance) / (c.stop_time * self.layout.velocity_scale)
+
+    def _cannot_stop_along_course(self, clear: np.ndarray, forward: float, left: float) -> bool:
+        """The measured motion runs into something before the vehicle could stop: brake.
+
+        The vehicle does not go where its nose points: the autopilot's velocity lags the command
+        (it overshoots a lowered speed, and slides outward in a turn). So the corridor along the
+        measured course must be clear for the stopping distance at the measured speed."""
+        c = self.config
+        speed = math.hypot(forward, left)
+        if speed < c.course_min_speed:
+            return False
+        course = int(math.degrees(math.atan2(left, forward)) % 360.0)
+        return float(clear[course]) - c.stop_distance < c.stop_time * speed
 
     def _subgoal(self, ranges: np.ndarray, clear: np.ndarray, bearing: float, distance: float) -> float:
         """The direction to fly for: the goal's bearing if clear, else the best obstacle edge's."""
@@ -344,12 +537,21 @@ class GoalFollower:
             self._escape_left = c.escape_steps
             self._stuck_at = distance
 
-    def _follow_boundary(self, clear: np.ndarray) -> float:
-        """The first free heading sweeping away from the boundary side: the boundary stays beside."""
+    def _follow_boundary(self, ranges: np.ndarray, clear: np.ndarray, away: np.ndarray) -> float | None:
+        """The first free heading sweeping round from the nearest return on the boundary side, away
+        from it: the boundary stays beside (but no closer than ``keep_out``: ``away``). None when
+        nothing lies within ``boundary_range`` on that side (sweeping from a fixed bearing there
+        only spins the vehicle on the spot)."""
         c = self.config
         side = self._escape_side
-        sweep = np.arange(-90, 271) if side > 0 else -np.arange(-90, 271)  # degrees, from the wall round
-        free = clear[sweep % 360] >= c.wall_lookahead
+        beside = (side * _SIGNED < 0.0) & (ranges < c.boundary_range)  # +1: the right half
+        if not beside.any():
+            return None
+        wall = int(np.degrees(_SIGNED[np.argmin(np.where(beside, ranges, np.inf))]))
+        sweep = wall + side * np.arange(0, 360)  # degrees, from the wall round, away from it
+        free = (clear >= c.wall_lookahead)[sweep % 360]
+        if (free & away[sweep % 360]).any():
+            free &= away[sweep % 360]
         if not free.any():
-            return float(side * np.pi / 2)
-        return float(np.radians(sweep[int(np.argmax(free))]))
+            return float(_wrap(np.radians(wall) + side * np.pi / 2))
+        return float(_wrap(np.radians(sweep[int(np.argmax(free))])))

@@ -121,3 +121,83 @@ def test_goal_follower_escapes_when_the_goal_comes_no_closer_and_resets_on_a_new
     assert controller._escape_side != 0
     controller.act(_frame({}, 0.0, 15.0))  # the next waypoint: distance jumps
     assert controller._escape_side == 0
+
+
+def _moving_frame(
+    scan_m: np.ndarray, goal_deg: float, goal_m: float, velocity: tuple[float, float]
+) -> np.ndarray:
+    """A goal-layout frame from ranges in metres (inf: nothing) and a measured body velocity, m/s."""
+    a = np.radians(goal_deg)
+    features = goal_features(goal_m * np.cos(a), goal_m * np.sin(a), *velocity, GOAL_LAYOUT)
+    scan = np.where(np.isfinite(scan_m), np.minimum(scan_m / 10.0, 1.0), 1.0).astype(np.float32)
+    return build_frame(scan, features, GOAL_LAYOUT)
+
+
+def test_goal_follower_sees_a_drift_the_velocity_estimate_hides_and_crabs_against_it():
+    # the autopilot reports 0.5 m/s straight ahead, the walls show 0.3 m/s to the left as well
+    # (PX4's estimate error: its velocity loop flies the estimate, so the truth drifts by the error)
+    from tests.training.test_scan_motion import room_scan
+
+    def yaw_after(drift: float) -> float:
+        controller = GoalFollower(GOAL_LAYOUT)
+        x, y, action = -3.0, 0.0, None
+        for k in range(20):
+            scan = room_scan(x, y, 0.0, half=(8.0, 3.0), pillar=(-6.0, -2.0))
+            frame = _moving_frame(scan, float(np.degrees(np.arctan2(-y, 5.0 - x))), 5.0 - x, (0.5, 0.0))
+            action = controller.reset(frame) if k == 0 else controller.act(frame)
+            x, y = x + 0.05, y + drift * 0.1
+        return float(action[1])
+
+    assert abs(yaw_after(0.0)) < 0.1
+    assert yaw_after(0.3) < -0.3  # the nose leads to the right of the way to fly
+
+
+def test_goal_follower_backs_off_from_a_return_inside_its_keep_out():
+    near = {i % 360: 0.4 for i in range(-10, 30)}  # something 0.4 m off the nose, to the left
+    action = GoalFollower(GOAL_LAYOUT).reset(_frame(near, 0.0, 10.0))
+    assert action[0] < -0.05
+
+
+def test_goal_follower_brakes_when_it_slides_toward_a_wall_beside_it():
+    # heading clear to the goal ahead, but the vehicle slides left at 0.9 m/s toward a wall 0.9 m away
+    wall = np.full(360, np.inf)
+    for i in range(30, 151):
+        wall[i] = 0.9 / np.sin(np.radians(i + 0.5))
+    action = GoalFollower(GOAL_LAYOUT).reset(_moving_frame(wall, 0.0, 10.0, (0.3, 0.9)))
+    assert action[0] < 0.05
+    open_room = GoalFollower(GOAL_LAYOUT).reset(_moving_frame(wall, 0.0, 10.0, (0.3, 0.0)))
+    assert open_room[0] > 0.3
+
+
+def test_goal_follower_reaches_a_validation_forest_it_used_to_hit_a_tree_in():
+    # validation world forest-500000 (difficulty 0.1) through the randomised autopilot response of
+    # reset seed 0 (PX4-like, yaw rate capped at 0.88 rad/s): the old controller hit a tree after 6 s
+    from training.evaluate import NAV_ENV_ID, make_eval_env, run_episode
+
+    env = make_eval_env({"autopilot_response": "random", "wind_gust_max": 0.5}, NAV_ENV_ID)
+    layout = env.unwrapped.config.layout
+    result = run_episode(
+        env, GoalFollower(layout), {"family": "forest", "world_seed": 500_000, "difficulty": 0.1}, seed=0
+    )
+    assert not result.collision and result.success
+
+
+def test_goal_follower_ends_an_escape_with_nothing_beside_instead_of_spinning():
+    controller = GoalFollower(GOAL_LAYOUT, GoalFollowerConfig(stall_steps=5))
+    trap = {i % 360: 1.5 for i in range(-100, 101)}
+    controller.reset(_frame(trap, 0.0, 8.0))
+    for _ in range(6):
+        controller.act(_frame(trap, 0.0, 8.0))
+    assert controller._escape_side != 0
+    action = controller.act(_frame({}, 0.0, 8.0))  # the open: no boundary left to follow
+    assert abs(action[1]) < 0.1 and action[0] > 0.3
+
+
+def test_goal_follower_asks_for_more_from_an_autopilot_that_settles_short():
+    # a PX4-like velocity loop that delivers 70 % of any steady forward command
+    controller = GoalFollower(GOAL_LAYOUT)
+    action = controller.reset(_moving_frame(np.full(360, np.inf), 0.0, 25.0, (0.0, 0.0)))
+    for _ in range(80):
+        delivered = 0.7 * float(action[0]) * GOAL_LAYOUT.velocity_scale
+        action = controller.act(_moving_frame(np.full(360, np.inf), 0.0, 25.0, (delivered, 0.0)))
+    assert float(action[0]) * 0.7 == pytest.approx(controller.config.cruise, abs=0.08)
