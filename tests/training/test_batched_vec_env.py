@@ -74,3 +74,15 @@ def test_env_method_get_and_set_attr_reach_each_env() -> None:
         assert venv.env_is_wrapped(type(venv.unwrapped.envs[0])) == [True, True]
     finally:
         venv.close()
+
+
+def test_subproc_keeps_sb3s_subprocess_vec_env() -> None:
+    from stable_baselines3.common.vec_env import SubprocVecEnv
+
+    config = load_train_config("training/configs/shipped.toml", ["vec_env='subproc'"])
+    venv = make_vec_env(config, 2, seed=0)
+    try:
+        assert isinstance(venv.unwrapped, SubprocVecEnv)
+        assert venv.reset().shape == (2, 4 * 360)
+    finally:
+        venv.close()
