@@ -218,8 +218,8 @@ class GoalFollowerConfig:
     :param wall_lookahead: clearance a heading needs to count as free while following a boundary
     :param boundary_range: a boundary is followed only while a return on its side lies this close
 
-    What the autopilot really does (issue 11's response model: lag, overshoot, a capped yaw rate,
-    and a velocity loop closed on an estimate that may be 0.2–0.4 m/s off):
+    What the autopilot really does (:mod:`flightsim.autopilot_response`: lag, overshoot, a capped
+    yaw rate, and a velocity loop closed on an estimate that may be 0.2–0.4 m/s off):
 
     :param keep_out: returns closer than this (vehicle centre, m) are left first: only headings
         that do not close on them are admissible, and the forward action gets a push away from them

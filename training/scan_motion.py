@@ -2,8 +2,8 @@
 
 The goal baseline needs the vehicle's *true* motion: PX4's velocity estimate can be 0.2–0.4 m/s
 off, and the autopilot closes its velocity loop on that estimate, so a vehicle told to hover
-drifts at the estimate's error while reporting zero (issue 11's recordings). The walls do not
-drift, so two scans 0.1 s apart show the motion the estimate cannot.
+drifts at the estimate's error while reporting zero (tests/fixtures/autopilot-response). The
+walls do not drift, so two scans 0.1 s apart show the motion the estimate cannot.
 
 Method (the linearised range flow of polar scan matching): a return at range ``r`` and bearing
 ``θ`` in the first scan, after the vehicle moves ``(dx, dy)`` (body frame of the first scan, FLU)
