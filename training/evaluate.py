@@ -34,6 +34,7 @@ import json
 import logging
 import math
 import os
+import zlib
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import Executor, ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
@@ -464,13 +465,27 @@ def make_tasks(
     env: dict[str, Any],
     env_id: str = AVOID_ENV_ID,
 ) -> list[EpisodeTask]:
-    """Every controller × world × episode; episode ``k`` uses reset seed ``k`` for every controller."""
+    """Every controller × world × episode; every controller flies the same reset seed there
+    (:func:`episode_seed`)."""
     return [
-        EpisodeTask(controller=c, world=w, episode=k, env=env, seed=k, env_id=env_id)
+        EpisodeTask(controller=c, world=w, episode=k, env=env, seed=episode_seed(w, k, env_id), env_id=env_id)
         for c in controllers
         for w in worlds
         for k in range(episodes)
     ]
+
+
+def episode_seed(world: WorldSpec, episode: int, env_id: str) -> int:
+    """The reset seed of ``episode`` on ``world``: what the env draws from it (the autopilot
+    response, sensor noise, mass, wind) differs from world to world.
+
+    Goal task: ``crc32("<world name>/<episode>")``, so each world flies its own random response
+    draw (with the episode index alone, every world flew the same one). Avoidance task: the
+    episode index, as every avoidance figure so far was measured (its responses are fixed ones).
+    """
+    if env_id != NAV_ENV_ID:
+        return episode
+    return zlib.crc32(f"{world.name}/{episode}".encode())
 
 
 # --- summaries -------------------------------------------------------------------------------------
@@ -791,7 +806,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         type=float,
         help="generator difficulty for --seeds (default 0.5; goal task: spread over env.difficulty_range)",
     )
-    parser.add_argument("--episodes", type=int, default=1, help="episodes per world (reset seeds 0..N-1)")
+    parser.add_argument("--episodes", type=int, default=1, help="episodes per world")
     parser.add_argument(
         "--config", type=Path, help="training config whose [env] table to fly in (default: env defaults)"
     )

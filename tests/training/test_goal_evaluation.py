@@ -92,3 +92,19 @@ def test_goal_evaluation_end_to_end_writes_json_and_png(tmp_path, capsys):
     assert list(data["controllers"]["goal_follower+shield"]["per_family"]) == ["gaps"]
     assert data["worlds"][0]["family"] == "gaps" and out_png.stat().st_size > 10_000
     assert "goal_follower+shield" in capsys.readouterr().out
+
+
+
+def test_each_goal_world_flies_its_own_reset_seed_and_every_controller_the_same():
+    """The reset seed decides the random autopilot response: one seed for all worlds was one draw."""
+    from training.evaluate import NAV_ENV_ID, ControllerSpec, make_tasks
+
+    worlds = goal_worlds(FAMILIES[:2], seeds.TEST.start, 5, (0.0, 1.0))
+    controllers = [ControllerSpec("goal_follower"), ControllerSpec("straight_line")]
+    tasks = make_tasks(controllers, worlds, 2, {}, NAV_ENV_ID)
+    by_controller: dict[str, list[int]] = {}
+    for t in tasks:
+        by_controller.setdefault(t.controller.kind, []).append(t.seed)
+    first, second = by_controller.values()
+    assert first == second  # the same episodes for every controller
+    assert len(set(first)) == len(first) == 2 * len(worlds)  # world × episode: all different
