@@ -53,7 +53,7 @@ from companion.goal_source import (
     request_message,
 )
 from companion.notify import SystemdNotifier
-from companion.observation import ObservationLayout, build_frame, goal_features
+from companion.observation import build_frame, goal_features
 from companion.obstacle_distance import obstacle_distance_allowed, obstacle_distance_from_scan
 from companion.policy import InferenceFault, OnnxPolicy, PolicySpec
 from companion.recording.recorder import FlightRecorder, open_recorder
@@ -110,14 +110,6 @@ class LidarSource(Protocol):
 # ---- start-up --------------------------------------------------------------------------------
 
 
-def observation_layout(config: CompanionConfig) -> ObservationLayout:
-    """One frame as ``policy.observation`` says: the scan, or the scan + goal + measured velocity
-    (scaled as LidarNav-v0 scales them: ``goal_range``, and ``max_speed`` for the velocity)."""
-    p = config.policy
-    return ObservationLayout(n_bins=N_BINS, goal=p.observation == "goal", goal_range=p.goal_range,
-                             velocity_scale=p.max_speed)
-
-
 def policy_spec(config: CompanionConfig) -> PolicySpec:
     """What the companion feeds the model; the model's metadata must agree with every field."""
     return PolicySpec(
@@ -127,7 +119,7 @@ def policy_spec(config: CompanionConfig) -> PolicySpec:
         bin_convention=BIN_CONVENTION,
         max_speed=config.policy.max_speed,
         max_yaw_rate=config.policy.max_yaw_rate,
-        layout=observation_layout(config),
+        layout=config.policy.layout,
     )
 
 
@@ -300,7 +292,7 @@ class Companion:
         self.shield = SafetyShield(
             config.shield, config.scan.max_range, config.autopilot.type, autopilot_yaw_rate
         )
-        self.layout = observation_layout(config)
+        self.layout = config.policy.layout
         self.stack = FrameStack(config.policy.stack, self.layout.frame_size)
         self._od_limits = obstacle_distance_limits(config)
         # PX4 only accepts a switch to OFFBOARD while setpoints already stream.
@@ -411,6 +403,7 @@ class Companion:
             else:  # the goal says hold: the scan is good, the goal gates the setpoint (see _send)
                 self.supervisor.on_scan(True)
             return
+        scan = frame[: self.layout.n_bins]  # the frame's own scan (a view): the recorder pairs them
         obs = self.stack.reset(frame) if self._reset_stack else self.stack.push(frame)
         self._reset_stack = False
         try:

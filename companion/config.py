@@ -19,7 +19,8 @@ from typing import Literal
 from companion.autopilot.signing import load_signing_key
 from companion.connection import Connection, parse_connection
 from companion.errors import UserError
-from companion.scan import ScanConfig
+from companion.observation import ObservationLayout
+from companion.scan import N_BINS, ScanConfig
 from companion.shield import ShieldConfig
 from companion.supervisor import SupervisorConfig
 from companion.tomlconfig import apply_overrides, from_dict, load_toml
@@ -138,6 +139,13 @@ class PolicyConfig:
     max_yaw_rate: float = field(default=1.5, metadata={"min": 0.01, "max": 6.0})
     observation: Literal["goal", "scan"] = "goal"
     goal_range: float = field(default=30.0, metadata={"min": 1.0, "max": 100.0})
+
+    @property
+    def layout(self) -> ObservationLayout:
+        """One frame as ``observation`` says, scaled as LidarNav-v0 scales it (``goal_range``, and
+        ``max_speed`` for the velocity)."""
+        return ObservationLayout(n_bins=N_BINS, goal=self.observation == "goal", goal_range=self.goal_range,
+                                 velocity_scale=self.max_speed)
 
     def __post_init__(self) -> None:
         if self.sha256 and not re.fullmatch(r"[0-9a-fA-F]{64}", self.sha256):

@@ -129,7 +129,7 @@ class FakeLink:
     def send_statustext(self, text, severity):
         self.texts.append((text, severity))
 
-    def send_velocity(self, forward, yaw_rate, lateral=0.0):
+    def send_velocity(self, forward, yaw_rate, lateral=0.0, vertical=0.0):
         pass
 
 
