@@ -255,8 +255,12 @@ def test_a_model_without_a_layout_key_is_a_scan_only_model(tmp_path: Path) -> No
         OnnxPolicy(path, GOAL_SPEC)
 
 
-def test_the_shipped_model_still_loads_as_scan_only() -> None:
-    OnnxPolicy(Path(__file__).resolve().parents[2] / "models" / "policy.onnx", SPEC)
+def test_the_shipped_model_loads_under_the_default_config() -> None:
+    """The shipped goal policy, as the default companion config feeds it (swapping it is one copy)."""
+    from companion.app import policy_spec
+    from companion.config import CompanionConfig
+
+    OnnxPolicy(Path(__file__).resolve().parents[2] / "models" / "policy.onnx", policy_spec(CompanionConfig()))
 
 
 def test_tensorrt_gets_the_engine_cache_and_others_are_left_alone() -> None:
