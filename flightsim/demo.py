@@ -32,8 +32,8 @@ GENERATED = (
 )
 #: a flight's time limit without ``--duration``: this much, plus TIME_PER_M per metre of the
 #: world's shortest safe path (the slowest mission the 3-minute budget allows)
-TIME_SLACK_S = 8.0
-TIME_PER_M = 1.0
+TIME_SLACK_S = 6.0
+TIME_PER_M = 0.9
 
 
 def demo_worlds() -> list[World]:
