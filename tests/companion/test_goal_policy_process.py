@@ -127,7 +127,9 @@ def test_scan_only_model_needs_observation_scan_and_then_flies(tmp_path):
     lidar_port, mavlink_port = free_udp_port(), free_udp_port()
     config = write_config(tmp_path, model, lidar_port, mavlink_port)
     refused = run_to_exit(["run", "--config", str(config)])
-    assert refused.returncode == 2 and "does not match config observation layout" in refused.stderr
+    assert refused.returncode == 2 and len(refused.stderr.strip().splitlines()) == 1
+    assert "does not match config observation layout" in refused.stderr
+    assert refused.stderr.strip().endswith('(a scan-only model: set policy.observation = "scan")')
     config.write_text(config.read_text().replace("[policy]\n", '[policy]\nobservation = "scan"\n'))
     vehicle = SimulatedAutopilot(f"udpout:127.0.0.1:{mavlink_port}")
     proc = start_companion(config)
