@@ -6,7 +6,9 @@ the optional autopilot parameter check, then the autopilot link; READY=1 to syst
 The loop (one thread, ``select()`` on the lidar socket with a short timeout so the link is
 serviced even when the lidar is silent):
 
-- the newest finished revolution of the iteration: scan → frame stack → policy → supervisor.on_scan
+- the newest finished revolution of the iteration: scan → frame (the scan; for a goal policy also
+  the goal and the measured velocity, none while the goal holds or the velocity is stale) → frame
+  stack → policy → supervisor.on_scan
   (older ones that arrived in the same read are counted as skipped: the work per iteration stays
   one scan, however much arrived; the lidar source bounds its own reading in time and count). A
   source that saw more revolutions than the sensor can make reports ``implausible``: a fault for
