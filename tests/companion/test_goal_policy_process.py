@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import time
+from pathlib import Path
 
 from tests.companion.companion_process import (
     LidarSender,
@@ -137,6 +138,29 @@ def test_scan_only_model_needs_observation_scan_and_then_flies(tmp_path):
     try:
         lidar.on = True
         _wait(lambda: any(m.vx > 0 for m in vehicle.messages(SETPOINT)), 20.0, "the scan-only policy flying")
+    finally:
+        lidar.close()
+        if proc.poll() is None:
+            print(stop(proc)[2][-5000:])
+        vehicle.close()
+
+
+def test_the_shipped_exported_goal_model_flies_toward_a_fixed_goal(tmp_path):
+    """``avoid-train export``'s goal model (models/policy.onnx) under the default config: it loads,
+    engages and commands (what it asks for is the policy's business, not tested here)."""
+    lidar_port, mavlink_port = free_udp_port(), free_udp_port()
+    shipped = Path(__file__).resolve().parents[2] / "models" / "policy.onnx"
+    config = write_config(tmp_path, shipped, lidar_port, mavlink_port, extra=WEST_AND_UP)
+    vehicle = SimulatedAutopilot(f"udpout:127.0.0.1:{mavlink_port}")
+    vehicle.local_position = (0.0, 0.0, -1.5)
+    proc = start_companion(config)
+    lidar = LidarSender(lidar_port)
+    try:
+        lidar.on = True
+        _wait(lambda: any(m.vx != 0.0 or m.yaw_rate != 0.0 for m in vehicle.messages(SETPOINT)), 20.0,
+              "the shipped policy commanding")
+        assert any("goal: tracking" in m.text for m in vehicle.messages("STATUSTEXT"))
+        assert any(m.vz < -0.1 for m in vehicle.messages(SETPOINT))  # climbing toward the waypoint
     finally:
         lidar.close()
         if proc.poll() is None:
