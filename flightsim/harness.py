@@ -769,7 +769,10 @@ def measured(value: float | None, fmt: str, unit: str) -> str:
 def _title(r: FlightReport) -> str:
     outcome = "COLLISION" if r.collision else "no collision"
     clearance = measured(r.min_clearance_m, ".2f", "m")
-    return f"{r.world} / {r.autopilot}: {outcome}, {r.distance_m:.1f} m, min clearance {clearance}"
+    title = f"{r.world} / {r.autopilot}: {outcome}, {r.distance_m:.1f} m, min clearance {clearance}"
+    if r.waypoints_total:
+        title += f", waypoints {len(r.waypoints_reached)}/{r.waypoints_total}"
+    return title
 
 
 def plot_flight(
