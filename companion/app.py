@@ -6,7 +6,9 @@ the optional autopilot parameter check, then the autopilot link; READY=1 to syst
 The loop (one thread, ``select()`` on the lidar socket with a short timeout so the link is
 serviced even when the lidar is silent):
 
-- the newest finished revolution of the iteration: scan → frame stack → policy → supervisor.on_scan
+- the newest finished revolution of the iteration: scan → frame (the scan; for a goal policy also
+  the goal and the measured velocity, none while the goal holds or the velocity is stale) → frame
+  stack → policy → supervisor.on_scan
   (older ones that arrived in the same read are counted as skipped: the work per iteration stays
   one scan, however much arrived; the lidar source bounds its own reading in time and count). A
   source that saw more revolutions than the sensor can make reports ``implausible``: a fault for
@@ -45,8 +47,15 @@ from companion.connection import ensure_port_free
 from companion.errors import UserError
 from companion.framestack import FrameStack
 from companion.goal import GoalOutput
-from companion.goal_source import GOAL_STREAMS, GoalSource, completion_mode_command, request_message
+from companion.goal_source import (
+    GOAL_STREAMS,
+    GoalSource,
+    completion_mode_command,
+    reached_message,
+    request_message,
+)
 from companion.notify import SystemdNotifier
+from companion.observation import build_frame, goal_features
 from companion.obstacle_distance import obstacle_distance_allowed, obstacle_distance_from_scan
 from companion.policy import InferenceFault, OnnxPolicy, PolicySpec
 from companion.recording.recorder import FlightRecorder, open_recorder
@@ -70,8 +79,14 @@ LATE_SCAN_AFTER = 0.12
 #: flood cannot take the whole processor (run SCHED_FIFO, the companion would starve the kernel's
 #: own threads, ksoftirqd among them, and its own datagrams with them). The kernel drops the excess.
 BACKLOG_PAUSE = 0.005
+#: The supervisor's HOLD reason when a goal frame cannot be built for want of a measured velocity.
+VELOCITY_STALE = "velocity stale"
 #: Watchdog ping period when systemd does not say (WATCHDOG_USEC unset), s.
 DEFAULT_WATCHDOG_PERIOD = 1.0
+#: With ``goal.source = "none"``, a goal policy flies toward a goal this far ahead along the current
+#: heading, m: it moves with the vehicle, so the vehicle flies forward and avoids, as a scan-only
+#: policy does (20 m: well inside the distance feature's range, far beyond the lidar's).
+GOAL_AHEAD_M = 20.0
 
 # MAV_SEVERITY of the STATUSTEXT for a transition into each state.
 _SEVERITY = {
@@ -106,6 +121,7 @@ def policy_spec(config: CompanionConfig) -> PolicySpec:
         bin_convention=BIN_CONVENTION,
         max_speed=config.policy.max_speed,
         max_yaw_rate=config.policy.max_yaw_rate,
+        layout=config.policy.layout,
     )
 
 
@@ -278,7 +294,8 @@ class Companion:
         self.shield = SafetyShield(
             config.shield, config.scan.max_range, config.autopilot.type, autopilot_yaw_rate
         )
-        self.stack = FrameStack(config.policy.stack, N_BINS)
+        self.layout = config.policy.layout
+        self.stack = FrameStack(config.policy.stack, self.layout.frame_size)
         self._od_limits = obstacle_distance_limits(config)
         # PX4 only accepts a switch to OFFBOARD while setpoints already stream.
         self._stream_before_mode = bool(getattr(self.link, "setpoints_before_offboard", False))
@@ -352,6 +369,9 @@ class Companion:
         for text in self.goal.drain_announcements():
             log.info("%s", text)
             self.link.send_statustext(f"avoid {text}", _INFO)
+        for seq in self.goal.tracker.drain_reached_items():
+            self.link.send_message(reached_message(seq))
+            self.counters["mission_items_reached"] += 1
         if out.hold_reason != self._goal_output.hold_reason:
             text = f"goal: hold ({out.hold_reason})" if out.hold_reason else "goal: tracking"
             log.info("%s", text)
@@ -375,7 +395,18 @@ class Companion:
         scan = scan_from_points(cloud, self.config.scan)
         self.counters["scans"] += 1
         self._unsent_scan = scan
-        obs = self.stack.reset(scan) if self._reset_stack else self.stack.push(scan)
+        frame = self._frame(scan)
+        if isinstance(frame, str):  # no frame: the policy does not run, the stack starts over
+            self._latest = (scan, Command(0.0, 0.0))
+            self._reset_stack = True
+            if frame == VELOCITY_STALE:
+                self.counters["frames_without_velocity"] += 1
+                self.supervisor.on_scan(False, VELOCITY_STALE)
+            else:  # the goal says hold: the scan is good, the goal gates the setpoint (see _send)
+                self.supervisor.on_scan(True)
+            return
+        scan = frame[: self.layout.n_bins]  # the frame's own scan (a view): the recorder pairs them
+        obs = self.stack.reset(frame) if self._reset_stack else self.stack.push(frame)
         self._reset_stack = False
         try:
             action = self.policy.act(obs)
@@ -389,6 +420,23 @@ class Companion:
         self.supervisor.on_scan(True)
         cfg = self.config.policy
         self._latest = (scan, command_from_action(action, cfg.max_speed, cfg.max_yaw_rate))
+
+    def _frame(self, scan: np.ndarray) -> np.ndarray | str:
+        """The policy's frame for ``scan`` (LidarNav-v0's, built by the same functions), or why
+        there is none: the goal says hold, or the measured velocity is stale (a false picture)."""
+        if not self.layout.goal:
+            return scan
+        goal = self._goal_output
+        if goal.hold_reason is not None:
+            return goal.hold_reason
+        status = self._status
+        age = self._clock() - status.velocity_time if status.velocity_time is not None else math.inf
+        if status.velocity_body is None or not age <= self.config.supervisor.velocity_timeout:
+            return VELOCITY_STALE
+        # no goal source: a goal GOAL_AHEAD_M ahead on the current heading, wherever the vehicle is
+        forward, left = goal.goal_body[:2] if goal.goal_body is not None else (GOAL_AHEAD_M, 0.0)
+        features = goal_features(forward, left, *status.velocity_body, self.layout)
+        return build_frame(scan, features, self.layout)
 
     def _send_obstacle_distance(self) -> None:
         """OBSTACLE_DISTANCE for the newest scan (the autopilot's own avoidance layer).
@@ -418,12 +466,16 @@ class Companion:
                 # the supervisor only commands while the measured velocity is fresh
                 command = self.shield.filter(requested, scan, dt, self._status.velocity_body)
                 self._last_filter = now
-                self.link.send_velocity(command.forward, command.yaw_rate, command.lateral)
+                # the climb toward the waypoint's height goes beside the shield, which judges the
+                # horizontal motion the scan slice can see (bounded by goal.max_vertical_speed)
+                self.link.send_velocity(command.forward, command.yaw_rate, command.lateral,
+                                        self._goal_output.vertical_speed)
                 self._last_setpoint, self._last_command = now, command
                 self.counters["setpoints_policy"] += 1
             elif now - self._last_setpoint > LATE_SCAN_AFTER:
                 command = self._last_command
-                self.link.send_velocity(command.forward, command.yaw_rate)
+                self.link.send_velocity(command.forward, command.yaw_rate,
+                                        vertical=self._goal_output.vertical_speed)
                 self._last_setpoint = now
                 self.counters["setpoints_late_scan"] += 1
         else:

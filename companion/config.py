@@ -19,7 +19,8 @@ from typing import Literal
 from companion.autopilot.signing import load_signing_key
 from companion.connection import Connection, parse_connection
 from companion.errors import UserError
-from companion.scan import ScanConfig
+from companion.observation import ObservationLayout
+from companion.scan import N_BINS, ScanConfig
 from companion.shield import ShieldConfig
 from companion.supervisor import SupervisorConfig
 from companion.tomlconfig import apply_overrides, from_dict, load_toml
@@ -119,6 +120,10 @@ class PolicyConfig:
     :param stack: scans per observation (the training frame stack)
     :param max_speed: forward speed that action 1.0 stands for, m/s (as in training)
     :param max_yaw_rate: yaw rate that action 1.0 stands for, rad/s (as in training)
+    :param observation: the frame the model was trained on: ``goal`` (LidarNav-v0: the scan, the
+        goal's bearing and distance, the measured body velocity / ``max_speed``) or ``scan``
+        (LidarAvoid-v0: the scan alone); the model's metadata must say the same
+    :param goal_range: metres a goal-distance feature of 1.0 stands for (``observation = "goal"``)
     :param trt_cache_dir: directory for TensorRT's engine cache (empty: no cache; relative: to the
         config file); the service's StateDirectory is meant for it
     :param sha256: the model file's SHA-256 (64 hex digits, as ``avoid-train export`` prints it);
@@ -132,6 +137,15 @@ class PolicyConfig:
     stack: int = field(default=4, metadata={"min": 1, "max": 64})
     max_speed: float = field(default=2.0, metadata={"min": 0.01, "max": 20.0})
     max_yaw_rate: float = field(default=1.5, metadata={"min": 0.01, "max": 6.0})
+    observation: Literal["goal", "scan"] = "goal"
+    goal_range: float = field(default=30.0, metadata={"min": 1.0, "max": 100.0})
+
+    @property
+    def layout(self) -> ObservationLayout:
+        """One frame as ``observation`` says, scaled as LidarNav-v0 scales it (``goal_range``, and
+        ``max_speed`` for the velocity)."""
+        return ObservationLayout(n_bins=N_BINS, goal=self.observation == "goal", goal_range=self.goal_range,
+                                 velocity_scale=self.max_speed)
 
     def __post_init__(self) -> None:
         if self.sha256 and not re.fullmatch(r"[0-9a-fA-F]{64}", self.sha256):
@@ -303,6 +317,13 @@ class CompanionConfig:
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
     recorder: RecorderConfig = field(default_factory=RecorderConfig)
     goal: GoalConfig = field(default_factory=GoalConfig)
+
+    def __post_init__(self) -> None:
+        if self.goal.source != "none" and self.policy.observation == "scan":
+            raise ValueError(
+                f"goal.source = {self.goal.source!r} needs a goal policy (policy.observation = \"goal\"); "
+                "a scan-only policy cannot fly to a goal"
+            )
 
 
 def load_config(path: str | Path, overrides: list[str] | None = None) -> CompanionConfig:

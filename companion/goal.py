@@ -32,6 +32,7 @@ class Waypoint:
     :param down: metres below the origin (negative: above)
     :param acceptance_radius: reached within this distance, metres (None: the configured one)
     :param label: how announcements name it (a mission item's sequence number, or "fixed 2")
+    :param seq: the mission item it came from (MISSION_ITEM_REACHED names it); None: not a mission's
     """
 
     north: float
@@ -39,6 +40,7 @@ class Waypoint:
     down: float
     acceptance_radius: float | None = None
     label: str = ""
+    seq: int | None = None
 
     def distance(self, position: tuple[float, float, float]) -> float:
         return math.dist((self.north, self.east, self.down), position)
@@ -125,6 +127,7 @@ class GoalTracker:
         self.waypoints: tuple[Waypoint, ...] = ()
         self.index = 0
         self.events: list[str] = []  # progress to announce, oldest first (drained by the caller)
+        self.reached_items: list[int] = []  # mission items reached, for MISSION_ITEM_REACHED (drained)
         self._reached: list[tuple[float, float, float]] = []
         self._completed_announced = False
 
@@ -169,6 +172,8 @@ class GoalTracker:
             if wp.distance(pos) > self.radius(wp):
                 break
             self._reached.append((wp.north, wp.east, wp.down))
+            if wp.seq is not None:
+                self.reached_items.append(wp.seq)
             self.events.append(f"goal: reached {self._name(self.index)} "
                                f"({self.index + 1}/{len(self.waypoints)})")
             self.index += 1
@@ -187,4 +192,8 @@ class GoalTracker:
 
     def drain_events(self) -> list[str]:
         out, self.events = self.events, []
+        return out
+
+    def drain_reached_items(self) -> list[int]:
+        out, self.reached_items = self.reached_items, []
         return out

@@ -144,6 +144,13 @@ def request_message(request: Request, target: tuple[int, int]) -> Any:
     raise ValueError(f"unknown mission request {request.kind!r}")
 
 
+def reached_message(seq: int) -> Any:
+    """MISSION_ITEM_REACHED for mission item ``seq``, sent beside the STATUSTEXT: in GUIDED/OFFBOARD
+    the autopilot is not flying the mission and reports no progress of its own, and scripts on the
+    vehicle's link (MAVSDK's mission progress, MAVROS ``mission/reached``) read this message."""
+    return mavlink.MAVLink_mission_item_reached_message(seq)
+
+
 #: DO_SET_MODE (param1 flags, param2, param3) asking for LAND or RTL: ArduCopter custom modes,
 #: PX4 main mode AUTO (4) with its sub-mode.
 _COMPLETION_MODES = {

@@ -128,7 +128,7 @@ def mission_waypoints(mission: Mission, origin: GlobalOrigin | None,
         radius = item.param2 if item.param2 > 0 else None
         label = f"item {item.seq}"
         if item.frame in LOCAL_FRAMES:
-            out.append(Waypoint(item.x / 1e4, item.y / 1e4, item.z, radius, label))
+            out.append(Waypoint(item.x / 1e4, item.y / 1e4, item.z, radius, label, item.seq))
             continue
         if origin is None:
             raise ValueError("no origin")
@@ -139,7 +139,7 @@ def mission_waypoints(mission: Mission, origin: GlobalOrigin | None,
             amsl = home_amsl + item.z
         else:
             amsl = item.z
-        out.append(Waypoint(north, east, -(amsl - origin.alt_amsl), radius, label))
+        out.append(Waypoint(north, east, -(amsl - origin.alt_amsl), radius, label, item.seq))
     return out
 
 

@@ -273,7 +273,13 @@ class OnnxPolicy:
         """Before the shapes: a layout mismatch is named as such, not as an input size."""
         meta = self._metadata()
         meta.setdefault(PREFIX + "obs_layout", LEGACY_LAYOUT)
-        self._compare("obs_layout", meta, self.spec.layout.name, _CONFIG_KEYS["obs_layout"])
+        try:
+            self._compare("obs_layout", meta, self.spec.layout.name, _CONFIG_KEYS["obs_layout"])
+        except UserError as exc:
+            scan_only = meta[PREFIX + "obs_layout"] == ObservationLayout(n_bins=self.spec.n_bins).name
+            if scan_only and self.spec.layout.goal:  # the default config is the goal layout
+                raise UserError(f'{exc} (a scan-only model: set policy.observation = "scan")') from None
+            raise
 
     def _check_metadata(self) -> None:
         meta = self._metadata()

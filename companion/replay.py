@@ -76,7 +76,10 @@ def recorded_config(rec: Recording) -> tuple[CompanionConfig, dict[str, str]]:
         raise UserError(f"{rec.path}: recording format {meta.get('format')!r}, this version reads "
                         f"{schemas.FORMAT_VERSION!r}")
     try:
-        return from_dict(CompanionConfig, json.loads(meta["config"]), "recorded config: "), meta
+        data = json.loads(meta["config"])
+        # recordings made before policy.observation existed fed the model scans alone
+        data.setdefault("policy", {}).setdefault("observation", "scan")
+        return from_dict(CompanionConfig, data, "recorded config: "), meta
     except (KeyError, ValueError) as exc:
         raise UserError(f"{rec.path}: recorded config unreadable: {exc}") from None
 
@@ -94,7 +97,9 @@ def replay(rec: Recording, config: CompanionConfig, policy: OnnxPolicy, *, compa
         clouds = dict(zip(rec.sequences.get(cloud_topic, []), (msg for _, msg in rec.topic(cloud_topic)),
                           strict=True))
     result = ReplayResult(source="clouds" if clouds else "scans")
-    stack = FrameStack(config.policy.stack, N_BINS)
+    layout = config.policy.layout  # a frame: the scan, then (goal layout) the recorded goal/velocity
+    size = layout.frame_size
+    stack = FrameStack(config.policy.stack, size)
     shield = SafetyShield(config.shield, config.scan.max_range)
     forward_bins = sector_bins(0.0, config.shield.forward_sector_deg)
     scans: dict[int, np.ndarray] = {}
@@ -116,7 +121,8 @@ def replay(rec: Recording, config: CompanionConfig, policy: OnnxPolicy, *, compa
         if kind == 0:
             result.policy_steps += 1
             recorded_obs = unpack_f32(msg["observation"])
-            scan = recorded_obs[-N_BINS:]
+            frame = recorded_obs[-size:]
+            scan = frame[:N_BINS]
             if clouds:
                 cloud_msg = clouds.get(msg["cloud_seq"])
                 if cloud_msg is None and (msg["cloud_seq"] or 0) < min(clouds):
@@ -130,12 +136,13 @@ def replay(rec: Recording, config: CompanionConfig, policy: OnnxPolicy, *, compa
                         differ(f"{when}: scan {msg['seq']} from its cloud differs from the recorded scan "
                                f"in {int(np.sum(replayed_scan != scan))} bins")
                     scan = replayed_scan
+                    frame = np.concatenate([scan, frame[N_BINS:]])
             if not msg["reset"] and not seeded_stack:  # the file starts mid-flight: take its stack
-                stack.reset(recorded_obs[:N_BINS])
+                stack.reset(recorded_obs[:size])
                 for i in range(1, config.policy.stack - 1):
-                    stack.push(recorded_obs[i * N_BINS:(i + 1) * N_BINS])
+                    stack.push(recorded_obs[i * size:(i + 1) * size])
             seeded_stack = True
-            obs = stack.reset(scan) if msg["reset"] else stack.push(scan)
+            obs = stack.reset(frame) if msg["reset"] else stack.push(frame)
             if compare and not np.array_equal(obs.view(np.uint32), recorded_obs.view(np.uint32)):
                 differ(f"{when}: observation {msg['seq']} differs from the recorded one")
             try:

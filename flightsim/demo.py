@@ -1,8 +1,11 @@
 """``avoid-sim demo``: the whole system on a fresh machine in under three minutes.
 
-A few short SITL flights (:mod:`flightsim.harness`): two generated rooms and the example worlds
-shipped in ``flightsim/worlds/``, the shipped policy, the simulated ArduCopter, the real companion
-process. Prints one table row per flight and where the top-down PNGs are.
+A few short SITL mission flights (:mod:`flightsim.harness`, as ``avoid-sim fly --mission``): three
+generated worlds of different families and the example worlds shipped in ``flightsim/worlds/``,
+each with its waypoints uploaded as a mission through the ground-station link; the shipped policy,
+the simulated ArduCopter (or PX4), the real companion process flying the mission. A flight ends
+when the companion announces the mission complete, or at its time limit. Prints one table row per
+flight and where the top-down PNGs are.
 """
 
 from __future__ import annotations
@@ -15,16 +18,27 @@ from importlib import resources
 from pathlib import Path
 
 from companion.errors import UserError
+from flightsim import seeds
+from flightsim.families import generate_family_world
 from flightsim.harness import INTERRUPTED, FlightOptions, FlightReport, default_policy, run_flight
-from flightsim.world import World, generate_world, load_world
+from flightsim.planner import shortest_safe_path
+from flightsim.world import DEFAULT_VEHICLE_RADIUS, World, load_world
 
-#: (seed, difficulty) of the generated rooms
-GENERATED = ((1, 0.3), (2, 0.6))
+#: (family, seed, difficulty) of the generated worlds: held-out test seeds, never trained on
+GENERATED = (
+    ("forest", seeds.TEST.start + 1, 0.3),
+    ("office", seeds.TEST.start + 1, 0.3),
+    ("pillars", seeds.TEST.start + 1, 0.3),
+)
+#: a flight's time limit without ``--duration``: this much, plus TIME_PER_M per metre of the
+#: world's shortest safe path (the slowest mission the 3-minute budget allows)
+TIME_SLACK_S = 6.0
+TIME_PER_M = 0.9
 
 
 def demo_worlds() -> list[World]:
-    """The generated rooms, then every example world shipped with the package."""
-    worlds = [generate_world(seed, difficulty) for seed, difficulty in GENERATED]
+    """The generated worlds, then every example world shipped with the package (all with waypoints)."""
+    worlds = [generate_family_world(family, seed, difficulty) for family, seed, difficulty in GENERATED]
     shipped = resources.files("flightsim") / "worlds"
     for entry in sorted(shipped.iterdir(), key=lambda p: p.name):
         if entry.name.endswith(".json"):
@@ -33,10 +47,21 @@ def demo_worlds() -> list[World]:
     return worlds
 
 
+def time_limit(world: World) -> float:
+    """Seconds of companion flight a world's mission gets (from its shortest safe path)."""
+    length = world.shortest_path_m
+    if length is None:
+        path = shortest_safe_path(world, vehicle_radius=DEFAULT_VEHICLE_RADIUS)
+        length = path.length if path is not None else 0.0
+    return TIME_SLACK_S + TIME_PER_M * float(length)
+
+
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--policy", help="ONNX policy (default: the shipped models/policy.onnx)")
     parser.add_argument(
-        "--duration", type=float, default=20.0, help="seconds of companion flight per world (20)"
+        "--duration", type=float, default=None,
+        help=f"seconds of companion flight per world at most (default: {TIME_SLACK_S:g} s + "
+        f"{TIME_PER_M:g} s per metre of the world's shortest safe path)",
     )
     parser.add_argument("--out", default="avoid-sim-demo", help="directory for PNGs, logs and summary.json")
     parser.add_argument(
@@ -53,7 +78,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def command(args: argparse.Namespace) -> int:
-    if args.duration <= 0:
+    if args.duration is not None and args.duration <= 0:
         raise UserError(f"--duration must be positive, got {args.duration}")
     policy = Path(args.policy) if args.policy else default_policy()
     if not policy.is_file():
@@ -69,7 +94,7 @@ def command(args: argparse.Namespace) -> int:
 
     vehicle = Vehicle()  # one JSBSim load for all flights
     worlds = demo_worlds()
-    print(f"avoid-sim demo: {len(worlds)} flights of {args.duration:g} s, policy {policy}, {args.autopilot}")
+    print(f"avoid-sim demo: {len(worlds)} mission flights, policy {policy}, {args.autopilot}")
     start = time.monotonic()
     reports: list[FlightReport] = []
     for world in worlds:
@@ -77,8 +102,9 @@ def command(args: argparse.Namespace) -> int:
             autopilot=args.autopilot,
             world=world,
             policy=policy,
-            duration=args.duration,
+            duration=args.duration if args.duration is not None else time_limit(world),
             workdir=out / world.name,
+            mission=True,
             ideal_response=args.ideal_response,
         )
         try:
@@ -101,8 +127,8 @@ def command(args: argparse.Namespace) -> int:
 
 
 HEADER = (
-    f"{'world':<18} {'engaged':>7} {'collision':>9} {'dist m':>7} {'min clr m':>9} {'sp Hz':>6} "
-    f"{'lat p50 ms':>10} {'p99 ms':>7}"
+    f"{'world':<20} {'engaged':>7} {'waypoints':>9} {'complete':>8} {'time s':>6} {'collision':>9} "
+    f"{'dist m':>6} {'min clr m':>9}"
 )
 
 
@@ -112,10 +138,12 @@ def _cell(value: float | None, width: int, fmt: str) -> str:
 
 
 def _row(r: FlightReport) -> str:
+    waypoints = f"{len(r.waypoints_reached)}/{r.waypoints_total}"
     line = (
-        f"{r.world:<18} {'yes' if r.engaged else 'NO':>7} {'YES' if r.collision else 'no':>9} "
-        f"{r.distance_m:>7.1f} {_cell(r.min_clearance_m, 9, '.2f')} {r.setpoint_rate_hz:>6.1f} "
-        f"{_cell(r.latency_p50_ms, 10, '.1f')} {_cell(r.latency_p99_ms, 7, '.1f')}"
+        f"{r.world:<20} {'yes' if r.engaged else 'NO':>7} {waypoints:>9} "
+        f"{'yes' if r.mission_complete else 'no':>8} "
+        f"{_cell(r.mission_time_s if r.mission_complete else None, 6, '.1f')} "
+        f"{'YES' if r.collision else 'no':>9} {r.distance_m:>6.1f} {_cell(r.min_clearance_m, 9, '.2f')}"
     )
     return line + (f"  ({r.error})" if r.error else "")
 
@@ -123,5 +151,7 @@ def _row(r: FlightReport) -> str:
 def _table(reports: list[FlightReport]) -> str:
     lines = ["", HEADER, "-" * len(HEADER)]
     lines += [_row(r) for r in reports]
+    complete = sum(r.mission_complete and not r.collision for r in reports)
+    lines += ["", f"{complete}/{len(reports)} missions complete without collision"]
     lines += ["", "plots:"] + [f"  {r.plot}" for r in reports]
     return "\n".join(lines)

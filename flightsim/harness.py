@@ -48,6 +48,10 @@ AUTOPILOTS = ("sim-ardupilot", "sim-px4", "external")
 TAKEOFF_ALTITUDE = 1.5
 #: Acceptance radius of the waypoints ``--mission`` uploads, m.
 MISSION_ACCEPTANCE_RADIUS = 1.0
+#: the companion's STATUSTEXT when the last waypoint is reached (companion.goal.GoalTracker)
+COMPLETE_MARK = "goal: complete"
+#: a mission flight goes on this long after the companion announced completion (it holds), s
+COMPLETE_HOLD_S = 1.0
 #: the companion's STATUSTEXT on entering ACTIVE starts with this (supervisor state names)
 ACTIVE_MARK = "->ACTIVE"
 #: ``FlightReport.error`` of a flight stopped by Ctrl-C (``avoid-sim fly`` then exits 130)
@@ -182,6 +186,8 @@ class FlightReport:
     error: str = ""
     recording: str = ""
     waypoints_reached: list[tuple[int, float]] = field(default_factory=list)
+    waypoints_total: int = 0
+    items_reached: list[int] = field(default_factory=list)  # MISSION_ITEM_REACHED seqs the companion sent
     mission_complete: bool = False
     mission_time_s: float = -1.0
     goal_events: list[str] = field(default_factory=list)
@@ -207,6 +213,7 @@ class Recorder:
     statustexts: list[tuple[float, str]] = field(default_factory=list)
     companion_heartbeats: list[float] = field(default_factory=list)
     companion_commands: list[tuple[float, str]] = field(default_factory=list)
+    items_reached: list[int] = field(default_factory=list)  # the companion's MISSION_ITEM_REACHED seqs
     trajectory: list[tuple[float, float, float, float, float, float]] = field(default_factory=list)
     min_clearance: float = math.inf
     collision_time: float | None = None
@@ -225,6 +232,8 @@ class Recorder:
                 self.companion_heartbeats.append(t_mono)
             elif kind in ("COMMAND_LONG", "COMMAND_INT", "SET_MODE"):
                 self.companion_commands.append((t_mono, kind))
+            elif kind == "MISSION_ITEM_REACHED":
+                self.items_reached.append(int(msg.seq))
 
     def on_pose(self, t_mono: float, position: np.ndarray, yaw: float, speed: float, world: World) -> None:
         clearance = world.clearance(position) if position[2] > 0.3 else math.inf
@@ -636,14 +645,17 @@ class SitlFlight:
         return False
 
     def fly(self, duration: float) -> str:
-        """Let the companion fly for ``duration`` s, or until a collision or the companion exits.
+        """Let the companion fly for ``duration`` s, or until a collision, the companion exits or
+        (``--mission``) it announces the mission complete (then a moment more: it holds there).
 
-        :return: why the flight ended early ("" when it ran its course or collided)
+        :return: why the flight ended early ("" when it ran its course, collided or completed)
         """
         end = time.monotonic() + duration
         while time.monotonic() < end and not self._stop.is_set():
             if self.recorder.collision_time is not None:
                 return ""
+            if self.options.mission and self.recorder.first_text(COMPLETE_MARK, 0.0) is not None:
+                end = min(end, time.monotonic() + COMPLETE_HOLD_S)
             if not self.companion_alive():
                 return self.companion_exit()
             if self.server is not None and self.server.error is not None:
@@ -702,6 +714,9 @@ class SitlFlight:
         if self.options.mission:
             reached = waypoints_reached(self.world, traj, self.engaged_at)
             result.waypoints_reached = reached
+            result.waypoints_total = len(self.world.waypoints)
+            with rec.lock:
+                result.items_reached = list(rec.items_reached)
             result.mission_complete = len(reached) == len(self.world.waypoints)
             result.mission_time_s = reached[-1][1] if result.mission_complete else -1.0
             result.goal_events = [t for t in texts if "goal" in t or "mission" in t]
@@ -754,7 +769,10 @@ def measured(value: float | None, fmt: str, unit: str) -> str:
 def _title(r: FlightReport) -> str:
     outcome = "COLLISION" if r.collision else "no collision"
     clearance = measured(r.min_clearance_m, ".2f", "m")
-    return f"{r.world} / {r.autopilot}: {outcome}, {r.distance_m:.1f} m, min clearance {clearance}"
+    title = f"{r.world} / {r.autopilot}: {outcome}, {r.distance_m:.1f} m, min clearance {clearance}"
+    if r.waypoints_total:
+        title += f", waypoints {len(r.waypoints_reached)}/{r.waypoints_total}"
+    return title
 
 
 def plot_flight(
@@ -946,8 +964,10 @@ def print_report(r: FlightReport) -> None:
     if r.goal_events or r.waypoints_reached:
         reached = ", ".join(f"#{i + 1} at {t:.1f} s" for i, t in r.waypoints_reached) or "none"
         done = f"complete in {r.mission_time_s:.1f} s" if r.mission_complete else "not complete"
-        print(f"  mission: waypoints reached {reached}; {done}")
+        count = f"{len(r.waypoints_reached)}/{r.waypoints_total}"
+        print(f"  mission: waypoints reached {count} ({reached}); {done}")
         print(f"  companion goal: {' | '.join(r.goal_events) or '-'}")
+        print(f"  companion MISSION_ITEM_REACHED: {', '.join(map(str, r.items_reached)) or '-'}")
     if r.plot:
         print(f"  plot: {r.plot}")
     if r.recording:

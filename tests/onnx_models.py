@@ -8,6 +8,8 @@ Each model is ``Gemm(obs, W, b)`` (optionally followed by ``Clip`` to [-1, 1]) b
 - ``steer``: a0 = 2·mean(newest scan, forward ±15°) − 1, a1 = 2·(mean left 30–90° − mean right
   30–90°): slows for what is ahead and turns towards the more open side (a usable toy pilot)
 - ``echo``: a = (newest scan bin 0, newest scan bin 90), to prove which values reach the model
+- ``echo_goal``: a = (newest goal cos, goal sin) (goal layout): flies toward the goal's bearing
+- ``echo_velocity``: a = (0, newest measured velocity left feature) (goal layout)
 - ``big``: a = (5, −5) without the Clip node (the companion must clip)
 - ``nan`` / ``inf``: non-finite output (an inference fault)
 - ``error``: raises inside ONNX Runtime at inference (a Reshape that cannot fit)
@@ -22,9 +24,17 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
 
+from companion.app import policy_spec
+from companion.config import CompanionConfig
 from companion.policy import PolicySpec, policy_metadata
 
-KINDS = ("forward", "stop", "turn_left", "turn_right", "steer", "echo", "big", "nan", "inf", "error")
+#: What the default companion config feeds a model (the goal layout): the default of :func:`write_policy`
+COMPANION_SPEC = policy_spec(CompanionConfig())
+#: A scan-only model's spec (LidarAvoid-v0), for tests of scan-only behaviour
+SCAN_SPEC = PolicySpec()
+
+KINDS = ("forward", "stop", "turn_left", "turn_right", "steer", "echo", "echo_goal", "echo_velocity", "big",
+         "nan", "inf", "error")
 OPSET = 17
 IR_VERSION = 8  # accepted by every onnxruntime the project supports
 
@@ -32,7 +42,7 @@ IR_VERSION = 8  # accepted by every onnxruntime the project supports
 def _weights(kind: str, spec: PolicySpec, input_size: int, output_size: int) -> tuple[np.ndarray, np.ndarray]:
     w = np.zeros((input_size, output_size), dtype=np.float32)
     b = np.zeros(output_size, dtype=np.float32)
-    newest = input_size - spec.n_bins  # first index of the newest scan (the last one in the stack)
+    newest = input_size - spec.layout.frame_size  # first index of the newest frame (its scan first)
     constant = {
         "forward": (1.0, 0.0),
         "stop": (0.0, 0.0),
@@ -54,6 +64,15 @@ def _weights(kind: str, spec: PolicySpec, input_size: int, output_size: int) -> 
     elif kind == "echo":
         w[newest + 0, 0] = 1.0
         w[newest + 90, 1] = 1.0
+    elif kind in ("echo_goal", "echo_velocity"):
+        parts = spec.layout.slices()
+        if "velocity" not in parts:
+            raise ValueError(f"{kind} needs a goal layout, not {spec.layout.name}")
+        if kind == "echo_goal":
+            w[newest + parts["goal_bearing"].start, 0] = 1.0
+            w[newest + parts["goal_bearing"].start + 1, 1] = 1.0
+        else:
+            w[newest + parts["velocity"].start + 1, 1] = 1.0
     else:
         raise ValueError(f"unknown policy kind {kind!r}; choose from {', '.join(KINDS)}")
     return w, b
@@ -63,7 +82,7 @@ def write_policy(
     path: str | Path,
     *,
     kind: str = "forward",
-    spec: PolicySpec = PolicySpec(),  # noqa: B008 - frozen dataclass, safe as a default
+    spec: PolicySpec = COMPANION_SPEC,
     metadata_overrides: dict[str, str | None] | None = None,
     input_size: int | None = None,
     output_size: int = 2,
@@ -72,9 +91,10 @@ def write_policy(
 
     :param path: destination file
     :param kind: behaviour, one of :data:`KINDS`
-    :param spec: written into the metadata (and sets the default input size)
+    :param spec: written into the metadata (and sets the default input size); by default what the
+        default companion config feeds (the goal layout)
     :param metadata_overrides: full metadata keys to change; ``None`` as a value removes the key
-    :param input_size: observation length (default ``spec.stack × spec.n_bins``, 1440)
+    :param input_size: observation length (default ``spec.obs_size``)
     :param output_size: action length (2 for a valid policy)
     """
     path = Path(path)

@@ -279,18 +279,21 @@ class ArduPilotLink:
         self.counters[counter] += 1
         return True
 
-    def send_velocity(self, forward: float, yaw_rate: float, lateral: float = 0.0) -> None:
+    def send_velocity(self, forward: float, yaw_rate: float, lateral: float = 0.0,
+                      vertical: float = 0.0) -> None:
         """Send one body-frame velocity + yaw-rate setpoint to the autopilot.
 
         :param forward: body x velocity, m/s
         :param yaw_rate: rad/s, FLU (counter-clockwise positive); sent negated, as FRD
         :param lateral: body y velocity, m/s, left positive (the shield's brake); sent negated, as FRD
+        :param vertical: climb rate, m/s, up positive; sent negated as vz (BODY_OFFSET_NED is
+            down-positive)
         """
         if self._target is None:
             self.counters["setpoints_without_target"] += 1
             return
-        if not (math.isfinite(forward) and math.isfinite(yaw_rate) and math.isfinite(lateral)):
-            forward, yaw_rate, lateral = 0.0, 0.0, 0.0  # the shield never lets this through; never NaN
+        if not all(math.isfinite(v) for v in (forward, yaw_rate, lateral, vertical)):
+            forward, yaw_rate, lateral, vertical = 0.0, 0.0, 0.0, 0.0  # the shield never lets this through
         time_boot_ms = int((self._clock() - self._start) * 1000) & 0xFFFFFFFF
         self._send(
             "setpoints_sent",
@@ -300,7 +303,7 @@ class ArduPilotLink:
             mavlink.MAV_FRAME_BODY_OFFSET_NED,
             VELOCITY_YAW_RATE_TYPE_MASK,
             0.0, 0.0, 0.0,
-            float(forward), -float(lateral), 0.0,
+            float(forward), -float(lateral), -float(vertical),
             0.0, 0.0, 0.0,
             0.0,
             -float(yaw_rate),

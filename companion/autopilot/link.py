@@ -74,13 +74,16 @@ class AutopilotLink(Protocol):
         """Read whatever is waiting (never blocks) and return the updated status."""
         ...
 
-    def send_velocity(self, forward: float, yaw_rate: float, lateral: float = 0.0) -> None:
+    def send_velocity(self, forward: float, yaw_rate: float, lateral: float = 0.0,
+                      vertical: float = 0.0) -> None:
         """Send one body-frame setpoint.
 
-        :param forward: body x velocity, m/s (vertical velocity is zero)
+        :param forward: body x velocity, m/s
         :param yaw_rate: rad/s, FLU convention (counter-clockwise positive); the link converts to FRD
         :param lateral: body y velocity, m/s, left positive (only the shield's brake sets it); the
             link sends it as FRD (right positive)
+        :param vertical: climb rate, m/s, up positive (toward a waypoint's height; zero holds the
+            altitude); the link sends it down-positive
         """
         ...
 

@@ -301,19 +301,22 @@ class Px4Link:
         with self._status_lock:
             return dataclasses.replace(self._status)
 
-    def send_velocity(self, forward: float, yaw_rate: float, lateral: float = 0.0) -> None:
+    def send_velocity(self, forward: float, yaw_rate: float, lateral: float = 0.0,
+                      vertical: float = 0.0) -> None:
         """Send one OFFBOARD body-frame setpoint.
 
         :param forward: body x velocity, m/s
         :param yaw_rate: rad/s, FLU (counter-clockwise positive); sent as FRD yaw speed in deg/s
         :param lateral: body y velocity, m/s, left positive (the shield's brake); sent as right_m_s
+        :param vertical: climb rate, m/s, up positive; sent as down_m_s (negated)
         """
         if self._system is None:
             self.counters["setpoints_without_autopilot"] += 1
             return
-        if not (math.isfinite(forward) and math.isfinite(yaw_rate) and math.isfinite(lateral)):
-            forward, yaw_rate, lateral = 0.0, 0.0, 0.0
-        setpoint = VelocityBodyYawspeed(float(forward), -float(lateral), 0.0, -math.degrees(yaw_rate))
+        if not all(math.isfinite(v) for v in (forward, yaw_rate, lateral, vertical)):
+            forward, yaw_rate, lateral, vertical = 0.0, 0.0, 0.0, 0.0
+        setpoint = VelocityBodyYawspeed(float(forward), -float(lateral), -float(vertical),
+                                        -math.degrees(yaw_rate))
         with self._offboard_lock:
             if self._offboard is None:
                 self._offboard = Offboard(self._system)

@@ -30,6 +30,7 @@ import numpy as np
 from companion.recording import messages as m
 from companion.recording import schemas as s
 from companion.recording.writer import McapSink
+from companion.scan import N_BINS
 
 log = logging.getLogger(__name__)
 
@@ -70,7 +71,7 @@ class FlightRecorder:
         self._pending_clouds: list[int] = []
         self._scan_seq = 0
         self._stacked: tuple[float, int, int | None, bool, np.ndarray, np.ndarray] | None = None
-        self.last_scan: np.ndarray | None = None
+        self.last_frame: np.ndarray | None = None
         self._shield_reset = True
         self._last_status = -float("inf")
         self._last_counters = -float("inf")
@@ -131,12 +132,14 @@ class FlightRecorder:
                 self._hold(s.CLOUD, self._clock(), m.point_cloud, points, self.mount_pose,
                            seq=self._cloud_seq)
 
-    def on_stacked(self, scan: np.ndarray, obs: np.ndarray, reset: bool) -> None:
-        """A scan went into the frame stack (``reset``: the stack started over with it)."""
+    def on_stacked(self, frame: np.ndarray, obs: np.ndarray, reset: bool) -> None:
+        """A frame went into the frame stack (``reset``: the stack started over with it); its scan
+        (the frame's first :data:`~companion.scan.N_BINS` values) is recorded as the LaserScan, the
+        whole frame inside the observation."""
         self._scan_seq += 1
         cloud_seq = self._pending_clouds.pop(0) if self._pending_clouds else None
-        self._stacked = (self._clock(), self._scan_seq, cloud_seq, reset, scan, obs)
-        self.last_scan = scan
+        self._stacked = (self._clock(), self._scan_seq, cloud_seq, reset, np.asarray(frame)[:N_BINS], obs)
+        self.last_frame = frame
 
     def on_action(self, action: np.ndarray | None, fault: str | None = None) -> None:
         """The policy answered the stacked observation (or faulted)."""
@@ -152,7 +155,9 @@ class FlightRecorder:
 
     def on_shield(self, requested: Any, scan: np.ndarray, dt: float, output: Any, limits: list[str],
                   extra: dict[str, Any] | None) -> None:
-        scan_seq = self._scan_seq if scan is self.last_scan else None
+        # the shield judges the newest frame's scan: that frame itself (scan only) or a view of it
+        last = self.last_frame
+        scan_seq = self._scan_seq if last is not None and (scan is last or scan.base is last) else None
         reset, self._shield_reset = self._shield_reset, False
         if self.active:
             self._hold(s.SHIELD, self._clock(), _shield_step, scan_seq, float(dt), reset, requested,

@@ -86,8 +86,9 @@ class LinkTap(_Tap):
         return status
 
     # After each of these the iteration's time-critical part is over: the writer may have the records.
-    def send_velocity(self, forward: float, yaw_rate: float, lateral: float = 0.0) -> None:
-        self._inner.send_velocity(forward, yaw_rate, lateral)
+    def send_velocity(self, forward: float, yaw_rate: float, lateral: float = 0.0,
+                      vertical: float = 0.0) -> None:
+        self._inner.send_velocity(forward, yaw_rate, lateral, vertical)
         self._recorder.on_setpoint(forward, yaw_rate, lateral)
         self._recorder.flush()
 

@@ -6,6 +6,7 @@ exactly what the companion put on the wire.
 
 from __future__ import annotations
 
+import math
 import os
 import select
 import socket
@@ -86,8 +87,9 @@ class AutopilotPeer:
             position = position_ned if position_ned is not None else (0.0, 0.0, -altitude)
             self.mav.attitude_send(0, 0.0, 0.0, yaw_ned, 0.0, 0.0, 0.0)
             self.mav.local_position_ned_send(0, *position, *velocity_ned, -climb)
+        hdg = round(math.degrees(yaw_ned) * 100) % 36000  # the same heading as ATTITUDE's, centidegrees
         self.mav.global_position_int_send(0, 0, 0, int(altitude * 1000) + 100_000, int(altitude * 1000),
-                                          0, 0, int(-climb * 100), 0)
+                                          0, 0, int(-climb * 100), hdg)
         self.mav.vfr_hud_send(0.0, 0.0, 0, 0, 100.0 + altitude, climb)
 
     def drain(self, duration: float = 0.0) -> list[Any]:

@@ -6,6 +6,7 @@ streams VLP-16 revolutions; an AF_UNIX socket stands in for systemd.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import math
 import signal
@@ -16,7 +17,6 @@ import pytest
 
 from companion.autopilot.mavlink_adapter import mavlink
 from companion.errors import UserError
-from companion.policy import PolicySpec
 from tests.companion.companion_process import (
     LidarSender,
     NotifySocket,
@@ -30,7 +30,7 @@ from tests.companion.companion_process import (
     wait_until as _wait,
 )
 from tests.companion.mavlink_peer import COPTER_GUIDED, COPTER_LOITER, SimulatedAutopilot
-from tests.onnx_models import write_policy
+from tests.onnx_models import COMPANION_SPEC, write_policy
 
 SETPOINT = "SET_POSITION_TARGET_LOCAL_NED"
 
@@ -155,7 +155,7 @@ def test_bad_override_is_one_line_exit_2(tmp_path):
 
 
 def test_model_trained_for_another_range_is_refused(tmp_path):
-    model = write_policy(tmp_path / "m.onnx", spec=PolicySpec(max_range=8.0))
+    model = write_policy(tmp_path / "m.onnx", spec=dataclasses.replace(COMPANION_SPEC, max_range=8.0))
     config = write_config(tmp_path, model, free_udp_port(), free_udp_port())
     result = run_to_exit(["run", "--config", str(config)])
     assert result.returncode == 2

@@ -122,6 +122,9 @@ def test_velocity_setpoint_on_the_wire(linked):
     link.send_velocity(-0.3, 0.0, lateral=0.2)  # the shield's brake: back and to the left
     msg = peer.wait_for("SET_POSITION_TARGET_LOCAL_NED")
     assert msg.vx == pytest.approx(-0.3) and msg.vy == pytest.approx(-0.2)  # FRD: right positive
+    link.send_velocity(1.0, 0.0, vertical=0.4)  # climbing toward a waypoint's height
+    msg = peer.wait_for("SET_POSITION_TARGET_LOCAL_NED")
+    assert msg.type_mask == 0x05C7 and msg.vz == pytest.approx(-0.4)  # NED: down positive
 
 
 def test_non_finite_setpoint_goes_out_as_zero(linked):

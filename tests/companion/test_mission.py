@@ -255,6 +255,18 @@ def test_tracker_reaches_in_order_and_completes():
     assert out.complete and out.hold_reason == "goal complete"
     assert tr.drain_events() == ["goal: 2 waypoints, next a", "goal: reached a (1/2)",
                                  "goal: reached b (2/2)", "goal: complete, holding"]
+    assert tr.drain_reached_items() == []  # not a mission's: no MISSION_ITEM_REACHED
+
+
+def test_tracker_names_the_mission_items_reached():
+    tr = GoalTracker(acceptance_radius=1.0, max_vertical_speed=0.5)
+    tr.set_waypoints([Waypoint(5, 0, -2, seq=1), Waypoint(5, 5, -2, seq=2)], None)
+    tr.update(_nav((5, 0, -2), 0.0), 0.0)
+    assert tr.drain_reached_items() == [1]
+    tr.update(_nav((5, 0, -2), 0.1), 0.1)
+    assert tr.drain_reached_items() == []  # once per item
+    tr.update(_nav((5, 5, -2), 0.2), 0.2)
+    assert tr.drain_reached_items() == [2]
 
 
 def test_vertical_speed_bounded():

@@ -54,7 +54,7 @@ def test_metadata_helper_writes_exactly_the_checked_keys() -> None:
 
 def test_loads_and_logs_the_providers_in_use(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     caplog.set_level(logging.INFO, logger="companion.policy")
-    policy = OnnxPolicy(write_policy(tmp_path / "p.onnx"), SPEC)
+    policy = OnnxPolicy(write_policy(tmp_path / "p.onnx", spec=SPEC), SPEC)
     assert policy.providers == ["CPUExecutionProvider"]  # this machine: no TensorRT/CUDA; Azure never asked
     assert "providers in use: CPUExecutionProvider" in caplog.text
 
@@ -70,20 +70,21 @@ def test_provider_preference_is_filtered_by_availability() -> None:
     [("forward", (1.0, 0.0)), ("stop", (0.0, 0.0)), ("turn_left", (0.0, 1.0)), ("turn_right", (0.0, -1.0))],
 )
 def test_constant_policies(tmp_path: Path, kind: str, action: tuple[float, float]) -> None:
-    out = OnnxPolicy(write_policy(tmp_path / "p.onnx", kind=kind), SPEC).act(np.ones(1440, np.float32))
+    policy = OnnxPolicy(write_policy(tmp_path / "p.onnx", spec=SPEC, kind=kind), SPEC)
+    out = policy.act(np.ones(1440, np.float32))
     assert out.dtype == np.float32 and out.shape == (2,)
     assert out.tolist() == list(action)
 
 
 def test_the_newest_scan_is_the_last_block(tmp_path: Path) -> None:
-    policy = OnnxPolicy(write_policy(tmp_path / "p.onnx", kind="echo"), SPEC)
+    policy = OnnxPolicy(write_policy(tmp_path / "p.onnx", spec=SPEC, kind="echo"), SPEC)
     newest = np.ones(360, np.float32)
     newest[0], newest[90] = 0.25, 0.75
     assert policy.act(stacked(newest, older=0.5)).tolist() == [0.25, 0.75]
 
 
 def test_steer_policy_slows_for_obstacles_and_turns_to_open_side(tmp_path: Path) -> None:
-    policy = OnnxPolicy(write_policy(tmp_path / "p.onnx", kind="steer"), SPEC)
+    policy = OnnxPolicy(write_policy(tmp_path / "p.onnx", spec=SPEC, kind="steer"), SPEC)
     assert policy.act(stacked(np.ones(360))).tolist() == pytest.approx([1.0, 0.0])
     blocked = np.ones(360, np.float32)
     blocked[[*range(0, 15), *range(345, 360)]] = 0.1  # 1 m ahead
@@ -93,7 +94,8 @@ def test_steer_policy_slows_for_obstacles_and_turns_to_open_side(tmp_path: Path)
 
 
 def test_actions_are_clipped(tmp_path: Path) -> None:
-    out = OnnxPolicy(write_policy(tmp_path / "p.onnx", kind="big"), SPEC).act(np.zeros(1440, np.float32))
+    policy = OnnxPolicy(write_policy(tmp_path / "p.onnx", spec=SPEC, kind="big"), SPEC)
+    out = policy.act(np.zeros(1440, np.float32))
     assert out.tolist() == [1.0, -1.0]
 
 
@@ -101,7 +103,7 @@ def test_actions_are_clipped(tmp_path: Path) -> None:
     ("kind", "match"), [("nan", "non-finite"), ("inf", "non-finite"), ("error", "raised Fail")]
 )
 def test_inference_faults(tmp_path: Path, kind: str, match: str) -> None:
-    policy = OnnxPolicy(write_policy(tmp_path / "p.onnx", kind=kind), SPEC)
+    policy = OnnxPolicy(write_policy(tmp_path / "p.onnx", spec=SPEC, kind=kind), SPEC)
     with pytest.raises(InferenceFault, match=match):
         policy.act(np.zeros(1440, np.float32))
     # a fault is not fatal: the same policy object can be asked again
@@ -110,7 +112,7 @@ def test_inference_faults(tmp_path: Path, kind: str, match: str) -> None:
 
 
 def test_wrong_observation_length_is_a_programming_error(tmp_path: Path) -> None:
-    policy = OnnxPolicy(write_policy(tmp_path / "p.onnx"), SPEC)
+    policy = OnnxPolicy(write_policy(tmp_path / "p.onnx", spec=SPEC), SPEC)
     with pytest.raises(ValueError, match="360 values, the policy takes 1440"):
         policy.act(np.zeros(360, np.float32))
 
@@ -129,14 +131,14 @@ def test_not_onnx(tmp_path: Path, content: bytes) -> None:
 
 
 def test_input_size_mismatch_names_both(tmp_path: Path) -> None:
-    path = write_policy(tmp_path / "p.onnx", input_size=720)
+    path = write_policy(tmp_path / "p.onnx", spec=SPEC, input_size=720)
     with pytest.raises(UserError, match=r"input shape \(N, 720\) does not match config \(1, 1440\) float32"):
         OnnxPolicy(path, SPEC)
 
 
 def test_output_size_mismatch(tmp_path: Path) -> None:
     with pytest.raises(UserError, match=r"model output \(N, 3\) tensor\(float\) is not \(1, 2\) float32"):
-        OnnxPolicy(write_policy(tmp_path / "p.onnx", output_size=3), SPEC)
+        OnnxPolicy(write_policy(tmp_path / "p.onnx", spec=SPEC, output_size=3), SPEC)
 
 
 def test_input_type_mismatch(tmp_path: Path) -> None:
@@ -193,20 +195,20 @@ def test_a_model_for_another_stack_depth_loads_with_the_matching_spec(tmp_path: 
 def test_metadata_contradicting_the_config_refuses_to_start(
     tmp_path: Path, key: str, value: str, message: str
 ) -> None:
-    path = write_policy(tmp_path / "p.onnx", metadata_overrides={f"lidar_avoid.{key}": value})
+    path = write_policy(tmp_path / "p.onnx", spec=SPEC, metadata_overrides={f"lidar_avoid.{key}": value})
     with pytest.raises(UserError) as err:
         OnnxPolicy(path, SPEC)
     assert message in str(err.value)
 
 
 def test_metadata_equal_within_float_tolerance_is_accepted(tmp_path: Path) -> None:
-    path = write_policy(tmp_path / "p.onnx", metadata_overrides={"lidar_avoid.max_range": "10"})
+    path = write_policy(tmp_path / "p.onnx", spec=SPEC, metadata_overrides={"lidar_avoid.max_range": "10"})
     OnnxPolicy(path, SPEC)
 
 
 @pytest.mark.parametrize("key", sorted(set(METADATA_KEYS) - {"lidar_avoid.obs_layout"}))
 def test_missing_metadata_is_named(tmp_path: Path, key: str) -> None:
-    path = write_policy(tmp_path / "p.onnx", metadata_overrides={key: None})
+    path = write_policy(tmp_path / "p.onnx", spec=SPEC, metadata_overrides={key: None})
     with pytest.raises(UserError, match=f"lacks metadata {key} "):
         OnnxPolicy(path, SPEC)
 
@@ -247,14 +249,18 @@ def test_a_model_of_another_observation_layout_is_refused_naming_both(
 
 def test_a_model_without_a_layout_key_is_a_scan_only_model(tmp_path: Path) -> None:
     """Models exported before the key existed (the shipped one) were trained on scans alone."""
-    path = write_policy(tmp_path / "old.onnx", metadata_overrides={"lidar_avoid.obs_layout": None})
+    path = write_policy(tmp_path / "old.onnx", spec=SPEC, metadata_overrides={"lidar_avoid.obs_layout": None})
     OnnxPolicy(path, SPEC)
     with pytest.raises(UserError, match=r"model obs_layout scan360 does not match config observation layout"):
         OnnxPolicy(path, GOAL_SPEC)
 
 
-def test_the_shipped_model_still_loads_as_scan_only() -> None:
-    OnnxPolicy(Path(__file__).resolve().parents[2] / "models" / "policy.onnx", SPEC)
+def test_the_shipped_model_loads_under_the_default_config() -> None:
+    """The shipped goal policy, as the default companion config feeds it (swapping it is one copy)."""
+    from companion.app import policy_spec
+    from companion.config import CompanionConfig
+
+    OnnxPolicy(Path(__file__).resolve().parents[2] / "models" / "policy.onnx", policy_spec(CompanionConfig()))
 
 
 def test_tensorrt_gets_the_engine_cache_and_others_are_left_alone() -> None:

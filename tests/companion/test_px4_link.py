@@ -98,6 +98,10 @@ def test_velocity_setpoint_on_the_wire(px4):
     link.send_velocity(-0.3, 0.0, lateral=0.2)  # the shield's brake: back and to the left
     msg = vehicle.wait_for("SET_POSITION_TARGET_LOCAL_NED", since=t1, condition=lambda m: m.vx < 0)
     assert msg.vx == pytest.approx(-0.3) and msg.vy == pytest.approx(-0.2)  # FRD: right positive
+    t2 = time.monotonic()
+    link.send_velocity(1.0, 0.0, vertical=-0.3)  # descending toward a waypoint's height
+    msg = vehicle.wait_for("SET_POSITION_TARGET_LOCAL_NED", since=t2, condition=lambda m: m.vz != 0)
+    assert msg.vx == pytest.approx(1.0) and msg.vz == pytest.approx(0.3)  # down_m_s: down positive
 
 
 def test_setpoint_repetition_stops_when_the_companion_stops(px4):

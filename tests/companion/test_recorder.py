@@ -129,7 +129,7 @@ class FakeLink:
     def send_statustext(self, text, severity):
         self.texts.append((text, severity))
 
-    def send_velocity(self, forward, yaw_rate, lateral=0.0):
+    def send_velocity(self, forward, yaw_rate, lateral=0.0, vertical=0.0):
         pass
 
 
@@ -314,3 +314,17 @@ def test_a_later_part_of_a_rotated_recording_replays_on_its_own(tmp_path):
     assert done.returncode == 0, done.stdout + done.stderr
     assert "from the recorded clouds" in done.stdout and "matches bit for bit" in done.stdout
     assert "not checked" in done.stdout
+
+
+def test_a_recording_from_before_the_goal_layout_replays_as_scan_only(tmp_path):
+    """Recordings whose config has no policy.observation were made with scan-only models."""
+    from types import SimpleNamespace
+
+    from companion.replay import recorded_config
+
+    def recording(policy: dict) -> SimpleNamespace:
+        meta = {"format": s.FORMAT_VERSION, "config": json.dumps({"policy": {"model": "m.onnx", **policy}})}
+        return SimpleNamespace(path=tmp_path / "f.mcap", metadata={s.METADATA_NAME: meta})
+
+    assert recorded_config(recording({}))[0].policy.observation == "scan"
+    assert recorded_config(recording({"observation": "goal"}))[0].policy.observation == "goal"

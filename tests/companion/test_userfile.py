@@ -137,7 +137,7 @@ def test_model_path_that_is_not_a_file_is_one_line(tmp_path: Path, case: str) ->
 
 
 def test_model_hash_is_checked_when_configured(tmp_path: Path) -> None:
-    model = write_policy(tmp_path / "m.onnx")
+    model = write_policy(tmp_path / "m.onnx", spec=PolicySpec())
     digest = hashlib.sha256(model.read_bytes()).hexdigest()
     assert OnnxPolicy(model, PolicySpec(), sha256=digest.upper()).sha256 == digest
     corrupted = bytearray(model.read_bytes())

@@ -93,9 +93,10 @@ def write_constant_policy(path: Path, forward: float, turn: float) -> Path:
     import onnx
     from onnx import TensorProto, helper, numpy_helper
 
-    from companion.policy import PolicySpec, policy_metadata
+    from companion.policy import policy_metadata
+    from tests.onnx_models import COMPANION_SPEC
 
-    spec = PolicySpec()
+    spec = COMPANION_SPEC  # what the default companion config feeds (the answer ignores it)
     w = np.zeros((spec.obs_size, 2), dtype=np.float32)
     b = np.array([forward, turn], dtype=np.float32)
     graph = helper.make_graph(

@@ -1,0 +1,168 @@
+"""The companion process feeding a goal-layout model (real ONNX Runtime, real MAVLink over loopback).
+
+Echo models answer with the features the companion built (``tests/onnx_models.py``), so each
+setpoint shows what reached the model: the goal's bearing from LOCAL_POSITION_NED and ATTITUDE, the
+measured velocity turned into the body frame, the goal 20 m ahead when there is no goal source, and
+the climb toward a waypoint's height beside the policy's horizontal command.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+
+from tests.companion.companion_process import (
+    LidarSender,
+    free_udp_port,
+    run_to_exit,
+    start_companion,
+    stop,
+    write_config,
+)
+from tests.companion.companion_process import wait_until as _wait
+from tests.companion.mavlink_peer import SimulatedAutopilot
+from tests.onnx_models import SCAN_SPEC, write_policy
+
+SETPOINT = "SET_POSITION_TARGET_LOCAL_NED"
+#: a waypoint 5 m west of the origin and 2 m above the vehicle's 1.5 m
+WEST_AND_UP = """
+[goal]
+source = "fixed"
+max_vertical_speed = 0.5
+[[goal.waypoints]]
+north = 0.0
+east = -5.0
+down = -3.5
+"""
+
+
+class Flight:
+    """The companion with a model and config extra, a peer autopilot flying at 1.5 m, lidar on."""
+
+    def __init__(self, tmp_path, kind: str, extra: str = "") -> None:
+        lidar_port, mavlink_port = free_udp_port(), free_udp_port()
+        model = write_policy(tmp_path / f"{kind}.onnx", kind=kind)
+        config = write_config(tmp_path, model, lidar_port, mavlink_port, extra=extra)
+        self.vehicle = SimulatedAutopilot(f"udpout:127.0.0.1:{mavlink_port}")
+        self.vehicle.local_position = (0.0, 0.0, -1.5)
+        self.proc = start_companion(config)
+        self.lidar = LidarSender(lidar_port)
+        self.lidar.on = True
+
+    def settled(self, condition, what: str, window: float = 0.6):
+        """Wait until every setpoint of the last ``window`` s satisfies ``condition``; return the last."""
+        def check():
+            recent = self.vehicle.messages(SETPOINT, since=time.monotonic() - window)
+            return recent[-1] if len(recent) >= 3 and all(condition(m) for m in recent) else None
+
+        return _wait(check, 20.0, what)
+
+    def close(self) -> None:
+        self.lidar.close()
+        if self.proc.poll() is None:
+            print(stop(self.proc)[2][-5000:])
+        self.vehicle.close()
+
+
+def test_without_a_goal_source_the_goal_is_ahead_and_the_altitude_held(tmp_path):
+    f = Flight(tmp_path, "echo_goal")
+    try:
+        # goal 20 m ahead on the heading: bearing (cos, sin) = (1, 0), whatever the heading
+        f.vehicle.yaw_ned = 2.0
+        last = f.settled(lambda m: m.vx > 1.0 and abs(m.yaw_rate) < 1e-3, "forward flight, goal ahead")
+        assert last.vz == 0.0  # altitude held
+    finally:
+        f.close()
+
+
+def test_fixed_goal_bearing_from_position_and_heading_and_climb_to_its_height(tmp_path):
+    f = Flight(tmp_path, "echo_goal", WEST_AND_UP)
+    try:
+        # heading north, the goal due west: on the left (sin = 1), a left turn = negative FRD yaw rate;
+        # 2 m below the waypoint: climb at max_vertical_speed (down-positive vz = -0.5)
+        last = f.settled(lambda m: m.yaw_rate < -1.0 and m.vz < -0.4, "turning left and climbing")
+        assert abs(last.vx) < 0.05 and last.vz >= -0.5 - 1e-6
+        # heading west: the goal ahead, fly forward without turning
+        f.vehicle.yaw_ned = -math.pi / 2
+        f.settled(lambda m: m.vx > 1.0 and abs(m.yaw_rate) < 0.05, "flying toward the goal ahead")
+        # at the waypoint's height, west of the origin by 4.5 m: reached (1 m), complete, zero setpoints
+        f.vehicle.local_position = (0.0, -4.5, -3.5)
+        f.settled(lambda m: m.vx == 0.0 and m.vz == 0.0 and m.yaw_rate == 0.0, "holding at completion")
+        texts = [m.text for m in f.vehicle.messages("STATUSTEXT")]
+        assert any("reached fixed 1 (1/1)" in t for t in texts)
+        # a fixed waypoint is no mission item: no MISSION_ITEM_REACHED
+        assert not f.vehicle.messages("MISSION_ITEM_REACHED")
+    finally:
+        f.close()
+
+
+def test_measured_velocity_reaches_the_model_in_the_body_frame(tmp_path):
+    f = Flight(tmp_path, "echo_velocity")
+    try:
+        # heading north, moving west at 1 m/s: body left +1 m/s, feature 0.5, a1 = 0.5: yaw rate
+        # 0.75 rad/s counter-clockwise, sent as FRD -0.75
+        f.vehicle.velocity_ned = (0.0, -1.0)
+        f.settled(lambda m: abs(m.yaw_rate + 0.75) < 0.02, "yaw rate from the measured left velocity")
+        # heading east, the same motion is backwards: left 0, no turn
+        f.vehicle.yaw_ned = math.pi / 2
+        f.settled(lambda m: abs(m.yaw_rate) < 0.02, "no yaw rate with the motion along the body axis")
+    finally:
+        f.close()
+
+
+def test_scan_only_model_with_a_goal_source_is_refused_in_one_line(tmp_path):
+    model = write_policy(tmp_path / "scan.onnx", spec=SCAN_SPEC)
+    config = write_config(tmp_path, model, free_udp_port(), free_udp_port(), extra=WEST_AND_UP)
+    config.write_text(config.read_text().replace("[policy]\n", '[policy]\nobservation = "scan"\n'))
+    result = run_to_exit(["run", "--config", str(config)])
+    assert result.returncode == 2
+    assert result.stderr.strip() == (
+        "avoid-companion: error: CompanionConfig: goal.source = 'fixed' needs a goal policy "
+        '(policy.observation = "goal"); a scan-only policy cannot fly to a goal'
+    )
+
+
+def test_scan_only_model_needs_observation_scan_and_then_flies(tmp_path):
+    model = write_policy(tmp_path / "scan.onnx", kind="forward", spec=SCAN_SPEC)
+    lidar_port, mavlink_port = free_udp_port(), free_udp_port()
+    config = write_config(tmp_path, model, lidar_port, mavlink_port)
+    refused = run_to_exit(["run", "--config", str(config)])
+    assert refused.returncode == 2 and len(refused.stderr.strip().splitlines()) == 1
+    assert "does not match config observation layout" in refused.stderr
+    assert refused.stderr.strip().endswith('(a scan-only model: set policy.observation = "scan")')
+    config.write_text(config.read_text().replace("[policy]\n", '[policy]\nobservation = "scan"\n'))
+    vehicle = SimulatedAutopilot(f"udpout:127.0.0.1:{mavlink_port}")
+    proc = start_companion(config)
+    lidar = LidarSender(lidar_port)
+    try:
+        lidar.on = True
+        _wait(lambda: any(m.vx > 0 for m in vehicle.messages(SETPOINT)), 20.0, "the scan-only policy flying")
+    finally:
+        lidar.close()
+        if proc.poll() is None:
+            print(stop(proc)[2][-5000:])
+        vehicle.close()
+
+
+def test_the_shipped_exported_goal_model_flies_toward_a_fixed_goal(tmp_path):
+    """``avoid-train export``'s goal model (models/policy.onnx) under the default config: it loads,
+    engages and commands (what it asks for is the policy's business, not tested here)."""
+    lidar_port, mavlink_port = free_udp_port(), free_udp_port()
+    shipped = Path(__file__).resolve().parents[2] / "models" / "policy.onnx"
+    config = write_config(tmp_path, shipped, lidar_port, mavlink_port, extra=WEST_AND_UP)
+    vehicle = SimulatedAutopilot(f"udpout:127.0.0.1:{mavlink_port}")
+    vehicle.local_position = (0.0, 0.0, -1.5)
+    proc = start_companion(config)
+    lidar = LidarSender(lidar_port)
+    try:
+        lidar.on = True
+        _wait(lambda: any(m.vx != 0.0 or m.yaw_rate != 0.0 for m in vehicle.messages(SETPOINT)), 20.0,
+              "the shipped policy commanding")
+        assert any("goal: tracking" in m.text for m in vehicle.messages("STATUSTEXT"))
+        assert any(m.vz < -0.1 for m in vehicle.messages(SETPOINT))  # climbing toward the waypoint
+    finally:
+        lidar.close()
+        if proc.poll() is None:
+            print(stop(proc)[2][-5000:])
+        vehicle.close()

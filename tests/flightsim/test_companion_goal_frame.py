@@ -1,0 +1,52 @@
+"""The companion builds LidarNav-v0's goal/velocity features from the autopilot's messages.
+
+The env computes them from its own state (world ENU, yaw counter-clockwise from east); the companion
+from LOCAL_POSITION_NED, ATTITUDE and a waypoint in local NED (GoalTracker's goal_body, the link's
+body velocity). The same vehicle, described both ways, must give the same five floats.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from companion.autopilot.link import body_velocity
+from companion.autopilot.mavlink_adapter import mavlink
+from companion.config import CompanionConfig
+from companion.goal import GoalTracker, NavInputs, Waypoint
+from companion.observation import goal_features
+from flightsim.nav_env import LidarNavEnv, NavEnvConfig
+from flightsim.world import World
+
+HALL = World("hall", (20.0, 8.0), 3.0, (), (-8.0, 0.0, 1.5), 30.0, ((6.0, 2.5, 1.5), (-4.0, -3.0, 1.5)))
+
+
+@pytest.mark.parametrize("action", [(1.0, 0.6), (0.7, -0.8), (0.3, 0.0)])
+def test_companion_features_equal_the_envs(action) -> None:
+    env = LidarNavEnv(NavEnvConfig(autopilot_response="ideal"))  # measured velocity = the truth
+    layout = CompanionConfig().policy.layout
+    assert layout == env.layout  # the default companion config feeds what the env trains on
+    try:
+        obs, _ = env.reset(seed=3, options={"world": HALL})
+        for _ in range(25):
+            obs, *_ = env.step(np.array(action, np.float32))
+        state = env._state
+        x, y, z = map(float, state.position)
+        vx, vy, _ = map(float, state.velocity)
+        yaw_ned = math.pi / 2 - float(state.yaw)  # ENU counter-clockwise from east → NED from north
+        nav = NavInputs()
+        nav.on_message(mavlink.MAVLink_local_position_ned_message(0, y, x, -z, vy, vx, 0.0), now=1.0)
+        nav.on_message(mavlink.MAVLink_attitude_message(0, 0.0, 0.0, yaw_ned, 0.0, 0.0, 0.0), now=1.0)
+        tracker = GoalTracker(acceptance_radius=0.01, max_vertical_speed=0.5)
+        gx, gy, gz = HALL.waypoints[0]
+        tracker.set_waypoints([Waypoint(gy, gx, -gz)], None)
+        out = tracker.update(nav, now=1.0)
+        velocity = body_velocity(vy, vx, yaw_ned)
+        assert out.goal_body is not None and velocity is not None
+        features = goal_features(out.goal_body[0], out.goal_body[1], *velocity, layout)
+        np.testing.assert_allclose(features, obs[360:365], atol=2e-5)
+        assert abs(features[4]) > 0.01 or abs(features[3]) > 0.1  # moving: the velocity part is tested
+    finally:
+        env.close()
