@@ -7,7 +7,7 @@
   item 0 is home).
 
 A trained goal policy completing a mission is not tested yet: no checkpoint of the goal-policy
-training can (README, "Goal-directed navigation").
+training can yet (README, training section, "The goal policy is not trained yet").
 """
 
 from __future__ import annotations
