@@ -13,7 +13,7 @@ from gymnasium import spaces
 
 from companion.scan import N_BINS, ScanConfig, scan_from_points
 from companion.shield import SafetyShield, ShieldConfig, command_from_action
-from flightsim.autopilot_response import AutopilotResponse, fly, response_params
+from flightsim.autopilot_response import AutopilotResponse, ResponseParams, fly, response_params
 from flightsim.raycast import LidarConfig, VLP16Raycaster
 from flightsim.render import render_rgb
 from flightsim.reward import REWARDS, StepOutcome
@@ -321,6 +321,12 @@ class LidarAvoidEnv(gym.Env):
         """Fly ``lateral`` (m/s, body left) with the next step's action: the companion shield's
         active brake against a sideways slide, which the policy's 2-D action cannot carry."""
         self._lateral = float(lateral)
+
+    @property
+    def response_params(self) -> ResponseParams | None:
+        """The autopilot response drawn for this episode (None: the ideal one); evaluation reports
+        it per episode, so a failure can be traced to the response it flew."""
+        return None if self._response is None else self._response.params
 
     def measured_body_velocity(self) -> np.ndarray:
         """The horizontal velocity the autopilot would report now: (forward, left) m/s, body FLU.

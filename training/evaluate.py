@@ -229,6 +229,8 @@ class EpisodeResult:
     timeout: bool = False
     time_s: float = 0.0
     shortest_path_m: float = 0.0
+    #: the autopilot response flown (:class:`~flightsim.autopilot_response.ResponseParams`'s fields)
+    response: dict[str, Any] = field(default_factory=lambda: {"name": "ideal"})
 
 
 def is_success(collision: bool, steps: int, max_steps: int, distance: float, dt: float) -> bool:
@@ -247,6 +249,7 @@ def run_episode(
     :param seed: reset seed (sensor noise, randomisation); ``None`` leaves the env's generator as is
     """
     obs, info = env.reset(seed=seed, options=reset_options)
+    params = env.unwrapped.response_params
     action = controller.reset(obs)
     trajectory = [_xy(info)]
     clearance = float(info["min_distance"])
@@ -291,6 +294,7 @@ def run_episode(
         min_clearance=max(min_clearance, 0.0),
         near_misses=near_misses,
         trajectory=trajectory,
+        response=asdict(params) if params is not None else {"name": "ideal"},
         **goal,
     )
 

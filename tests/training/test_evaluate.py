@@ -27,6 +27,7 @@ class ScriptedEnv:
         self.collide_at = collide_at
         self.config = SimpleNamespace(max_steps=max_steps or len(clearances) - 1)
         self.unwrapped = self
+        self.response_params = None  # the ideal response
         self.actions = []
 
     def _info(self):

@@ -92,6 +92,8 @@ def test_goal_evaluation_end_to_end_writes_json_and_png(tmp_path, capsys):
     assert list(data["controllers"]["goal_follower+shield"]["per_family"]) == ["gaps"]
     assert data["worlds"][0]["family"] == "gaps" and out_png.stat().st_size > 10_000
     assert "goal_follower+shield" in capsys.readouterr().out
+    response = data["episodes"][0]["response"]  # the env's default: a random draw, reported
+    assert response["name"].startswith("random-") and response["est_vel_sigma"] >= 0.0
 
 
 
