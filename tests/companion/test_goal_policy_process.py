@@ -40,15 +40,21 @@ down = -3.5
 class Flight:
     """The companion with a model and config extra, a peer autopilot flying at 1.5 m, lidar on."""
 
-    def __init__(self, tmp_path, kind: str, extra: str = "") -> None:
-        lidar_port, mavlink_port = free_udp_port(), free_udp_port()
-        model = write_policy(tmp_path / f"{kind}.onnx", kind=kind)
-        config = write_config(tmp_path, model, lidar_port, mavlink_port, extra=extra)
+    def __init__(self, config: Path, lidar_port: int, mavlink_port: int,
+                 position: tuple[float, float, float] | None = (0.0, 0.0, -1.5)) -> None:
         self.vehicle = SimulatedAutopilot(f"udpout:127.0.0.1:{mavlink_port}")
-        self.vehicle.local_position = (0.0, 0.0, -1.5)
+        self.vehicle.local_position = position
         self.proc = start_companion(config)
         self.lidar = LidarSender(lidar_port)
         self.lidar.on = True
+
+    @classmethod
+    def with_model(cls, tmp_path, kind: str, extra: str = "") -> Flight:
+        """A test model of ``kind`` (tests/onnx_models.py) under the default config + ``extra``."""
+        lidar_port, mavlink_port = free_udp_port(), free_udp_port()
+        model = write_policy(tmp_path / f"{kind}.onnx", kind=kind)
+        config = write_config(tmp_path, model, lidar_port, mavlink_port, extra=extra)
+        return cls(config, lidar_port, mavlink_port)
 
     def settled(self, condition, what: str, window: float = 0.6):
         """Wait until every setpoint of the last ``window`` s satisfies ``condition``; return the last."""
@@ -66,7 +72,7 @@ class Flight:
 
 
 def test_without_a_goal_source_the_goal_is_ahead_and_the_altitude_held(tmp_path):
-    f = Flight(tmp_path, "echo_goal")
+    f = Flight.with_model(tmp_path, "echo_goal")
     try:
         # goal 20 m ahead on the heading: bearing (cos, sin) = (1, 0), whatever the heading
         f.vehicle.yaw_ned = 2.0
@@ -77,7 +83,7 @@ def test_without_a_goal_source_the_goal_is_ahead_and_the_altitude_held(tmp_path)
 
 
 def test_fixed_goal_bearing_from_position_and_heading_and_climb_to_its_height(tmp_path):
-    f = Flight(tmp_path, "echo_goal", WEST_AND_UP)
+    f = Flight.with_model(tmp_path, "echo_goal", WEST_AND_UP)
     try:
         # heading north, the goal due west: on the left (sin = 1), a left turn = negative FRD yaw rate;
         # 2 m below the waypoint: climb at max_vertical_speed (down-positive vz = -0.5)
@@ -98,7 +104,7 @@ def test_fixed_goal_bearing_from_position_and_heading_and_climb_to_its_height(tm
 
 
 def test_measured_velocity_reaches_the_model_in_the_body_frame(tmp_path):
-    f = Flight(tmp_path, "echo_velocity")
+    f = Flight.with_model(tmp_path, "echo_velocity")
     try:
         # heading north, moving west at 1 m/s: body left +1 m/s, feature 0.5, a1 = 0.5: yaw rate
         # 0.75 rad/s counter-clockwise, sent as FRD -0.75
@@ -132,17 +138,12 @@ def test_scan_only_model_needs_observation_scan_and_then_flies(tmp_path):
     assert "does not match config observation layout" in refused.stderr
     assert refused.stderr.strip().endswith('(a scan-only model: set policy.observation = "scan")')
     config.write_text(config.read_text().replace("[policy]\n", '[policy]\nobservation = "scan"\n'))
-    vehicle = SimulatedAutopilot(f"udpout:127.0.0.1:{mavlink_port}")
-    proc = start_companion(config)
-    lidar = LidarSender(lidar_port)
+    f = Flight(config, lidar_port, mavlink_port, position=None)
     try:
-        lidar.on = True
-        _wait(lambda: any(m.vx > 0 for m in vehicle.messages(SETPOINT)), 20.0, "the scan-only policy flying")
+        _wait(lambda: any(m.vx > 0 for m in f.vehicle.messages(SETPOINT)), 20.0,
+              "the scan-only policy flying")
     finally:
-        lidar.close()
-        if proc.poll() is None:
-            print(stop(proc)[2][-5000:])
-        vehicle.close()
+        f.close()
 
 
 def test_the_shipped_exported_goal_model_flies_toward_a_fixed_goal(tmp_path):
@@ -151,18 +152,11 @@ def test_the_shipped_exported_goal_model_flies_toward_a_fixed_goal(tmp_path):
     lidar_port, mavlink_port = free_udp_port(), free_udp_port()
     shipped = Path(__file__).resolve().parents[2] / "models" / "policy.onnx"
     config = write_config(tmp_path, shipped, lidar_port, mavlink_port, extra=WEST_AND_UP)
-    vehicle = SimulatedAutopilot(f"udpout:127.0.0.1:{mavlink_port}")
-    vehicle.local_position = (0.0, 0.0, -1.5)
-    proc = start_companion(config)
-    lidar = LidarSender(lidar_port)
+    f = Flight(config, lidar_port, mavlink_port)
     try:
-        lidar.on = True
-        _wait(lambda: any(m.vx != 0.0 or m.yaw_rate != 0.0 for m in vehicle.messages(SETPOINT)), 20.0,
+        _wait(lambda: any(m.vx != 0.0 or m.yaw_rate != 0.0 for m in f.vehicle.messages(SETPOINT)), 20.0,
               "the shipped policy commanding")
-        assert any("goal: tracking" in m.text for m in vehicle.messages("STATUSTEXT"))
-        assert any(m.vz < -0.1 for m in vehicle.messages(SETPOINT))  # climbing toward the waypoint
+        assert any("goal: tracking" in m.text for m in f.vehicle.messages("STATUSTEXT"))
+        assert any(m.vz < -0.1 for m in f.vehicle.messages(SETPOINT))  # climbing toward the waypoint
     finally:
-        lidar.close()
-        if proc.poll() is None:
-            print(stop(proc)[2][-5000:])
-        vehicle.close()
+        f.close()
