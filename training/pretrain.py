@@ -33,7 +33,7 @@ class Demonstrations:
     :param actions: the demonstrator's actions, in ``[-1, 1]``
     :param returns: discounted return from each step to its episode's end (or the data's end)
     :param episodes: episodes that ended within the data
-    :param successes: of those, how many reached their goal (goal task) or flew the whole time
+    :param successes: of those, how many reached their goal (goal task) or ended without a collision
     """
 
     obs: np.ndarray
