@@ -16,6 +16,9 @@ the companion; this module is the part that differs from the simulated autopilot
   them the autopilot's estimate (LOCAL_POSITION_NED + ATTITUDE) is used and the report says so:
   PX4's estimate was measured 0.2-0.4 m/s off the truth, and one flight's true clearance fell
   below the vehicle radius 11 s before the estimate's did.
+- **Mission** (``--mission``): the world's waypoints are placed from the anchored vehicle's
+  GLOBAL_POSITION_INT and turned back into the SITL's frame (:meth:`ExternalPose.mission_frame`);
+  the ground station uploads them as it does to the simulated autopilots.
 - **Before arming**: a vehicle still armed from a previous flight is landed (LAND) and disarmed,
   or the flight is refused with a message saying what to do; PX4 is switched to Hold first (it
   refuses to arm after a flight that ended in OFFBOARD).
@@ -31,7 +34,9 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
+from pymavlink.quaternion import QuaternionBase
 
+from companion.goal_frames import GlobalOrigin, global_to_local_ne
 from flightsim.world import World
 
 log = logging.getLogger(__name__)
@@ -40,13 +45,12 @@ log = logging.getLogger(__name__)
 TRUTH_MESSAGES = ("SIMSTATE", "HIL_STATE_QUATERNION")
 TRUTH_RATE_HZ = 50.0
 #: estimate streams the mirror needs, and their rate
-ESTIMATE_MESSAGES = ("LOCAL_POSITION_NED", "ATTITUDE")
+ESTIMATE_MESSAGES = ("LOCAL_POSITION_NED", "ATTITUDE", "GLOBAL_POSITION_INT")
 ESTIMATE_RATE_HZ = 20.0
 #: how long to wait for a truth message before judging on the estimate, s
 TRUTH_WAIT_S = 3.0
 #: a vehicle armed at connect must have landed and disarmed within this, s
 LAND_TIMEOUT_S = 60.0
-EARTH_RADIUS_M = 6378137.0  # as the fixture's export and ArduPilot's flat-earth conversions
 
 PoseCallback = Callable[[float, np.ndarray, float, float], None]
 
@@ -71,7 +75,8 @@ class ExternalPose:
         self._est_ned: np.ndarray | None = None
         self._est_vel_ned = np.zeros(3)
         self._est_rpy = (0.0, 0.0, math.nan)  # roll, pitch (FRD), yaw (NED)
-        self._truth_ll: tuple[float, float] | None = None  # lat, lon, degrees
+        self._est_ll: tuple[int, int] | None = None  # GLOBAL_POSITION_INT lat, lon, degrees × 1e7
+        self._truth_ll: tuple[int, int] | None = None  # lat, lon, degrees × 1e7
         self._truth_alt: float | None = None  # m AMSL (PX4's HIL_STATE_QUATERNION only)
         self._truth_rpy = (0.0, 0.0, math.nan)
         self._truth_vel_ned: np.ndarray | None = None
@@ -89,20 +94,23 @@ class ExternalPose:
             if kind == "ATTITUDE":
                 self._est_rpy = (float(msg.roll), float(msg.pitch), float(msg.yaw))
                 return None
+            if kind == "GLOBAL_POSITION_INT":
+                self._est_ll = (int(msg.lat), int(msg.lon))
+                return None
             if kind == "SIMSTATE":
                 self.truth_source = kind
-                self._truth_ll = (msg.lat * 1e-7, msg.lng * 1e-7)
+                self._truth_ll = (msg.lat, msg.lng)
                 self._truth_rpy = (float(msg.roll), float(msg.pitch), float(msg.yaw))
                 return "truth"
             if kind == "HIL_STATE_QUATERNION":
+                q = np.array(msg.attitude_quaternion, dtype=np.float64)
+                if not np.all(np.isfinite(q)) or np.linalg.norm(q) < 0.5:
+                    return None  # no attitude in it: not a truth to judge on
                 self.truth_source = kind
-                w, x, y, z = (float(v) for v in msg.attitude_quaternion)
-                roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-                pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
-                yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-                self._truth_ll = (msg.lat * 1e-7, msg.lon * 1e-7)
+                roll, pitch, yaw = QuaternionBase(q / np.linalg.norm(q)).euler
+                self._truth_ll = (msg.lat, msg.lon)
                 self._truth_alt = msg.alt / 1000.0
-                self._truth_rpy = (roll, pitch, yaw)
+                self._truth_rpy = (float(roll), float(pitch), float(yaw))
                 self._truth_vel_ned = np.array([msg.vx, msg.vy, msg.vz], dtype=np.float64) / 100.0
                 return "truth"
         return None
@@ -110,14 +118,14 @@ class ExternalPose:
     @property
     def has_estimate(self) -> bool:
         with self._lock:
-            return self._est_ned is not None and math.isfinite(self._est_rpy[2])
+            return self._est_ned is not None and math.isfinite(self._est_rpy[2]) and self._est_ll is not None
 
     def anchor(self) -> None:
         """Fix the mapping: the pose now (vehicle on the ground) is the world's start pose."""
         with self._lock:
             if self._est_ned is None or not math.isfinite(self._est_rpy[2]):
                 raise RuntimeError("external SITL: no LOCAL_POSITION_NED and ATTITUDE to anchor the world to")
-            anchor: dict[str, Any] = {"est_ned": self._est_ned.copy()}
+            anchor: dict[str, Any] = {"est_ned": self._est_ned.copy(), "est_ll": self._est_ll}
             if self.truth_source is not None and self._truth_ll is not None:
                 anchor["truth_ll"] = self._truth_ll
                 anchor["truth_alt"] = self._truth_alt
@@ -131,6 +139,23 @@ class ExternalPose:
                  math.degrees(anchor["theta"]))
 
     # ------------------------------------------------------------------ output
+    def mission_frame(self) -> tuple[tuple[int, int], float]:
+        """Where the world's start is on Earth and how the world is turned, for a mission upload:
+        ((lat, lon) × 1e7 of the anchored vehicle, the world's rotation from the SITL's ENU, rad).
+
+        The origin is the autopilot's own GLOBAL_POSITION_INT where the world was anchored, not its
+        HOME_POSITION: both firmwares move home there when the vehicle arms, and until then home may
+        still be where a previous flight took off (the companion then judges the waypoints in the
+        same estimate the autopilot flies by).
+
+        :raises RuntimeError: not anchored, or the SITL sent no GLOBAL_POSITION_INT by then
+        """
+        with self._lock:
+            if self._anchor is None or self._anchor["est_ll"] is None:
+                raise RuntimeError("external SITL: no GLOBAL_POSITION_INT when the world was anchored, "
+                                   "so the mission has no place on Earth")
+            return self._anchor["est_ll"], float(self._anchor["theta"])
+
     def state(self) -> Any:
         """A :class:`~flightsim.vehicle.VehicleState` in the world frame (start pose until anchored)."""
         from flightsim.vehicle import VehicleState
@@ -148,10 +173,7 @@ class ExternalPose:
             vel_ned = self._est_vel_ned
             roll, pitch, yaw_ned = self._est_rpy
             if "truth_ll" in anchor and self._truth_ll is not None:
-                lat0, lon0 = anchor["truth_ll"]
-                lat, lon = self._truth_ll
-                north = math.radians(lat - lat0) * EARTH_RADIUS_M
-                east = math.radians(lon - lon0) * EARTH_RADIUS_M * math.cos(math.radians(lat0))
+                north, east = global_to_local_ne(*self._truth_ll, GlobalOrigin(*anchor["truth_ll"], 0.0))
                 d_ned = np.array([north, east, d_ned[2]])
                 if self._truth_alt is not None and anchor["truth_alt"] is not None:
                     up = self._truth_alt - anchor["truth_alt"]  # SIMSTATE has none: the estimate's

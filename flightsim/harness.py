@@ -37,9 +37,9 @@ from companion.scan import ScanConfig
 from companion.tomlconfig import to_dict
 from flightsim import external_sitl
 from flightsim.cosim import LidarCosim
+from flightsim.ground_station import GroundStation
 from flightsim.raycast import LidarConfig
 from flightsim.recording import FlightRecording
-from flightsim.sim_autopilot.gcs import GroundStation
 from flightsim.world import DEFAULT_VEHICLE_RADIUS, World
 
 log = logging.getLogger(__name__)
@@ -457,7 +457,9 @@ class SitlFlight:
         end = time.monotonic() + 10.0
         while not external.has_estimate:
             if time.monotonic() > end:
-                raise RuntimeError("external SITL: no LOCAL_POSITION_NED / ATTITUDE within 10 s")
+                raise RuntimeError(
+                    "external SITL: no LOCAL_POSITION_NED / ATTITUDE / GLOBAL_POSITION_INT within 10 s"
+                )
             time.sleep(0.05)
         self.pilot(external_sitl.land_and_disarm)
         self.ground_truth = self.pilot(lambda g: external_sitl.wait_for_truth(external, g.pump))
@@ -579,14 +581,21 @@ class SitlFlight:
     def upload_mission(self) -> None:
         """Upload the world's waypoints as a mission, as a ground station does (before arming).
 
-        The world's start is the autopilot's home: waypoint (x, y, z) is (y − start y) m north and
-        (x − start x) m east of home, z m above it (MAV_FRAME_GLOBAL_RELATIVE_ALT_INT).
+        The world's start is the autopilot's home, z m above it (MAV_FRAME_GLOBAL_RELATIVE_ALT_INT).
+        A simulated autopilot's frame is the world's: waypoint (x, y, z) is (y − start y) m north and
+        (x − start x) m east of home. An external SITL's frame is turned onto the world's
+        (:class:`~flightsim.external_sitl.ExternalPose`): the offsets are turned back into it, from
+        where the vehicle was anchored (:meth:`~flightsim.external_sitl.ExternalPose.mission_frame`).
         """
         if not self.world.waypoints:
             raise UserError(f"--mission: world {self.world.name!r} has no waypoints")
 
         def upload(gcs: GroundStation) -> None:
-            gcs.upload_mission(mission_items(self.world, gcs.home_position()))
+            if self.external is not None:
+                origin, rotation = self.external.mission_frame()
+                gcs.upload_mission(mission_items(self.world, origin, rotation))
+            else:
+                gcs.upload_mission(mission_items(self.world, gcs.home_position()))
 
         self.pilot(upload)
 
@@ -728,17 +737,24 @@ class SitlFlight:
         return result
 
 
-def mission_items(world: World, home: tuple[int, int]) -> list[Any]:
-    """The world's waypoints as NAV_WAYPOINTs relative to ``home`` (lat, lon × 1e7) at the world's start."""
+def mission_items(world: World, home: tuple[int, int], rotation: float = 0.0) -> list[Any]:
+    """The world's waypoints as NAV_WAYPOINTs relative to ``home`` (lat, lon × 1e7) at the world's start.
+
+    :param rotation: rad, counter-clockwise, from the autopilot's East-North frame to the world's
+        (0 for the simulated autopilots, whose frame is the world's)
+    """
     from pymavlink import mavutil
 
     from companion.goal_frames import offset_global
-    from flightsim.sim_autopilot.gcs import MissionItemSpec
+    from flightsim.ground_station import MissionItemSpec
 
     sx, sy, _ = world.start_position
+    c, s = math.cos(rotation), math.sin(rotation)
     items = []
     for x, y, z in world.waypoints:
-        lat, lon = offset_global(*home, y - sy, x - sx)
+        dx, dy = x - sx, y - sy
+        east, north = c * dx + s * dy, -s * dx + c * dy  # the world's offset turned back by -rotation
+        lat, lon = offset_global(*home, north, east)
         frame = mavutil.mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT
         items.append(MissionItemSpec(frame, round(lat), round(lon), float(z),
                                      acceptance_radius=MISSION_ACCEPTANCE_RADIUS))

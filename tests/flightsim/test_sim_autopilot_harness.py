@@ -12,6 +12,7 @@ import pytest
 
 from companion.config import CompanionConfig, load_config
 from companion.errors import UserError
+from companion.goal_frames import LATLON_TO_M
 from companion.lidar.velodyne import VelodyneUdpSource
 from companion.scan import ScanConfig, scan_from_points
 from companion.tomlconfig import to_dict
@@ -133,7 +134,7 @@ def test_external_pose_mirrors_ned_telemetry_into_the_world_frame():
 def test_external_pose_prefers_ground_truth_over_the_estimate():
     from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-    from flightsim.external_sitl import EARTH_RADIUS_M, ExternalPose
+    from flightsim.external_sitl import ExternalPose
 
     world = load_world("flightsim/worlds/two-pillars.json")  # start yaw 0 (East)
     pose = ExternalPose(world)
@@ -144,9 +145,8 @@ def test_external_pose_prefers_ground_truth_over_the_estimate():
     assert pose.update(truth) == "truth"
     pose.anchor()
     # the estimate says nothing moved; the truth says 1 m north (and the heading is East)
-    north = 1.0 / EARTH_RADIUS_M
     pose.update(mavlink.MAVLink_simstate_message(0, 0, math.pi / 2, 0, 0, 0, 0, 0, 0,
-                                                 lat0 + round(math.degrees(north) * 1e7), lon0))
+                                                 lat0 + round(1.0 / LATLON_TO_M), lon0))
     state = pose.state()
     x0, y0, _ = world.start_position
     assert state.position[:2] == pytest.approx([x0, y0 + 1.0], abs=0.02)
@@ -186,6 +186,48 @@ def test_simulated_ground_truth_round_trips_through_the_external_mirror(personal
     x0, y0, _ = world.start_position
     assert mirrored.position[:2] == pytest.approx([x0 + 2.0, y0], abs=0.02)  # North became East
     assert mirrored.yaw == pytest.approx(math.radians(30.0), abs=1e-3)
+
+
+@pytest.mark.parametrize("sitl_heading_deg", [0.0, 90.0, 200.0])
+def test_mission_items_land_on_the_world_waypoints_in_a_turned_external_sitl(sitl_heading_deg):
+    """``fly --autopilot external --mission``: the items uploaded from the anchored pose and its
+    rotation, flown to in the SITL's own frame, are the world's waypoints in the mirrored world."""
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+    from companion.goal_frames import GlobalOrigin, global_to_local_ne, offset_global
+    from flightsim.external_sitl import ExternalPose
+    from flightsim.harness import mission_items
+
+    world = dataclasses.replace(load_world("flightsim/worlds/two-pillars.json"), start_yaw_deg=-30.0,
+                                waypoints=((4.0, 1.0, 2.0), (-2.0, 3.5, 1.0)))
+    pose = ExternalPose(world)
+    here = (473977420, 85455940)  # where the SITL stands, 3 m north and 1 m west of its EKF origin
+    origin = GlobalOrigin(*(round(v) for v in offset_global(*here, -3.0, 1.0)), 500.0)
+    pose.update(mavlink.MAVLink_local_position_ned_message(0, 3.0, -1.0, 0.0, 0.0, 0.0, 0.0))
+    pose.update(mavlink.MAVLink_attitude_message(0, 0.0, 0.0, math.radians(sitl_heading_deg), 0, 0, 0))
+    pose.update(mavlink.MAVLink_global_position_int_message(0, *here, 500000, 0, 0, 0, 0, 0))
+    pose.anchor()
+    home, rotation = pose.mission_frame()
+    assert home == here
+    for item, waypoint in zip(mission_items(world, home, rotation), world.waypoints, strict=True):
+        assert item.frame == mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT and item.z == waypoint[2]
+        north, east = global_to_local_ne(item.x, item.y, origin)  # where the SITL flies to
+        pose.update(mavlink.MAVLink_local_position_ned_message(0, north, east, -waypoint[2], 0, 0, 0))
+        assert pose.state().position == pytest.approx(waypoint, abs=0.02)
+
+
+def test_mission_frame_needs_a_global_position():
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+    from flightsim.external_sitl import ExternalPose
+
+    pose = ExternalPose(load_world("flightsim/worlds/two-pillars.json"))
+    pose.update(mavlink.MAVLink_local_position_ned_message(0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
+    pose.update(mavlink.MAVLink_attitude_message(0, 0.0, 0.0, 0.0, 0, 0, 0))
+    assert not pose.has_estimate  # the harness waits for GLOBAL_POSITION_INT too
+    pose.anchor()
+    with pytest.raises(RuntimeError, match="GLOBAL_POSITION_INT"):
+        pose.mission_frame()
 
 
 def wire(msg):

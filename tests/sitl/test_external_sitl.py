@@ -24,6 +24,7 @@ import pytest
 from flightsim.harness import FlightOptions, SitlFlight
 from flightsim.world import save_world
 from tests.companion.mavlink_peer import free_tcp_port, free_udp_port
+from tests.onnx_models import write_policy
 from tests.sitl.helpers import OPEN_ROOM, write_constant_policy
 
 pytestmark = pytest.mark.sitl
@@ -32,6 +33,8 @@ SITL_COMMAND = os.environ.get("LIDAR_AVOID_EXTERNAL_SITL", "")
 CONNECT = os.environ.get("LIDAR_AVOID_EXTERNAL_CONNECT", "tcp:127.0.0.1:5760")
 #: the world starts facing 30° right of East; the separate autopilot boots facing North
 ROOM = dataclasses.replace(OPEN_ROOM, start_yaw_deg=-30.0)
+#: two waypoints, the first 0.5 m above the take-off height
+MISSION_ROOM = dataclasses.replace(ROOM, name="open-mission", waypoints=((2.5, 0.5, 2.0), (-1.0, 2.5, 1.5)))
 
 
 def start_autopilot(tmp_path: Path, personality: str, link: str, *extra: str) -> subprocess.Popen[bytes]:
@@ -61,13 +64,13 @@ def stop_autopilot(proc: subprocess.Popen[bytes]) -> None:
     proc.log.close()  # type: ignore[attr-defined]
 
 
-def fly_cli(tmp_path: Path, name: str, connect: str, policy: Path, world: Path) -> dict:
+def fly_cli(tmp_path: Path, name: str, connect: str, policy: Path, world: Path, *extra: str) -> dict:
     """``avoid-sim fly --autopilot external`` as the user runs it; returns its JSON report."""
     report = tmp_path / f"{name}.json"
     result = subprocess.run(
         [sys.executable, "-m", "flightsim", "fly", "--autopilot", "external", "--connect", connect,
          "--world", str(world), "--policy", str(policy), "--duration", "6", "--lidar-step", "1.0",
-         "--json", str(report), "--workdir", str(tmp_path / name)],
+         "--json", str(report), "--workdir", str(tmp_path / name), *extra],
         capture_output=True, text=True, timeout=240,
     )  # fmt: skip
     assert report.exists(), result.stdout + result.stderr
@@ -80,6 +83,13 @@ def fly_cli(tmp_path: Path, name: str, connect: str, policy: Path, world: Path) 
 def world_file(tmp_path: Path) -> Path:
     path = tmp_path / "room.json"
     save_world(ROOM, path)
+    return path
+
+
+@pytest.fixture
+def mission_file(tmp_path: Path) -> Path:
+    path = tmp_path / "mission.json"
+    save_world(MISSION_ROOM, path)
     return path
 
 
@@ -114,6 +124,31 @@ def test_fly_external_px4_switches_to_hold_and_judges_on_hil_state_quaternion(tm
     assert report["distance_m"] > 2.0
 
 
+@pytest.mark.parametrize(("personality", "flights"), [("ardupilot", 2), ("px4", 1)])
+def test_fly_external_mission_through_the_turned_sitl(tmp_path, mission_file, personality, flights):
+    """``fly --autopilot external --mission``: the world's waypoints go up as a mission through the
+    ground-station link, turned into the SITL's frame (it boots facing North, the world starts at
+    −30°), and the companion flies them in GUIDED / OFFBOARD: the report (judged on the SITL's
+    truth, in the world) has each waypoint reached, in order. On ArduPilot a second mission flight
+    starts where the first ended, away from the SITL's home: its waypoints are placed from there."""
+    policy = write_policy(tmp_path / "goal.onnx", kind="echo_goal")
+    udp = personality == "px4"
+    port = free_udp_port() if udp else free_tcp_port()
+    sitl = start_autopilot(tmp_path, personality, f"{'udpin' if udp else 'tcpin'}:127.0.0.1:{port}")
+    try:
+        for flight in range(flights):
+            report = fly_cli(tmp_path, f"mission-{flight}", f"{'udpout' if udp else 'tcp'}:127.0.0.1:{port}",
+                             policy, mission_file, "--mission", "--duration", "60")
+            assert report["error"] == "" and not report["collision"], report
+            assert [i for i, _t in report["waypoints_reached"]] == [0, 1], report
+            assert report["mission_complete"] and 0 < report["mission_time_s"] < 60, report
+            first = 1 if personality == "ardupilot" else 0  # ArduPilot's item 0 is home
+            assert report["items_reached"] == [first, first + 1], report
+            assert any("complete" in t for t in report["goal_events"]), report
+    finally:
+        stop_autopilot(sitl)
+
+
 def test_world_rotated_into_the_sitls_heading_and_estimate_fallback_warns(tmp_path):
     """The SITL boots facing North (90°), the world starts at −30°: the mirrored pose starts at the
     world's start, facing its start yaw. Without truth messages the report says it judged on the
@@ -142,15 +177,23 @@ def test_world_rotated_into_the_sitls_heading_and_estimate_fallback_warns(tmp_pa
 
 
 @pytest.mark.skipif(not SITL_COMMAND, reason="LIDAR_AVOID_EXTERNAL_SITL does not name a real SITL to start")
-def test_companion_flies_a_real_external_sitl(tmp_path, world_file):
+@pytest.mark.parametrize("mission", [False, True])
+def test_companion_flies_a_real_external_sitl(tmp_path, world_file, mission_file, mission):
+    """A constant policy flies a circle; or (``--mission``) a goal-steering one flies two waypoints."""
     log = open(tmp_path / "sitl.log", "wb")  # noqa: SIM115
     proc = subprocess.Popen(shlex.split(SITL_COMMAND), stdout=log, stderr=subprocess.STDOUT)
     try:
         time.sleep(3.0)
         assert proc.poll() is None, "the SITL exited at start-up"
-        report = fly_cli(tmp_path, "real", CONNECT, write_constant_policy(tmp_path / "c.onnx", 0.5, 0.4),
-                         world_file)
-        assert report["engaged"] and report["distance_m"] > 1.0, report
+        if not mission:
+            report = fly_cli(tmp_path, "real", CONNECT, write_constant_policy(tmp_path / "c.onnx", 0.5, 0.4),
+                             world_file)
+            assert report["engaged"] and report["distance_m"] > 1.0, report
+            return
+        policy = write_policy(tmp_path / "goal.onnx", kind="echo_goal")
+        report = fly_cli(tmp_path, "real-mission", CONNECT, policy, mission_file, "--mission",
+                         "--duration", "90")
+        assert [i for i, _t in report["waypoints_reached"]] == [0, 1] and report["mission_complete"], report
     finally:
         proc.terminate()
         proc.wait(timeout=20)

@@ -1,4 +1,5 @@
-"""A minimal ground station over pymavlink: what the pilot does in a SITL flight (mode, arm, take-off).
+"""A minimal ground station over pymavlink: what the pilot does in a SITL flight (mode, arm, take-off,
+mission upload).
 
 Used by the SITL harness and the SITL tests against the simulated autopilots and, with
 ``--autopilot external``, against a real ArduPilot/PX4 SITL. It speaks only MAVLink (no simulator
@@ -15,6 +16,7 @@ from typing import Any
 
 from pymavlink import mavutil
 
+from companion.connection import parse_connection
 from companion.errors import UserError
 
 log = logging.getLogger(__name__)
@@ -44,14 +46,17 @@ PX4_MODES = {
 class GroundStation:
     """One GCS connection to an autopilot.
 
-    :param connect: pymavlink connection string, e.g. ``udpout:127.0.0.1:14550``
+    :param connect: a MAVLink connection, either spelling (``udpout:127.0.0.1:14550``,
+        ``udpin://0.0.0.0:14550``, ``/dev/ttyUSB0:57600``), checked by :mod:`companion.connection`
     :param system_id: the GCS's own system id (255 as Mission Planner/QGC use)
     """
 
     def __init__(self, connect: str, system_id: int = 255) -> None:
+        link = parse_connection(connect, default_baud=57600)
         try:
             self.mav = mavutil.mavlink_connection(
-                connect,
+                link.pymavlink,
+                baud=link.baud or 115200,
                 source_system=system_id,
                 source_component=mavutil.mavlink.MAV_COMP_ID_MISSIONPLANNER,
                 dialect="ardupilotmega",
