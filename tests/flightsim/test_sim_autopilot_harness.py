@@ -230,6 +230,30 @@ def test_mission_frame_needs_a_global_position():
         pose.mission_frame()
 
 
+def test_ground_station_takes_either_spelling_of_a_connection_and_names_a_bad_one():
+    """``--connect`` goes through companion/connection.py: a MAVSDK URL works as its pymavlink
+    spelling does (here against a real pymavlink peer on loopback), a bad one is one UserError."""
+    from flightsim.ground_station import GroundStation
+    from tests.companion.mavlink_peer import AutopilotPeer
+
+    port = free_udp_port()
+    gcs = GroundStation(f"udpin://127.0.0.1:{port}")  # MAVSDK's spelling of pymavlink's udpin:
+    peer = AutopilotPeer(f"udpout:127.0.0.1:{port}")
+    try:
+        peer.heartbeat(armed=False)
+        gcs.wait_heartbeat(timeout=5.0)
+        gcs.pump(1.2)  # its next heartbeat (one a second) goes to the peer it now knows
+        assert peer.wait_for("HEARTBEAT", timeout=1.0) is not None
+        assert gcs.target_system == 1 and not gcs.armed
+    finally:
+        peer.close()
+        gcs.close()
+    for bad, why in (("tcp:127.0.0.1:70000", "port"), ("mavlink.example:5760", "expected"),
+                     ("udpin:", "HOST:PORT")):
+        with pytest.raises(UserError, match=why):
+            GroundStation(bad)
+
+
 def wire(msg):
     from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
