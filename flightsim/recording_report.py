@@ -17,7 +17,7 @@ import numpy as np
 
 from companion.errors import UserError
 from companion.recording import schemas as s
-from companion.recording.reader import Recording, read_recording
+from companion.recording.reader import Recording, read_recording, setpoints
 from companion.shield import sector_bins
 from flightsim.recording import TRUTH_METADATA, TRUTH_STATE
 from flightsim.world import DEFAULT_VEHICLE_RADIUS, World, world_from_dict
@@ -30,7 +30,8 @@ class FlightSeries:
     """The time series a report draws, seconds since the recording's first message."""
 
     t0: float
-    setpoint: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # t, forward, yaw rate
+    # t, forward, yaw rate, vertical (climb, NaN: not recorded)
+    setpoint: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
     requested: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # t, forward asked by policy
     scan_clearance: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # t, front, nearest
     interventions: dict[str, list[float]] = field(default_factory=dict)  # limit -> times
@@ -46,8 +47,8 @@ def flight_series(rec: Recording) -> FlightSeries:
         raise UserError(f"{rec.path}: the recording holds no messages")
     t0 = min(times)
     out = FlightSeries(t0)
-    out.setpoint = np.array([(t - t0, msg["forward"], msg["yaw_rate"])
-                             for t, msg in rec.topic(s.SETPOINT.topic)]).reshape(-1, 3)
+    sent = setpoints(rec)
+    out.setpoint = np.column_stack([sent[:, 0] - t0, sent[:, 1], sent[:, 2], sent[:, 4]])
     shield = rec.topic(s.SHIELD.topic)
     out.requested = np.array([(t - t0, msg["requested"]["forward"]) for t, msg in shield]).reshape(-1, 2)
     for t, msg in shield:
@@ -81,6 +82,12 @@ def summary(series: FlightSeries) -> list[str]:
                series.truth[-1, 0] if len(series.truth) else 0.0])
     n_scans, n_setpoints = len(series.scan_clearance), len(series.setpoint)
     lines.append(f"{end:.1f} s recorded, {n_scans} scans, {n_setpoints} setpoints")
+    vertical = series.setpoint[:, 3]
+    if len(vertical) and np.isnan(vertical).all():
+        lines.append("vertical setpoint: not recorded (a recording made before it was)")
+    elif len(vertical):
+        lines.append(f"vertical setpoint: climb up to {max(np.nanmax(vertical), 0.0):.2f} m/s, "
+                     f"descent up to {max(-np.nanmin(vertical), 0.0):.2f} m/s")
     if series.interventions:
         lines.append("shield limits acted: " + ", ".join(
             f"{k} {len(v)}" for k, v in sorted(series.interventions.items())))
@@ -133,9 +140,12 @@ def _speed(ax: Any, f: FlightSeries) -> None:
     if len(f.setpoint):
         ax.step(f.setpoint[:, 0], f.setpoint[:, 1], where="post", color="tab:blue", lw=1.2,
                 label="setpoint sent")
+        if not np.isnan(f.setpoint[:, 3]).all():
+            ax.step(f.setpoint[:, 0], f.setpoint[:, 3], where="post", color="tab:green", lw=1,
+                    label="vertical sent (up)")
     if len(f.truth):
         ax.plot(f.truth[:, 0], f.truth[:, 4], color="black", lw=1, label="true speed")
-    ax.set_ylabel("forward, m/s")
+    ax.set_ylabel("speed, m/s")
     ax.grid(alpha=0.3)
     ax.legend(loc="upper right", fontsize=8)
 

@@ -12,10 +12,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from mcap.records import Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 
 from companion.errors import UserError
+from companion.recording.schemas import SETPOINT
+
+#: the columns of :func:`setpoints` after the log time (``lidar_avoid.Setpoint`` fields)
+SETPOINT_FIELDS = ("forward", "yaw_rate", "lateral", "vertical")
 
 
 @dataclass
@@ -82,3 +87,16 @@ def read_recording(path: str | Path) -> Recording:
         rec.messages[topic] = [(ns * 1e-9, msg) for ns, _, _, msg in rows]
         rec.sequences[topic] = [seq for _, _, seq, _ in rows]
     return rec
+
+
+def setpoints(rec: Recording) -> np.ndarray:
+    """Every setpoint the companion sent: rows of (log time s, forward, yaw rate, lateral, vertical).
+
+    A field the recording lacks is NaN, never 0: recordings made before the vertical speed was
+    recorded have none, and their flights may have climbed toward a waypoint's height.
+    """
+    def value(v: Any) -> float:
+        return np.nan if v is None else float(v)
+
+    rows = [(t, *(value(msg.get(k)) for k in SETPOINT_FIELDS)) for t, msg in rec.topic(SETPOINT.topic)]
+    return np.array(rows, dtype=np.float64).reshape(-1, 1 + len(SETPOINT_FIELDS))

@@ -163,9 +163,11 @@ class FlightRecorder:
             self._hold(s.SHIELD, self._clock(), _shield_step, scan_seq, float(dt), reset, requested,
                        output, limits, extra)
 
-    def on_setpoint(self, forward: float, yaw_rate: float, lateral: float = 0.0) -> None:
+    def on_setpoint(self, forward: float, yaw_rate: float, lateral: float = 0.0,
+                    vertical: float = 0.0) -> None:
         if self.active:
-            self._hold(s.SETPOINT, self._clock(), _setpoint, float(forward), float(yaw_rate), float(lateral))
+            self._hold(s.SETPOINT, self._clock(), _setpoint, float(forward), float(yaw_rate), float(lateral),
+                       float(vertical))
 
     def on_statustext(self, text: str, severity: int) -> None:
         if self.active:
@@ -234,8 +236,8 @@ def _shield_step(t: float, scan_seq: int | None, dt: float, reset: bool, request
             "extra": None if not extra else m.plain(extra)}
 
 
-def _setpoint(t: float, forward: float, yaw_rate: float, lateral: float) -> dict[str, Any]:
-    return {"timestamp": m.stamp(t), **m.command(forward, yaw_rate), "lateral": lateral}
+def _setpoint(t: float, forward: float, yaw_rate: float, lateral: float, vertical: float) -> dict[str, Any]:
+    return {"timestamp": m.stamp(t), **m.command(forward, yaw_rate), "lateral": lateral, "vertical": vertical}
 
 
 def _log(t: float, text: str, severity: int) -> dict[str, Any]:

@@ -111,9 +111,11 @@ OWN_SCHEMAS: dict[str, dict[str, Any]] = {
         reset_before=_bool(), requested=COMMAND, output=COMMAND, limits=_array(_str()),
         extra=_nullable({"type": "object"}),
     ),
-    # Every velocity setpoint that went to the autopilot (policy or zero).
+    # Every velocity setpoint that went to the autopilot (policy or zero), body frame FLU, m/s and
+    # rad/s; ``vertical`` is the climb rate (up positive). Recordings made before it have no
+    # ``vertical`` (reader.setpoints gives NaN: not recorded).
     "lidar_avoid.Setpoint": _obj("lidar_avoid.Setpoint", timestamp=TIME, forward=_num(), yaw_rate=_num(),
-                                  lateral=_num()),
+                                  lateral=_num(), vertical=_num()),
     "lidar_avoid.Transition": _obj(
         "lidar_avoid.Transition", timestamp=TIME, old=_str(), new=_str(), reason=_str(), counters=_COUNTS,
     ),

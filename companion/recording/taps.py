@@ -89,7 +89,7 @@ class LinkTap(_Tap):
     def send_velocity(self, forward: float, yaw_rate: float, lateral: float = 0.0,
                       vertical: float = 0.0) -> None:
         self._inner.send_velocity(forward, yaw_rate, lateral, vertical)
-        self._recorder.on_setpoint(forward, yaw_rate, lateral)
+        self._recorder.on_setpoint(forward, yaw_rate, lateral, vertical)
         self._recorder.flush()
 
     def send_obstacle_distance(self, sectors_cm: np.ndarray) -> None:

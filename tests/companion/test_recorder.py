@@ -24,7 +24,7 @@ from mcap.writer import Writer
 
 from companion.recording import schemas as s
 from companion.recording.messages import point_cloud
-from companion.recording.reader import read_recording
+from companion.recording.reader import read_recording, setpoints
 from companion.recording.recorder import FlightRecorder
 from companion.recording.taps import tap_parts
 from companion.recording.writer import CHUNK_SIZE, FILE_GLOB, McapSink
@@ -34,6 +34,18 @@ from tests.onnx_models import write_policy
 
 REPO = Path(__file__).resolve().parents[2]
 POSE = {"position": {"x": 0.0, "y": 0.0, "z": 0.0}, "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}
+
+
+#: a fixed waypoint 2 m above the vehicle's 1.5 m (the peer autopilot hovers over the origin)
+CLIMB = """
+[goal]
+source = "fixed"
+max_vertical_speed = 0.5
+[[goal.waypoints]]
+north = 0.0
+east = -5.0
+down = -3.5
+"""
 
 
 def noise_cloud(seed: int, n: int = 4000) -> np.ndarray:
@@ -174,14 +186,16 @@ def test_the_companion_flies_on_when_its_recording_directory_cannot_be_made(tmp_
     assert code == 0, err[-3000:]
 
 
-def _record_companion(tmp_path: Path, setpoints: int = 25, recorder: str = "", parts: int = 1) -> list[Path]:
-    """A short recording of the real companion process (constant lidar, the 'steer' policy), ended
-    once the autopilot has had ``setpoints`` setpoints and the recorder has begun ``parts`` files
-    (how fast a part fills depends on how well the cloud compresses); its files, oldest first."""
+def _record_companion(tmp_path: Path, setpoints: int = 25, recorder: str = "", parts: int = 1,
+                      extra: str = "") -> list[Path]:
+    """A short recording of the real companion process (constant lidar, the 'steer' policy, config
+    ``extra``), ended once the autopilot has had ``setpoints`` setpoints and the recorder has begun
+    ``parts`` files (how fast a part fills depends on how well the cloud compresses); its files,
+    oldest first."""
     lidar_port, mavlink_port = free_udp_port(), free_udp_port()
     model = write_policy(tmp_path / "steer.onnx", kind="steer")
-    config = write_config(tmp_path, model, lidar_port, mavlink_port,
-                          extra=f'[recorder]\nenabled = true\ndirectory = "{tmp_path}/rec"\n{recorder}')
+    recording = f'[recorder]\nenabled = true\ndirectory = "{tmp_path}/rec"\n{recorder}\n'
+    config = write_config(tmp_path, model, lidar_port, mavlink_port, extra=recording + extra)
     vehicle = SimulatedAutopilot(f"udpout:127.0.0.1:{mavlink_port}")
     proc = start_companion(config)
     lidar = LidarSender(lidar_port)
@@ -202,6 +216,40 @@ def _record_companion(tmp_path: Path, setpoints: int = 25, recorder: str = "", p
 
 def _with_one_action_changed(src: Path, dst: Path, index: int) -> None:
     """Copy a recording, the ``index``-th policy action moved by one float32 ulp."""
+    def change(topic: str, data: bytes, n: int) -> bytes:
+        if topic != s.POLICY.topic or n != index:
+            return data
+        step = json.loads(data)
+        step["action"][0] = float(np.nextafter(np.float32(step["action"][0]), np.float32(2)))
+        return json.dumps(step).encode()
+
+    _copy_recording(src, dst, change)
+
+
+def _as_before_the_vertical_speed(src: Path, dst: Path) -> None:
+    """Copy a recording as the recorder wrote it before setpoints had ``vertical``: without the
+    field, under the schema of then."""
+    def old_schema(name: str, data: bytes) -> bytes:
+        if name != "lidar_avoid.Setpoint":
+            return data
+        schema = json.loads(data)
+        del schema["properties"]["vertical"]
+        schema["required"].remove("vertical")
+        return json.dumps(schema).encode()
+
+    def strip(topic: str, data: bytes, _n: int) -> bytes:
+        if topic != s.SETPOINT.topic:
+            return data
+        msg = json.loads(data)
+        del msg["vertical"]
+        return json.dumps(msg).encode()
+
+    _copy_recording(src, dst, strip, old_schema)
+
+
+def _copy_recording(src: Path, dst: Path, message, schema=lambda _name, data: data) -> None:
+    """Copy an MCAP file record by record: ``message(topic, data, n)`` (n: the topic's n-th message,
+    from 1) and ``schema(name, data)`` give the bytes written."""
     with open(src, "rb") as f, open(dst, "wb") as out:
         reader = make_reader(f)
         writer = Writer(out)
@@ -209,19 +257,14 @@ def _with_one_action_changed(src: Path, dst: Path, index: int) -> None:
         for md in reader.iter_metadata():
             writer.add_metadata(md.name, dict(md.metadata))
         ids: dict[str, int] = {}
-        n = 0
-        for schema, channel, msg in reader.iter_messages():
+        counts: dict[str, int] = {}
+        for mcap_schema, channel, msg in reader.iter_messages():
             if channel.topic not in ids:
-                sid = writer.register_schema(schema.name, schema.encoding, schema.data)
+                sid = writer.register_schema(mcap_schema.name, mcap_schema.encoding,
+                                             schema(mcap_schema.name, mcap_schema.data))
                 ids[channel.topic] = writer.register_channel(channel.topic, channel.message_encoding, sid)
-            data = msg.data
-            if channel.topic == s.POLICY.topic:
-                n += 1
-                if n == index:
-                    step = json.loads(data)
-                    a = np.float32(step["action"][0])
-                    step["action"][0] = float(np.nextafter(a, np.float32(2)))
-                    data = json.dumps(step).encode()
+            counts[channel.topic] = counts.get(channel.topic, 0) + 1
+            data = message(channel.topic, msg.data, counts[channel.topic])
             writer.add_message(ids[channel.topic], msg.log_time, data, msg.publish_time, msg.sequence)
         writer.finish()
 
@@ -251,6 +294,33 @@ def test_replay_matches_bit_for_bit_and_finds_a_one_ulp_difference(tmp_path):
     assert what_if.returncode == 0, what_if.stdout + what_if.stderr
     assert "what-if: forward.onnx" in what_if.stdout and "largest differences" in what_if.stdout
     assert plot.stat().st_size > 10_000
+
+
+def test_setpoints_record_the_vertical_speed_and_older_recordings_read_as_before(tmp_path):
+    """A fixed waypoint 2 m above: the climb the link sends (vz, down-positive) is in the setpoint
+    record, and the report shows it. The same recording as the recorder wrote it before
+    ``vertical`` existed still replays bit for bit, and reads with the vertical speed unknown."""
+    from flightsim.recording_report import flight_series, summary
+
+    (path,) = _record_companion(tmp_path, extra=CLIMB)
+    rec = read_recording(path)
+    assert rec.schemas[s.SETPOINT.topic] == "lidar_avoid.Setpoint"
+    assert "vertical" in json.loads(rec.schema_data[s.SETPOINT.topic])["required"]
+    sent = setpoints(rec)
+    assert sent.shape[1] == 5 and not np.isnan(sent).any()
+    # 2 m below the waypoint: a climb at goal.max_vertical_speed (0.5 m/s) beside the policy's command
+    assert np.sum(np.isclose(sent[:, 4], 0.5)) >= 10 and sent[:, 4].min() >= 0.0
+    assert "vertical setpoint: climb up to 0.50 m/s" in "\n".join(summary(flight_series(rec)))
+
+    before = tmp_path / "before-vertical.mcap"
+    _as_before_the_vertical_speed(path, before)
+    old = read_recording(before)
+    assert len(setpoints(old)) == len(sent) and np.isnan(setpoints(old)[:, 4]).all()
+    np.testing.assert_array_equal(setpoints(old)[:, :4], sent[:, :4])
+    assert "vertical setpoint: not recorded" in "\n".join(summary(flight_series(old)))
+    replay = subprocess.run([sys.executable, "-m", "companion", "replay", str(before)], cwd=REPO,
+                            capture_output=True, text=True, timeout=120)
+    assert replay.returncode == 0 and "matches bit for bit" in replay.stdout, replay.stdout + replay.stderr
 
 
 def test_replay_of_a_file_that_is_not_a_recording_is_one_line_and_exit_2(tmp_path):
