@@ -44,10 +44,8 @@ from tests.companion.companion_process import (  # noqa: E402
     write_config,
 )
 from tests.companion.lidar_flood import FLOOD_KINDS  # noqa: E402
-from tests.companion.mavlink_peer import StampingAutopilot  # noqa: E402
+from tests.companion.mavlink_peer import SETPOINT, StampingAutopilot  # noqa: E402
 from tests.onnx_models import write_policy  # noqa: E402
-
-SETPOINT = "SET_POSITION_TARGET_LOCAL_NED"
 
 
 def cpu_seconds(pid: int) -> float:

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from companion.lidar.velodyne import FIRINGS_PER_PACKET, PACKET_DURATION_US, encode_packets
-from tests.companion.mavlink_peer import free_udp_port
+from tests.companion.mavlink_peer import SETPOINT, SimulatedAutopilot, free_udp_port
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -223,8 +223,66 @@ def stop(proc: subprocess.Popen[str], timeout: float = 10.0) -> tuple[int, str, 
     return proc.returncode, out, err
 
 
-__all__ = ["LidarSender", "NotifySocket", "free_udp_port", "revolution_packets", "run_to_exit",
-           "start_companion", "start_lidar_traffic", "stop", "write_config"]
+#: config extra: a fixed waypoint 5 m west of the origin and 2 m above the :class:`Flight`'s 1.5 m
+WEST_AND_UP = """
+[goal]
+source = "fixed"
+max_vertical_speed = 0.5
+[[goal.waypoints]]
+north = 0.0
+east = -5.0
+down = -3.5
+"""
+
+
+class Flight:
+    """The companion process with a config, a peer autopilot hovering at 1.5 m, the lidar on.
+
+    :param position: the peer's LOCAL_POSITION_NED (north, east, down), None: over the origin
+    """
+
+    def __init__(self, config: Path, lidar_port: int, mavlink_port: int,
+                 position: tuple[float, float, float] | None = (0.0, 0.0, -1.5)) -> None:
+        self.vehicle = SimulatedAutopilot(f"udpout:127.0.0.1:{mavlink_port}")
+        self.vehicle.local_position = position
+        self.proc = start_companion(config)
+        self.lidar = LidarSender(lidar_port)
+        self.lidar.on = True
+
+    @classmethod
+    def with_model(cls, tmp_path: Path, kind: str, extra: str = "") -> Flight:
+        """A test model of ``kind`` (tests/onnx_models.py) under the default config + ``extra``."""
+        from tests.onnx_models import write_policy
+
+        lidar_port, mavlink_port = free_udp_port(), free_udp_port()
+        model = write_policy(tmp_path / f"{kind}.onnx", kind=kind)
+        config = write_config(tmp_path, model, lidar_port, mavlink_port, extra=extra)
+        return cls(config, lidar_port, mavlink_port)
+
+    def setpoints(self, since: float = 0.0) -> list[Any]:
+        return self.vehicle.messages(SETPOINT, since=since)
+
+    def texts(self, since: float = 0.0) -> list[str]:
+        """The companion's STATUSTEXTs received at or after ``since`` (monotonic)."""
+        return [m.text for m in self.vehicle.messages("STATUSTEXT", since=since)]
+
+    def settled(self, condition: Callable[[Any], bool], what: str, window: float = 0.6) -> Any:
+        """Wait until every setpoint of the last ``window`` s satisfies ``condition``; return the last."""
+        def check() -> Any:
+            recent = self.setpoints(since=time.monotonic() - window)
+            return recent[-1] if len(recent) >= 3 and all(condition(m) for m in recent) else None
+
+        return wait_until(check, 20.0, what)
+
+    def close(self) -> None:
+        self.lidar.close()
+        if self.proc.poll() is None:
+            print(stop(self.proc)[2][-5000:])
+        self.vehicle.close()
+
+
+__all__ = ["WEST_AND_UP", "Flight", "LidarSender", "NotifySocket", "free_udp_port", "revolution_packets",
+           "run_to_exit", "start_companion", "start_lidar_traffic", "stop", "write_config"]
 
 
 def wait_until(condition: Callable[[], Any], timeout: float = 10.0, what: str = "condition") -> Any:

@@ -22,6 +22,8 @@ from companion.autopilot.mavlink_adapter import mavlink
 
 COPTER_GUIDED = 4
 COPTER_LOITER = 5
+#: the message the companion's velocity setpoints travel in (both firmwares' GUIDED/OFFBOARD)
+SETPOINT = "SET_POSITION_TARGET_LOCAL_NED"
 
 
 def free_udp_port() -> int:

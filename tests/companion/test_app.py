@@ -29,11 +29,8 @@ from tests.companion.companion_process import (
 from tests.companion.companion_process import (
     wait_until as _wait,
 )
-from tests.companion.mavlink_peer import COPTER_GUIDED, COPTER_LOITER, SimulatedAutopilot
+from tests.companion.mavlink_peer import COPTER_GUIDED, COPTER_LOITER, SETPOINT, SimulatedAutopilot
 from tests.onnx_models import COMPANION_SPEC, write_policy
-
-SETPOINT = "SET_POSITION_TARGET_LOCAL_NED"
-
 
 
 @pytest.fixture

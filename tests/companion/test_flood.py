@@ -27,10 +27,9 @@ from tests.companion.companion_process import (
     write_config,
 )
 from tests.companion.lidar_flood import FLOOD_KINDS
-from tests.companion.mavlink_peer import StampingAutopilot
+from tests.companion.mavlink_peer import SETPOINT, StampingAutopilot
 from tests.onnx_models import write_policy
 
-SETPOINT = "SET_POSITION_TARGET_LOCAL_NED"
 FLOOD_RATE = 10_000
 FLOOD_SECONDS = 5.0
 

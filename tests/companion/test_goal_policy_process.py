@@ -9,66 +9,12 @@ the climb toward a waypoint's height beside the policy's horizontal command.
 from __future__ import annotations
 
 import math
-import time
 from pathlib import Path
 
-from tests.companion.companion_process import (
-    LidarSender,
-    free_udp_port,
-    run_to_exit,
-    start_companion,
-    stop,
-    write_config,
-)
+from tests.companion.companion_process import WEST_AND_UP, Flight, free_udp_port, run_to_exit, write_config
 from tests.companion.companion_process import wait_until as _wait
-from tests.companion.mavlink_peer import SimulatedAutopilot
+from tests.companion.mavlink_peer import SETPOINT
 from tests.onnx_models import SCAN_SPEC, write_policy
-
-SETPOINT = "SET_POSITION_TARGET_LOCAL_NED"
-#: a waypoint 5 m west of the origin and 2 m above the vehicle's 1.5 m
-WEST_AND_UP = """
-[goal]
-source = "fixed"
-max_vertical_speed = 0.5
-[[goal.waypoints]]
-north = 0.0
-east = -5.0
-down = -3.5
-"""
-
-
-class Flight:
-    """The companion with a model and config extra, a peer autopilot flying at 1.5 m, lidar on."""
-
-    def __init__(self, config: Path, lidar_port: int, mavlink_port: int,
-                 position: tuple[float, float, float] | None = (0.0, 0.0, -1.5)) -> None:
-        self.vehicle = SimulatedAutopilot(f"udpout:127.0.0.1:{mavlink_port}")
-        self.vehicle.local_position = position
-        self.proc = start_companion(config)
-        self.lidar = LidarSender(lidar_port)
-        self.lidar.on = True
-
-    @classmethod
-    def with_model(cls, tmp_path, kind: str, extra: str = "") -> Flight:
-        """A test model of ``kind`` (tests/onnx_models.py) under the default config + ``extra``."""
-        lidar_port, mavlink_port = free_udp_port(), free_udp_port()
-        model = write_policy(tmp_path / f"{kind}.onnx", kind=kind)
-        config = write_config(tmp_path, model, lidar_port, mavlink_port, extra=extra)
-        return cls(config, lidar_port, mavlink_port)
-
-    def settled(self, condition, what: str, window: float = 0.6):
-        """Wait until every setpoint of the last ``window`` s satisfies ``condition``; return the last."""
-        def check():
-            recent = self.vehicle.messages(SETPOINT, since=time.monotonic() - window)
-            return recent[-1] if len(recent) >= 3 and all(condition(m) for m in recent) else None
-
-        return _wait(check, 20.0, what)
-
-    def close(self) -> None:
-        self.lidar.close()
-        if self.proc.poll() is None:
-            print(stop(self.proc)[2][-5000:])
-        self.vehicle.close()
 
 
 def test_without_a_goal_source_the_goal_is_ahead_and_the_altitude_held(tmp_path):

@@ -10,11 +10,8 @@ import pytest
 
 from tests.companion.companion_process import LidarSender, free_udp_port, start_companion, stop, write_config
 from tests.companion.companion_process import wait_until as _wait
-from tests.companion.mavlink_peer import COPTER_GUIDED, COPTER_LOITER, SimulatedAutopilot
+from tests.companion.mavlink_peer import COPTER_GUIDED, COPTER_LOITER, SETPOINT, SimulatedAutopilot
 from tests.onnx_models import write_policy
-
-SETPOINT = "SET_POSITION_TARGET_LOCAL_NED"
-
 
 
 @pytest.fixture

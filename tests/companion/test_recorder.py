@@ -28,24 +28,19 @@ from companion.recording.reader import read_recording, setpoints
 from companion.recording.recorder import FlightRecorder
 from companion.recording.taps import tap_parts
 from companion.recording.writer import CHUNK_SIZE, FILE_GLOB, McapSink
-from tests.companion.companion_process import LidarSender, free_udp_port, start_companion, stop, write_config
-from tests.companion.mavlink_peer import SimulatedAutopilot
+from tests.companion.companion_process import (
+    WEST_AND_UP,
+    LidarSender,
+    free_udp_port,
+    start_companion,
+    stop,
+    write_config,
+)
+from tests.companion.mavlink_peer import SETPOINT, SimulatedAutopilot
 from tests.onnx_models import write_policy
 
 REPO = Path(__file__).resolve().parents[2]
 POSE = {"position": {"x": 0.0, "y": 0.0, "z": 0.0}, "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}
-
-
-#: a fixed waypoint 2 m above the vehicle's 1.5 m (the peer autopilot hovers over the origin)
-CLIMB = """
-[goal]
-source = "fixed"
-max_vertical_speed = 0.5
-[[goal.waypoints]]
-north = 0.0
-east = -5.0
-down = -3.5
-"""
 
 
 def noise_cloud(seed: int, n: int = 4000) -> np.ndarray:
@@ -175,10 +170,10 @@ def test_the_companion_flies_on_when_its_recording_directory_cannot_be_made(tmp_
         text = vehicle.wait_for("STATUSTEXT", timeout=40,
                                 condition=lambda msg: "recording off" in msg.text)
         assert text is not None and "Not a directory" in text.text
-        assert vehicle.wait_for("SET_POSITION_TARGET_LOCAL_NED", timeout=10) is not None
+        assert vehicle.wait_for(SETPOINT, timeout=10) is not None
         t = time.monotonic()
         time.sleep(1.5)
-        assert len(vehicle.times("SET_POSITION_TARGET_LOCAL_NED", since=t)) >= 10
+        assert len(vehicle.times(SETPOINT, since=t)) >= 10
     finally:
         lidar.close()
         code, _, err = stop(proc)
@@ -202,7 +197,7 @@ def _record_companion(tmp_path: Path, setpoints: int = 25, recorder: str = "", p
     try:
         lidar.on = True
         deadline = time.monotonic() + 40
-        while (len(vehicle.times("SET_POSITION_TARGET_LOCAL_NED")) < setpoints
+        while (len(vehicle.times(SETPOINT)) < setpoints
                or len(list((tmp_path / "rec").glob(FILE_GLOB))) < parts):
             assert time.monotonic() < deadline, "too few setpoints or recording parts from the companion"
             time.sleep(0.1)
@@ -302,7 +297,7 @@ def test_setpoints_record_the_vertical_speed_and_older_recordings_read_as_before
     ``vertical`` existed still replays bit for bit, and reads with the vertical speed unknown."""
     from flightsim.recording_report import flight_series, summary
 
-    (path,) = _record_companion(tmp_path, extra=CLIMB)
+    (path,) = _record_companion(tmp_path, extra=WEST_AND_UP)
     rec = read_recording(path)
     assert rec.schemas[s.SETPOINT.topic] == "lidar_avoid.Setpoint"
     assert "vertical" in json.loads(rec.schema_data[s.SETPOINT.topic])["required"]

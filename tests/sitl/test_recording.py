@@ -27,7 +27,6 @@ from tests.sitl.helpers import OPEN_ROOM, companion_counters, wait_for, write_co
 
 pytestmark = pytest.mark.sitl
 REPO = Path(__file__).resolve().parents[2]
-SETPOINT = "SET_POSITION_TARGET_LOCAL_NED"
 COMPANION_TOPICS = {s.SCAN.topic, s.CLOUD.topic, s.POLICY.topic, s.SHIELD.topic, s.SETPOINT.topic,
                     s.TRANSITION.topic, s.VEHICLE.topic, s.COUNTERS.topic, s.LOG.topic}
 TRUTH_TOPICS = {s.TRUTH_POSE.topic, s.TRUTH_TF.topic, "/truth/state"}
