@@ -78,18 +78,29 @@ class CurriculumConfig:
 
 @dataclass(frozen=True)
 class PretrainConfig:
-    """Behaviour cloning warm start before PPO (:mod:`training.pretrain`); ``steps = 0``: none.
+    """Imitation before PPO; ``steps = 0``: none.
 
-    :param steps: env steps of demonstrations to record (all envs together; not counted in
+    ``method = "bc"``: behaviour cloning of a classical controller (:mod:`training.pretrain`).
+    ``method = "dagger"`` (goal task): DAgger from the privileged path-following teacher
+    (:mod:`training.dagger`, :mod:`training.path_expert`), with the held-out evaluation after
+    every iteration (``best_model.zip`` is the best of them, and of PPO's evaluations after).
+
+    :param method: ``"bc"`` or ``"dagger"``
+    :param steps: env steps recorded (all envs together; per iteration for DAgger; not counted in
         ``total_timesteps``)
-    :param demonstrator: the classical controller imitated
+    :param demonstrator: the classical controller imitated (``bc`` only)
+    :param iterations: DAgger's collect-and-fit rounds
+    :param beta0: DAgger's teacher flies an episode with probability ``beta0 ** iteration``
     :param epochs: passes over the demonstrations
     :param batch_size: demonstrations per gradient step
     :param learning_rate: Adam's, for the warm start only
     """
 
+    method: Literal["bc", "dagger"] = "bc"
     steps: int = field(default=0, metadata={"min": 0, "max": 10_000_000})
     demonstrator: Literal["goal_follower", "gap_follower"] = "goal_follower"
+    iterations: int = field(default=1, metadata={"min": 1, "max": 100})
+    beta0: float = field(default=0.5, metadata={"min": 0.0, "max": 1.0})
     epochs: int = field(default=10, metadata={"min": 1, "max": 1000})
     batch_size: int = field(default=256, metadata={"min": 1})
     learning_rate: float = field(default=1e-3, metadata={"min": 1e-7, "max": 1.0})
@@ -101,7 +112,8 @@ class TrainConfig:
 
     :param name: config name; the run directory is ``<run_root>/<name>-s<seed>``
     :param seed: seeds PPO, the world sequence and the environments
-    :param total_timesteps: environment steps to train for (all environments together)
+    :param total_timesteps: PPO's environment steps (all environments together); 0: imitation
+        only (``[pretrain]``), no PPO
     :param n_envs: parallel simulator processes; 0 = one per CPU core
     :param n_stack: scans stacked into one observation (the companion's FrameStack depth)
     :param checkpoint_every: save a checkpoint every this many environment steps
@@ -127,7 +139,7 @@ class TrainConfig:
     env_id: Literal["flightsim/LidarAvoid-v0", "flightsim/LidarNav-v0"] = "flightsim/LidarAvoid-v0"
     name: str = "default"
     seed: int = field(default=0, metadata={"min": 0})
-    total_timesteps: int = field(default=1_000_000, metadata={"min": 1})
+    total_timesteps: int = field(default=1_000_000, metadata={"min": 0})
     n_envs: int = field(default=0, metadata={"min": 0, "max": 256})
     n_stack: int = field(default=4, metadata={"min": 1, "max": 64})
     checkpoint_every: int = field(default=50_000, metadata={"min": 1})
@@ -146,7 +158,12 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if not isinstance(self.env, dict):
             raise ValueError("env must be a table")
-        if self.pretrain.steps and (self.pretrain.demonstrator == "goal_follower") != self.is_goal_task:
+        if self.total_timesteps == 0 and not self.pretrain.steps:
+            raise ValueError("total_timesteps 0 trains nothing: give it steps, or [pretrain] steps")
+        if self.pretrain.steps and self.pretrain.method == "dagger":
+            if not self.is_goal_task or self.vec_env != "batched":
+                raise ValueError('pretrain.method "dagger" needs the goal task and vec_env = "batched"')
+        elif self.pretrain.steps and (self.pretrain.demonstrator == "goal_follower") != self.is_goal_task:
             task = "goal" if self.is_goal_task else "avoid"
             raise ValueError(
                 f"pretrain.demonstrator {self.pretrain.demonstrator} does not fly the {task} task"

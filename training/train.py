@@ -405,12 +405,35 @@ def build_model(config: TrainConfig, venv: Any, run_dir: Path, resume: Path | No
     )
 
 
-def warm_start(config: TrainConfig, venv: Any, model: Any) -> None:
-    """Behaviour cloning before PPO (:mod:`training.pretrain`): record the demonstrator in the
-    training envs, fit the fresh model's actor and critic to it."""
+def warm_start(config: TrainConfig, venv: Any, model: Any, evaluation: Any) -> None:
+    """Imitation before PPO: behaviour cloning of a classical controller (:mod:`training.pretrain`)
+    or DAgger from the privileged teacher (:mod:`training.dagger`), each fitting the fresh
+    model's actor and critic. DAgger runs the held-out evaluation after every iteration.
+
+    :param evaluation: the run's ``HeldOutEvaluation`` callback
+    """
     from training import pretrain
 
     p = config.pretrain
+    if p.method == "dagger":
+        from stable_baselines3.common.logger import configure
+
+        from training import dagger
+
+        def evaluate(iteration: int, collected: int) -> None:
+            evaluation.num_timesteps = collected  # imitation steps mark the evaluation log's rows
+            evaluation.evaluate()
+            model.logger.dump(collected)
+
+        # learn sets up the logger; before it, the evaluation logs to a run-wide one (kept after)
+        model.set_logger(configure(str(config.run_dir / "tb" / "dagger"), ["stdout", "csv", "tensorboard"]))
+        evaluation.init_callback(model)
+        dagger.run(
+            venv, model, iterations=p.iterations, steps=p.steps, beta0=p.beta0, epochs=p.epochs,
+            batch_size=p.batch_size, learning_rate=p.learning_rate, seed=config.seed,
+            after_iteration=evaluate,
+        )  # fmt: skip
+        return
     data = pretrain.collect(
         venv, config.n_stack, p.demonstrator, config.env_config(), p.steps, config.ppo.gamma
     )
@@ -463,8 +486,13 @@ def train(config: TrainConfig, resume: Path | None = None) -> Path:
     )
     try:
         model = build_model(config, venv, run_dir, resume)
+        callbacks = make_callbacks(config, run_dir, n_envs, executor, difficulty)
         if config.pretrain.steps and resume is None:
-            warm_start(config, venv, model)
+            warm_start(config, venv, model, callbacks[-1])
+            if config.total_timesteps == 0:
+                final = run_dir / "final_model.zip"
+                model.save(final)
+                return final
         remaining = config.total_timesteps - (model.num_timesteps if resume else 0)
         if remaining <= 0:
             raise UserError(f"{resume} already has {model.num_timesteps} steps >= total_timesteps")
@@ -474,7 +502,7 @@ def train(config: TrainConfig, resume: Path | None = None) -> Path:
         try:
             model.learn(
                 total_timesteps=remaining,
-                callback=make_callbacks(config, run_dir, n_envs, executor, difficulty),
+                callback=callbacks,
                 progress_bar=config.progress_bar,
                 reset_num_timesteps=resume is None,
                 tb_log_name="ppo",

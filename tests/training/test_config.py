@@ -65,6 +65,9 @@ def test_overrides_reach_nested_tables_and_env(tmp_path):
         ("[pretrain]\nsteps = 10\n", [], "pretrain.demonstrator"),  # goal_follower on the avoid task
         ("[pretrain]\nsteps = -1\n", [], "pretrain.steps"),
         ("vec_env = 'threads'\n", [], "vec_env"),
+        ("total_timesteps = 0\n", [], "total_timesteps"),  # nothing to train
+        ("[pretrain]\nsteps = 10\nmethod = 'dagger'\n", [], "dagger"),  # the avoid task
+        ("[pretrain]\nmethod = 'imitate'\n", [], "pretrain.method"),
     ],
 )
 def test_mistakes_name_the_key(tmp_path, text, overrides, named):

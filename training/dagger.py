@@ -1,0 +1,163 @@
+"""DAgger from a privileged teacher: the goal policy learns to fly like the path-following expert.
+
+Plain behaviour cloning (:mod:`training.pretrain`) imitates the teacher in the states the
+teacher visits; the student, flying on its own, soon leaves them and has never seen how to
+recover. DAgger (Ross et al., 2011) lets the student fly and asks the teacher what it would have
+done in every state the student reaches, and fits the student to the aggregate of all such
+labels. The teacher here is :class:`~training.path_expert.PathExpert`, which reads the simulator's
+truth (map, pose, velocity, the autopilot's estimate error) that the student never sees; the
+student sees only its stacked observations, as in flight.
+
+Read top to bottom: :func:`run` (iterations: collect with a mixture, fit, evaluate), then
+:func:`collect` (who flies each episode, what is recorded).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from training.path_expert import PathExpert
+from training.pretrain import Demonstrations, discounted_returns, fit
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Rollouts:
+    """One iteration's data: the student's observations and the teacher's labels.
+
+    :param obs: stacked observations, as the policy sees them
+    :param actions: the teacher's action in each, in ``[-1, 1]``
+    :param returns: discounted return from each step, of whoever flew (the critic's target)
+    :param episodes: episodes that ended within the data
+    :param successes: of those, how many reached every waypoint
+    :param student_episodes: of the ended episodes, how many the student flew
+    :param student_successes: of those, how many reached every waypoint
+    """
+
+    obs: np.ndarray
+    actions: np.ndarray
+    returns: np.ndarray
+    episodes: int
+    successes: int
+    student_episodes: int
+    student_successes: int
+
+
+def nav_envs(venv: Any) -> list[Any]:
+    """The LidarNav-v0 envs under a (wrapped) in-process vector env, for the teacher to read.
+
+    :raises ValueError: the envs live in other processes (``vec_env = "subproc"``)
+    """
+    inner = venv.unwrapped
+    if not hasattr(inner, "envs"):
+        raise ValueError(
+            f'DAgger reads the simulators\' state: it needs vec_env = "batched", not {type(inner).__name__}'
+        )
+    return [env.unwrapped for env in inner.envs]
+
+
+def collect(
+    venv: Any, policy: Any, n_steps: int, beta: float, gamma: float, rng: np.random.Generator
+) -> Rollouts:
+    """Fly ``n_steps`` env steps (all envs together), each episode by the teacher with probability
+    ``beta`` and otherwise by the student (deterministic), recording the teacher's action at every step.
+
+    :param venv: the training vector env (frame-stacked, in-process)
+    :param policy: the student, an SB3 ``ActorCriticPolicy``
+    :param beta: probability that the teacher flies an episode
+    :param gamma: discount of the recorded returns
+    :param rng: draws who flies each episode
+    """
+    envs = nav_envs(venv)
+    n_envs = venv.num_envs
+    teachers = [PathExpert(env) for env in envs]
+    obs = venv.reset()
+    labels = np.stack([t.reset() for t in teachers])
+    teacher_flies = rng.uniform(size=n_envs) < beta
+    rows = max(1, n_steps // n_envs)
+    all_obs = np.empty((rows, *obs.shape), dtype=np.float32)
+    all_actions = np.empty((rows, n_envs, 2), dtype=np.float32)
+    rewards = np.empty((rows, n_envs), dtype=np.float32)
+    dones = np.empty((rows, n_envs), dtype=bool)
+    counts = np.zeros(4, dtype=int)  # episodes, successes, student episodes, student successes
+    for t in range(rows):
+        all_obs[t], all_actions[t] = obs, labels
+        student, _ = policy.predict(obs, deterministic=True)
+        actions = np.where(teacher_flies[:, None], labels, student)
+        obs, rewards[t], dones[t], infos = venv.step(actions)
+        for i in np.flatnonzero(dones[t]):
+            success = bool(infos[i].get("success", False))
+            counts += (1, success, not teacher_flies[i], success and not teacher_flies[i])
+            teacher_flies[i] = rng.uniform() < beta
+        labels = np.stack(
+            [
+                teacher.reset() if done else teacher.act()
+                for teacher, done in zip(teachers, dones[t], strict=True)
+            ]
+        )
+    returns = discounted_returns(rewards, dones, gamma)
+    return Rollouts(
+        all_obs.reshape(-1, obs.shape[1]), all_actions.reshape(-1, 2), returns.reshape(-1), *counts.tolist()
+    )
+
+
+def run(
+    venv: Any,
+    model: Any,
+    *,
+    iterations: int,
+    steps: int,
+    beta0: float,
+    epochs: int,
+    batch_size: int,
+    learning_rate: float,
+    seed: int,
+    after_iteration: Callable[[int, int], None] | None = None,
+) -> Demonstrations:
+    """DAgger: iteration 0 is the teacher's alone (plain behaviour cloning), then the student flies
+    a growing share (teacher probability ``beta0 ** k``), and the student is refitted on every
+    label gathered so far.
+
+    :param venv: the training vector env (frame-stacked, in-process)
+    :param model: the PPO model whose policy is the student (fitted in place)
+    :param iterations: collect-and-fit rounds
+    :param steps: env steps collected per iteration, all envs together
+    :param beta0: the teacher's share decays as ``beta0 ** iteration``
+    :param epochs: passes over the aggregate per iteration
+    :param after_iteration: called with (iteration, env steps collected so far), e.g. to evaluate
+    :return: every label gathered (the data of the last fit)
+    """
+    rng = np.random.default_rng(seed)
+    gathered: list[Rollouts] = []
+    collected = 0
+    for k in range(iterations):
+        beta = beta0**k
+        rollouts = collect(venv, model.policy, steps, beta, model.gamma, rng)
+        gathered.append(rollouts)
+        collected += len(rollouts.actions)
+        student = (
+            f", student {rollouts.student_successes}/{rollouts.student_episodes}"
+            if rollouts.student_episodes
+            else ""
+        )
+        log.info(
+            "dagger iteration %d/%d (teacher share %.2f): %d/%d episodes reached every waypoint%s",
+            k + 1, iterations, beta, rollouts.successes, rollouts.episodes, student,
+        )  # fmt: skip
+        data = Demonstrations(
+            np.concatenate([r.obs for r in gathered]),
+            np.concatenate([r.actions for r in gathered]),
+            np.concatenate([r.returns for r in gathered]),
+            sum(r.episodes for r in gathered),
+            sum(r.successes for r in gathered),
+        )
+        fit(model.policy, data, epochs, batch_size, learning_rate, seed + k)
+        if after_iteration is not None:
+            after_iteration(k, collected)
+    return data

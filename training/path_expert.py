@@ -1,0 +1,358 @@
+"""A privileged teacher for the goal task: it follows the planned path with the true state.
+
+The policy flies on what the drone has (scan, goal, the autopilot's velocity estimate). The
+teacher reads the simulator instead: the world's map, the true pose and velocity, and the
+autopilot's velocity-estimate error. It plans a path through the remaining waypoints that keeps a
+margin beyond the vehicle's radius (:func:`flightsim.planner.shortest_safe_path`'s grid, less
+inflated when a tighter passage is the only way), pursues a point ahead on it, and commands the
+velocity that, after the autopilot tracks its own (erroneous) estimate, flies the path truly.
+Behaviour cloning on its actions, in the states the student itself reaches (DAgger,
+:mod:`training.dagger`), gives the student a teacher that is right where the classical baseline
+is defeated: a drifting velocity estimate, a lagging autopilot, a concave trap.
+
+It is a training tool only; no evaluation figure flies it.
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from flightsim.nav_env import LidarNavEnv
+from flightsim.planner import ClearanceGrid, clearance_grid
+
+
+@dataclass(frozen=True)
+class PathExpertConfig:
+    """The teacher's tuning (chosen by a random search on validation worlds, 6 per family).
+
+    Path:
+
+    :param resolution: planning grid cell, metres
+    :param preferred_margin: clearance beyond the vehicle radius the path prefers, metres
+    :param clearance_cost: extra cost per metre of a cell with no margin (falling linearly to 0 at
+        ``preferred_margin``)
+    :param replan_deviation: replan when the vehicle is this far off the path, metres
+
+    Pursuit:
+
+    :param lookahead: the pursuit point's distance ahead along the path, metres
+    :param lead_s: the ideal response's lag, s (a drawn response's is computed from its parameters)
+    :param lead_cap_s: the position is predicted at most this far ahead (a longer lag only slows), s
+
+    Speed:
+
+    :param min_speed: speed floor where clearance is tight, m/s
+    :param clearance_speed_gain: speed allowed per metre of clearance beyond the radius, 1/s
+    :param clearance_floor: clearance beyond the radius that counts as none, metres
+    :param brake_accel: deceleration the stopping-distance limit assumes, m/s^2
+    :param free_run_max: farthest the free run ahead is looked for, metres
+    :param turn_slowdown: speed lost per radian of the path's turn ahead (fraction)
+    :param speed_ramp: the forward command rises at most this much per step, m/s
+
+    Command:
+
+    :param velocity_gain: share of the true velocity's error added to the command
+    :param min_aim_speed: below this commanded speed, aim along the path (not the command), m/s
+    :param alignment_power: the move's share of the forward command is ``cos(heading error)`` to
+        this power
+    :param turn_in_place: beyond this heading error, rad, only turn (and hold)
+    :param yaw_gain: yaw rate per radian of heading error, 1/s
+    :param yaw_lead_s: the heading is predicted this far ahead along the true yaw rate, s
+    """
+
+    resolution: float = 0.1
+    preferred_margin: float = 0.8
+    clearance_cost: float = 8.0
+    replan_deviation: float = 0.5
+    lookahead: float = 1.2
+    lead_s: float = 0.2
+    lead_cap_s: float = 0.2
+    min_speed: float = 0.5
+    clearance_speed_gain: float = 2.0
+    clearance_floor: float = 0.1
+    brake_accel: float = 1.0
+    free_run_max: float = 4.0
+    turn_slowdown: float = 0.3
+    speed_ramp: float = 0.2
+    velocity_gain: float = 0.8
+    min_aim_speed: float = 0.15
+    alignment_power: float = 1.0
+    turn_in_place: float = 0.8
+    yaw_gain: float = 3.0
+    yaw_lead_s: float = 0.25
+
+
+class PathExpert:
+    """Fly one :class:`~flightsim.nav_env.LidarNavEnv` (unwrapped) along its planned path.
+
+    :param env: the env whose true state it reads (``reset`` it before :meth:`reset`)
+    :param config: tuning
+    """
+
+    def __init__(self, env: LidarNavEnv, config: PathExpertConfig | None = None) -> None:
+        self.env = env
+        self.config = config or PathExpertConfig()
+        self._grid: ClearanceGrid | None = None
+        self._path = np.zeros((0, 2))
+        self._costs = np.zeros((0, 0))
+        self._segment = 0
+        self._planned_waypoint = -1
+        self._forward = 0.0
+
+    def reset(self) -> np.ndarray:
+        """A new episode: rasterise the world, plan, and return the first action."""
+        env, cfg = self.env, self.config
+        cap = env.config.vehicle_radius + cfg.preferred_margin + cfg.resolution
+        self._grid = clearance_grid(env.world, float(env._altitude), cfg.resolution, cap)
+        self._costs = _cell_costs(
+            self._grid.clearance, env.config.vehicle_radius, cfg.preferred_margin, cfg.clearance_cost
+        )
+        self._planned_waypoint = -1
+        self._forward = 0.0
+        return self.act()
+
+    def act(self) -> np.ndarray:
+        """The action for the env's current true state, ``(a0, a1)`` in ``[-1, 1]``."""
+        env, cfg = self.env, self.config
+        state = env._state
+        true_velocity = np.asarray(state.velocity[:2], dtype=np.float64)
+        lag = self._lag()
+        here = np.asarray(state.position[:2], dtype=np.float64)
+        # where the lags will have carried it by the time a command acts
+        position = here + min(lag, cfg.lead_cap_s) * true_velocity
+        if self._needs_plan(here):
+            self._plan(here)
+        target, turn = self._pursuit(position, 2.0 * cfg.lookahead + lag * math.hypot(*true_velocity))
+        offset = target - position
+        distance = math.hypot(*offset)
+        clearance = env.world.clearance(state.position) - env.config.vehicle_radius
+        free = self._free_run(here, offset / max(distance, 1e-6))
+        moving = math.hypot(*true_velocity)
+        if moving > cfg.min_speed:  # where it is going anyway, until the command takes hold
+            free = min(free, self._free_run(here, true_velocity / moving))
+        speed = min(
+            env.config.max_speed,
+            cfg.min_speed + cfg.clearance_speed_gain * max(clearance - cfg.clearance_floor, 0.0),
+            _stopping_speed(free, cfg.brake_accel, lag),
+        )
+        speed *= max(0.2, 1.0 - cfg.turn_slowdown * turn)
+        direction = offset / max(distance, 1e-6)
+        desired = direction * speed
+        # the autopilot flies its estimate (reported = true + error): asking for the error holds
+        # still; the velocity gain also damps the true velocity's error
+        error_xy = env._response.estimate_error if env._response is not None else np.zeros(2)
+        move = desired * (1.0 + cfg.velocity_gain)
+        hold = error_xy - cfg.velocity_gain * true_velocity
+        command = move + hold
+        magnitude = math.hypot(*command)
+        aim = command if magnitude > cfg.min_aim_speed else direction
+        heading = math.atan2(aim[1], aim[0])
+        yaw = float(state.yaw) + cfg.yaw_lead_s * float(state.angular_rate[2])
+        error = math.remainder(heading - yaw, math.tau)
+        nose = np.array([math.cos(yaw), math.sin(yaw)])
+        # the forward command is what the nose can carry: the hold's share always (it cancels the
+        # drift along the nose), the move's share once the nose points roughly its way
+        gate = max(0.0, math.cos(error)) ** cfg.alignment_power if abs(error) < cfg.turn_in_place else 0.0
+        forward = float((hold + move * gate) @ nose)
+        # a jerk-limited autopilot overshoots a step up: ramp the speed up, cut it at once
+        forward = min(forward, self._forward + cfg.speed_ramp)
+        self._forward = forward
+        yaw_rate = cfg.yaw_gain * error
+        return np.clip(
+            np.array([forward / env.config.max_speed, yaw_rate / env.config.max_yaw_rate], dtype=np.float32),
+            -1.0, 1.0,
+        )  # fmt: skip
+
+    # ------------------------------------------------------------------ internals
+    def _lag(self) -> float:
+        """Seconds from a command to the vehicle's answer: the drawn response's delay, tilt lag and
+        input shaping (privileged), or ``lead_s`` for the ideal response."""
+        params = self.env.response_params
+        if params is None:
+            return self.config.lead_s
+        shaping = params.shape_accel_max / params.shape_jerk_max if params.shape_jerk_max > 0 else 0.0
+        return params.command_delay_s + params.tilt_lag_s + shaping
+
+    def _free_run(self, position: np.ndarray, direction: np.ndarray) -> float:
+        """Metres the vehicle can fly from ``position`` along ``direction`` before its clearance
+        drops under the radius plus ``clearance_floor`` (up to ``free_run_max``)."""
+        grid, cfg = self._grid, self.config
+        assert grid is not None
+        limit = self.env.config.vehicle_radius + cfg.clearance_floor
+        step = grid.resolution
+        for k in range(1, int(cfg.free_run_max / step) + 1):
+            x, y = position + direction * (k * step)
+            if grid.clearance[grid.cell(x, y)] < limit:
+                return (k - 1) * step
+        return cfg.free_run_max
+
+    def _visible_target(self, position: np.ndarray, point: np.ndarray) -> np.ndarray:
+        """The pursuit point: ``lookahead`` along the path, pulled back until the straight line to
+        it keeps the radius (plus ``clearance_floor``): past a corner, it would cut the corner."""
+        grid, cfg = self._grid, self.config
+        assert grid is not None
+        limit = self.env.config.vehicle_radius + cfg.clearance_floor
+        target = point
+        for d in np.linspace(cfg.lookahead, 0.2, 6):
+            target = _along(self._path, self._segment, point, float(d))
+            offset = target - position
+            samples = int(math.hypot(*offset) / grid.resolution) + 1
+            if all(
+                grid.clearance[grid.cell(*(position + offset * (k / samples)))] >= limit
+                for k in range(1, samples + 1)
+            ):
+                return target
+        return target
+
+    def _needs_plan(self, position: np.ndarray) -> bool:
+        """A new waypoint, or off the path. Not on a timer: replanning from a slightly different
+        spot can flip the route to the other side of an obstacle, and the vehicle with it."""
+        if self._planned_waypoint != self.env._waypoint:
+            return True
+        return self._deviation(position) > self.config.replan_deviation
+
+    def _plan(self, position: np.ndarray) -> None:
+        """Plan from here through the remaining waypoints, preferring clearance (see :func:`_cell_costs`)."""
+        env, grid = self.env, self._grid
+        assert grid is not None
+        remaining = env.world.waypoints[env._waypoint :]
+        stops = [position] + [np.asarray(w[:2], dtype=np.float64) for w in remaining]
+        self._planned_waypoint = env._waypoint
+        self._segment = 0
+        costs = self._costs
+        points = [position[None, :]]
+        for a, b in itertools.pairwise(stops):
+            ia, ib = grid.cell(*a), grid.cell(*b)
+            passable = costs.copy()
+            passable[ia] = passable[ib] = 1.0  # the vehicle and the waypoint are where they are
+            cells = _weighted_astar(passable, ia[0], ia[1], ib[0], ib[1])
+            if cells.shape[0] == 0:  # no safe route from here (inside an inflated obstacle): go direct
+                points.append(b[None, :])
+                continue
+            centres = (cells[1:-1] + 0.5) * grid.resolution + np.asarray(grid.origin)
+            points.extend([centres, b[None, :]])
+        self._path = np.concatenate(points)
+
+    def _deviation(self, position: np.ndarray) -> float:
+        a, b = self._path[self._segment], self._path[min(self._segment + 1, len(self._path) - 1)]
+        return _point_segment_distance(position, a, b)
+
+    def _pursuit(self, position: np.ndarray, horizon: float) -> tuple[np.ndarray, float]:
+        """The point ``lookahead`` along the path past the vehicle's projection, and the path's
+        largest turn (radians) from there within ``horizon`` metres."""
+        path = self._path
+        while self._segment < len(path) - 2:
+            if _progress(position, path[self._segment], path[self._segment + 1]) < 1.0:
+                break
+            self._segment += 1
+        a, b = path[self._segment], path[min(self._segment + 1, len(path) - 1)]
+        t = min(max(_progress(position, a, b), 0.0), 1.0)
+        point = a + t * (b - a)
+        target = self._visible_target(position, point)
+        first = target - point
+        turn = 0.0
+        if np.hypot(*first) > 1e-6:
+            bearing = math.atan2(first[1], first[0])
+            for d in np.arange(self.config.lookahead + 0.3, horizon + 1e-9, 0.3):
+                second = _along(path, self._segment, point, float(d)) - target
+                if np.hypot(*second) > 1e-6:
+                    bend = math.remainder(math.atan2(second[1], second[0]) - bearing, math.tau)
+                    turn = max(turn, abs(bend))
+        return target, turn
+
+
+def _progress(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    """Where p projects on segment a-b, as a fraction of it (unclamped)."""
+    d = b - a
+    n = float(d @ d)
+    return 1.0 if n < 1e-12 else float((p - a) @ d) / n
+
+
+def _point_segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    t = min(max(_progress(p, a, b), 0.0), 1.0)
+    return float(np.hypot(*(p - (a + t * (b - a)))))
+
+
+def _along(path: np.ndarray, segment: int, point: np.ndarray, distance: float) -> np.ndarray:
+    """The point ``distance`` metres along the path from ``point`` (on ``segment``), or the path's end."""
+    current = point
+    for k in range(segment + 1, len(path)):
+        step = float(np.hypot(*(path[k] - current)))
+        if step >= distance:
+            return current + (path[k] - current) * (distance / step)
+        distance -= step
+        current = path[k]
+    return path[-1].copy()
+
+
+def _cell_costs(clearance: np.ndarray, radius: float, margin: float, weight: float) -> np.ndarray:
+    """Per-cell cost multiplier: 1 with ``margin`` to spare, up to ``1 + weight`` at the radius,
+    infinite inside it."""
+    spare = np.clip((clearance - radius) / margin, 0.0, 1.0)
+    costs = 1.0 + weight * (1.0 - spare)
+    costs[clearance < radius] = np.inf
+    return costs
+
+
+_SQRT2 = math.sqrt(2.0)
+
+
+@njit(cache=True)
+def _weighted_astar(costs, si, sj, gi, gj):  # pragma: no cover - compiled
+    """8-connected A* over cell costs (a step costs its length × the mean of its cells' costs; no
+    corner cutting past an infinite cell); the cell path ``(N, 2)``, empty if none."""
+    nx, ny = costs.shape
+    g = np.full(nx * ny, np.inf)
+    parent = np.full(nx * ny, -1, dtype=np.int64)
+    closed = np.zeros(nx * ny, dtype=np.bool_)
+    start, goal = si * ny + sj, gi * ny + gj
+    g[start] = 0.0
+    heap = [(0.0, start)]
+    di = (1, -1, 0, 0, 1, 1, -1, -1)
+    dj = (0, 0, 1, -1, 1, -1, 1, -1)
+    while heap:
+        _, cur = heapq.heappop(heap)
+        if closed[cur]:
+            continue
+        closed[cur] = True
+        if cur == goal:
+            break
+        ci, cj = cur // ny, cur % ny
+        for k in range(8):
+            ni, nj = ci + di[k], cj + dj[k]
+            if ni < 0 or nj < 0 or ni >= nx or nj >= ny or not np.isfinite(costs[ni, nj]):
+                continue
+            if k >= 4 and not (np.isfinite(costs[ci + di[k], cj]) and np.isfinite(costs[ci, cj + dj[k]])):
+                continue
+            nxt = ni * ny + nj
+            cost = g[cur] + (1.0 if k < 4 else _SQRT2) * 0.5 * (costs[ci, cj] + costs[ni, nj])
+            if cost < g[nxt]:
+                g[nxt] = cost
+                parent[nxt] = cur
+                ai, aj = abs(ni - gi), abs(nj - gj)
+                heapq.heappush(heap, (cost + max(ai, aj) + (_SQRT2 - 1.0) * min(ai, aj), nxt))
+    if not closed[goal]:
+        return np.empty((0, 2), dtype=np.int64)
+    n = 1
+    cur = goal
+    while cur != start:
+        cur = parent[cur]
+        n += 1
+    cells = np.empty((n, 2), dtype=np.int64)
+    cur = goal
+    for k in range(n - 1, -1, -1):
+        cells[k, 0], cells[k, 1] = cur // ny, cur % ny
+        cur = parent[cur]
+    return cells
+
+
+def _stopping_speed(free: float, accel: float, lag: float) -> float:
+    """The speed from which the vehicle stops within ``free`` metres: ``lag`` seconds at speed,
+    then braking at ``accel``."""
+    return -accel * lag + math.sqrt((accel * lag) ** 2 + 2.0 * accel * max(free, 0.0))
