@@ -328,6 +328,17 @@ class LidarAvoidEnv(gym.Env):
         it per episode, so a failure can be traced to the response it flew."""
         return None if self._response is None else self._response.params
 
+    @property
+    def true_state(self) -> VehicleState:
+        """The vehicle as it truly is now (privileged: a teacher may read it, a policy never does)."""
+        return self._state
+
+    @property
+    def estimate_error(self) -> np.ndarray:
+        """(2,) the autopilot's velocity-estimate error now, world ENU m/s (reported = true + this;
+        zeros for the ideal response). Privileged, as :attr:`true_state`."""
+        return np.zeros(2) if self._response is None else self._response.estimate_error
+
     def measured_body_velocity(self) -> np.ndarray:
         """The horizontal velocity the autopilot would report now: (forward, left) m/s, body FLU.
 

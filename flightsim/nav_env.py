@@ -197,6 +197,11 @@ class LidarNavEnv(LidarAvoidEnv):
             active_waypoint=self._waypoint if self._waypoint < n else None,
         )  # fmt: skip
 
+    @property
+    def waypoint_index(self) -> int:
+        """The waypoint being flown to (``len(world.waypoints)`` once all are reached)."""
+        return self._waypoint
+
     # ------------------------------------------------------------------ internals
     def _reward(self, outcome: StepOutcome) -> float:
         """Advance to the next waypoint when this one is reached, and pay for it (see the docstring)."""

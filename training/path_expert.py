@@ -109,7 +109,7 @@ class PathExpert:
         """A new episode: rasterise the world, plan, and return the first action."""
         env, cfg = self.env, self.config
         cap = env.config.vehicle_radius + cfg.preferred_margin + cfg.resolution
-        self._grid = clearance_grid(env.world, float(env._altitude), cfg.resolution, cap)
+        self._grid = clearance_grid(env.world, float(env.world.start_position[2]), cfg.resolution, cap)
         self._costs = _cell_costs(
             self._grid.clearance, env.config.vehicle_radius, cfg.preferred_margin, cfg.clearance_cost
         )
@@ -120,7 +120,7 @@ class PathExpert:
     def act(self) -> np.ndarray:
         """The action for the env's current true state, ``(a0, a1)`` in ``[-1, 1]``."""
         env, cfg = self.env, self.config
-        state = env._state
+        state = env.true_state
         true_velocity = np.asarray(state.velocity[:2], dtype=np.float64)
         lag = self._lag()
         here = np.asarray(state.position[:2], dtype=np.float64)
@@ -146,7 +146,7 @@ class PathExpert:
         desired = direction * speed
         # the autopilot flies its estimate (reported = true + error): asking for the error holds
         # still; the velocity gain also damps the true velocity's error
-        error_xy = env._response.estimate_error if env._response is not None else np.zeros(2)
+        error_xy = env.estimate_error
         move = desired * (1.0 + cfg.velocity_gain)
         hold = error_xy - cfg.velocity_gain * true_velocity
         command = move + hold
@@ -213,7 +213,7 @@ class PathExpert:
     def _needs_plan(self, position: np.ndarray) -> bool:
         """A new waypoint, or off the path. Not on a timer: replanning from a slightly different
         spot can flip the route to the other side of an obstacle, and the vehicle with it."""
-        if self._planned_waypoint != self.env._waypoint:
+        if self._planned_waypoint != self.env.waypoint_index:
             return True
         return self._deviation(position) > self.config.replan_deviation
 
@@ -221,9 +221,9 @@ class PathExpert:
         """Plan from here through the remaining waypoints, preferring clearance (see :func:`_cell_costs`)."""
         env, grid = self.env, self._grid
         assert grid is not None
-        remaining = env.world.waypoints[env._waypoint :]
+        remaining = env.world.waypoints[env.waypoint_index :]
         stops = [position] + [np.asarray(w[:2], dtype=np.float64) for w in remaining]
-        self._planned_waypoint = env._waypoint
+        self._planned_waypoint = env.waypoint_index
         self._segment = 0
         costs = self._costs
         points = [position[None, :]]
