@@ -793,6 +793,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--policy", type=Path, help="policy to evaluate (.onnx or SB3 .zip); without one, the baselines alone"
     )
+    parser.add_argument(
+        "--baselines",
+        metavar="NAMES",
+        help="comma-separated baselines to fly beside the policy (default: the task's; empty: none)",
+    )
     where = parser.add_mutually_exclusive_group(required=True)
     where.add_argument("--worlds", type=Path, help="directory of world JSON files")
     where.add_argument(
@@ -856,6 +861,20 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--png", type=Path, help="draw the trajectories over each world here")
 
 
+def parse_baselines(value: str | None, env_id: str) -> list[str] | None:
+    """``--baselines``: None (not given: the task's), or the names, each checked against the task's."""
+    if value is None:
+        return None
+    known = GOAL_BASELINES if env_id == NAV_ENV_ID else BASELINES
+    names = [name.strip() for name in value.split(",") if name.strip()]
+    unknown = [name for name in names if name not in known]
+    if unknown:
+        raise UserError(
+            f"--baselines: {unknown[0]!r} is not a baseline of this task; known: {', '.join(known)}"
+        )
+    return names
+
+
 def command(args: argparse.Namespace) -> int:
     from training.config import load_train_config
 
@@ -874,9 +893,12 @@ def command(args: argparse.Namespace) -> int:
     workers = args.workers or (os.cpu_count() or 1)
     if args.policy is not None:
         load_policy(args.policy, env_config, config.n_stack)  # fail fast, with a one-line error
+    baselines = parse_baselines(args.baselines, config.env_id)
+    if args.policy is None and baselines == []:
+        raise UserError("--baselines '' and no --policy: nothing to evaluate")
     summary, results = evaluate(
-        args.policy, worlds, args.episodes, config.env, workers, shield=args.shield, env_id=config.env_id,
-        executor=args.executor, address=args.address,
+        args.policy, worlds, args.episodes, config.env, workers, baselines=baselines, shield=args.shield,
+        env_id=config.env_id, executor=args.executor, address=args.address,
     )  # fmt: skip
     summary["env_id"] = config.env_id
     summary["policy"] = None if args.policy is None else str(args.policy)

@@ -65,6 +65,8 @@ def test_the_default_test_set_is_20_held_out_worlds_per_family():
         (["--seeds", "2", "--first-seed", "1000000"], "goal-task world seeds must lie within the test seeds"),
         (["--seeds", "2", "--first-seed", "999999"], "goal-task world seeds must lie within the test seeds"),
         (["--seeds", "1", "--difficulty", "2"], "--difficulty must be in [0, 1]"),
+        (["--seeds", "1", "--baselines", "gap_follower"], "'gap_follower' is not a baseline of this task"),
+        (["--seeds", "1", "--baselines", ""], "nothing to evaluate"),
     ],
 )
 def test_goal_evaluation_refuses_training_seeds(tmp_path, capsys, argv, message):
@@ -86,6 +88,9 @@ def test_goal_evaluation_end_to_end_writes_json_and_png(tmp_path, capsys):
     data = json.loads(out_json.read_text())
     assert data["env_id"] == "flightsim/LidarNav-v0" and data["policy"] is None
     assert set(data["controllers"]) == {"goal_follower+shield", "straight_line+shield"}
+    only = tmp_path / "only.json"
+    assert main([*argv, "--baselines", "straight_line", "--json", str(only)]) == 0
+    assert set(json.loads(only.read_text())["controllers"]) == {"straight_line+shield"}
     overall = data["controllers"]["goal_follower+shield"]["overall"]
     assert {"success_rate", "collision_rate", "timeout_rate", "mean_time_s", "spl"} <= set(overall)
     assert overall["success_rate"] == 1.0 and 0.5 < overall["spl"] <= 1.0  # gaps-900000, an easy one
