@@ -87,7 +87,9 @@ class BatchLidar:
         self._ranges = np.empty((n, lidar.n_columns, N_LASERS), dtype=np.float32)
         self.worlds = PackedWorlds(n)
         self._identity = scan.mount_rpy_deg == (0.0, 0.0, 0.0) and scan.mount_xyz == (0.0, 0.0, 0.0)
-        self._no_drop = np.zeros((n, 0, 0))
+        # the draws' buffers: a standard normal per possible return, a uniform per ray
+        self._noise = np.empty(self._ranges.size if lidar.noise_std > 0.0 else 0)
+        self._drop = np.empty(self._ranges.shape if lidar.dropout > 0.0 else (n, 0, 0))
         self.column_bins = column_bins(caster.azimuth_deg, self._unit) if self._identity else None
 
     def scans(
@@ -107,12 +109,10 @@ class BatchLidar:
             origins, rotations, self._columns, self._cos_el, self._sin_el, w.rooms, w.boxes, w.box_offsets,
             w.cylinders, w.cylinder_offsets, cfg.min_range, cfg.max_range, self._ranges,
         )  # fmt: skip
-        noise, noise_offsets, drop = _draw_corruption(cfg, hits, self._ranges.shape, rngs)
-        if drop is None:
-            drop = self._no_drop
+        noise_offsets = _draw_corruption(cfg, hits, rngs, self._noise, self._drop)
         corrupt = (
-            noise, noise_offsets, drop, cfg.noise_std > 0.0, cfg.dropout > 0.0, np.float32(cfg.min_range),
-            np.float32(cfg.max_range), cfg.dropout,
+            self._noise, noise_offsets, cfg.noise_std, self._drop, cfg.noise_std > 0.0, cfg.dropout > 0.0,
+            np.float32(cfg.min_range), np.float32(cfg.max_range), cfg.dropout,
         )  # fmt: skip
         if self.column_bins is not None:  # the cloud's points go straight into their column's bin
             out = np.empty((self.n, N_BINS), dtype=np.float32)
@@ -146,24 +146,23 @@ def _scan_floats(config: ScanConfig) -> tuple[np.float32, np.float32, np.float32
 
 
 def _draw_corruption(
-    cfg: LidarConfig, hits: np.ndarray, shape: tuple[int, ...], rngs: list[np.random.Generator]
-) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Each vehicle's range noise (one per return) and dropout draws, in ``_corrupt``'s order."""
-    n = len(rngs)
-    offsets = np.zeros(n + 1, dtype=np.int64)
-    if cfg.noise_std <= 0.0 and cfg.dropout <= 0.0:
-        return np.zeros(0, dtype=np.float32), offsets, None
-    noise_parts = []
-    drop = np.empty(shape) if cfg.dropout > 0.0 else None
+    cfg: LidarConfig, hits: np.ndarray, rngs: list[np.random.Generator], noise: np.ndarray, drop: np.ndarray
+) -> np.ndarray:
+    """Each vehicle's range noise (one standard normal per return) and dropout draws into the
+    buffers, in ``_corrupt``'s order; returns where each vehicle's noise starts, ``(N + 1,)``.
+
+    ``rng.normal(0, σ, n)`` is ``0 + σ · rng.standard_normal()`` per value, the same stream: the
+    kernel scales them (:func:`_corrupt_one`), which spares numpy's temporaries and a concatenation.
+    """
+    offsets = np.zeros(len(rngs) + 1, dtype=np.int64)
+    if cfg.noise_std > 0.0:
+        np.cumsum(hits, out=offsets[1:])
     for i, rng in enumerate(rngs):
         if cfg.noise_std > 0.0:
-            noise_parts.append(rng.normal(0.0, cfg.noise_std, int(hits[i])).astype(np.float32))
-        if drop is not None:
+            rng.standard_normal(out=noise[offsets[i] : offsets[i + 1]])
+        if cfg.dropout > 0.0:
             rng.random(out=drop[i])  # the same draws as rng.random(shape), without the copy
-    if noise_parts:
-        offsets[1:] = np.cumsum(hits)
-        return np.concatenate(noise_parts), offsets, drop
-    return np.zeros(0, dtype=np.float32), offsets, drop
+    return offsets
 
 
 def scans_from_points(
@@ -219,14 +218,15 @@ def _cast_batch(
 
 
 @njit(cache=True, inline="always")
-def _corrupt_one(r, noise, k, d, noisy, dropping, min_range32, max_range32, dropout):  # pragma: no cover
-    """``_corrupt`` on one grid: the same float32 arithmetic on the same draws (noise from ``k``)."""
+def _corrupt_one(r, noise, k, std, d, noisy, dropping, min_range32, max_range32, dropout):  # pragma: no cover
+    """``_corrupt`` on one grid: the same float32 arithmetic on the same draws (standard normals
+    from ``k``, scaled as ``rng.normal(0, std)`` scales them and cast to float32 as ``_corrupt`` does)."""
     n_cols, n_el = r.shape
     if noisy:
         for j in range(n_cols):
             for i in range(n_el):
                 if r[j, i] > 0.0:
-                    value = r[j, i] + noise[k]  # float32 + float32, as numpy adds them
+                    value = r[j, i] + np.float32(0.0 + std * noise[k])  # float32 + float32, as numpy adds them
                     k += 1
                     # numpy compares a float32 array with a Python float in float32 (NEP 50)
                     r[j, i] = np.float32(0.0) if (value < min_range32) | (value > max_range32) else value
@@ -239,7 +239,7 @@ def _corrupt_one(r, noise, k, d, noisy, dropping, min_range32, max_range32, drop
 
 @njit(cache=True)
 def _corrupt_and_points(
-    ranges, noise, noise_offsets, drop, noisy, dropping, min_range32, max_range32, dropout, unit,
+    ranges, noise, noise_offsets, std, drop, noisy, dropping, min_range32, max_range32, dropout, unit,
     nx, ny, nz, offset, half,
 ):  # pragma: no cover - compiled
     """``_corrupt`` then ``_points_kernel``, all vehicles; clouds back to back, ``(N + 1,)`` offsets."""
@@ -250,7 +250,7 @@ def _corrupt_and_points(
     for v in range(n):
         d = drop[v] if dropping else drop[0]
         r = ranges[v]
-        _corrupt_one(r, noise, noise_offsets[v], d, noisy, dropping, min_range32, max_range32, dropout)
+        _corrupt_one(r, noise, noise_offsets[v], std, d, noisy, dropping, min_range32, max_range32, dropout)
         cloud = _points_kernel(ranges[v], unit, nx, ny, nz, offset, half)
         m = cloud.shape[0]
         points[total:total + m] = cloud
@@ -261,7 +261,7 @@ def _corrupt_and_points(
 
 @njit(cache=True)
 def _corrupt_and_scan(
-    ranges, noise, noise_offsets, drop, noisy, dropping, min_range32, max_range32, dropout, unit,
+    ranges, noise, noise_offsets, std, drop, noisy, dropping, min_range32, max_range32, dropout, unit,
     nx, ny, nz, offset, half, bins, slice_height, min_r2, max_range, out,
 ):  # pragma: no cover - compiled
     """``_corrupt``, ``_points_kernel`` and ``_scan_kernel`` fused, all vehicles: each return that
@@ -271,7 +271,7 @@ def _corrupt_and_scan(
     for v in range(n):
         r = ranges[v]
         d = drop[v] if dropping else drop[0]
-        _corrupt_one(r, noise, noise_offsets[v], d, noisy, dropping, min_range32, max_range32, dropout)
+        _corrupt_one(r, noise, noise_offsets[v], std, d, noisy, dropping, min_range32, max_range32, dropout)
         scan = out[v]
         scan[:] = np.float32(1.0)
         for j in range(n_cols):
