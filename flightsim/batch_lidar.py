@@ -226,7 +226,7 @@ def _corrupt_one(r, noise, k, std, d, noisy, dropping, min_range32, max_range32,
         for j in range(n_cols):
             for i in range(n_el):
                 if r[j, i] > 0.0:
-                    value = r[j, i] + np.float32(0.0 + std * noise[k])  # float32 + float32, as numpy adds them
+                    value = r[j, i] + np.float32(0.0 + std * noise[k])  # float32 + float32, as numpy
                     k += 1
                     # numpy compares a float32 array with a Python float in float32 (NEP 50)
                     r[j, i] = np.float32(0.0) if (value < min_range32) | (value > max_range32) else value
