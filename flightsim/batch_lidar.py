@@ -126,18 +126,22 @@ class BatchLidar:
 
 
 def column_bins(azimuth_deg: np.ndarray, unit: np.ndarray) -> np.ndarray | None:
-    """The scan bin of every return of each (column, laser), or None where that is not fixed.
+    """The scan bin of every return of each column, ``(columns,)``, or None where that is not fixed.
 
     A return's direction in the sensor frame is its column's, whatever its range, noise or the
     vehicle's pose: ``scan_from_points`` bins it by ``atan2f`` of its float32 x, y, which float32
     rounding moves by under 1e-4 bin. Columns at least 1e-3 bin from a bin edge (the 1° caster's
     sit mid-bin, 0.5 bin away) therefore always land in the bin ``atan2f`` gives their unit
-    vector; a caster with a column nearer an edge gets None (the scan then bins point by point).
+    vector, the same for all 16 lasers of the column; a caster with a column nearer an edge gets
+    None (the scan then bins point by point).
     """
     angle = (-np.asarray(azimuth_deg, dtype=np.float64)) % 360.0  # azimuth runs clockwise
     if np.min(np.abs(angle - np.round(angle))) < 1e-3:
         return None
-    return _unit_bins(unit, _BINS_PER_RAD)
+    bins = _unit_bins(unit, _BINS_PER_RAD)
+    if np.any(bins != bins[:, :1]):  # cannot happen a 1e-3 bin from the edges; never assume it
+        return None
+    return bins[:, 0].copy()
 
 
 def _scan_floats(config: ScanConfig) -> tuple[np.float32, np.float32, np.float32]:
@@ -265,21 +269,42 @@ def _corrupt_and_scan(
     nx, ny, nz, offset, half, bins, slice_height, min_r2, max_range, out,
 ):  # pragma: no cover - compiled
     """``_corrupt``, ``_points_kernel`` and ``_scan_kernel`` fused, all vehicles: each return that
-    the cloud would hold (the same float32 point, the same keep test) updates the scan as that
-    point would, in the bin of its column (:func:`column_bins`); no cloud is materialised."""
+    the cloud would hold (the same float32 point, the same keep test) counts in the scan as that
+    point would, in the bin of its column (:func:`column_bins`); no cloud is materialised.
+
+    A bin keeps the least ``f(xy2) = sqrt(xy2) / max_range`` (float32) of its points, and ``f`` never
+    decreases as ``xy2`` grows (each float32 operation rounds monotonically), so the least of a
+    column's ``f`` is ``f`` of its least ``xy2``: one square root and division per column, and a
+    branch-free loop over its lasers, for the same bits. Dropout acts on each return alone, so it
+    is applied in that loop rather than in a pass of its own.
+    """
     n, n_cols, n_el = ranges.shape
+    nothing = np.float32(np.inf)
+    zero = np.float32(0.0)
     for v in range(n):
         r = ranges[v]
         d = drop[v] if dropping else drop[0]
-        _corrupt_one(r, noise, noise_offsets[v], std, d, noisy, dropping, min_range32, max_range32, dropout)
+        _corrupt_one(r, noise, noise_offsets[v], std, d, noisy, False, min_range32, max_range32, dropout)
         scan = out[v]
         scan[:] = np.float32(1.0)
         for j in range(n_cols):
+            least = nothing  # the least xy2 of the column's points the scan keeps
             for i in range(n_el):
                 rr = r[j, i]
+                if dropping:
+                    rr = zero if d[j, i] < dropout else rr
                 x, y, z = rr * unit[j, i, 0], rr * unit[j, i, 1], rr * unit[j, i, 2]
-                if rr > 0.0 and abs(nx * x + ny * y + nz * z + offset) < half:  # _points_kernel's test
-                    _scan_point(scan, x, y, z, bins[j, i], slice_height, min_r2, max_range)
+                # scan_from_points' float32 arithmetic and tests, after _points_kernel's keep test
+                xy2 = np.float32(x * x)
+                xy2 = np.float32(xy2 + np.float32(y * y))
+                r2 = np.float32(np.float32(z * z) + xy2)
+                kept = (rr > 0.0) & (abs(nx * x + ny * y + nz * z + offset) < half)
+                kept = kept & (abs(z) < slice_height) & (r2 >= min_r2)
+                least = min(least, xy2) if kept else least
+            if least < nothing:
+                value = np.float32(np.float32(math.sqrt(least)) / max_range)
+                if value < scan[bins[j]]:
+                    scan[bins[j]] = value
 
 
 @njit(cache=True)
