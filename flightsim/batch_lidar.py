@@ -22,6 +22,7 @@ import numpy as np
 from numba import njit
 
 from companion.scan import N_BINS, ScanConfig, scan_from_points
+from flightsim.compiled_draws import draw, state_address
 from flightsim.raycast import (
     N_LASERS,
     LidarConfig,
@@ -87,9 +88,7 @@ class BatchLidar:
         self._ranges = np.empty((n, lidar.n_columns, N_LASERS), dtype=np.float32)
         self.worlds = PackedWorlds(n)
         self._identity = scan.mount_rpy_deg == (0.0, 0.0, 0.0) and scan.mount_xyz == (0.0, 0.0, 0.0)
-        # the draws' buffers: a standard normal per possible return, a uniform per ray
-        self._noise = np.empty(self._ranges.size if lidar.noise_std > 0.0 else 0)
-        self._drop = np.empty(self._ranges.shape if lidar.dropout > 0.0 else (n, 0, 0))
+        self._draws = CorruptionDraws(lidar, self._ranges.shape)
         self.column_bins = column_bins(caster.azimuth_deg, self._unit) if self._identity else None
 
     def scans(
@@ -109,10 +108,10 @@ class BatchLidar:
             origins, rotations, self._columns, self._cos_el, self._sin_el, w.rooms, w.boxes, w.box_offsets,
             w.cylinders, w.cylinder_offsets, cfg.min_range, cfg.max_range, self._ranges,
         )  # fmt: skip
-        noise_offsets = _draw_corruption(cfg, hits, rngs, self._noise, self._drop)
+        noise_offsets = self._draws.draw(hits, rngs)
         corrupt = (
-            self._noise, noise_offsets, cfg.noise_std, self._drop, cfg.noise_std > 0.0, cfg.dropout > 0.0,
-            np.float32(cfg.min_range), np.float32(cfg.max_range), cfg.dropout,
+            self._draws.noise, noise_offsets, cfg.noise_std, self._draws.drop, cfg.noise_std > 0.0,
+            cfg.dropout > 0.0, np.float32(cfg.min_range), np.float32(cfg.max_range), cfg.dropout,
         )  # fmt: skip
         if self.column_bins is not None:  # the cloud's points go straight into their column's bin
             out = np.empty((self.n, N_BINS), dtype=np.float32)
@@ -149,24 +148,53 @@ def _scan_floats(config: ScanConfig) -> tuple[np.float32, np.float32, np.float32
     return np.float32(config.slice_height), np.float32(config.min_range**2), np.float32(config.max_range)
 
 
-def _draw_corruption(
-    cfg: LidarConfig, hits: np.ndarray, rngs: list[np.random.Generator], noise: np.ndarray, drop: np.ndarray
-) -> np.ndarray:
-    """Each vehicle's range noise (one standard normal per return) and dropout draws into the
-    buffers, in ``_corrupt``'s order; returns where each vehicle's noise starts, ``(N + 1,)``.
+class CorruptionDraws:
+    """Each vehicle's range noise (a standard normal per return) and dropout draws (a uniform per
+    ray), from its own generator in ``_corrupt``'s order, into reused buffers.
 
     ``rng.normal(0, σ, n)`` is ``0 + σ · rng.standard_normal()`` per value, the same stream: the
-    kernel scales them (:func:`_corrupt_one`), which spares numpy's temporaries and a concatenation.
+    kernels scale them (:func:`_corrupt_one`). The draws run compiled on the generators' own
+    states (:mod:`flightsim.compiled_draws`), or through numpy for a generator it does not cover.
+
+    :param cfg: the sensor
+    :param shape: ``(N, columns, lasers)``
     """
-    offsets = np.zeros(len(rngs) + 1, dtype=np.int64)
-    if cfg.noise_std > 0.0:
-        np.cumsum(hits, out=offsets[1:])
-    for i, rng in enumerate(rngs):
+
+    def __init__(self, cfg: LidarConfig, shape: tuple[int, int, int]) -> None:
+        self.cfg = cfg
+        n = shape[0]
+        self.noise = np.empty(math.prod(shape) if cfg.noise_std > 0.0 else 0)
+        self.drop = np.empty(shape if cfg.dropout > 0.0 else (n, 0, 0))
+        self._rngs: list[np.random.Generator | None] = [None] * n
+        self._addresses = np.zeros(n, dtype=np.int64)
+        self._compiled = np.zeros(n, dtype=np.bool_)
+
+    def draw(self, hits: np.ndarray, rngs: list[np.random.Generator]) -> np.ndarray:
+        """Draw for this step; returns where each vehicle's noise starts in ``noise``, ``(N + 1,)``.
+
+        :param hits: ``(N,)`` returns per vehicle (one noise draw each)
+        :param rngs: each vehicle's generator
+        """
+        cfg = self.cfg
+        offsets = np.zeros(len(rngs) + 1, dtype=np.int64)
+        if cfg.noise_std <= 0.0 and cfg.dropout <= 0.0:
+            return offsets
         if cfg.noise_std > 0.0:
-            rng.standard_normal(out=noise[offsets[i] : offsets[i + 1]])
-        if cfg.dropout > 0.0:
-            rng.random(out=drop[i])  # the same draws as rng.random(shape), without the copy
-    return offsets
+            np.cumsum(hits, out=offsets[1:])
+        for i, rng in enumerate(rngs):
+            if rng is not self._rngs[i]:  # a new generator (a seeded reset): find its state
+                address = state_address(rng)
+                self._rngs[i], self._addresses[i] = rng, address or 0
+                self._compiled[i] = address is not None
+        if self._compiled.all():
+            draw(self._addresses, offsets[1:] - offsets[:-1], self.noise, offsets[:-1], self.drop)
+            return offsets
+        for i, rng in enumerate(rngs):
+            if cfg.noise_std > 0.0:
+                rng.standard_normal(out=self.noise[offsets[i] : offsets[i + 1]])
+            if cfg.dropout > 0.0:
+                rng.random(out=self.drop[i])  # the same draws as rng.random(shape), without the copy
+        return offsets
 
 
 def scans_from_points(
