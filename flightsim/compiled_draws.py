@@ -55,9 +55,9 @@ def state_address(rng: np.random.Generator) -> int | None:
 
 
 @intrinsic
-def _state_words(typingctx, address):  # pragma: no cover - compiled
-    """The generator state at ``address`` as a pointer to its four 64-bit words (lo, hi of the state;
-    lo, hi of the increment)."""
+def state_words(typingctx, address):  # pragma: no cover - compiled
+    """The generator state at ``address`` (:func:`state_address`) as a pointer to its four 64-bit
+    words: lo, hi of the state, lo, hi of the increment. Load them, draw, store ``lo, hi`` back."""
     sig = types.CPointer(types.uint64)(types.int64)
 
     def codegen(context, builder, signature, args):
@@ -98,6 +98,42 @@ def _double(bits):  # pragma: no cover - compiled
     return np.float64(bits >> np.uint64(11)) * _TO_DOUBLE
 
 
+@njit(cache=True, inline="always")
+def standard_normal(lo, hi, inc_lo, inc_hi):  # pragma: no cover - compiled
+    """numpy's ``random_standard_normal`` on the state ``(lo, hi, inc_lo, inc_hi)``: returns the
+    new state's ``lo, hi`` and the draw."""
+    ki, wi, fi = _KI, _WI, _FI
+    while True:
+        lo, hi, r = _next64(lo, hi, inc_lo, inc_hi)
+        idx = np.int64(r & np.uint64(0xFF))
+        r = r >> np.uint64(8)
+        rabs = (r >> np.uint64(1)) & np.uint64(0x000FFFFFFFFFFFFF)
+        x = np.float64(rabs) * wi[idx]
+        if r & np.uint64(1):
+            x = -x
+        if rabs < ki[idx]:
+            return lo, hi, x  # 99.3 % of the time
+        if idx == 0:  # the tail
+            while True:
+                lo, hi, r1 = _next64(lo, hi, inc_lo, inc_hi)
+                xx = -ziggurat_nor_inv_r * math.log1p(-_double(r1))
+                lo, hi, r2 = _next64(lo, hi, inc_lo, inc_hi)
+                yy = -math.log1p(-_double(r2))
+                if yy + yy > xx * xx:
+                    tail = ziggurat_nor_r + xx
+                    return lo, hi, -tail if (rabs >> np.uint64(8)) & np.uint64(1) else tail
+        lo, hi, r1 = _next64(lo, hi, inc_lo, inc_hi)
+        if (fi[idx - 1] - fi[idx]) * _double(r1) + fi[idx] < math.exp(-0.5 * x * x):
+            return lo, hi, x
+
+
+@njit(cache=True, inline="always")
+def uniform(lo, hi, inc_lo, inc_hi):  # pragma: no cover - compiled
+    """numpy's ``next_double`` (``Generator.random``): the new state's ``lo, hi`` and the draw."""
+    lo, hi, r = _next64(lo, hi, inc_lo, inc_hi)
+    return lo, hi, _double(r)
+
+
 @njit(cache=True)
 def draw(addresses, n_normal, normals, normal_offsets, uniforms):  # pragma: no cover - compiled
     """For each generator ``v``: ``standard_normal(n_normal[v])`` into
@@ -110,39 +146,13 @@ def draw(addresses, n_normal, normals, normal_offsets, uniforms):  # pragma: no 
     :param normal_offsets: ``(N,)`` int64, where each one's normals go
     :param uniforms: ``(N, ...)`` float64, C-contiguous; a ``(N, 0, ...)`` array draws none
     """
-    ki, wi, fi = _KI, _WI, _FI
     for v in range(addresses.shape[0]):
-        words = _state_words(addresses[v])
+        words = state_words(addresses[v])
         lo, hi, inc_lo, inc_hi = words[0], words[1], words[2], words[3]
         base = normal_offsets[v]
         for k in range(n_normal[v]):
-            while True:  # numpy's random_standard_normal
-                lo, hi, r = _next64(lo, hi, inc_lo, inc_hi)
-                idx = np.int64(r & np.uint64(0xFF))
-                r = r >> np.uint64(8)
-                rabs = (r >> np.uint64(1)) & np.uint64(0x000FFFFFFFFFFFFF)
-                x = np.float64(rabs) * wi[idx]
-                if r & np.uint64(1):
-                    x = -x
-                if rabs < ki[idx]:
-                    break  # 99.3 % of the time
-                if idx == 0:  # the tail
-                    while True:
-                        lo, hi, r1 = _next64(lo, hi, inc_lo, inc_hi)
-                        xx = -ziggurat_nor_inv_r * math.log1p(-_double(r1))
-                        lo, hi, r2 = _next64(lo, hi, inc_lo, inc_hi)
-                        yy = -math.log1p(-_double(r2))
-                        if yy + yy > xx * xx:
-                            break
-                    tail = ziggurat_nor_r + xx
-                    x = -tail if (rabs >> np.uint64(8)) & np.uint64(1) else tail
-                    break
-                lo, hi, r1 = _next64(lo, hi, inc_lo, inc_hi)
-                if (fi[idx - 1] - fi[idx]) * _double(r1) + fi[idx] < math.exp(-0.5 * x * x):
-                    break
-            normals[base + k] = x
+            lo, hi, normals[base + k] = standard_normal(lo, hi, inc_lo, inc_hi)
         flat = uniforms[v].reshape(-1)
         for k in range(flat.shape[0]):
-            lo, hi, r = _next64(lo, hi, inc_lo, inc_hi)
-            flat[k] = _double(r)
+            lo, hi, flat[k] = uniform(lo, hi, inc_lo, inc_hi)
         words[0], words[1] = lo, hi
