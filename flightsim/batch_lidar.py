@@ -90,6 +90,7 @@ class BatchLidar:
         self._identity = scan.mount_rpy_deg == (0.0, 0.0, 0.0) and scan.mount_xyz == (0.0, 0.0, 0.0)
         self._draws = CorruptionDraws(lidar, self._ranges.shape)
         self.column_bins = column_bins(caster.azimuth_deg, self._unit) if self._identity else None
+        self._unit_xyz = tuple(np.ascontiguousarray(self._unit[:, :, c]) for c in range(3))
 
     def scans(
         self, worlds: list[World], origins: np.ndarray, rotations: np.ndarray, rngs: list[np.random.Generator]
@@ -116,7 +117,7 @@ class BatchLidar:
         if self.column_bins is not None:  # the cloud's points go straight into their column's bin
             out = np.empty((self.n, N_BINS), dtype=np.float32)
             _corrupt_and_scan(
-                self._ranges, *corrupt, self._unit, *self._band, self.column_bins,
+                self._ranges, *corrupt, *self._unit_xyz, *self._band, self.column_bins,
                 *_scan_floats(self.scan), out,
             )  # fmt: skip
             return out
@@ -293,7 +294,7 @@ def _corrupt_and_points(
 
 @njit(cache=True)
 def _corrupt_and_scan(
-    ranges, noise, noise_offsets, std, drop, noisy, dropping, min_range32, max_range32, dropout, unit,
+    ranges, noise, noise_offsets, std, drop, noisy, dropping, min_range32, max_range32, dropout, ux, uy, uz,
     nx, ny, nz, offset, half, bins, slice_height, min_r2, max_range, out,
 ):  # pragma: no cover - compiled
     """``_corrupt``, ``_points_kernel`` and ``_scan_kernel`` fused, all vehicles: each return that
@@ -302,13 +303,15 @@ def _corrupt_and_scan(
 
     A bin keeps the least ``f(xy2) = sqrt(xy2) / max_range`` (float32) of its points, and ``f`` never
     decreases as ``xy2`` grows (each float32 operation rounds monotonically), so the least of a
-    column's ``f`` is ``f`` of its least ``xy2``: one square root and division per column, and a
-    branch-free loop over its lasers, for the same bits. Dropout acts on each return alone, so it
-    is applied in that loop rather than in a pass of its own.
+    column's ``f`` is ``f`` of its least ``xy2``: one square root and division per column, for the
+    same bits. The lasers of a column go through a branch-free loop (which vectorises: the unit
+    vectors come as three arrays ``ux, uy, uz``) into a buffer, and the least is taken after.
+    Dropout acts on each return alone, so it is applied in that loop rather than in a pass of its own.
     """
     n, n_cols, n_el = ranges.shape
     nothing = np.float32(np.inf)
     zero = np.float32(0.0)
+    kept_xy2 = np.empty(n_el, dtype=np.float32)
     for v in range(n):
         r = ranges[v]
         d = drop[v] if dropping else drop[0]
@@ -316,19 +319,21 @@ def _corrupt_and_scan(
         scan = out[v]
         scan[:] = np.float32(1.0)
         for j in range(n_cols):
-            least = nothing  # the least xy2 of the column's points the scan keeps
             for i in range(n_el):
                 rr = r[j, i]
                 if dropping:
                     rr = zero if d[j, i] < dropout else rr
-                x, y, z = rr * unit[j, i, 0], rr * unit[j, i, 1], rr * unit[j, i, 2]
+                x, y, z = rr * ux[j, i], rr * uy[j, i], rr * uz[j, i]
                 # scan_from_points' float32 arithmetic and tests, after _points_kernel's keep test
                 xy2 = np.float32(x * x)
                 xy2 = np.float32(xy2 + np.float32(y * y))
                 r2 = np.float32(np.float32(z * z) + xy2)
                 kept = (rr > 0.0) & (abs(nx * x + ny * y + nz * z + offset) < half)
                 kept = kept & (abs(z) < slice_height) & (r2 >= min_r2)
-                least = min(least, xy2) if kept else least
+                kept_xy2[i] = xy2 if kept else nothing
+            least = nothing
+            for i in range(n_el):
+                least = min(least, kept_xy2[i])
             if least < nothing:
                 value = np.float32(np.float32(math.sqrt(least)) / max_range)
                 if value < scan[bins[j]]:
