@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import ctypes
 import math
+import sys
 
 import numpy as np
 from llvmlite import ir
@@ -48,7 +49,9 @@ def state_address(rng: np.random.Generator) -> int | None:
     if type(bit_generator) is not np.random.PCG64:
         return None
     address = ctypes.c_void_p.from_address(bit_generator.ctypes.state_address).value
-    if address is None:
+    # numpy keeps the 128-bit words inside the PCG64 object itself: read nothing that is not there
+    start, size = id(bit_generator), sys.getsizeof(bit_generator)
+    if address is None or not start <= address <= start + size - 32:
         return None
     words = (ctypes.c_uint64 * 4).from_address(address)
     state = bit_generator.state["state"]
