@@ -22,6 +22,7 @@ import numpy as np
 from numba import njit
 
 from companion.scan import N_BINS, ScanConfig, scan_from_points
+from flightsim.compiled_draws import draw, state_address
 from flightsim.raycast import (
     N_LASERS,
     LidarConfig,
@@ -87,8 +88,9 @@ class BatchLidar:
         self._ranges = np.empty((n, lidar.n_columns, N_LASERS), dtype=np.float32)
         self.worlds = PackedWorlds(n)
         self._identity = scan.mount_rpy_deg == (0.0, 0.0, 0.0) and scan.mount_xyz == (0.0, 0.0, 0.0)
-        self._no_drop = np.zeros((n, 0, 0))
+        self._draws = CorruptionDraws(lidar, self._ranges.shape)
         self.column_bins = column_bins(caster.azimuth_deg, self._unit) if self._identity else None
+        self._unit_xyz = tuple(np.ascontiguousarray(self._unit[:, :, c]) for c in range(3))
 
     def scans(
         self, worlds: list[World], origins: np.ndarray, rotations: np.ndarray, rngs: list[np.random.Generator]
@@ -107,17 +109,15 @@ class BatchLidar:
             origins, rotations, self._columns, self._cos_el, self._sin_el, w.rooms, w.boxes, w.box_offsets,
             w.cylinders, w.cylinder_offsets, cfg.min_range, cfg.max_range, self._ranges,
         )  # fmt: skip
-        noise, noise_offsets, drop = _draw_corruption(cfg, hits, self._ranges.shape, rngs)
-        if drop is None:
-            drop = self._no_drop
+        noise_offsets = self._draws.draw(hits, rngs)
         corrupt = (
-            noise, noise_offsets, drop, cfg.noise_std > 0.0, cfg.dropout > 0.0, np.float32(cfg.min_range),
-            np.float32(cfg.max_range), cfg.dropout,
+            self._draws.noise, noise_offsets, cfg.noise_std, self._draws.drop, cfg.noise_std > 0.0,
+            cfg.dropout > 0.0, np.float32(cfg.min_range), np.float32(cfg.max_range), cfg.dropout,
         )  # fmt: skip
         if self.column_bins is not None:  # the cloud's points go straight into their column's bin
             out = np.empty((self.n, N_BINS), dtype=np.float32)
             _corrupt_and_scan(
-                self._ranges, *corrupt, self._unit, *self._band, self.column_bins,
+                self._ranges, *corrupt, *self._unit_xyz, *self._band, self.column_bins,
                 *_scan_floats(self.scan), out,
             )  # fmt: skip
             return out
@@ -126,18 +126,22 @@ class BatchLidar:
 
 
 def column_bins(azimuth_deg: np.ndarray, unit: np.ndarray) -> np.ndarray | None:
-    """The scan bin of every return of each (column, laser), or None where that is not fixed.
+    """The scan bin of every return of each column, ``(columns,)``, or None where that is not fixed.
 
     A return's direction in the sensor frame is its column's, whatever its range, noise or the
     vehicle's pose: ``scan_from_points`` bins it by ``atan2f`` of its float32 x, y, which float32
     rounding moves by under 1e-4 bin. Columns at least 1e-3 bin from a bin edge (the 1° caster's
     sit mid-bin, 0.5 bin away) therefore always land in the bin ``atan2f`` gives their unit
-    vector; a caster with a column nearer an edge gets None (the scan then bins point by point).
+    vector, the same for all 16 lasers of the column; a caster with a column nearer an edge gets
+    None (the scan then bins point by point).
     """
     angle = (-np.asarray(azimuth_deg, dtype=np.float64)) % 360.0  # azimuth runs clockwise
     if np.min(np.abs(angle - np.round(angle))) < 1e-3:
         return None
-    return _unit_bins(unit, _BINS_PER_RAD)
+    bins = _unit_bins(unit, _BINS_PER_RAD)
+    if np.any(bins != bins[:, :1]):  # cannot happen a 1e-3 bin from the edges; never assume it
+        return None
+    return bins[:, 0].copy()
 
 
 def _scan_floats(config: ScanConfig) -> tuple[np.float32, np.float32, np.float32]:
@@ -145,25 +149,53 @@ def _scan_floats(config: ScanConfig) -> tuple[np.float32, np.float32, np.float32
     return np.float32(config.slice_height), np.float32(config.min_range**2), np.float32(config.max_range)
 
 
-def _draw_corruption(
-    cfg: LidarConfig, hits: np.ndarray, shape: tuple[int, ...], rngs: list[np.random.Generator]
-) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Each vehicle's range noise (one per return) and dropout draws, in ``_corrupt``'s order."""
-    n = len(rngs)
-    offsets = np.zeros(n + 1, dtype=np.int64)
-    if cfg.noise_std <= 0.0 and cfg.dropout <= 0.0:
-        return np.zeros(0, dtype=np.float32), offsets, None
-    noise_parts = []
-    drop = np.empty(shape) if cfg.dropout > 0.0 else None
-    for i, rng in enumerate(rngs):
+class CorruptionDraws:
+    """Each vehicle's range noise (a standard normal per return) and dropout draws (a uniform per
+    ray), from its own generator in ``_corrupt``'s order, into reused buffers.
+
+    ``rng.normal(0, σ, n)`` is ``0 + σ · rng.standard_normal()`` per value, the same stream: the
+    kernels scale them (:func:`_corrupt_one`). The draws run compiled on the generators' own
+    states (:mod:`flightsim.compiled_draws`), or through numpy for a generator it does not cover.
+
+    :param cfg: the sensor
+    :param shape: ``(N, columns, lasers)``
+    """
+
+    def __init__(self, cfg: LidarConfig, shape: tuple[int, int, int]) -> None:
+        self.cfg = cfg
+        n = shape[0]
+        self.noise = np.empty(math.prod(shape) if cfg.noise_std > 0.0 else 0)
+        self.drop = np.empty(shape if cfg.dropout > 0.0 else (n, 0, 0))
+        self._rngs: list[np.random.Generator | None] = [None] * n
+        self._addresses = np.zeros(n, dtype=np.int64)
+        self._compiled = np.zeros(n, dtype=np.bool_)
+
+    def draw(self, hits: np.ndarray, rngs: list[np.random.Generator]) -> np.ndarray:
+        """Draw for this step; returns where each vehicle's noise starts in ``noise``, ``(N + 1,)``.
+
+        :param hits: ``(N,)`` returns per vehicle (one noise draw each)
+        :param rngs: each vehicle's generator
+        """
+        cfg = self.cfg
+        offsets = np.zeros(len(rngs) + 1, dtype=np.int64)
+        if cfg.noise_std <= 0.0 and cfg.dropout <= 0.0:
+            return offsets
         if cfg.noise_std > 0.0:
-            noise_parts.append(rng.normal(0.0, cfg.noise_std, int(hits[i])).astype(np.float32))
-        if drop is not None:
-            rng.random(out=drop[i])  # the same draws as rng.random(shape), without the copy
-    if noise_parts:
-        offsets[1:] = np.cumsum(hits)
-        return np.concatenate(noise_parts), offsets, drop
-    return np.zeros(0, dtype=np.float32), offsets, drop
+            np.cumsum(hits, out=offsets[1:])
+        for i, rng in enumerate(rngs):
+            if rng is not self._rngs[i]:  # a new generator (a seeded reset): find its state
+                address = state_address(rng)
+                self._rngs[i], self._addresses[i] = rng, address or 0
+                self._compiled[i] = address is not None
+        if self._compiled.all():
+            draw(self._addresses, offsets[1:] - offsets[:-1], self.noise, offsets[:-1], self.drop)
+            return offsets
+        for i, rng in enumerate(rngs):
+            if cfg.noise_std > 0.0:
+                rng.standard_normal(out=self.noise[offsets[i] : offsets[i + 1]])
+            if cfg.dropout > 0.0:
+                rng.random(out=self.drop[i])  # the same draws as rng.random(shape), without the copy
+        return offsets
 
 
 def scans_from_points(
@@ -219,14 +251,15 @@ def _cast_batch(
 
 
 @njit(cache=True, inline="always")
-def _corrupt_one(r, noise, k, d, noisy, dropping, min_range32, max_range32, dropout):  # pragma: no cover
-    """``_corrupt`` on one grid: the same float32 arithmetic on the same draws (noise from ``k``)."""
+def _corrupt_one(r, noise, k, std, d, noisy, dropping, min_range32, max_range32, dropout):  # pragma: no cover
+    """``_corrupt`` on one grid: the same float32 arithmetic on the same draws (standard normals
+    from ``k``, scaled as ``rng.normal(0, std)`` scales them and cast to float32 as ``_corrupt`` does)."""
     n_cols, n_el = r.shape
     if noisy:
         for j in range(n_cols):
             for i in range(n_el):
                 if r[j, i] > 0.0:
-                    value = r[j, i] + noise[k]  # float32 + float32, as numpy adds them
+                    value = r[j, i] + np.float32(0.0 + std * noise[k])  # float32 + float32, as numpy
                     k += 1
                     # numpy compares a float32 array with a Python float in float32 (NEP 50)
                     r[j, i] = np.float32(0.0) if (value < min_range32) | (value > max_range32) else value
@@ -239,7 +272,7 @@ def _corrupt_one(r, noise, k, d, noisy, dropping, min_range32, max_range32, drop
 
 @njit(cache=True)
 def _corrupt_and_points(
-    ranges, noise, noise_offsets, drop, noisy, dropping, min_range32, max_range32, dropout, unit,
+    ranges, noise, noise_offsets, std, drop, noisy, dropping, min_range32, max_range32, dropout, unit,
     nx, ny, nz, offset, half,
 ):  # pragma: no cover - compiled
     """``_corrupt`` then ``_points_kernel``, all vehicles; clouds back to back, ``(N + 1,)`` offsets."""
@@ -250,7 +283,7 @@ def _corrupt_and_points(
     for v in range(n):
         d = drop[v] if dropping else drop[0]
         r = ranges[v]
-        _corrupt_one(r, noise, noise_offsets[v], d, noisy, dropping, min_range32, max_range32, dropout)
+        _corrupt_one(r, noise, noise_offsets[v], std, d, noisy, dropping, min_range32, max_range32, dropout)
         cloud = _points_kernel(ranges[v], unit, nx, ny, nz, offset, half)
         m = cloud.shape[0]
         points[total:total + m] = cloud
@@ -261,25 +294,50 @@ def _corrupt_and_points(
 
 @njit(cache=True)
 def _corrupt_and_scan(
-    ranges, noise, noise_offsets, drop, noisy, dropping, min_range32, max_range32, dropout, unit,
+    ranges, noise, noise_offsets, std, drop, noisy, dropping, min_range32, max_range32, dropout, ux, uy, uz,
     nx, ny, nz, offset, half, bins, slice_height, min_r2, max_range, out,
 ):  # pragma: no cover - compiled
     """``_corrupt``, ``_points_kernel`` and ``_scan_kernel`` fused, all vehicles: each return that
-    the cloud would hold (the same float32 point, the same keep test) updates the scan as that
-    point would, in the bin of its column (:func:`column_bins`); no cloud is materialised."""
+    the cloud would hold (the same float32 point, the same keep test) counts in the scan as that
+    point would, in the bin of its column (:func:`column_bins`); no cloud is materialised.
+
+    A bin keeps the least ``f(xy2) = sqrt(xy2) / max_range`` (float32) of its points, and ``f`` never
+    decreases as ``xy2`` grows (each float32 operation rounds monotonically), so the least of a
+    column's ``f`` is ``f`` of its least ``xy2``: one square root and division per column, for the
+    same bits. The lasers of a column go through a branch-free loop (which vectorises: the unit
+    vectors come as three arrays ``ux, uy, uz``) into a buffer, and the least is taken after.
+    Dropout acts on each return alone, so it is applied in that loop rather than in a pass of its own.
+    """
     n, n_cols, n_el = ranges.shape
+    nothing = np.float32(np.inf)
+    zero = np.float32(0.0)
+    kept_xy2 = np.empty(n_el, dtype=np.float32)
     for v in range(n):
         r = ranges[v]
         d = drop[v] if dropping else drop[0]
-        _corrupt_one(r, noise, noise_offsets[v], d, noisy, dropping, min_range32, max_range32, dropout)
+        _corrupt_one(r, noise, noise_offsets[v], std, d, noisy, False, min_range32, max_range32, dropout)
         scan = out[v]
         scan[:] = np.float32(1.0)
         for j in range(n_cols):
             for i in range(n_el):
                 rr = r[j, i]
-                x, y, z = rr * unit[j, i, 0], rr * unit[j, i, 1], rr * unit[j, i, 2]
-                if rr > 0.0 and abs(nx * x + ny * y + nz * z + offset) < half:  # _points_kernel's test
-                    _scan_point(scan, x, y, z, bins[j, i], slice_height, min_r2, max_range)
+                if dropping:
+                    rr = zero if d[j, i] < dropout else rr
+                x, y, z = rr * ux[j, i], rr * uy[j, i], rr * uz[j, i]
+                # scan_from_points' float32 arithmetic and tests, after _points_kernel's keep test
+                xy2 = np.float32(x * x)
+                xy2 = np.float32(xy2 + np.float32(y * y))
+                r2 = np.float32(np.float32(z * z) + xy2)
+                kept = (rr > 0.0) & (abs(nx * x + ny * y + nz * z + offset) < half)
+                kept = kept & (abs(z) < slice_height) & (r2 >= min_r2)
+                kept_xy2[i] = xy2 if kept else nothing
+            least = nothing
+            for i in range(n_el):
+                least = min(least, kept_xy2[i])
+            if least < nothing:
+                value = np.float32(np.float32(math.sqrt(least)) / max_range)
+                if value < scan[bins[j]]:
+                    scan[bins[j]] = value
 
 
 @njit(cache=True)

@@ -173,14 +173,15 @@ class LidarNavEnv(LidarAvoidEnv):
         self.time_limit_steps = time_limit_steps(self.shortest_path_m, self.config)
         self._waypoint = 0
         self._goal_distance = self._distance_to_goal()
-        return self._frame(scan), self._nav_info(info)
+        return self._frame(scan, info["measured_velocity_body"]), self._nav_info(info)
 
     def _conclude(self, command: StepCommand, scan: np.ndarray):
         scan, reward, collided, truncated, info = super()._conclude(command, scan)
         finished = self._waypoint >= len(self.world.waypoints)
         terminated = collided or finished
         truncated = not terminated and (truncated or self._steps >= self.time_limit_steps)
-        return self._frame(scan), reward, terminated, truncated, self._nav_info(info)
+        frame = self._frame(scan, info["measured_velocity_body"])
+        return frame, reward, terminated, truncated, self._nav_info(info)
 
     def render(self) -> np.ndarray | None:
         if self.render_mode != "rgb_array" or self.world is None:
@@ -262,14 +263,18 @@ class LidarNavEnv(LidarAvoidEnv):
         p = self._state.position
         return math.hypot(goal[0] - p[0], goal[1] - p[1])
 
-    def _frame(self, scan: np.ndarray) -> np.ndarray:
+    def _frame(self, scan: np.ndarray, velocity: np.ndarray) -> np.ndarray:
+        """The observation at the current pose: ``scan`` and the goal features.
+
+        :param velocity: the measured body velocity now (the info's, measured once a step)
+        """
         n = len(self.world.waypoints)
-        p, yaw = self._state.position, float(self._state.yaw)
+        x, y, _ = self._state.position.tolist()
         goal = self.world.waypoints[min(self._waypoint, n - 1)]
-        forward, left = goal_in_body(goal[0] - p[0], goal[1] - p[1], yaw)
+        forward, left = goal_in_body(goal[0] - x, goal[1] - y, float(self._state.yaw))
         if self._waypoint >= n:  # done: the goal is where the vehicle is
             forward = left = 0.0
-        features = goal_features(forward, left, *self.measured_body_velocity(), self.layout)
+        features = goal_features(forward, left, *velocity.tolist(), self.layout)
         return build_frame(scan, features, self.layout)
 
     def _nav_info(self, info: dict[str, Any]) -> dict[str, Any]:

@@ -72,8 +72,10 @@ def test_the_compiled_scan_refuses_a_mount_it_does_not_cover() -> None:
         LidarConfig(azimuth_step_deg=2.0, dropout=0.1),  # columns on bin edges: binned point by point
     ],
 )
-def test_batched_lidar_equals_each_env_cast_and_scan(lidar: LidarConfig) -> None:
-    """Cast, noise, dropout, cloud and scan of N poses in N worlds: each one's, from its own generator."""
+@pytest.mark.parametrize("bit_generator", [np.random.PCG64, np.random.Philox])  # compiled draws; numpy's
+def test_batched_lidar_equals_each_env_cast_and_scan(lidar: LidarConfig, bit_generator) -> None:
+    """Cast, noise, dropout, cloud and scan of N poses in N worlds: each one's, from its own generator,
+    which is left where the env's own draws leave it."""
     n = 5
     config = EnvConfig(lidar=lidar, difficulty=0.9)
     envs = [LidarAvoidEnv(config) for _ in range(n)]
@@ -89,13 +91,12 @@ def test_batched_lidar_equals_each_env_cast_and_scan(lidar: LidarConfig) -> None
             env._state.roll, env._state.pitch, env._state.yaw = roll, pitch, yaw + math.pi * rng.uniform()
             poses.append(env._sensor_pose())
         seeds = rng.integers(0, 2**31, n)
-        batched = batch.scans(
-            [env.world for env in envs],
-            np.array([p[0] for p in poses]),
-            np.array([p[1] for p in poses]),
-            [np.random.default_rng(s) for s in seeds],
-        )
+        generators = [np.random.Generator(bit_generator(s)) for s in seeds]
+        origins, rotations = np.array([p[0] for p in poses]), np.array([p[1] for p in poses])
+        batched = batch.scans([env.world for env in envs], origins, rotations, generators)
         for i, env in enumerate(envs):
-            env._np_random = np.random.default_rng(seeds[i])
+            env._np_random = np.random.Generator(bit_generator(seeds[i]))
             np.testing.assert_array_equal(batched[i], env._fresh_scan(), err_msg=f"env {i}")
+            after = generators[i].integers(2**62, size=4)  # both generators carry on from the same place
+            np.testing.assert_array_equal(after, env.np_random.integers(2**62, size=4))
         assert (batched < 1.0).sum() > 500  # real clouds were compared, not empty scans
