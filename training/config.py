@@ -161,8 +161,8 @@ class TrainConfig:
         if self.total_timesteps == 0 and not self.pretrain.steps:
             raise ValueError("total_timesteps 0 trains nothing: give it steps, or [pretrain] steps")
         if self.pretrain.steps and self.pretrain.method == "dagger":
-            if not self.is_goal_task or self.vec_env != "batched":
-                raise ValueError('pretrain.method "dagger" needs the goal task and vec_env = "batched"')
+            if not self.is_goal_task:
+                raise ValueError('pretrain.method "dagger" flies the goal task (its teacher plans waypoints)')
         elif self.pretrain.steps and (self.pretrain.demonstrator == "goal_follower") != self.is_goal_task:
             task = "goal" if self.is_goal_task else "avoid"
             raise ValueError(

@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from companion.errors import UserError
 from training.path_expert import PathExpert
 from training.pretrain import Demonstrations, discounted_returns, fit
 
@@ -52,11 +53,11 @@ class Rollouts:
 def nav_envs(venv: Any) -> list[Any]:
     """The LidarNav-v0 envs under a (wrapped) in-process vector env, for the teacher to read.
 
-    :raises ValueError: the envs live in other processes (``vec_env = "subproc"``)
+    :raises UserError: the envs live in other processes (``vec_env = "subproc"``)
     """
     inner = venv.unwrapped
     if not hasattr(inner, "envs"):
-        raise ValueError(
+        raise UserError(
             f'DAgger reads the simulators\' state: it needs vec_env = "batched", not {type(inner).__name__}'
         )
     return [env.unwrapped for env in inner.envs]

@@ -78,10 +78,15 @@ def test_the_student_learns_the_teachers_actions(setup, tmp_path):
     assert error(model) < 0.25 * error(untrained)
 
 
-def test_dagger_needs_the_goal_task_and_the_batched_env(tmp_path):
+def test_dagger_needs_the_goal_task_and_the_envs_in_this_process(tmp_path):
     path = tmp_path / "dagger.toml"
     path.write_text(NAV)
-    with pytest.raises(UserError, match="dagger"):
-        load_train_config(path, ["vec_env=subproc"])
+    config = load_train_config(path, [f"run_root={tmp_path}", "vec_env='subproc'"])
+    venv = make_vec_env(config, 2, config.seed)  # SubprocVecEnv: the teacher cannot read the envs
+    try:
+        with pytest.raises(UserError, match='vec_env = "batched"'):
+            dagger.nav_envs(venv)
+    finally:
+        venv.close()
     with pytest.raises(UserError, match="dagger"):
         load_train_config(path, ['env_id="flightsim/LidarAvoid-v0"', "env={}"])
