@@ -125,6 +125,19 @@ def wait_for(predicate: Callable[[], Any], timeout: float, what: str, poll: floa
         time.sleep(poll)
 
 
+def said(flight: Any, mark: str) -> bool:
+    """The companion sent a STATUSTEXT containing ``mark``."""
+    return any(mark in t for t in flight.recorder.texts())
+
+
+def engage_mission(flight: Any) -> None:
+    """Companion up, the world's waypoints uploaded as a mission, take-off, the companion engaged."""
+    flight.wait_companion_up()
+    flight.upload_mission()
+    flight.take_off()
+    assert flight.wait_engaged(25.0), flight.companion_log()
+
+
 def speed(flight: Any) -> float:
     """Horizontal speed of the simulated vehicle, m/s."""
     return float(np.linalg.norm(flight.server.state.velocity[:2]))

@@ -14,15 +14,11 @@ import time
 import pytest
 
 from flightsim.harness import FlightOptions, SitlFlight, mission_items
-from tests.sitl.helpers import OPEN_ROOM, speed, wait_for, write_constant_policy
+from tests.sitl.helpers import OPEN_ROOM, engage_mission, said, speed, wait_for, write_constant_policy
 
 pytestmark = pytest.mark.sitl
 
 FAR = dataclasses.replace(OPEN_ROOM, waypoints=((5.0, 5.0, 1.5),))  # never reached by the circle
-
-
-def _said(f: SitlFlight, mark: str) -> bool:
-    return any(mark in t for t in f.recorder.texts())
 
 
 @pytest.mark.parametrize("autopilot", ["sim-ardupilot", "sim-px4"])
@@ -33,12 +29,9 @@ def test_mission_changed_in_flight_tracked_to_completion(tmp_path, autopilot):
                             policy=write_constant_policy(tmp_path / "circle.onnx", 0.5, 0.4),
                             ideal_response=True)
     with SitlFlight(options) as f:
-        f.wait_companion_up()
-        f.upload_mission()
-        f.take_off()
-        assert f.wait_engaged(25.0), f.companion_log()
-        wait_for(lambda: _said(f, "goal: tracking"), 10.0, "the companion tracking the first mission")
-        assert _said(f, "mission downloaded: 1 items")
+        engage_mission(f)
+        wait_for(lambda: said(f, "goal: tracking"), 10.0, "the companion tracking the first mission")
+        assert said(f, "mission downloaded: 1 items")
         wait_for(lambda: speed(f) > 0.6, 5.0, "the vehicle flying its circle")
 
         # the new mission's waypoints lie on the loop the vehicle is flying: two points it has just
@@ -48,10 +41,10 @@ def test_mission_changed_in_flight_tracked_to_completion(tmp_path, autopilot):
         second = tuple(f.server.state.position[:2])
         on_loop = dataclasses.replace(OPEN_ROOM, waypoints=((*first, 1.5), (*second, 1.5)))
         f.pilot(lambda gcs: gcs.upload_mission(mission_items(on_loop, gcs.home_position())))
-        wait_for(lambda: _said(f, "mission downloaded: 2 items"), 10.0, "the download in flight")
-        assert _said(f, "mission changed")
-        wait_for(lambda: _said(f, "goal: complete, holding"), 30.0, "the mission's completion")
-        assert _said(f, "goal: reached item")
+        wait_for(lambda: said(f, "mission downloaded: 2 items"), 10.0, "the download in flight")
+        assert said(f, "mission changed")
+        wait_for(lambda: said(f, "goal: complete, holding"), 30.0, "the mission's completion")
+        assert said(f, "goal: reached item")
         wait_for(lambda: speed(f) < 0.15, 8.0, "the vehicle held at completion")
         assert f.server.autopilot.mode_name() in ("GUIDED", "OFFBOARD")  # on_complete = hold: mode untouched
         report = f.report()
