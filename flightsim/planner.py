@@ -117,7 +117,7 @@ def _plan_leg(grid: ClearanceGrid, free: np.ndarray, a: np.ndarray, b: np.ndarra
     # read blocked when the point sits less than half a cell from the inflated boundary
     passable = free.copy()
     passable[ia] = passable[ib] = True
-    cells = _astar(passable, ia[0], ia[1], ib[0], ib[1])
+    cells = astar_cells(np.where(passable, 1.0, np.inf), ia[0], ia[1], ib[0], ib[1])
     if cells.shape[0] == 0:
         return None
     centres = (cells + 0.5) * grid.resolution + np.asarray(grid.origin)
@@ -167,9 +167,12 @@ _SQRT2 = math.sqrt(2.0)
 
 
 @njit(cache=True)
-def _astar(free, si, sj, gi, gj):  # pragma: no cover - compiled
-    """8-connected A* (octile heuristic, no corner cutting); the cell path ``(N, 2)``, empty if none."""
-    nx, ny = free.shape
+def astar_cells(costs, si, sj, gi, gj):  # pragma: no cover - compiled
+    """8-connected A* over per-cell cost factors (``inf``: blocked): a step costs its length (1 or
+    √2 cells) × the mean of its two cells' factors, so all-ones is the plain shortest grid path.
+    Octile heuristic, no corner cutting past a blocked cell. The cell path ``(N, 2)``, empty if none.
+    """
+    nx, ny = costs.shape
     g = np.full(nx * ny, np.inf)
     parent = np.full(nx * ny, -1, dtype=np.int64)
     closed = np.zeros(nx * ny, dtype=np.bool_)
@@ -188,12 +191,12 @@ def _astar(free, si, sj, gi, gj):  # pragma: no cover - compiled
         ci, cj = cur // ny, cur % ny
         for k in range(8):
             ni, nj = ci + di[k], cj + dj[k]
-            if ni < 0 or nj < 0 or ni >= nx or nj >= ny or not free[ni, nj]:
+            if ni < 0 or nj < 0 or ni >= nx or nj >= ny or not np.isfinite(costs[ni, nj]):
                 continue
-            if k >= 4 and not (free[ci + di[k], cj] and free[ci, cj + dj[k]]):
+            if k >= 4 and not (np.isfinite(costs[ci + di[k], cj]) and np.isfinite(costs[ci, cj + dj[k]])):
                 continue  # a diagonal step may not cut a blocked corner
             nxt = ni * ny + nj
-            cost = g[cur] + (1.0 if k < 4 else _SQRT2)
+            cost = g[cur] + (1.0 if k < 4 else _SQRT2) * 0.5 * (costs[ci, cj] + costs[ni, nj])
             if cost < g[nxt]:
                 g[nxt] = cost
                 parent[nxt] = cur

@@ -15,16 +15,14 @@ It is a training tool only; no evaluation figure flies it.
 
 from __future__ import annotations
 
-import heapq
 import itertools
 import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
 from flightsim.nav_env import LidarNavEnv
-from flightsim.planner import ClearanceGrid, clearance_grid
+from flightsim.planner import ClearanceGrid, astar_cells, clearance_grid
 
 
 @dataclass(frozen=True)
@@ -231,7 +229,7 @@ class PathExpert:
             ia, ib = grid.cell(*a), grid.cell(*b)
             passable = costs.copy()
             passable[ia] = passable[ib] = 1.0  # the vehicle and the waypoint are where they are
-            cells = _weighted_astar(passable, ia[0], ia[1], ib[0], ib[1])
+            cells = astar_cells(passable, ia[0], ia[1], ib[0], ib[1])
             if cells.shape[0] == 0:  # no safe route from here (inside an inflated obstacle): go direct
                 points.append(b[None, :])
                 continue
@@ -298,58 +296,6 @@ def _cell_costs(clearance: np.ndarray, radius: float, margin: float, weight: flo
     costs = 1.0 + weight * (1.0 - spare)
     costs[clearance < radius] = np.inf
     return costs
-
-
-_SQRT2 = math.sqrt(2.0)
-
-
-@njit(cache=True)
-def _weighted_astar(costs, si, sj, gi, gj):  # pragma: no cover - compiled
-    """8-connected A* over cell costs (a step costs its length × the mean of its cells' costs; no
-    corner cutting past an infinite cell); the cell path ``(N, 2)``, empty if none."""
-    nx, ny = costs.shape
-    g = np.full(nx * ny, np.inf)
-    parent = np.full(nx * ny, -1, dtype=np.int64)
-    closed = np.zeros(nx * ny, dtype=np.bool_)
-    start, goal = si * ny + sj, gi * ny + gj
-    g[start] = 0.0
-    heap = [(0.0, start)]
-    di = (1, -1, 0, 0, 1, 1, -1, -1)
-    dj = (0, 0, 1, -1, 1, -1, 1, -1)
-    while heap:
-        _, cur = heapq.heappop(heap)
-        if closed[cur]:
-            continue
-        closed[cur] = True
-        if cur == goal:
-            break
-        ci, cj = cur // ny, cur % ny
-        for k in range(8):
-            ni, nj = ci + di[k], cj + dj[k]
-            if ni < 0 or nj < 0 or ni >= nx or nj >= ny or not np.isfinite(costs[ni, nj]):
-                continue
-            if k >= 4 and not (np.isfinite(costs[ci + di[k], cj]) and np.isfinite(costs[ci, cj + dj[k]])):
-                continue
-            nxt = ni * ny + nj
-            cost = g[cur] + (1.0 if k < 4 else _SQRT2) * 0.5 * (costs[ci, cj] + costs[ni, nj])
-            if cost < g[nxt]:
-                g[nxt] = cost
-                parent[nxt] = cur
-                ai, aj = abs(ni - gi), abs(nj - gj)
-                heapq.heappush(heap, (cost + max(ai, aj) + (_SQRT2 - 1.0) * min(ai, aj), nxt))
-    if not closed[goal]:
-        return np.empty((0, 2), dtype=np.int64)
-    n = 1
-    cur = goal
-    while cur != start:
-        cur = parent[cur]
-        n += 1
-    cells = np.empty((n, 2), dtype=np.int64)
-    cur = goal
-    for k in range(n - 1, -1, -1):
-        cells[k, 0], cells[k, 1] = cur // ny, cur % ny
-        cur = parent[cur]
-    return cells
 
 
 def _stopping_speed(free: float, accel: float, lag: float) -> float:
