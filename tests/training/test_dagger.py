@@ -7,41 +7,20 @@ import numpy as np
 import pytest
 
 from companion.errors import UserError
+from tests.training.test_pretrain import NAV
 from training import dagger
 from training.config import load_train_config
 from training.train import build_model, make_vec_env
 
-NAV = """
-env_id = "flightsim/LidarNav-v0"
-name = "dagger"
-seed = 2
-n_envs = 2
-progress_bar = false
-
-[env]
-families = ["rooms", "pillars"]
-difficulty_range = [0.0, 0.3]
-
-[ppo]
-n_steps = 64
-batch_size = 64
-net_arch = [64, 64]
-gamma = 0.9
-
-[eval]
-first_seed = 500000
-
-[pretrain]
-method = "dagger"
-steps = 400
-"""
+#: test_pretrain's small goal-task run, taught by DAgger instead
+DAGGER = ["name=dagger", "seed=2", "pretrain.method='dagger'"]
 
 
 @pytest.fixture
 def setup(tmp_path):
     path = tmp_path / "dagger.toml"
     path.write_text(NAV)
-    config = load_train_config(path, [f"run_root={tmp_path}"])
+    config = load_train_config(path, [*DAGGER, f"run_root={tmp_path}"])
     venv = make_vec_env(config, 2, config.seed)
     model = build_model(config, venv, tmp_path, None)
     yield config, venv, model
@@ -81,7 +60,7 @@ def test_the_student_learns_the_teachers_actions(setup, tmp_path):
 def test_dagger_needs_the_goal_task_and_the_envs_in_this_process(tmp_path):
     path = tmp_path / "dagger.toml"
     path.write_text(NAV)
-    config = load_train_config(path, [f"run_root={tmp_path}", "vec_env='subproc'"])
+    config = load_train_config(path, [*DAGGER, f"run_root={tmp_path}", "vec_env='subproc'"])
     venv = make_vec_env(config, 2, config.seed)  # SubprocVecEnv: the teacher cannot read the envs
     try:
         with pytest.raises(UserError, match='vec_env = "batched"'):
@@ -89,4 +68,4 @@ def test_dagger_needs_the_goal_task_and_the_envs_in_this_process(tmp_path):
     finally:
         venv.close()
     with pytest.raises(UserError, match="dagger"):
-        load_train_config(path, ['env_id="flightsim/LidarAvoid-v0"', "env={}"])
+        load_train_config(path, [*DAGGER, 'env_id="flightsim/LidarAvoid-v0"', "env={}"])
