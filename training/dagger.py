@@ -135,13 +135,22 @@ def run(
     :return: every label gathered (the data of the last fit)
     """
     rng = np.random.default_rng(seed)
-    gathered: list[Rollouts] = []
-    collected = 0
+    obs = actions = returns = np.empty(0)
+    collected = episodes = successes = 0
     for k in range(iterations):
         beta = beta0**k
         rollouts = collect(venv, model.policy, steps, beta, model.gamma, rng)
-        gathered.append(rollouts)
-        collected += len(rollouts.actions)
+        n = len(rollouts.actions)
+        if k == 0:  # every iteration gathers as many rows: the aggregate's room, once
+            obs = np.empty((iterations * n, rollouts.obs.shape[1]), dtype=np.float32)
+            actions = np.empty((iterations * n, 2), dtype=np.float32)
+            returns = np.empty(iterations * n, dtype=np.float32)
+        obs[collected : collected + n] = rollouts.obs
+        actions[collected : collected + n] = rollouts.actions
+        returns[collected : collected + n] = rollouts.returns
+        collected += n
+        episodes += rollouts.episodes
+        successes += rollouts.successes
         student = (
             f", student {rollouts.student_successes}/{rollouts.student_episodes}"
             if rollouts.student_episodes
@@ -152,11 +161,7 @@ def run(
             k + 1, iterations, beta, rollouts.successes, rollouts.episodes, student,
         )  # fmt: skip
         data = Demonstrations(
-            np.concatenate([r.obs for r in gathered]),
-            np.concatenate([r.actions for r in gathered]),
-            np.concatenate([r.returns for r in gathered]),
-            sum(r.episodes for r in gathered),
-            sum(r.successes for r in gathered),
+            obs[:collected], actions[:collected], returns[:collected], episodes, successes
         )
         fit(model.policy, data, epochs, batch_size, learning_rate, seed + k)
         if after_iteration is not None:
