@@ -160,6 +160,12 @@ def _wrap(angle: float | np.ndarray) -> float | np.ndarray:
     return (angle + np.pi) % (2 * np.pi) - np.pi
 
 
+def _bin(angle: float) -> int:
+    """The scan bin a direction (rad, CCW from the nose) falls in. ``x % 360.0`` is 360.0 for a
+    tiny negative ``x`` (-1e-15 rounds to it), one past the last bin: the second ``%`` folds it."""
+    return int(math.degrees(angle) % 360.0) % N_BINS
+
+
 def _rotation(angle: float) -> np.ndarray:
     c, s = math.cos(angle), math.sin(angle)
     return np.array([[c, -s], [s, c]])
@@ -352,7 +358,7 @@ class GoalFollower:
         self._track_progress(distance)
         heading = self._heading(ranges, clear, bearing, distance)
         self._offset = float(_wrap(heading - bearing))
-        k = int(np.degrees(heading) % 360.0)
+        k = _bin(heading)
         wide = corridor_clearance(ranges, c.body_radius + c.swept_margin)
         speed = self._ramp(float(clear[k]), distance) * max(0.0, math.cos(heading)) ** 2
         speed = min(speed, max(c.creep, self._ramp(float(wide[k]), distance)))
@@ -377,7 +383,7 @@ class GoalFollower:
             admissible &= away
         if self._escape_side:
             self._escape_left -= 1
-            goal_bin = int(np.degrees(bearing) % 360.0)
+            goal_bin = _bin(bearing)
             goal_free = bool(admissible[goal_bin]) and distance < self._stuck_at - c.stall_progress
             if goal_free or self._escape_left <= 0:
                 self._escape_side = 0
@@ -495,13 +501,13 @@ class GoalFollower:
         speed = math.hypot(forward, left)
         if speed < c.course_min_speed:
             return False
-        course = int(math.degrees(math.atan2(left, forward)) % 360.0)
+        course = _bin(math.atan2(left, forward))
         return float(clear[course]) - c.stop_distance < c.stop_time * speed
 
     def _subgoal(self, ranges: np.ndarray, clear: np.ndarray, bearing: float, distance: float) -> float:
         """The direction to fly for: the goal's bearing if clear, else the best obstacle edge's."""
         c = self.config
-        goal_bin = int(np.degrees(bearing) % 360.0)
+        goal_bin = _bin(bearing)
         if clear[goal_bin] >= min(distance, c.horizon):
             return bearing
         r = np.minimum(ranges, c.max_range)

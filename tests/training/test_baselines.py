@@ -201,3 +201,13 @@ def test_goal_follower_asks_for_more_from_an_autopilot_that_settles_short():
         delivered = 0.7 * float(action[0]) * GOAL_LAYOUT.velocity_scale
         action = controller.act(_moving_frame(np.full(360, np.inf), 0.0, 25.0, (delivered, 0.0)))
     assert float(action[0]) * 0.7 == pytest.approx(controller.config.cruise, abs=0.08)
+
+
+@pytest.mark.parametrize("kind", [GoalFollower, StraightLine])
+def test_goal_controllers_take_a_goal_a_hair_right_of_the_nose(kind):
+    # a bearing of -1e-17 rad is -5.7e-16 degrees, and that % 360.0 is 360.0: one past the last bin
+    # (a GoalFollower indexed its clearance with it and raised IndexError mid-evaluation)
+    scan = _scan_with({})
+    features = goal_features(10.0, -1e-16, 0.0, 0.0, GOAL_LAYOUT)
+    action = kind(GOAL_LAYOUT).reset(build_frame(scan, features, GOAL_LAYOUT))
+    assert action[0] > 0.5 and abs(action[1]) < 0.05
