@@ -44,6 +44,7 @@ import numpy as np
 from companion.autopilot.link import AutopilotLink, VehicleStatus
 from companion.config import CompanionConfig, load_config
 from companion.connection import ensure_port_free
+from companion.drift import DriftConfig, DriftEstimator
 from companion.errors import UserError
 from companion.framestack import FrameStack
 from companion.goal import GoalOutput
@@ -55,7 +56,7 @@ from companion.goal_source import (
     request_message,
 )
 from companion.notify import SystemdNotifier
-from companion.observation import build_frame, goal_features
+from companion.observation import build_frame, drift_features, goal_features
 from companion.obstacle_distance import obstacle_distance_allowed, obstacle_distance_from_scan
 from companion.policy import InferenceFault, OnnxPolicy, PolicySpec
 from companion.recording.recorder import FlightRecorder, open_recorder
@@ -296,6 +297,9 @@ class Companion:
         )
         self.layout = config.policy.layout
         self.stack = FrameStack(config.policy.stack, self.layout.frame_size)
+        # the velocity estimate's error, from consecutive scans (drift layouts); kept across holds
+        self._drift = DriftEstimator(DriftConfig(max_range=config.scan.max_range))
+        self._drift_time = -math.inf
         self._od_limits = obstacle_distance_limits(config)
         # PX4 only accepts a switch to OFFBOARD while setpoints already stream.
         self._stream_before_mode = bool(getattr(self.link, "setpoints_before_offboard", False))
@@ -436,6 +440,11 @@ class Companion:
         # no goal source: a goal GOAL_AHEAD_M ahead on the current heading, wherever the vehicle is
         forward, left = goal.goal_body[:2] if goal.goal_body is not None else (GOAL_AHEAD_M, 0.0)
         features = goal_features(forward, left, *status.velocity_body, self.layout)
+        if self.layout.drift:
+            now = self._clock()
+            dt, self._drift_time = now - self._drift_time, now
+            bias = self._drift.observe(scan, np.asarray(status.velocity_body), forward, left, dt)
+            features = np.concatenate([features, drift_features(bias, self.layout)])
         return build_frame(scan, features, self.layout)
 
     def _send_obstacle_distance(self) -> None:

@@ -8,7 +8,11 @@ frame stacked (SB3's ``VecFrameStack`` does the same in training). Two layouts e
 * goal (``LidarNav-v0``): the scan, then :data:`GOAL_FEATURES` — the goal's bearing in the body
   frame as ``cos, sin`` (FLU: x forward, y left, so ``sin > 0`` = goal on the left), its horizontal
   distance ``/ goal_range`` clipped to ``[0, 1]``, and the measured body velocity
-  ``forward, left / velocity_scale`` clipped to ``[-1, 1]``.
+  ``forward, left / velocity_scale`` clipped to ``[-1, 1]``;
+* goal with drift: the goal layout, then :data:`DRIFT_FEATURES` — the velocity estimate's error
+  (reported minus true, body FLU) that :class:`companion.drift.DriftEstimator` tracks from the
+  scans, ``/ velocity_scale`` clipped to ``[-1, 1]``. The autopilot flies its estimate, so a policy
+  that cannot see the error cannot see the drift it causes.
 
 :attr:`ObservationLayout.name` spells a layout out (sizes and scales included); the training export
 writes it into the ONNX metadata and the companion refuses a model whose name differs from its own.
@@ -24,14 +28,18 @@ import numpy as np
 
 #: the goal/velocity features after the scan, in order
 GOAL_FEATURES = ("goal_cos", "goal_sin", "goal_distance", "velocity_forward", "velocity_left")
+#: the drift features after the goal features (``drift`` layouts), in order
+DRIFT_FEATURES = ("drift_forward", "drift_left")
 
 
 @dataclass(frozen=True)
 class ObservationLayout:
-    """One observation frame: ``n_bins`` scan values, then (``goal``) the :data:`GOAL_FEATURES`.
+    """One observation frame: ``n_bins`` scan values, then (``goal``) the :data:`GOAL_FEATURES`,
+    then (``drift``) the :data:`DRIFT_FEATURES`.
 
     :param n_bins: scan bins
     :param goal: the frame carries the goal and the measured velocity
+    :param drift: the frame also carries the drift estimate (a goal layout only)
     :param goal_range: metres a distance feature of 1.0 stands for (farther goals read 1.0)
     :param velocity_scale: m/s a velocity feature of 1.0 stands for (the env's ``max_speed``)
     """
@@ -40,26 +48,31 @@ class ObservationLayout:
     goal: bool = False
     goal_range: float = 10.0
     velocity_scale: float = 2.0
+    drift: bool = False
 
     def __post_init__(self) -> None:
         if self.n_bins < 1 or not self.goal_range > 0.0 or not self.velocity_scale > 0.0:
             raise ValueError(f"invalid observation layout {self}")
+        if self.drift and not self.goal:
+            raise ValueError("the drift features come after the goal features: drift needs goal")
 
     @property
     def frame_size(self) -> int:
         """Floats per frame."""
-        return self.n_bins + (len(GOAL_FEATURES) if self.goal else 0)
+        extras = (len(GOAL_FEATURES) if self.goal else 0) + (len(DRIFT_FEATURES) if self.drift else 0)
+        return self.n_bins + extras
 
     @property
     def name(self) -> str:
         """The layout spelled out, e.g. ``scan360`` or
-        ``scan360+goal(cos,sin,distance/10m)+velocity(forward,left/2m/s)``."""
+        ``scan360+goal(cos,sin,distance/10m)+velocity(forward,left/2m/s)[+drift(forward,left/2m/s)]``."""
         scan = f"scan{self.n_bins}"
         if not self.goal:
             return scan
+        drift = f"+drift(forward,left/{self.velocity_scale:g}m/s)" if self.drift else ""
         return (
             f"{scan}+goal(cos,sin,distance/{self.goal_range:g}m)"
-            f"+velocity(forward,left/{self.velocity_scale:g}m/s)"
+            f"+velocity(forward,left/{self.velocity_scale:g}m/s){drift}"
         )
 
     def slices(self) -> dict[str, slice]:
@@ -69,6 +82,8 @@ class ObservationLayout:
             n = self.n_bins
             parts |= {"goal_bearing": slice(n, n + 2), "goal_distance": slice(n + 2, n + 3)}
             parts["velocity"] = slice(n + 3, n + 5)
+        if self.drift:
+            parts["drift"] = slice(self.n_bins + 5, self.n_bins + 7)
         return parts
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -77,7 +92,7 @@ class ObservationLayout:
         high = np.ones(self.frame_size, dtype=np.float32)
         if self.goal:
             low[self.n_bins : self.n_bins + 2] = -1.0  # bearing cos, sin
-            low[self.n_bins + 3 :] = -1.0  # velocity
+            low[self.n_bins + 3 :] = -1.0  # velocity (and drift)
         return low, high
 
 
@@ -123,6 +138,20 @@ def goal_features(
         ],
         dtype=np.float32,
     )
+
+
+def drift_features(bias: np.ndarray, layout: ObservationLayout) -> np.ndarray:
+    """The :data:`DRIFT_FEATURES` of a frame (float32): the drift estimate (forward, left m/s, body
+    FLU) ``/ velocity_scale``, clipped to ``[-1, 1]``.
+
+    :raises ValueError: a non-finite estimate or a layout without drift
+    """
+    if not layout.drift:
+        raise ValueError(f"layout {layout.name} has no drift features")
+    bias = np.asarray(bias, dtype=np.float64).reshape(-1)
+    if bias.shape != (2,) or not np.isfinite(bias).all():
+        raise ValueError(f"the drift estimate must be 2 finite values, got {bias}")
+    return np.clip(bias / layout.velocity_scale, -1.0, 1.0).astype(np.float32)
 
 
 def build_frame(scan: np.ndarray, features: np.ndarray | None, layout: ObservationLayout) -> np.ndarray:

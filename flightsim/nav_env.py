@@ -9,7 +9,14 @@ from typing import Any, Literal
 import numpy as np
 from gymnasium import spaces
 
-from companion.observation import ObservationLayout, build_frame, goal_features, goal_in_body
+from companion.drift import DriftConfig, DriftEstimator
+from companion.observation import (
+    ObservationLayout,
+    build_frame,
+    drift_features,
+    goal_features,
+    goal_in_body,
+)
 from flightsim import seeds
 from flightsim.env import CONTROL_HZ, EnvConfig, LidarAvoidEnv, StepCommand
 from flightsim.families import FAMILIES, generate_family_world
@@ -40,6 +47,8 @@ class NavEnvConfig(EnvConfig):
     :param autopilot_response: as in :class:`~flightsim.env.EnvConfig`, but ``"random"`` by default:
         a PX4- or ArduPilot-like response drawn per episode, so a policy meets both
     :param goal_reward: the reward's weights
+    :param drift: each frame also carries the drift estimate (:class:`companion.drift.DriftEstimator`
+        on this episode's frames, as the companion computes it in flight)
     """
 
     reward: Literal["goal"] = "goal"
@@ -52,6 +61,7 @@ class NavEnvConfig(EnvConfig):
     time_limit_per_m: float = field(default=2.0, metadata={"min": 0.5, "max": 100.0})
     time_limit_slack_s: float = field(default=10.0, metadata={"min": 0.0, "max": 600.0})
     goal_reward: GoalRewardConfig = field(default_factory=GoalRewardConfig)
+    drift: bool = False
 
     def __post_init__(self) -> None:
         unknown = [f for f in self.families if f not in FAMILIES]
@@ -65,8 +75,9 @@ class NavEnvConfig(EnvConfig):
     def layout(self) -> ObservationLayout:
         """One observation frame of this env (the companion and the ONNX metadata use the same)."""
         return ObservationLayout(
-            n_bins=360, goal=True, goal_range=self.goal_range, velocity_scale=self.max_speed
-        )
+            n_bins=360, goal=True, goal_range=self.goal_range, velocity_scale=self.max_speed,
+            drift=self.drift,
+        )  # fmt: skip
 
 
 def time_limit_steps(shortest_path_m: float, config: NavEnvConfig) -> int:
@@ -92,7 +103,8 @@ class LidarNavEnv(LidarAvoidEnv):
 
     ## Observation Space
     ``Box(low, high, (365,), float32)``, one frame of :class:`companion.observation.ObservationLayout`
-    ``scan360+goal(cos,sin,distance/30m)+velocity(forward,left/2m/s)``:
+    ``scan360+goal(cos,sin,distance/30m)+velocity(forward,left/2m/s)``; with ``drift``,
+    ``Box(low, high, (367,), float32)``, ``...+drift(forward,left/2m/s)``:
 
     ========== ===================================================== ==========
     index      meaning                                               range
@@ -102,6 +114,9 @@ class LidarNavEnv(LidarAvoidEnv):
     362        its horizontal distance / ``goal_range`` (30 m)       [0, 1]
     363, 364   measured body velocity forward, left / ``max_speed``  [-1, 1]
                (:meth:`measured_body_velocity`: what the autopilot reports, estimate error included)
+    365, 366   (``drift`` only) the drift estimate forward, left /   [-1, 1]
+               ``max_speed``: the reported minus the scan-matched velocity, low-pass
+               filtered (:class:`companion.drift.DriftEstimator`, reset with the episode)
     ========== ===================================================== ==========
 
     The goal features are the current pose's; the scan follows ``latency_scans``. Frame stacking
@@ -142,7 +157,8 @@ class LidarNavEnv(LidarAvoidEnv):
 
     ## Version History
     * v0: initial version (families, goal + velocity features, goal reward, path-proportional time
-      limit).
+      limit). ``drift`` (off by default, so earlier configs keep their 365-float frame) adds the
+      drift features.
     """
 
     def __init__(self, config: NavEnvConfig | None = None, render_mode: str | None = None) -> None:
@@ -162,6 +178,7 @@ class LidarNavEnv(LidarAvoidEnv):
         self.shortest_path_m = 0.0
         self.time_limit_steps = 0
         self._planned: dict[World, float] = {}
+        self._drift = DriftEstimator(DriftConfig(max_range=config.scan.max_range))
 
     # ------------------------------------------------------------------ gymnasium API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
@@ -173,6 +190,7 @@ class LidarNavEnv(LidarAvoidEnv):
         self.time_limit_steps = time_limit_steps(self.shortest_path_m, self.config)
         self._waypoint = 0
         self._goal_distance = self._distance_to_goal()
+        self._drift.reset()
         return self._frame(scan, info["measured_velocity_body"]), self._nav_info(info)
 
     def _conclude(self, command: StepCommand, scan: np.ndarray):
@@ -197,6 +215,12 @@ class LidarNavEnv(LidarAvoidEnv):
             vehicle_radius=self.config.vehicle_radius, collided=self._collided, title=title,
             active_waypoint=self._waypoint if self._waypoint < n else None,
         )  # fmt: skip
+
+    @property
+    def drift_estimate(self) -> np.ndarray:
+        """(2,) the drift estimate of the newest frame (velocity estimate's error, body FLU, m/s):
+        what the frame's drift features carry, unscaled (zeros without ``drift``)."""
+        return self._drift.bias.copy()
 
     @property
     def waypoint_index(self) -> int:
@@ -275,6 +299,9 @@ class LidarNavEnv(LidarAvoidEnv):
         if self._waypoint >= n:  # done: the goal is where the vehicle is
             forward = left = 0.0
         features = goal_features(forward, left, *velocity.tolist(), self.layout)
+        if self.layout.drift:
+            bias = self._drift.observe(scan, velocity, forward, left, 1.0 / CONTROL_HZ)
+            features = np.concatenate([features, drift_features(bias, self.layout)])
         return build_frame(scan, features, self.layout)
 
     def _nav_info(self, info: dict[str, Any]) -> dict[str, Any]:

@@ -28,9 +28,9 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from companion.drift import DriftConfig, DriftEstimator
 from companion.observation import ObservationLayout
 from companion.scan import N_BINS
-from training.scan_motion import scan_motion
 
 _ANGLES = np.deg2rad(np.arange(N_BINS) + 0.5)  # bin centres, counter-clockwise from straight ahead
 _SIGNED = np.where(np.pi < _ANGLES, _ANGLES - 2 * np.pi, _ANGLES)  # in (-pi, pi]
@@ -166,11 +166,6 @@ def _bin(angle: float) -> int:
     return int(math.degrees(angle) % 360.0) % N_BINS
 
 
-def _rotation(angle: float) -> np.ndarray:
-    c, s = math.cos(angle), math.sin(angle)
-    return np.array([[c, -s], [s, c]])
-
-
 @dataclass(frozen=True)
 class StraightLineConfig:
     """:param cruise: forward action once facing the goal
@@ -236,9 +231,7 @@ class GoalFollowerConfig:
         when the measured course runs into something within that distance
     :param course_min_speed: m/s below which the measured course is too uncertain to check
     :param step_s: seconds between two frames (the env's 10 Hz)
-    :param match_min_bins: scan bins two frames must share for their motion to count
-    :param bias_time: time constant, s, of the filter on the velocity estimate's error
-    :param bias_max: m/s beyond which a single step's error is clipped (a bad scan match)
+    :param drift: the tracking of the velocity estimate's error (:class:`companion.drift.DriftEstimator`)
     :param crab_min_speed: m/s of wanted travel from which the nose leads into the estimate's
         error (below it the vehicle turns to its heading and only the along-nose part is compensated)
     :param crab_max: the largest such lead, rad
@@ -273,9 +266,7 @@ class GoalFollowerConfig:
     stop_time: float = 1.2
     course_min_speed: float = 0.2
     step_s: float = 0.1
-    match_min_bins: int = 30
-    bias_time: float = 0.5
-    bias_max: float = 0.6
+    drift: DriftConfig = DriftConfig()
     crab_min_speed: float = 0.2
     crab_max: float = 0.6
     gain_steady: int = 5
@@ -312,8 +303,8 @@ class GoalFollower:
     * **Drift the estimate hides.** PX4 closes its velocity loop on an estimate up to 0.2–0.4 m/s
       off, so a vehicle told to hover drifts at that error while reporting zero. The controller
       measures its true motion from the previous and the current scan
-      (:func:`training.scan_motion.scan_motion`), keeps the difference to the reported velocity
-      (the estimate's error, filtered over ``bias_time``) and commands the wanted velocity *plus*
+      (:class:`companion.drift.DriftEstimator`), keeps the difference to the reported velocity
+      (the estimate's error, low-pass filtered) and commands the wanted velocity *plus*
       that error: the along-nose part directly, the sideways part by leading with the nose
       (a crab angle up to ``crab_max``).
     * **Lag and overshoot.** No forward command faster than the vehicle can stop from within the
@@ -340,7 +331,7 @@ class GoalFollower:
         self._escape_left = 0
         self._stuck_at = math.inf
         self._last_distance = math.inf
-        self._previous: tuple[np.ndarray, np.ndarray, float] | None = None  # ranges, velocity, bearing
+        self._drift = DriftEstimator(self.config.drift)
         self._bias = np.zeros(2)  # velocity estimate minus true velocity, body frame, m/s
         self._speed_gain = 1.0  # measured / commanded forward speed, steady state
         self._commands: deque[float] = deque(maxlen=self.config.gain_steady)  # forward m/s sent
@@ -351,9 +342,8 @@ class GoalFollower:
         scan, bearing, distance = _goal(obs, self.layout)
         ranges = np.where(scan >= 1.0, np.inf, scan * c.max_range)
         clear = corridor_clearance(ranges, c.body_radius)
-        jumped = distance > self._last_distance + 1.0
         measured = np.array(_velocity(obs, self.layout))
-        velocity = self._true_velocity(ranges, measured, bearing, jumped)
+        velocity = self._true_velocity(ranges, measured, bearing, distance)
         self._learn_speed_gain(float(measured[0]))
         self._track_progress(distance)
         heading = self._heading(ranges, clear, bearing, distance)
@@ -437,26 +427,11 @@ class GoalFollower:
         self._speed_gain += (c.step_s / c.gain_time) * (ratio - self._speed_gain)
 
     def _true_velocity(
-        self, ranges: np.ndarray, measured: np.ndarray, bearing: float, jumped: bool
+        self, ranges: np.ndarray, measured: np.ndarray, bearing: float, distance: float
     ) -> np.ndarray:
-        """The vehicle's true body velocity (m/s): the measured one less the estimate's error, which
-        is tracked by comparing the measured velocity with the motion between consecutive scans
-        (:func:`training.scan_motion.scan_motion`), low-pass filtered over ``bias_time`` s."""
-        c = self.config
-        previous, self._previous = self._previous, (ranges, measured, bearing)
-        if previous is None:
-            return measured - self._bias
-        ranges0, measured0, bearing0 = previous
-        guess = 0.0 if jumped else float(_wrap(bearing0 - bearing))
-        dx, dy, turn, used = scan_motion(ranges0, ranges, guess, c.max_range)
-        if used < c.match_min_bins:
-            return measured - self._bias
-        rot = _rotation(turn)
-        moved = np.array([dx, dy]) / c.step_s
-        mean_measured = 0.5 * (measured0 + rot @ measured)  # in the previous body frame
-        error = np.clip(mean_measured - moved, -c.bias_max, c.bias_max)
-        bias = self._bias + (c.step_s / c.bias_time) * (error - self._bias)
-        self._bias = rot.T @ bias  # into the current body frame
+        """The vehicle's true body velocity (m/s): the measured one less the estimate's error
+        (:class:`companion.drift.DriftEstimator`)."""
+        self._bias = self._drift.update(ranges, measured, bearing, distance, self.config.step_s)
         return measured - self._bias
 
     def _ramp(self, clearance: float, distance: float) -> float:

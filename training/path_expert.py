@@ -144,7 +144,7 @@ class PathExpert:
         desired = direction * speed
         # the autopilot flies its estimate (reported = true + error): asking for the error holds
         # still; the velocity gain also damps the true velocity's error
-        error_xy = env.estimate_error
+        error_xy = self._estimate_error()
         move = desired * (1.0 + cfg.velocity_gain)
         hold = error_xy - cfg.velocity_gain * true_velocity
         command = move + hold
@@ -168,6 +168,18 @@ class PathExpert:
         )  # fmt: skip
 
     # ------------------------------------------------------------------ internals
+    def _estimate_error(self) -> np.ndarray:
+        """The velocity estimate's error the command makes up for, world ENU m/s. With the drift
+        features it is the drift estimate the student sees in its frame (so the labels follow
+        from what the student has: 87 % of 54 validation worlds, against 91 % on the simulator's
+        truth and 48 % without it); else the truth (privileged)."""
+        env = self.env
+        if not env.layout.drift:
+            return np.asarray(env.estimate_error, dtype=np.float64)
+        forward, left = env.drift_estimate
+        c, s = math.cos(env.true_state.yaw), math.sin(env.true_state.yaw)
+        return np.array([c * forward - s * left, s * forward + c * left])
+
     def _lag(self) -> float:
         """Seconds from a command to the vehicle's answer: the drawn response's delay, tilt lag and
         input shaping (privileged), or ``lead_s`` for the ideal response."""

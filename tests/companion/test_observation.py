@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from companion.observation import ObservationLayout, build_frame, goal_features, goal_in_body
+from companion.observation import ObservationLayout, build_frame, drift_features, goal_features, goal_in_body
 
 GOAL = ObservationLayout(goal=True, goal_range=10.0, velocity_scale=2.0)
 
@@ -30,6 +30,24 @@ def test_layouts_spell_out_sizes_slices_and_scales() -> None:
     assert high.tolist() == [1.0] * 365
     with pytest.raises(ValueError):
         ObservationLayout(goal=True, goal_range=0.0)
+
+
+def test_the_drift_layout_adds_two_features_after_the_goal() -> None:
+    drift = ObservationLayout(goal=True, goal_range=10.0, velocity_scale=2.0, drift=True)
+    assert drift.name == GOAL.name + "+drift(forward,left/2m/s)" and drift.frame_size == 367
+    assert drift.slices() == GOAL.slices() | {"drift": slice(365, 367)}
+    low, high = drift.bounds()
+    assert low[365:].tolist() == [-1, -1] and high[365:].tolist() == [1, 1]
+    np.testing.assert_allclose(drift_features(np.array([0.5, -3.0]), drift), [0.25, -1.0])
+    features = np.concatenate([goal_features(1.0, 0.0, 0.0, 0.0, drift), drift_features(np.zeros(2), drift)])
+    frame = build_frame(np.ones(360), features, drift)
+    assert frame.shape == (367,)
+    with pytest.raises(ValueError, match="drift needs goal"):
+        ObservationLayout(drift=True)
+    with pytest.raises(ValueError, match="finite"):
+        drift_features(np.array([np.nan, 0.0]), drift)
+    with pytest.raises(ValueError, match="no drift"):
+        drift_features(np.zeros(2), GOAL)
 
 
 def test_goal_features_bearing_distance_and_velocity() -> None:

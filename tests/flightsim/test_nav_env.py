@@ -203,3 +203,37 @@ def test_render_shows_the_waypoint_being_flown_to(env: LidarNavEnv) -> None:
             break
     assert info["waypoint"] == 1 and not terminated
     assert active_pixels() == pytest.approx(first_centre, rel=0.3)  # still one active waypoint, now #2
+
+
+def test_the_drift_layout_passes_both_checkers_and_documents_its_frame() -> None:
+    from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+    env = LidarNavEnv(NavEnvConfig(max_steps=50, drift=True), render_mode="rgb_array")
+    assert env.observation_space.shape == (367,)
+    assert env.layout.name.endswith("+drift(forward,left/2m/s)")
+    gym_check_env(env, skip_render_check=False)
+    sb3_check_env(env, warn=True)
+    env.close()
+
+
+@pytest.mark.parametrize("action", [HOVER, np.array([0.3, 0.4], np.float32)])
+def test_the_drift_features_find_the_error_the_reported_velocity_hides(action) -> None:
+    # PX4's calibrated response: a velocity estimate that wanders by 0.25 m/s (one sigma)
+    env = LidarNavEnv(NavEnvConfig(autopilot_response="px4", drift=True))
+    obs, _ = env.reset(seed=11, options={"world": HALL})
+    assert np.all(obs[365:367] == 0.0)  # nothing matched yet
+    errors = []
+    for _ in range(60):
+        obs, *_ = env.step(action)
+        yaw = float(env.true_state.yaw)
+        ex, ey = env.estimate_error
+        truth = np.array([math.cos(yaw) * ex + math.sin(yaw) * ey, -math.sin(yaw) * ex + math.cos(yaw) * ey])
+        errors.append((obs[365:367] * 2.0, truth))
+    np.testing.assert_allclose(obs[365:367] * 2.0, env.drift_estimate, atol=1e-6)
+    seen, truth = map(np.array, zip(*errors[20:], strict=True))
+    assert np.abs(truth).max() > 0.1  # there was an error to find
+    rms = lambda x: float(np.sqrt(np.mean(x**2)))  # noqa: E731
+    # most of the error is found; the rest is the filter's lag (0.5 s) behind an error that wanders
+    # within a second (0.59 of it measured; none found would be 1.0, a sign error 2.0)
+    assert rms(seen - truth) < 0.7 * rms(truth)
+    env.close()

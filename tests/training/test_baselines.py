@@ -136,7 +136,7 @@ def _moving_frame(
 def test_goal_follower_sees_a_drift_the_velocity_estimate_hides_and_crabs_against_it():
     # the autopilot reports 0.5 m/s straight ahead, the walls show 0.3 m/s to the left as well
     # (PX4's estimate error: its velocity loop flies the estimate, so the truth drifts by the error)
-    from tests.training.test_scan_motion import room_scan
+    from tests.companion.test_scan_motion import room_scan
 
     def yaw_after(drift: float) -> float:
         controller = GoalFollower(GOAL_LAYOUT)

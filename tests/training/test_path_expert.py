@@ -87,6 +87,24 @@ def test_it_asks_for_the_estimate_error_on_top_of_its_speed():
     assert forward_with(0.0) == pytest.approx(0.5, abs=0.02)
 
 
+def test_with_the_drift_features_it_makes_up_for_the_estimate_the_student_sees():
+    """Its labels must follow from what the student sees: the drift estimate in the frame, not the
+    simulator's true error (which the student cannot see)."""
+    env = LidarNavEnv(NavEnvConfig(autopilot_response="px4", vehicle_radius=RADIUS, drift=True))
+    env.reset(seed=0, options={"world": corridor(width=2.0)})
+    expert = PathExpert(env, PathExpertConfig(velocity_gain=0.0, clearance_speed_gain=0.0, min_speed=0.5))
+    expert.reset()
+
+    def forward_with(seen_forward: float, true_east: float) -> float:
+        env._drift.bias = np.array([seen_forward, 0.0])
+        env._response._x[[_S_BX, _S_BY]] = (true_east, 0.0)
+        expert._forward = 1.0  # no ramp in the way
+        return float(expert.act()[0]) * env.config.max_speed
+
+    assert forward_with(0.3, 0.0) - forward_with(0.0, 0.0) == pytest.approx(0.3, abs=0.02)  # nose East
+    assert forward_with(0.0, 0.3) == pytest.approx(forward_with(0.0, 0.0), abs=1e-6)
+
+
 @pytest.mark.parametrize("response", ["px4", "ardupilot"])
 def test_it_reaches_the_goal_through_the_gap_with_a_real_autopilot_response(response):
     env = env_for(corridor(width=1.4), response=response)

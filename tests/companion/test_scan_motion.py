@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from training.scan_motion import scan_motion
+from companion.scan_motion import scan_motion
 
 _THETA = np.radians(np.arange(360) + 0.5)
 
