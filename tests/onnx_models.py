@@ -10,6 +10,7 @@ Each model is ``Gemm(obs, W, b)`` (optionally followed by ``Clip`` to [-1, 1]) b
 - ``echo``: a = (newest scan bin 0, newest scan bin 90), to prove which values reach the model
 - ``echo_goal``: a = (newest goal cos, goal sin) (goal layout): flies toward the goal's bearing
 - ``echo_velocity``: a = (0, newest measured velocity left feature) (goal layout)
+- ``echo_drift``: a = (newest drift forward feature, drift left feature) (drift layout)
 - ``big``: a = (5, −5) without the Clip node (the companion must clip)
 - ``nan`` / ``inf``: non-finite output (an inference fault)
 - ``error``: raises inside ONNX Runtime at inference (a Reshape that cannot fit)
@@ -33,8 +34,8 @@ COMPANION_SPEC = policy_spec(CompanionConfig())
 #: A scan-only model's spec (LidarAvoid-v0), for tests of scan-only behaviour
 SCAN_SPEC = PolicySpec()
 
-KINDS = ("forward", "stop", "turn_left", "turn_right", "steer", "echo", "echo_goal", "echo_velocity", "big",
-         "nan", "inf", "error")
+KINDS = ("forward", "stop", "turn_left", "turn_right", "steer", "echo", "echo_goal", "echo_velocity",
+         "echo_drift", "big", "nan", "inf", "error")
 OPSET = 17
 IR_VERSION = 8  # accepted by every onnxruntime the project supports
 
@@ -73,6 +74,12 @@ def _weights(kind: str, spec: PolicySpec, input_size: int, output_size: int) -> 
             w[newest + parts["goal_bearing"].start + 1, 1] = 1.0
         else:
             w[newest + parts["velocity"].start + 1, 1] = 1.0
+    elif kind == "echo_drift":
+        parts = spec.layout.slices()
+        if "drift" not in parts:
+            raise ValueError(f"{kind} needs a drift layout, not {spec.layout.name}")
+        w[newest + parts["drift"].start, 0] = 1.0
+        w[newest + parts["drift"].start + 1, 1] = 1.0
     else:
         raise ValueError(f"unknown policy kind {kind!r}; choose from {', '.join(KINDS)}")
     return w, b
