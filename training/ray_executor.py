@@ -24,9 +24,11 @@ log = logging.getLogger(__name__)
 CONNECT_TIMEOUT_S = 5.0
 
 #: how many times to try a join that failed only because the head's Ray Client server for this
-#: driver died as it started (:func:`server_died_at_start`); that is Ray's race, about one join in
-#: ten on a loaded machine, so three failures in a row say something else is wrong
-JOIN_ATTEMPTS = 3
+#: driver died as it started (:func:`server_died_at_start`): Ray's race, which met the first attempt
+#: of 6 in 20 first joins to a fresh head here and 2 in 20 later ones (a retry is a later one), so
+#: four in a row say something else is wrong. A failed attempt lasts ~40 s (Ray's client waits for
+#: its log stream, which the head holds for its 30 s wait on the dead server)
+JOIN_ATTEMPTS = 4
 
 #: what Ray's client proxier answers when the server process it forked for a new Ray Client driver
 #: died before serving (ray-project/ray#63202: the proxier forks it with gRPC threads running, and
@@ -73,7 +75,7 @@ class RayExecutor(Executor):
                 else "a cluster with token authentication needs RAY_AUTH_MODE=token and its token here "
                 "too: README, Evaluation on Ray"
             )
-            message = f"--address {address}: cannot join the Ray cluster: {_one_line(exc)} ({hint})"
+            message = f"--address {address}: cannot join the Ray cluster: {one_line(exc)} ({hint})"
             raise UserError(message) from None
 
     def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future:
@@ -114,11 +116,11 @@ def join(init: Callable[[], object], address: str, attempts: int = JOIN_ATTEMPTS
             log.warning(
                 "--address %s: the head's Ray Client server for this driver died as it started "
                 "(Ray's fork race, ray-project/ray#63202: %s); joining again (%d of %d)",
-                address, _one_line(exc, last=True), attempt + 1, attempts,
+                address, one_line(exc, last=True), attempt + 1, attempts,
             )  # fmt: skip
 
 
-def _one_line(exc: BaseException, last: bool = False) -> str:
+def one_line(exc: BaseException, last: bool = False) -> str:
     """An exception's message on one line: Ray's client puts the server's whole traceback after
     its first line, of which the last line (the exception) says what happened."""
     lines = [line.strip() for line in str(exc).splitlines() if line.strip()]

@@ -22,15 +22,15 @@ def free_port() -> int:
 
 
 @contextmanager
-def ray_head(log: Path) -> Iterator[tuple[int, int, dict[str, str]]]:
-    """`ray start --head --block` with token authentication, its output in ``log``, stopped (all its
-    processes) on leaving: ``(gcs_port, client_port, env)``, ``env`` holding the token for the
-    driver as the README says to give it to every machine."""
+def ray_head(log: Path, token: str | None = None) -> Iterator[tuple[int, int, dict[str, str]]]:
+    """`ray start --head --block` with token authentication (``token``, default a new one), its
+    output in ``log``, stopped (all its processes) on leaving: ``(gcs_port, client_port, env)``,
+    ``env`` holding the token for the driver as the README says to give it to every machine."""
     gcs, client = free_port(), free_port()
     # Ray's defaults otherwise: its Ray Client server per driver answers within 1-3 s here, well
     # inside the 30 s Ray gives it; when one dies at birth instead (ray-project/ray#63202), the
     # driver's failed attempt lasts about that long, so a longer wait would only slow the retry
-    env = {**os.environ, "RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(32)}
+    env = {**os.environ, "RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": token or secrets.token_hex(32)}
     argv = [sys.executable, "-m", "ray.scripts.scripts", "start", "--head", "--block", "--node-ip-address",
             "127.0.0.1", "--port", str(gcs), "--ray-client-server-port", str(client), "--num-cpus", "2",
             "--include-dashboard=false", "--disable-usage-stats"]  # fmt: skip

@@ -208,7 +208,7 @@ def test_join_gives_up_after_its_attempts():
     init = _Init(*(ConnectionAbortedError(DIED) for _ in range(JOIN_ATTEMPTS + 1)))
     with pytest.raises(ConnectionAbortedError, match="Starting Ray client server failed"):
         join(init, "ray://head:10001")
-    assert init.calls == JOIN_ATTEMPTS == 3
+    assert init.calls == JOIN_ATTEMPTS == 4
 
 
 def test_join_raises_any_other_failure_at_once(caplog):
