@@ -17,9 +17,28 @@ from typing import Any
 
 from companion.errors import UserError
 
+log = logging.getLogger(__name__)
+
 #: how long to wait for a TCP connection to ``--address``, and then for a gRPC handshake, before
 #: calling it unreachable (Ray's own attempts take 30 s for ``ray://``, minutes for a GCS address)
 CONNECT_TIMEOUT_S = 5.0
+
+#: how many times to try a join that failed only because the head's Ray Client server for this
+#: driver died as it started (:func:`server_died_at_start`): Ray's race, which met the first attempt
+#: of 6 in 20 first joins to a fresh head here and 2 in 20 later ones (a retry is a later one), so
+#: four in a row say something else is wrong. A failed attempt lasts ~40 s (Ray's client waits for
+#: its log stream, which the head holds for its 30 s wait on the dead server)
+JOIN_ATTEMPTS = 4
+
+#: what Ray's client proxier answers when the server process it forked for a new Ray Client driver
+#: died before serving (ray-project/ray#63202: the proxier forks it with gRPC threads running, and
+#: the child can die before it runs a line, leaving empty logs): its check finds the child dead,
+#: or a zombie on psutil's ``cmdline()``, or never answering; a new connection forks a new server
+SERVER_START_FAILURES = (
+    "Starting Ray client server failed",
+    "psutil.ZombieProcess",
+    "Proxy failed to Connect to backend",
+)
 
 INSTALL_HINT = "pip install -e '.[ray]' (or pip install 'ray[client]')"
 
@@ -47,12 +66,17 @@ class RayExecutor(Executor):
         elif found := _auto_address(ray):  # a stale record would hang ray.init as a dead address does
             check_reachable(found, f"auto (found {found})")
         try:
-            ray.init(address=address, logging_level=logging.ERROR)
+            join(lambda: ray.init(address=address, logging_level=logging.ERROR), address)
         except ConnectionError as exc:
-            raise UserError(
-                f"--address {address}: cannot join the Ray cluster: {exc} (a cluster with token "
-                "authentication needs RAY_AUTH_MODE=token and its token here too: README, Evaluation on Ray)"
-            ) from None
+            hint = (
+                f"the head's Ray Client could not start a server for this driver {JOIN_ATTEMPTS} times "
+                "(its ray_client_server*.err logs say why)"
+                if server_died_at_start(exc)
+                else "a cluster with token authentication needs RAY_AUTH_MODE=token and its token here "
+                "too: README, Evaluation on Ray"
+            )
+            message = f"--address {address}: cannot join the Ray cluster: {one_line(exc)} ({hint})"
+            raise UserError(message) from None
 
     def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future:
         remote = self._remotes.get(fn)
@@ -63,6 +87,46 @@ class RayExecutor(Executor):
     def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
         """Leave Ray: a local one stops, and a cluster drops the tasks this driver still owns."""
         self._ray.shutdown()
+
+
+def server_died_at_start(exc: BaseException) -> bool:
+    """Whether a failed ``ray.init("ray://...")`` is Ray's race at connect time (see
+    :data:`SERVER_START_FAILURES`), which another attempt gets past, rather than an answer
+    (authentication, versions, a dead head) that would only repeat."""
+    text = str(exc)
+    return (
+        isinstance(exc, ConnectionAbortedError)
+        and text.startswith("Initialization failure from server")
+        and any(failure in text for failure in SERVER_START_FAILURES)
+    )
+
+
+def join(init: Callable[[], object], address: str, attempts: int = JOIN_ATTEMPTS) -> None:
+    """Call ``init`` (a ``ray.init`` joining ``address``), again after each failure that
+    :func:`server_died_at_start` calls Ray's race, at most ``attempts`` times in all, each retry
+    logged in one line; any other failure, or the last, is raised at once. ``ray.init`` leaves no
+    half-made client behind when it raises, so the next attempt starts clean."""
+    for attempt in range(1, attempts + 1):
+        try:
+            init()
+            return
+        except ConnectionError as exc:
+            if attempt == attempts or not server_died_at_start(exc):
+                raise
+            log.warning(
+                "--address %s: the head's Ray Client server for this driver died as it started "
+                "(Ray's fork race, ray-project/ray#63202: %s); joining again (%d of %d)",
+                address, one_line(exc, last=True), attempt + 1, attempts,
+            )  # fmt: skip
+
+
+def one_line(exc: BaseException, last: bool = False) -> str:
+    """An exception's message on one line: Ray's client puts the server's whole traceback after
+    its first line, of which the last line (the exception) says what happened."""
+    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+    if len(lines) < 2:
+        return " ".join(lines)
+    return lines[-1] if last else f"{lines[0]} {lines[-1]}"
 
 
 def _auto_address(ray: Any) -> str | None:

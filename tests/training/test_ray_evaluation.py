@@ -5,19 +5,18 @@ on loopback; and one-line errors for a missing extra and an unreachable or forei
 from __future__ import annotations
 
 import json
-import os
-import secrets
 import socket
 import subprocess
 import sys
-import tempfile
-import time
-from pathlib import Path
+from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 
 from tests.onnx_models import write_policy
+from tests.training.ray_head import free_port
+from tests.training.ray_head import ray_head as start_ray_head
 from training.__main__ import main
+from training.ray_executor import JOIN_ATTEMPTS, join, server_died_at_start
 
 # two families; a policy file and two baselines: six episodes (at most 15 s each) whose order the
 # report must keep
@@ -79,40 +78,11 @@ def test_ray_tasks_on_a_local_ray_give_the_local_pools_report(config, local_repo
     assert out.read_text() == local_report
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture
 def ray_head(tmp_path):
-    """A real one-node Ray cluster on loopback, as `ray start --head` makes one, with token
-    authentication: ``(gcs_port, client_port, env)``, ``env`` holding the token for the driver as
-    the README says to give it to every machine."""
-    gcs, client = _free_port(), _free_port()
-    env = {**os.environ, "RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(32)}
-    # the head starts a server process per Ray Client connection and gives it 30 s to answer; under a
-    # load average of 35 on this 2-core machine that failed once ("Initialization failure from server")
-    env["RAY_CLIENT_SERVER_CHECK_CHANNEL_TIMEOUT_S"] = "180"
-    log = tmp_path / "head.log"
-    argv = [sys.executable, "-m", "ray.scripts.scripts", "start", "--head", "--block", "--node-ip-address",
-            "127.0.0.1", "--port", str(gcs), "--ray-client-server-port", str(client), "--num-cpus", "2",
-            "--include-dashboard=false", "--disable-usage-stats"]  # fmt: skip
-    with log.open("w") as sink:
-        head = subprocess.Popen(argv, env=env, stdout=sink, stderr=subprocess.STDOUT, start_new_session=True)
-    try:
-        deadline = time.monotonic() + 90
-        while "Ray runtime started" not in log.read_text():
-            assert head.poll() is None and time.monotonic() < deadline, log.read_text()
-            time.sleep(0.2)
-        yield gcs, client, env
-    finally:
-        head.terminate()  # --block: `ray start` stops the cluster's processes on SIGTERM
-        head.wait(timeout=60)
-        record = Path(tempfile.gettempdir(), "ray", "ray_current_cluster")  # what `auto` would join
-        if record.is_file() and record.read_text().strip().endswith(f":{gcs}"):
-            record.unlink()
+    """A real one-node Ray cluster on loopback (:func:`tests.training.ray_head.ray_head`)."""
+    with start_ray_head(tmp_path / "head.log") as head:
+        yield head
 
 
 @pytest.mark.timeout(240)
@@ -146,7 +116,7 @@ def test_without_ray_installed_the_error_names_the_extra(config, monkeypatch, ca
     ],
 )
 def test_an_unreachable_address_is_one_line_and_exit_2(config, capsys, address, message):
-    address = address.format(port=_free_port())
+    address = address.format(port=free_port())
     assert main(_evaluate(config, "--executor", "ray", "--address", address)) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"--address {address}" in err[0] and message in err[0]
@@ -154,7 +124,7 @@ def test_an_unreachable_address_is_one_line_and_exit_2(config, capsys, address, 
 
 @pytest.mark.timeout(60)
 def test_auto_finding_a_dead_cluster_is_one_line_and_exit_2(config, capsys, monkeypatch):
-    monkeypatch.setenv("RAY_ADDRESS", f"127.0.0.1:{_free_port()}")  # as a stale `ray start` record
+    monkeypatch.setenv("RAY_ADDRESS", f"127.0.0.1:{free_port()}")  # as a stale `ray start` record
     assert main(_evaluate(config, "--executor", "ray", "--address", "auto")) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--address auto (found " in err[0] and "no Ray head reachable there" in err[0]
@@ -169,6 +139,103 @@ def test_an_address_where_no_ray_head_answers_is_one_line_and_exit_2(config, cap
         assert main(_evaluate(config, "--executor", "ray", "--address", address)) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "does not speak gRPC as a Ray head does" in err[0]
+
+
+# What Ray's client raised when the head's Ray Client server for the driver died as it started (Ray's
+# fork race, ray-project/ray#63202), as seen here: in CI (ZombieProcess), in the bench (the server found
+# dead), and the proxier's answer when the server never answers; the tracebacks shortened
+ZOMBIE = (
+    "Initialization failure from server:\nTraceback (most recent call last):\n"
+    '  File ".../ray/util/client/server/proxier.py", line 396, in start_specific_server\n'
+    "    cmd = psutil_proc.cmdline()\n"
+    "psutil.ZombieProcess: PID still exists but it's a zombie (pid=18047)\n"
+)
+DIED = (
+    "Initialization failure from server:\nTraceback (most recent call last):\n"
+    '  File ".../ray/util/client/server/proxier.py", line 771, in Datapath\n'
+    "RuntimeError: Starting Ray client server failed. See ray_client_server_23000.err for detailed logs.\n"
+)
+SILENT = (
+    "Initialization failure from server:\nTraceback ...\nRuntimeError: Proxy failed to Connect to backend!"
+)
+
+
+@pytest.mark.parametrize("message", [ZOMBIE, DIED, SILENT])
+def test_a_server_that_died_at_start_is_rays_race(message):
+    assert server_died_at_start(ConnectionAbortedError(message))
+
+
+@pytest.mark.parametrize(
+    "exc",
+    [
+        ConnectionAbortedError(
+            "Initialization failure from server:\nray.exceptions.AuthenticationError: bad token"
+        ),
+        ConnectionError("ray client connection timeout"),  # the head itself does not answer
+        ConnectionError(ZOMBIE),  # not what Ray's client raises for a failed start
+        ConnectionAbortedError(ZOMBIE.removeprefix("Initialization failure from server:")),
+        RuntimeError(DIED),
+    ],
+)
+def test_any_other_failure_is_not(exc):
+    assert not server_died_at_start(exc)
+
+
+class _Init:
+    """``ray.init`` as ``join`` calls it: raises ``failures`` one after another, then joins."""
+
+    def __init__(self, *failures: BaseException) -> None:
+        self.failures = list(failures)
+        self.calls = 0
+
+    def __call__(self) -> None:
+        self.calls += 1
+        if self.failures:
+            raise self.failures.pop(0)
+
+
+def test_join_tries_again_after_rays_race_each_time_in_one_line(caplog):
+    init = _Init(ConnectionAbortedError(ZOMBIE), ConnectionAbortedError(DIED))
+    join(init, "ray://head:10001", attempts=3)
+    assert init.calls == 3
+    retries = [r.getMessage() for r in caplog.records if r.name == "training.ray_executor"]
+    assert len(retries) == 2 and all("\n" not in r and "ray://head:10001" in r for r in retries)
+    assert "psutil.ZombieProcess: PID still exists" in retries[0] and "(2 of 3)" in retries[0]
+    assert "Starting Ray client server failed" in retries[1] and "(3 of 3)" in retries[1]
+
+
+def test_join_gives_up_after_its_attempts():
+    init = _Init(*(ConnectionAbortedError(DIED) for _ in range(JOIN_ATTEMPTS + 1)))
+    with pytest.raises(ConnectionAbortedError, match="Starting Ray client server failed"):
+        join(init, "ray://head:10001")
+    assert init.calls == JOIN_ATTEMPTS == 4
+
+
+def test_join_raises_any_other_failure_at_once(caplog):
+    init = _Init(ConnectionError("ray client connection timeout"))
+    with pytest.raises(ConnectionError, match="timeout"):
+        join(init, "ray://head:10001")
+    assert init.calls == 1 and not caplog.records
+
+
+@pytest.mark.timeout(60)
+def test_a_join_that_keeps_meeting_rays_race_is_one_line_and_exit_2(config, capsys, monkeypatch):
+    import grpc
+    import ray
+
+    init = _Init(*(ConnectionAbortedError(ZOMBIE) for _ in range(JOIN_ATTEMPTS)))
+    monkeypatch.setattr(ray, "init", lambda *args, **kwargs: init())  # the race cannot be had on demand
+    server = grpc.server(ThreadPoolExecutor(max_workers=1))  # a real gRPC head for check_reachable
+    address = f"ray://127.0.0.1:{server.add_insecure_port('127.0.0.1:0')}"
+    server.start()
+    try:
+        assert main(_evaluate(config, "--executor", "ray", "--address", address)) == 2
+    finally:
+        server.stop(None)
+    err = [line for line in capsys.readouterr().err.strip().splitlines() if "error:" in line]
+    assert init.calls == JOIN_ATTEMPTS
+    assert len(err) == 1 and f"--address {address}: cannot join the Ray cluster: " in err[0]
+    assert "psutil.ZombieProcess" in err[0] and f"a server for this driver {JOIN_ATTEMPTS} times" in err[0]
 
 
 @pytest.mark.parametrize(
