@@ -9,14 +9,16 @@ truth (map, pose, velocity, the autopilot's estimate error) that the student nev
 student sees only its stacked observations, as in flight.
 
 Read top to bottom: :func:`run` (iterations: collect with a mixture, fit, evaluate), then
-:func:`collect` (who flies each episode, what is recorded).
+:func:`collect` (who flies each episode, what is recorded), then :func:`save_iteration` and
+:func:`load_iterations` (each iteration's labels on disk, so a run resumes where it stopped).
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -119,7 +121,8 @@ def run(
     batch_size: int,
     learning_rate: float,
     seed: int,
-    after_iteration: Callable[[int, int], None] | None = None,
+    previous: Sequence[Rollouts] = (),
+    after_iteration: Callable[[int, int, Rollouts], None] | None = None,
 ) -> Demonstrations:
     """DAgger: iteration 0 is the teacher's alone (plain behaviour cloning), then the student flies
     a growing share (teacher probability ``beta0 ** k``), and the student is refitted on every
@@ -127,30 +130,41 @@ def run(
 
     :param venv: the training vector env (frame-stacked, in-process)
     :param model: the PPO model whose policy is the student (fitted in place)
-    :param iterations: collect-and-fit rounds
+    :param iterations: collect-and-fit rounds, all told
     :param steps: env steps collected per iteration, all envs together
     :param beta0: the teacher's share decays as ``beta0 ** iteration``
     :param epochs: passes over the aggregate per iteration
-    :param after_iteration: called with (iteration, env steps collected so far), e.g. to evaluate
+    :param previous: the first iterations' rollouts when resuming (the model fitted on them);
+        the run goes on with iteration ``len(previous)``
+    :param after_iteration: called with (iteration, env steps collected so far, its rollouts),
+        e.g. to save them and evaluate
     :return: every label gathered (the data of the last fit)
     """
-    rng = np.random.default_rng(seed)
-    obs = actions = returns = np.empty(0)
+    rows = max(1, steps // venv.num_envs) * venv.num_envs  # what one iteration gathers
+    size = max(iterations, len(previous)) * rows
+    obs = np.empty((size, venv.observation_space.shape[0]), dtype=np.float32)
+    actions = np.empty((size, 2), dtype=np.float32)
+    returns = np.empty(size, dtype=np.float32)
     collected = episodes = successes = 0
+    data = Demonstrations(obs[:0], actions[:0], returns[:0], 0, 0)
     for k in range(iterations):
         beta = beta0**k
-        rollouts = collect(venv, model.policy, steps, beta, model.gamma, rng)
+        if k < len(previous):
+            rollouts = previous[k]
+        else:  # the draws of iteration k are its own: a resumed run draws as an unbroken one would
+            rollouts = collect(venv, model.policy, steps, beta, model.gamma, np.random.default_rng([seed, k]))
         n = len(rollouts.actions)
-        if k == 0:  # every iteration gathers as many rows: the aggregate's room, once
-            obs = np.empty((iterations * n, rollouts.obs.shape[1]), dtype=np.float32)
-            actions = np.empty((iterations * n, 2), dtype=np.float32)
-            returns = np.empty(iterations * n, dtype=np.float32)
         obs[collected : collected + n] = rollouts.obs
         actions[collected : collected + n] = rollouts.actions
         returns[collected : collected + n] = rollouts.returns
         collected += n
         episodes += rollouts.episodes
         successes += rollouts.successes
+        data = Demonstrations(
+            obs[:collected], actions[:collected], returns[:collected], episodes, successes
+        )
+        if k < len(previous):
+            continue
         student = (
             f", student {rollouts.student_successes}/{rollouts.student_episodes}"
             if rollouts.student_episodes
@@ -160,10 +174,41 @@ def run(
             "dagger iteration %d/%d (teacher share %.2f): %d/%d episodes reached every waypoint%s",
             k + 1, iterations, beta, rollouts.successes, rollouts.episodes, student,
         )  # fmt: skip
-        data = Demonstrations(
-            obs[:collected], actions[:collected], returns[:collected], episodes, successes
-        )
         fit(model.policy, data, epochs, batch_size, learning_rate, seed + k)
         if after_iteration is not None:
-            after_iteration(k, collected)
+            after_iteration(k, collected, rollouts)
     return data
+
+
+def save_iteration(directory: Path, iteration: int, rollouts: Rollouts) -> Path:
+    """Write one iteration's rollouts to ``directory/iteration_<k>.npz`` (k from 1), uncompressed
+    (float observations barely compress; 60k steps are ~350 MB)."""
+    directory.mkdir(parents=True, exist_ok=True)
+    path = directory / f"iteration_{iteration + 1}.npz"
+    counts = [rollouts.episodes, rollouts.successes, rollouts.student_episodes, rollouts.student_successes]
+    arrays = {"obs": rollouts.obs, "actions": rollouts.actions, "returns": rollouts.returns}
+    np.savez(path, **arrays, counts=np.array(counts))
+    return path
+
+
+def load_iterations(directory: Path, steps: int) -> list[Rollouts]:
+    """The saved iterations that make up the first ``steps`` env steps of a run, in order.
+
+    :raises UserError: the files are missing, unreadable, or do not add up to ``steps``
+    """
+    loaded: list[Rollouts] = []
+    total = 0
+    while total < steps:
+        path = directory / f"iteration_{len(loaded) + 1}.npz"
+        try:
+            with np.load(path) as f:
+                rollouts = Rollouts(f["obs"], f["actions"], f["returns"], *map(int, f["counts"]))
+        except (OSError, KeyError, ValueError, TypeError) as exc:
+            raise UserError(f"--resume: DAgger iteration data {path} cannot be read ({exc})") from None
+        loaded.append(rollouts)
+        total += len(rollouts.actions)
+    if total != steps:
+        raise UserError(
+            f"--resume: the DAgger iterations in {directory} hold {total} steps, not the checkpoint's {steps}"
+        )
+    return loaded

@@ -9,6 +9,8 @@ A run lives in ``<run_root>/<config name>-s<seed>/``::
 
     config.toml            the resolved config (export and evaluate read it)
     checkpoints/ppo_<steps>_steps.zip
+    checkpoints/dagger_<steps>_steps.zip   the student after each DAgger iteration
+    dagger/iteration_<k>.npz               that iteration's labels (``--resume`` goes on from them)
     tb/                    TensorBoard logs (``tensorboard --logdir runs``)
     eval.csv               one row per evaluation: steps, wall-clock seconds, difficulty, success rate...
     best_model.zip         best evaluation at the target difficulty
@@ -199,8 +201,11 @@ def checkpoint_steps(path: Path) -> int:
 
 def latest_checkpoint(run_dir: Path) -> Path:
     """The checkpoint of ``run_dir`` with the most steps: ``checkpoints/ppo_<N>_steps.zip`` or
-    ``interrupted.zip``."""
+    ``interrupted.zip``; before any PPO step, the last DAgger iteration's
+    ``checkpoints/dagger_<N>_steps.zip``."""
     candidates = [*sorted((run_dir / "checkpoints").glob("ppo_*_steps.zip"))]
+    if not candidates:
+        candidates = [*sorted((run_dir / "checkpoints").glob("dagger_*_steps.zip"))]
     if (run_dir / "interrupted.zip").is_file():
         candidates.append(run_dir / "interrupted.zip")
     if not candidates:
@@ -405,12 +410,16 @@ def build_model(config: TrainConfig, venv: Any, run_dir: Path, resume: Path | No
     )
 
 
-def warm_start(config: TrainConfig, venv: Any, model: Any, evaluation: Any) -> None:
+def warm_start(
+    config: TrainConfig, venv: Any, model: Any, evaluation: Any, resume: Path | None = None
+) -> None:
     """Imitation before PPO: behaviour cloning of a classical controller (:mod:`training.pretrain`)
     or DAgger from the privileged teacher (:mod:`training.dagger`), each fitting the fresh
-    model's actor and critic. DAgger runs the held-out evaluation after every iteration.
+    model's actor and critic. DAgger saves each iteration (its labels in ``dagger/``, the student
+    as ``checkpoints/dagger_<steps>_steps.zip``) and runs the held-out evaluation after it.
 
     :param evaluation: the run's ``HeldOutEvaluation`` callback
+    :param resume: a DAgger checkpoint of this run: go on after its iteration, on its labels
     """
     from training import pretrain
 
@@ -420,18 +429,30 @@ def warm_start(config: TrainConfig, venv: Any, model: Any, evaluation: Any) -> N
 
         from training import dagger
 
-        def evaluate(iteration: int, collected: int) -> None:
+        run_dir = config.run_dir
+        previous = dagger.load_iterations(run_dir / "dagger", checkpoint_steps(resume)) if resume else []
+        if len(previous) >= p.iterations:
+            raise UserError(
+                f"--resume: {resume} has {len(previous)} DAgger iterations, pretrain.iterations is "
+                f"{p.iterations}: raise it to go on"
+            )
+
+        def after(iteration: int, collected: int, rollouts: dagger.Rollouts) -> None:
+            dagger.save_iteration(run_dir / "dagger", iteration, rollouts)
+            model.num_timesteps = collected
+            (run_dir / "checkpoints").mkdir(exist_ok=True)
+            model.save(run_dir / "checkpoints" / f"dagger_{collected}_steps.zip")
             evaluation.num_timesteps = collected  # imitation steps mark the evaluation log's rows
             evaluation.evaluate()
             model.logger.dump(collected)
 
         # learn sets up the logger; before it, the evaluation logs to a run-wide one (kept after)
-        model.set_logger(configure(str(config.run_dir / "tb" / "dagger"), ["stdout", "csv", "tensorboard"]))
+        model.set_logger(configure(str(run_dir / "tb" / "dagger"), ["stdout", "csv", "tensorboard"]))
         evaluation.init_callback(model)
         dagger.run(
             venv, model, iterations=p.iterations, steps=p.steps, beta0=p.beta0, epochs=p.epochs,
             batch_size=p.batch_size, learning_rate=p.learning_rate, seed=config.seed,
-            after_iteration=evaluate,
+            previous=previous, after_iteration=after,
         )  # fmt: skip
         return
     data = pretrain.collect(
@@ -487,13 +508,15 @@ def train(config: TrainConfig, resume: Path | None = None) -> Path:
     try:
         model = build_model(config, venv, run_dir, resume)
         callbacks = make_callbacks(config, run_dir, n_envs, executor, difficulty)
-        if config.pretrain.steps and resume is None:
-            warm_start(config, venv, model, callbacks[-1])
+        in_dagger = resume is not None and resume.name.startswith("dagger_")
+        if config.pretrain.steps and (resume is None or in_dagger):
+            warm_start(config, venv, model, callbacks[-1], resume)
             if config.total_timesteps == 0:
                 final = run_dir / "final_model.zip"
                 model.save(final)
                 return final
-        remaining = config.total_timesteps - (model.num_timesteps if resume else 0)
+        continued = resume is not None and not in_dagger  # PPO steps already taken
+        remaining = config.total_timesteps - (model.num_timesteps if continued else 0)
         if remaining <= 0:
             raise UserError(f"{resume} already has {model.num_timesteps} steps >= total_timesteps")
         log.info(
@@ -504,7 +527,7 @@ def train(config: TrainConfig, resume: Path | None = None) -> Path:
                 total_timesteps=remaining,
                 callback=callbacks,
                 progress_bar=config.progress_bar,
-                reset_num_timesteps=resume is None,
+                reset_num_timesteps=not continued,
                 tb_log_name="ppo",
             )
         except KeyboardInterrupt:

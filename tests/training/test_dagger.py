@@ -9,8 +9,9 @@ import pytest
 from companion.errors import UserError
 from tests.training.test_pretrain import NAV
 from training import dagger
+from training.__main__ import main
 from training.config import load_train_config
-from training.train import build_model, make_vec_env
+from training.train import build_model, make_vec_env, read_eval_log
 
 #: test_pretrain's small goal-task run, taught by DAgger instead
 DAGGER = ["name=dagger", "seed=2", "pretrain.method='dagger'"]
@@ -45,7 +46,7 @@ def test_the_student_learns_the_teachers_actions(setup, tmp_path):
     seen: list[int] = []
     data = dagger.run(
         venv, model, iterations=2, steps=400, beta0=0.5, epochs=30, batch_size=64,
-        learning_rate=1e-3, seed=0, after_iteration=lambda k, n: seen.append(n),
+        learning_rate=1e-3, seed=0, after_iteration=lambda k, n, rollouts: seen.append(n),
     )  # fmt: skip
     assert seen == [400, 800] and data.actions.shape == (800, 2)
     untrained = build_model(config, venv, tmp_path, None)
@@ -69,3 +70,27 @@ def test_dagger_needs_the_goal_task_and_the_envs_in_this_process(tmp_path):
         venv.close()
     with pytest.raises(UserError, match="dagger"):
         load_train_config(path, [*DAGGER, 'env_id="flightsim/LidarAvoid-v0"', "env={}"])
+
+
+def test_a_stopped_dagger_run_resumes_after_its_last_iteration_on_its_labels(tmp_path, caplog, capsys):
+    path = tmp_path / "dagger.toml"
+    path.write_text(NAV)
+    small = [*DAGGER, f"run_root={tmp_path}", "total_timesteps=0", "pretrain.steps=200", "pretrain.epochs=2",
+             "eval.n_worlds=1", "eval.workers=1", "env.max_steps=40"]  # fmt: skip
+    run_dir = tmp_path / "dagger-s2"
+    assert main(["train", "--config", str(path), *small, "pretrain.iterations=2"]) == 0
+    assert sorted(p.name for p in (run_dir / "dagger").iterdir()) == ["iteration_1.npz", "iteration_2.npz"]
+    assert (run_dir / "checkpoints" / "dagger_400_steps.zip").is_file()
+    caplog.clear()
+    with caplog.at_level("INFO", logger="training.dagger"):
+        assert main(["train", "--config", str(path), *small, "pretrain.iterations=3", "--resume"]) == 0
+    # only the third iteration was flown, and fitted on all three iterations' labels
+    flown = [r.getMessage() for r in caplog.records if "dagger iteration" in r.getMessage()]
+    assert len(flown) == 1 and flown[0].startswith("dagger iteration 3/3 (teacher share 0.25)")
+    assert [row["timesteps"] for row in read_eval_log(run_dir / "eval.csv")] == [200, 400, 600]
+    assert dagger.load_iterations(run_dir / "dagger", 600)[2].obs.shape == (200, 4 * 365)
+    capsys.readouterr()
+    assert main(["train", "--config", str(path), *small, "pretrain.iterations=3", "--resume"]) == 2
+    assert capsys.readouterr().err.strip().endswith(
+        "dagger_600_steps.zip has 3 DAgger iterations, pretrain.iterations is 3: raise it to go on"
+    )
