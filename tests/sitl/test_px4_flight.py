@@ -6,6 +6,7 @@ from __future__ import annotations
 import signal
 import time
 
+import numpy as np
 import pytest
 
 from companion.config import load_config
@@ -78,12 +79,18 @@ def test_companion_sigkill_offboard_loss_holds_after_com_of_loss_t(flight):
     t_kill = time.monotonic()
     f.kill_companion(signal.SIGKILL)
     time.sleep(0.6)
-    # within COM_OF_LOSS_T: still flying (PX4's calibrated response flies this circle at 0.4-0.7 m/s;
-    # stopped is < 0.1)
-    assert ap.mode_name() == "OFFBOARD" and speed(f) > 0.3
-    wait_for(lambda: ap.mode_name() == "AUTO.LOITER", 3.0, "the offboard-loss failsafe", poll=0.005)
+    # within COM_OF_LOSS_T: still in OFFBOARD, flying the companion's last setpoint at the speed PX4
+    # sees (its velocity estimate, which its loop closes on). Not the true speed: the calibrated
+    # response's estimate bias (sigma 0.25 m/s per axis, tau 3 s) takes this circle's true speed below
+    # 0.3 m/s now and then (2 of 80 runs on 2026-11-24: 0.23 and 0.10 m/s 0.6 s after the kill; the
+    # response model alone: 40 of 1500 seeds below 0.3, the estimate's speed never below 0.25)
     with f.recorder.lock:
         last_setpoint = f.recorder.setpoint_times[-1]
+    target, reported = f.server.call(lambda a: (a.target, a.reported_velocity()))
+    assert ap.mode_name() == "OFFBOARD" and target is not None
+    assert f.server.t0 + target.time == pytest.approx(last_setpoint, abs=1e-6)
+    assert np.linalg.norm(reported[:2]) > 0.2  # PX4 sees 0.4-1.0 m/s in this circle; stopped is < 0.1
+    wait_for(lambda: ap.mode_name() == "AUTO.LOITER", 3.0, "the offboard-loss failsafe", poll=0.005)
     assert last_setpoint < t_kill + 0.05
     assert 1.0 <= time.monotonic() - last_setpoint < 1.5  # COM_OF_LOSS_T = 1 s after the last setpoint
     assert ap.counters["offboard_lost"] == 1
