@@ -161,3 +161,74 @@ def companion_counters(flight: Any) -> str:
     """The companion's last counters log line."""
     lines = [line for line in flight.companion_log().splitlines() if " state=" in line]
     return lines[-1] if lines else ""
+
+
+# ---- the companion's setpoints as the autopilot received them: (t, vx body m/s, yaw rate FRD rad/s)
+Setpoint = tuple[float, float, float]
+#: a setpoint equals a command within this, m/s and rad/s
+COMMAND_TOLERANCE = 0.05
+#: dt of the shield's first filter after an engagement (no previous one: companion.app._send), s
+FIRST_FILTER_DT = 0.1
+#: arrival jitter allowed when a ramp is judged on arrival times (a loaded autopilot loop reads late), s
+ARRIVAL_JITTER = 0.05
+
+
+def is_command(setpoint: Setpoint, command: tuple[float, float]) -> bool:
+    """``setpoint`` is ``command`` (forward m/s, yaw rate FRD rad/s) within :data:`COMMAND_TOLERANCE`."""
+    _, vx, yr = setpoint
+    return abs(vx - command[0]) < COMMAND_TOLERANCE and abs(yr - command[1]) < COMMAND_TOLERANCE
+
+
+def recorded_setpoints(flight: Any) -> list[Setpoint]:
+    """A copy of every setpoint the autopilot received from the companion so far."""
+    with flight.recorder.lock:
+        return list(flight.recorder.setpoints)
+
+
+def engagement_ramp(
+    setpoints: list[Setpoint], command: tuple[float, float]
+) -> tuple[list[Setpoint], Setpoint]:
+    """The shield's ramp from standstill up to ``command`` after the companion engaged, and the
+    first setpoint that is the command.
+
+    Engaging (or leaving HOLD) starts the shield from standstill (``SafetyShield.reset``), and the
+    command then grows no faster than ``max_accel`` / ``max_yaw_accel``: 0.35-0.4 s of setpoints
+    that are not yet the command. The ramp is what came after the last full-zero setpoint (the
+    pre-OFFBOARD stream or a HOLD) before the first command setpoint.
+
+    :raises AssertionError: no setpoint is the command
+    """
+    first = next((i for i, s in enumerate(setpoints) if is_command(s, command)), None)
+    assert first is not None, f"no setpoint is the command {command}: {setpoints[-10:]}"
+    zeros = [i for i, (_, vx, yr) in enumerate(setpoints[:first]) if vx == 0.0 and yr == 0.0]
+    start = zeros[-1] + 1 if zeros else 0
+    return setpoints[start:first], setpoints[first]
+
+
+def ramp_problem(
+    ramp: list[Setpoint], first_command: Setpoint, command: tuple[float, float], max_accel: float,
+    max_yaw_accel: float,
+) -> str | None:
+    """What makes ``ramp`` (then ``first_command``) more than the shield's acceleration ramp, or None.
+
+    Each axis moves from zero monotonically toward its command without passing it, and no faster
+    than the shield's limit: at arrival time t, |value| <= limit x (FIRST_FILTER_DT + t - t_first +
+    ARRIVAL_JITTER), t_first the arrival of the ramp's first setpoint.
+    """
+    steps = [*ramp, first_command]
+    t_first = steps[0][0]
+    previous = (0.0, 0.0)
+    for t, *values in steps:
+        for axis, (value, target, last, limit) in enumerate(
+            zip(values, command, previous, (max_accel, max_yaw_accel), strict=True)
+        ):
+            progress, last_progress = value / target, last / target
+            if not -1e-6 <= progress <= 1.0 + COMMAND_TOLERANCE / abs(target):
+                return f"setpoint {(t, *values)}: axis {axis} is not between standstill and {target}"
+            if progress < last_progress - 1e-6:
+                return f"setpoint {(t, *values)}: axis {axis} went back from {last} (not monotonic)"
+            bound = limit * (FIRST_FILTER_DT + t - t_first + ARRIVAL_JITTER)
+            if abs(value) > bound:
+                return f"setpoint {(t, *values)}: axis {axis} grew faster than {limit}/s² (> {bound:.2f})"
+        previous = (values[0], values[1])
+    return None
