@@ -483,8 +483,8 @@ class Companion:
                 self.counters["setpoints_policy"] += 1
             elif now - self._last_setpoint > LATE_SCAN_AFTER:
                 command = self._last_command
-                self.link.send_velocity(command.forward, command.yaw_rate,
-                                        vertical=self._goal_output.vertical_speed)
+                self.link.send_velocity(command.forward, command.yaw_rate, command.lateral,
+                                        self._goal_output.vertical_speed)
                 self._last_setpoint = now
                 self.counters["setpoints_late_scan"] += 1
         else:

@@ -463,3 +463,28 @@ def test_a_fault_in_one_iteration_is_counted_and_the_loop_goes_on(tmp_path, monk
         lidar.close()
         companion.close()
         vehicle.close()
+
+
+def test_a_late_scan_repeat_keeps_the_brakes_sideways_part(tmp_path):
+    """While a scan is late the last setpoint is repeated; the shield's active brake against a
+    sideways slide is part of it (it once went out without, letting the slide creep on)."""
+    from companion.shield import Command
+    from companion.supervisor import CommandKind
+
+    companion, vehicle, lidar = _in_process(tmp_path, "forward")
+    try:
+        _run_for(companion, lidar, 1.0)  # engaged, flying the policy
+        before = len(vehicle.messages(SETPOINT))
+        companion._last_command = Command(0.2, 0.1, lateral=-0.3)  # braking a slide to the left
+        companion._last_setpoint = companion._clock() - 1.0  # the last one went out long ago
+        companion._send(CommandKind.POLICY, new_scan=False)
+        assert companion.counters["setpoints_late_scan"] == 1
+        deadline = time.monotonic() + 5.0
+        while len(vehicle.messages(SETPOINT)) == before and time.monotonic() < deadline:
+            time.sleep(0.02)
+        repeat = vehicle.messages(SETPOINT)[-1]
+        assert (repeat.vx, repeat.vy, repeat.yaw_rate) == pytest.approx((0.2, 0.3, -0.1))  # FRD
+    finally:
+        lidar.close()
+        companion.close()
+        vehicle.close()
