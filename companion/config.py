@@ -125,7 +125,8 @@ class PolicyConfig:
         (LidarAvoid-v0: the scan alone); the model's metadata must say the same
     :param goal_range: metres a goal-distance feature of 1.0 stands for (``observation = "goal"``)
     :param drift: the frame also carries the drift estimate (:class:`companion.drift.DriftEstimator`,
-        from consecutive scans): a model trained with ``env.drift = true``; the metadata says which
+        from consecutive scans): a model trained with ``env.drift = true``, as the shipped one is;
+        the metadata says which. Goal frames only: a scan frame has none, whatever this says
     :param trt_cache_dir: directory for TensorRT's engine cache (empty: no cache; relative: to the
         config file); the service's StateDirectory is meant for it
     :param sha256: the model file's SHA-256 (64 hex digits, as ``avoid-train export`` prints it);
@@ -141,18 +142,17 @@ class PolicyConfig:
     max_yaw_rate: float = field(default=1.5, metadata={"min": 0.01, "max": 6.0})
     observation: Literal["goal", "scan"] = "goal"
     goal_range: float = field(default=30.0, metadata={"min": 1.0, "max": 100.0})
-    drift: bool = False
+    drift: bool = True
 
     @property
     def layout(self) -> ObservationLayout:
         """One frame as ``observation`` says, scaled as LidarNav-v0 scales it (``goal_range``, and
         ``max_speed`` for the velocity)."""
-        return ObservationLayout(n_bins=N_BINS, goal=self.observation == "goal", goal_range=self.goal_range,
-                                 velocity_scale=self.max_speed, drift=self.drift)
+        goal = self.observation == "goal"
+        return ObservationLayout(n_bins=N_BINS, goal=goal, goal_range=self.goal_range,
+                                 velocity_scale=self.max_speed, drift=self.drift and goal)
 
     def __post_init__(self) -> None:
-        if self.drift and self.observation != "goal":
-            raise ValueError('drift: the drift features follow the goal features (observation = "goal")')
         if self.sha256 and not re.fullmatch(r"[0-9a-fA-F]{64}", self.sha256):
             raise ValueError(f"sha256: {self.sha256!r} is not 64 hexadecimal digits")
 

@@ -79,6 +79,8 @@ def recorded_config(rec: Recording) -> tuple[CompanionConfig, dict[str, str]]:
         data = json.loads(meta["config"])
         # recordings made before policy.observation existed fed the model scans alone
         data.setdefault("policy", {}).setdefault("observation", "scan")
+        # and before policy.drift existed, no drift features
+        data["policy"].setdefault("drift", False)
         return from_dict(CompanionConfig, data, "recorded config: "), meta
     except (KeyError, ValueError) as exc:
         raise UserError(f"{rec.path}: recorded config unreadable: {exc}") from None

@@ -9,11 +9,8 @@ the climb toward a waypoint's height beside the policy's horizontal command.
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 from pathlib import Path
 
-from companion.app import policy_spec
-from companion.config import CompanionConfig
 from tests.companion.companion_process import WEST_AND_UP, Flight, free_udp_port, run_to_exit, write_config
 from tests.companion.companion_process import wait_until as _wait
 from tests.companion.mavlink_peer import SETPOINT
@@ -69,13 +66,7 @@ def test_measured_velocity_reaches_the_model_in_the_body_frame(tmp_path):
 def test_the_drift_the_reported_velocity_hides_reaches_a_drift_model(tmp_path):
     # the lidar shows a still room (a circle of 8 m) while the autopilot reports motion: the velocity
     # estimate is wrong by all of it, and the drift features say so
-    config = CompanionConfig()
-    spec = policy_spec(replace(config, policy=replace(config.policy, drift=True)))
-    model = write_policy(tmp_path / "drift.onnx", kind="echo_drift", spec=spec)
-    lidar_port, mavlink_port = free_udp_port(), free_udp_port()
-    path = write_config(tmp_path, model, lidar_port, mavlink_port)
-    path.write_text(path.read_text().replace("[policy]\n", "[policy]\ndrift = true\n"))
-    f = Flight(path, lidar_port, mavlink_port)
+    f = Flight.with_model(tmp_path, "echo_drift")  # the default config: goal frames with drift
     try:
         # heading north, reported 0.6 m/s north: drift forward 0.6 m/s, feature 0.3, a0 0.3 = 0.6 m/s
         f.vehicle.velocity_ned = (0.6, 0.0)
@@ -88,10 +79,9 @@ def test_the_drift_the_reported_velocity_hides_reaches_a_drift_model(tmp_path):
 
 
 def test_a_drift_model_under_a_config_without_drift_is_refused_naming_both_layouts(tmp_path):
-    config = CompanionConfig()
-    spec = policy_spec(replace(config, policy=replace(config.policy, drift=True)))
-    model = write_policy(tmp_path / "drift.onnx", kind="echo_drift", spec=spec)
+    model = write_policy(tmp_path / "drift.onnx", kind="echo_drift")
     path = write_config(tmp_path, model, free_udp_port(), free_udp_port())
+    path.write_text(path.read_text().replace("[policy]\n", "[policy]\ndrift = false\n"))
     result = run_to_exit(["run", "--config", str(path)])
     assert result.returncode == 2
     assert "+drift(forward,left/2m/s)" in result.stderr and len(result.stderr.strip().splitlines()) == 1

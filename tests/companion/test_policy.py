@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 from pathlib import Path
@@ -272,3 +273,19 @@ def test_tensorrt_gets_the_engine_cache_and_others_are_left_alone() -> None:
     )
     assert with_cache[1:] == providers[1:]
     assert provider_options(providers, None) == providers
+
+
+def test_a_goal_model_without_drift_features_is_refused_with_the_fix(tmp_path: Path) -> None:
+    """Goal models exported before the drift features (the previous shipped one) under today's
+    default config: one line, naming both layouts and the key to set."""
+    from companion.app import policy_spec
+    from companion.config import CompanionConfig
+
+    default = policy_spec(CompanionConfig())
+    assert default.layout.drift
+    old = PolicySpec(layout=dataclasses.replace(default.layout, drift=False))
+    path = write_policy(tmp_path / "old-goal.onnx", spec=old)
+    with pytest.raises(UserError) as err:
+        OnnxPolicy(path, default)
+    assert str(err.value).endswith("(drift features: the model has none: policy.drift = false)")
+    assert old.layout.name in str(err.value) and default.layout.name in str(err.value)

@@ -25,7 +25,7 @@ HALL = World("hall", (20.0, 8.0), 3.0, (), (-8.0, 0.0, 1.5), 30.0, ((6.0, 2.5, 1
 
 @pytest.mark.parametrize("action", [(1.0, 0.6), (0.7, -0.8), (0.3, 0.0)])
 def test_companion_features_equal_the_envs(action) -> None:
-    env = LidarNavEnv(NavEnvConfig(autopilot_response="ideal"))  # measured velocity = the truth
+    env = LidarNavEnv(NavEnvConfig(autopilot_response="ideal", drift=True))  # measured velocity = the truth
     layout = CompanionConfig().policy.layout
     assert layout == env.layout  # the default companion config feeds what the env trains on
     try:
