@@ -172,7 +172,7 @@ class PathExpert:
         """The velocity estimate's error the command makes up for, world ENU m/s. With the drift
         features it is the drift estimate the student sees in its frame (so the labels follow
         from what the student has: 87 % of 54 validation worlds, against 91 % on the simulator's
-        truth and 48 % without it); else the truth (privileged)."""
+        truth and 48 % without it, aiming along the path); else the truth (privileged)."""
         env = self.env
         if not env.layout.drift:
             return np.asarray(env.estimate_error, dtype=np.float64)
