@@ -231,7 +231,6 @@ class GoalFollowerConfig:
         when the measured course runs into something within that distance
     :param course_min_speed: m/s below which the measured course is too uncertain to check
     :param step_s: seconds between two frames (the env's 10 Hz)
-    :param drift: the tracking of the velocity estimate's error (:class:`companion.drift.DriftEstimator`)
     :param crab_min_speed: m/s of wanted travel from which the nose leads into the estimate's
         error (below it the vehicle turns to its heading and only the along-nose part is compensated)
     :param crab_max: the largest such lead, rad
@@ -266,7 +265,6 @@ class GoalFollowerConfig:
     stop_time: float = 1.2
     course_min_speed: float = 0.2
     step_s: float = 0.1
-    drift: DriftConfig = DriftConfig()
     crab_min_speed: float = 0.2
     crab_max: float = 0.6
     gain_steady: int = 5
@@ -331,7 +329,8 @@ class GoalFollower:
         self._escape_left = 0
         self._stuck_at = math.inf
         self._last_distance = math.inf
-        self._drift = DriftEstimator(self.config.drift)
+        # the scan's max_range is the matcher's too: returns there are saturation, not walls
+        self._drift = DriftEstimator(DriftConfig(max_range=self.config.max_range))
         self._bias = np.zeros(2)  # velocity estimate minus true velocity, body frame, m/s
         self._speed_gain = 1.0  # measured / commanded forward speed, steady state
         self._commands: deque[float] = deque(maxlen=self.config.gain_steady)  # forward m/s sent

@@ -211,3 +211,21 @@ def test_goal_controllers_take_a_goal_a_hair_right_of_the_nose(kind):
     features = goal_features(10.0, -1e-16, 0.0, 0.0, GOAL_LAYOUT)
     action = kind(GOAL_LAYOUT).reset(build_frame(scan, features, GOAL_LAYOUT))
     assert action[0] > 0.5 and abs(action[1]) < 0.05
+
+
+def test_goal_follower_matches_scans_out_to_its_own_max_range():
+    """A 20 m scan (GoalFollowerConfig.max_range, as the evaluation sets it from the env) in a hall
+    whose walls are all 12-18 m away: the drift is seen (a matcher reading 10 m saturates on all)."""
+    from tests.companion.test_scan_motion import room_scan
+
+    controller = GoalFollower(GOAL_LAYOUT, GoalFollowerConfig(max_range=20.0))
+    for k in range(20):  # standing still while the autopilot reports 0.4 m/s forward
+        scan_m = room_scan(0.0, 0.0, 0.0, half=(15.0, 13.0), pillar=(12.0, 9.0))
+        scan = np.minimum(scan_m / 20.0, 1.0).astype(np.float32)
+        features = goal_features(10.0, 0.0, 0.4, 0.0, GOAL_LAYOUT)
+        frame = build_frame(scan, features, GOAL_LAYOUT)
+        if k == 0:
+            controller.reset(frame)
+        else:
+            controller.act(frame)
+    assert controller._bias == pytest.approx([0.4, 0.0], abs=0.05)
