@@ -140,8 +140,9 @@ def run(
         e.g. to save them and evaluate
     :return: every label gathered (the data of the last fit)
     """
-    rows = max(1, steps // venv.num_envs) * venv.num_envs  # what one iteration gathers
-    size = max(iterations, len(previous)) * rows
+    rows = max(1, steps // venv.num_envs) * venv.num_envs  # what one new iteration gathers
+    # the saved iterations keep their own size (a resumed run may collect a different number)
+    size = sum(len(r.actions) for r in previous) + max(iterations - len(previous), 0) * rows
     obs = np.empty((size, venv.observation_space.shape[0]), dtype=np.float32)
     actions = np.empty((size, 2), dtype=np.float32)
     returns = np.empty(size, dtype=np.float32)

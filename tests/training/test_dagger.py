@@ -58,6 +58,17 @@ def test_the_student_learns_the_teachers_actions(setup, tmp_path):
     assert error(model) < 0.25 * error(untrained)
 
 
+def test_a_resumed_run_may_collect_a_different_number_of_steps(setup):
+    _, venv, model = setup
+    saved = dagger.collect(venv, model.policy, 300, beta=1.0, gamma=0.9, rng=np.random.default_rng(0))
+    data = dagger.run(
+        venv, model, iterations=2, steps=200, beta0=0.5, epochs=1, batch_size=64,
+        learning_rate=1e-3, seed=0, previous=[saved],
+    )  # fmt: skip
+    assert data.actions.shape == (500, 2)
+    np.testing.assert_array_equal(data.obs[:300], saved.obs)
+
+
 def test_dagger_needs_the_goal_task_and_the_envs_in_this_process(tmp_path):
     path = tmp_path / "dagger.toml"
     path.write_text(NAV)
