@@ -15,10 +15,15 @@ import time
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from companion.config import load_config
 from flightsim.harness import FlightOptions, SitlFlight
 from tests.sitl.helpers import (
     OPEN_ROOM,
     companion_counters,
+    engagement_ramp,
+    is_command,
+    ramp_problem,
+    recorded_setpoints,
     speed,
     stopped_at,
     wait_for,
@@ -28,6 +33,7 @@ from tests.sitl.helpers import (
 pytestmark = pytest.mark.sitl
 
 ACTIVE = "->ACTIVE"
+COMMAND = (1.0, -0.6)  # the constant policy's (0.5, 0.4) as sent: m/s forward, rad/s FRD
 #: supervisor.recover_scans is 5, and the revolution the sensor was in when it went silent is
 #: dropped (the assembler sees the timestamp jump), so all 5 are revolutions sent after the gap.
 FRESH_REVOLUTIONS = 5
@@ -75,10 +81,16 @@ def test_companion_flies_the_vehicle_one_setpoint_per_scan(flight):
     revolutions = f.cosim.stats.revolutions - revs0
     setpoints = f.recorder.setpoints_since(t0)
     assert abs(setpoints - revolutions) <= 3  # one body-frame setpoint per lidar revolution
+    # since engaging: the shield's ramp from standstill, then only the command (FRD: CCW is negative)
     with f.recorder.lock:
-        recent = [s for s in f.recorder.setpoints if s[0] >= t0]
-    assert all(vx == pytest.approx(1.0, abs=0.05) for _, vx, _ in recent[5:])
-    assert all(yr == pytest.approx(-0.6, abs=0.05) for _, _, yr in recent[5:])  # FRD: CCW turn is negative
+        engaged = max(t for t, text in f.recorder.statustexts if ACTIVE in text)
+    since_engaging = [s for s in recorded_setpoints(f) if s[0] >= engaged - 1.0]
+    ramp, first = engagement_ramp(since_engaging, COMMAND)
+    shield = load_config(f.config_path).shield
+    problem = ramp_problem(ramp, first, COMMAND, shield.max_accel, shield.max_yaw_accel)
+    assert problem is None, (problem, ramp)
+    wrong = [s for s in since_engaging if s[0] >= first[0] and not is_command(s, COMMAND)]
+    assert not wrong, wrong
     report = f.report()
     assert report.engaged and not report.collision
     assert report.distance_m > 3.0
