@@ -1,5 +1,5 @@
 """A minimal ground station over pymavlink: what the pilot does in a SITL flight (mode, arm, take-off,
-mission upload).
+a world's waypoints planned as a mission and uploaded).
 
 Used by the SITL harness and the SITL tests against the simulated autopilots and, with
 ``--autopilot external``, against a real ArduPilot/PX4 SITL. It speaks only MAVLink (no simulator
@@ -12,14 +12,21 @@ import logging
 import math
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from pymavlink import mavutil
 
 from companion.connection import parse_connection
 from companion.errors import UserError
+from companion.goal_frames import offset_global
+
+if TYPE_CHECKING:
+    from flightsim.world import World
 
 log = logging.getLogger(__name__)
+
+#: Acceptance radius of the waypoints :func:`mission_items` plans (``avoid-sim fly --mission``), m.
+MISSION_ACCEPTANCE_RADIUS = 1.0
 
 ARDUCOPTER_MODES = {
     "STABILIZE": 0,
@@ -282,3 +289,22 @@ class MissionItemSpec:
     z: float
     command: int = mavutil.mavlink.MAV_CMD_NAV_WAYPOINT
     acceptance_radius: float = 0.0
+
+
+def mission_items(world: World, home: tuple[int, int], rotation: float = 0.0) -> list[MissionItemSpec]:
+    """The world's waypoints as NAV_WAYPOINTs relative to ``home`` (lat, lon × 1e7) at the world's start.
+
+    :param rotation: rad, counter-clockwise, from the autopilot's East-North frame to the world's
+        (0 for the simulated autopilots, whose frame is the world's)
+    """
+    sx, sy, _ = world.start_position
+    c, s = math.cos(rotation), math.sin(rotation)
+    items = []
+    for x, y, z in world.waypoints:
+        dx, dy = x - sx, y - sy
+        east, north = c * dx + s * dy, -s * dx + c * dy  # the world's offset turned back by -rotation
+        lat, lon = offset_global(*home, north, east)
+        frame = mavutil.mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT
+        items.append(MissionItemSpec(frame, round(lat), round(lon), float(z),
+                                     acceptance_radius=MISSION_ACCEPTANCE_RADIUS))
+    return items

@@ -37,7 +37,7 @@ from companion.scan import ScanConfig
 from companion.tomlconfig import to_dict
 from flightsim import external_sitl
 from flightsim.cosim import LidarCosim
-from flightsim.ground_station import GroundStation
+from flightsim.ground_station import MISSION_ACCEPTANCE_RADIUS, GroundStation, mission_items
 from flightsim.raycast import LidarConfig
 from flightsim.recording import FlightRecording
 from flightsim.world import DEFAULT_VEHICLE_RADIUS, World
@@ -46,8 +46,6 @@ log = logging.getLogger(__name__)
 
 AUTOPILOTS = ("sim-ardupilot", "sim-px4", "external")
 TAKEOFF_ALTITUDE = 1.5
-#: Acceptance radius of the waypoints ``--mission`` uploads, m.
-MISSION_ACCEPTANCE_RADIUS = 1.0
 #: the companion's STATUSTEXT when the last waypoint is reached (companion.goal.GoalTracker)
 COMPLETE_MARK = "goal: complete"
 #: a mission flight goes on this long after the companion announced completion (it holds), s
@@ -735,30 +733,6 @@ class SitlFlight:
             plot_flight(self.world, full, self.engaged_at, rec.collision_time, plot, title=_title(result))
             result.plot = str(plot)
         return result
-
-
-def mission_items(world: World, home: tuple[int, int], rotation: float = 0.0) -> list[Any]:
-    """The world's waypoints as NAV_WAYPOINTs relative to ``home`` (lat, lon × 1e7) at the world's start.
-
-    :param rotation: rad, counter-clockwise, from the autopilot's East-North frame to the world's
-        (0 for the simulated autopilots, whose frame is the world's)
-    """
-    from pymavlink import mavutil
-
-    from companion.goal_frames import offset_global
-    from flightsim.ground_station import MissionItemSpec
-
-    sx, sy, _ = world.start_position
-    c, s = math.cos(rotation), math.sin(rotation)
-    items = []
-    for x, y, z in world.waypoints:
-        dx, dy = x - sx, y - sy
-        east, north = c * dx + s * dy, -s * dx + c * dy  # the world's offset turned back by -rotation
-        lat, lon = offset_global(*home, north, east)
-        frame = mavutil.mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT
-        items.append(MissionItemSpec(frame, round(lat), round(lon), float(z),
-                                     acceptance_radius=MISSION_ACCEPTANCE_RADIUS))
-    return items
 
 
 def waypoints_reached(world: World, traj: np.ndarray, engaged_at: float | None) -> list[tuple[int, float]]:

@@ -196,7 +196,7 @@ def test_mission_items_land_on_the_world_waypoints_in_a_turned_external_sitl(sit
 
     from companion.goal_frames import GlobalOrigin, global_to_local_ne, offset_global
     from flightsim.external_sitl import ExternalPose
-    from flightsim.harness import mission_items
+    from flightsim.ground_station import mission_items
 
     world = dataclasses.replace(load_world("flightsim/worlds/two-pillars.json"), start_yaw_deg=-30.0,
                                 waypoints=((4.0, 1.0, 2.0), (-2.0, 3.5, 1.0)))
