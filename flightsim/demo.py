@@ -20,7 +20,8 @@ from pathlib import Path
 from companion.errors import UserError
 from flightsim import seeds
 from flightsim.families import generate_family_world
-from flightsim.harness import INTERRUPTED, FlightOptions, FlightReport, default_policy, run_flight
+from flightsim.flight_report import INTERRUPTED, FlightReport
+from flightsim.harness import FlightOptions, default_policy, run_flight
 from flightsim.planner import shortest_safe_path
 from flightsim.world import DEFAULT_VEHICLE_RADIUS, World, load_world
 

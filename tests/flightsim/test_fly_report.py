@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from flightsim.demo import _row
-from flightsim.harness import FlightReport, print_report
+from flightsim.flight_report import FlightReport, print_report
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -65,7 +65,7 @@ def test_ctrl_c_during_a_flight_exits_130(tmp_path):
 
 
 def test_the_flight_png_has_a_legend(tmp_path):
-    from flightsim.harness import plot_flight
+    from flightsim.flight_report import plot_flight
     from flightsim.world import load_world
 
     world = load_world(REPO / "flightsim" / "worlds" / "two-pillars.json")

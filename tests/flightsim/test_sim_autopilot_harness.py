@@ -17,7 +17,8 @@ from companion.lidar.velodyne import VelodyneUdpSource
 from companion.scan import ScanConfig, scan_from_points
 from companion.tomlconfig import to_dict
 from flightsim.cosim import LidarCosim
-from flightsim.harness import companion_config, free_udp_port, latency_ms, load_flight_world, toml_dumps
+from flightsim.flight_report import latency_ms
+from flightsim.harness import companion_config, free_udp_port, load_flight_world, toml_dumps
 from flightsim.raycast import LidarConfig
 from flightsim.vehicle import VehicleState
 from flightsim.world import load_world

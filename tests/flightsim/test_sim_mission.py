@@ -127,8 +127,8 @@ def test_world_waypoints_as_mission_items_and_reached_in_order():
     import numpy as np
 
     from companion.goal_frames import GlobalOrigin, global_to_local_ne
+    from flightsim.flight_report import waypoints_reached
     from flightsim.ground_station import mission_items
-    from flightsim.harness import waypoints_reached
     from flightsim.world import load_world
 
     world = load_world("flightsim/worlds/slalom.json")  # start (-8.5, 0); waypoints (8.5, 0), (-8.5, -2)
