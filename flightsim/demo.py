@@ -21,7 +21,8 @@ from companion.errors import UserError
 from flightsim import seeds
 from flightsim.families import generate_family_world
 from flightsim.flight_report import INTERRUPTED, FlightReport
-from flightsim.harness import FlightOptions, default_policy, run_flight
+from flightsim.fly_cli import default_policy
+from flightsim.harness import FlightOptions, run_flight
 from flightsim.planner import shortest_safe_path
 from flightsim.world import DEFAULT_VEHICLE_RADIUS, World, load_world
 

@@ -282,7 +282,7 @@ def test_sim_ardupilot_flies_its_firmware_response_by_default(vehicle, response)
 def test_the_servers_and_the_command_lines_choose_the_response():
     import argparse
 
-    from flightsim import demo, harness
+    from flightsim import demo, fly_cli, harness
     from flightsim.sim_autopilot import server
 
     for personality, params in (("px4", PX4), ("ardupilot", ARDUPILOT)):
@@ -290,7 +290,7 @@ def test_the_servers_and_the_command_lines_choose_the_response():
             assert s.autopilot.response.params is params
         with server.SimAutopilotServer(personality, ["udpin:127.0.0.1:0"], response=False) as s:
             assert s.autopilot.response is None
-    for module in (server, harness, demo):
+    for module in (server, fly_cli, demo):
         parser = argparse.ArgumentParser()
         module.configure_parser(parser)
         assert parser.parse_args(["--ideal-response"]).ideal_response is True

@@ -8,7 +8,7 @@ import pytest
 
 from flightsim.__main__ import main
 from flightsim.demo import GENERATED, demo_worlds, time_limit
-from flightsim.harness import default_policy
+from flightsim.fly_cli import default_policy
 
 
 def test_demo_flies_missions_in_generated_worlds_of_different_families_then_every_example_world() -> None:

@@ -18,7 +18,8 @@ from companion.scan import ScanConfig, scan_from_points
 from companion.tomlconfig import to_dict
 from flightsim.cosim import LidarCosim
 from flightsim.flight_report import latency_ms
-from flightsim.harness import companion_config, free_udp_port, load_flight_world, toml_dumps
+from flightsim.fly_cli import load_flight_world
+from flightsim.harness import companion_config, free_udp_port, toml_dumps
 from flightsim.raycast import LidarConfig
 from flightsim.vehicle import VehicleState
 from flightsim.world import load_world
