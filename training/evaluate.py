@@ -12,7 +12,9 @@ Goal (``flightsim/LidarNav-v0``): success is every waypoint reached in order, wi
 within the world's time limit. Per controller, per world, per family and overall: success,
 collision and timeout rates, mean time to the last waypoint and SPL (shortest safe path / path
 flown, both over successes only; ``spl_all`` is Anderson et al.'s, failures counting 0).
-Baselines: the goal follower and the straight line. ``--seeds N`` flies N test worlds per family
+Baselines: the goal follower and the straight line; named in ``--baselines``, also the DAgger
+teacher (``path_expert``, privileged: it reads the simulator's truth, so its rate bounds what
+imitating it can reach). ``--seeds N`` flies N test worlds per family
 (:data:`flightsim.seeds.TEST`), difficulties spread evenly over the config's ``difficulty_range``.
 
 Every controller sees one scan per step through the same interface (``reset(scan)`` then
@@ -54,6 +56,9 @@ log = logging.getLogger(__name__)
 
 BASELINES = ("gap_follower", "random")
 GOAL_BASELINES = ("goal_follower", "straight_line")
+#: flown only when named: not a baseline a drone could fly, it reads the simulator's truth (the
+#: DAgger teacher, :class:`~training.path_expert.PathExpertController`): what imitation can reach
+PRIVILEGED_GOAL_CONTROLLERS = ("path_expert",)
 AVOID_ENV_ID = "flightsim/LidarAvoid-v0"
 NAV_ENV_ID = "flightsim/LidarNav-v0"
 
@@ -153,7 +158,8 @@ def sb3_controller(model: Any, n_stack: int, frame_size: int = N_BINS) -> Stacke
 @dataclass(frozen=True)
 class ControllerSpec:
     """What to build in a worker: ``kind`` is ``policy`` (``path``) or one of :data:`BASELINES` /
-    :data:`GOAL_BASELINES`; ``shield``: behind the companion's safety shield."""
+    :data:`GOAL_BASELINES` / :data:`PRIVILEGED_GOAL_CONTROLLERS`; ``shield``: behind the
+    companion's safety shield."""
 
     kind: str
     path: str = ""
@@ -316,10 +322,14 @@ def build_controller(
     n_stack: int = 4,
     velocity: Callable[[], np.ndarray] | None = None,
     lateral: Callable[[float], None] | None = None,
+    env: Any = None,
 ) -> Controller:
     """Build the controller ``spec`` describes, behind the shield if it says so (the shield braking
-    and capping yaw as the env's autopilot response does, watching ``velocity`` as in flight)."""
-    controller = _bare_controller(spec, env_config, seed, n_stack)
+    and capping yaw as the env's autopilot response does, watching ``velocity`` as in flight).
+
+    :param env: the unwrapped env the controller flies, for a privileged one (``path_expert``)
+    """
+    controller = _bare_controller(spec, env_config, seed, n_stack, env)
     if not spec.shield:
         return controller
     shield = SafetyShield(ShieldConfig(), float(env_config.scan.max_range), env_config.autopilot_response)
@@ -328,7 +338,9 @@ def build_controller(
     )
 
 
-def _bare_controller(spec: ControllerSpec, env_config: Any, seed: int, n_stack: int) -> Controller:
+def _bare_controller(
+    spec: ControllerSpec, env_config: Any, seed: int, n_stack: int, env: Any = None
+) -> Controller:
     """The controller itself (policies are loaded once per process)."""
     from training.baselines import (
         GapFollower,
@@ -347,6 +359,12 @@ def _bare_controller(spec: ControllerSpec, env_config: Any, seed: int, n_stack: 
         return GoalFollower(env_config.layout, GoalFollowerConfig(max_range=float(env_config.scan.max_range)))
     if spec.kind == "straight_line":
         return StraightLine(env_config.layout)
+    if spec.kind == "path_expert":
+        from training.path_expert import PathExpertController
+
+        if env is None:
+            raise ValueError("path_expert reads the env it flies: pass env")
+        return PathExpertController(env)
     if spec.kind != "policy":
         raise ValueError(f"unknown controller kind {spec.kind!r}")
     # keyed by modification time too: training re-saves its evaluation model under one name
@@ -433,7 +451,7 @@ def run_task(task: EpisodeTask) -> EpisodeResult:
     unwrapped = env.unwrapped
     controller = build_controller(
         task.controller, unwrapped.config, task.seed,
-        velocity=unwrapped.measured_body_velocity, lateral=unwrapped.command_lateral,
+        velocity=unwrapped.measured_body_velocity, lateral=unwrapped.command_lateral, env=unwrapped,
     )  # fmt: skip
     result = run_episode(env, controller, task.world.reset_options(), seed=task.seed)
     result.controller, result.world, result.episode = task.controller.label, task.world.name, task.episode
@@ -865,7 +883,7 @@ def parse_baselines(value: str | None, env_id: str) -> list[str] | None:
     """``--baselines``: None (not given: the task's), or the names, each checked against the task's."""
     if value is None:
         return None
-    known = GOAL_BASELINES if env_id == NAV_ENV_ID else BASELINES
+    known = GOAL_BASELINES + PRIVILEGED_GOAL_CONTROLLERS if env_id == NAV_ENV_ID else BASELINES
     names = [name.strip() for name in value.split(",") if name.strip()]
     unknown = [name for name in names if name not in known]
     if unknown:

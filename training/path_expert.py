@@ -10,7 +10,9 @@ Behaviour cloning on its actions, in the states the student itself reaches (DAgg
 :mod:`training.dagger`), gives the student a teacher that is right where the classical baseline
 is defeated: a drifting velocity estimate, a lagging autopilot, a concave trap.
 
-It is a training tool only; no evaluation figure flies it.
+It is a training tool: no figure of what a drone flies comes from it. ``avoid-train evaluate
+--baselines path_expert`` flies it (:class:`PathExpertController`) to measure what imitating it
+can reach at most.
 """
 
 from __future__ import annotations
@@ -314,3 +316,20 @@ def _stopping_speed(free: float, accel: float, lag: float) -> float:
     """The speed from which the vehicle stops within ``free`` metres: ``lag`` seconds at speed,
     then braking at ``accel``."""
     return -accel * lag + math.sqrt((accel * lag) ** 2 + 2.0 * accel * max(free, 0.0))
+
+
+class PathExpertController:
+    """The teacher as an evaluation controller: it ignores the frames it is given and reads the env
+    it flies (privileged), so its success rate bounds what a student imitating it can reach.
+
+    :param env: the unwrapped env it flies (the evaluation resets it before :meth:`reset`)
+    """
+
+    def __init__(self, env: LidarNavEnv) -> None:
+        self._expert = PathExpert(env)
+
+    def reset(self, obs: np.ndarray) -> np.ndarray:
+        return self._expert.reset()
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        return self._expert.act()

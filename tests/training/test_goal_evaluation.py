@@ -6,6 +6,7 @@ import json
 
 import pytest
 
+from companion.errors import UserError
 from flightsim import seeds
 from flightsim.families import FAMILIES
 from training.__main__ import main
@@ -100,6 +101,28 @@ def test_goal_evaluation_end_to_end_writes_json_and_png(tmp_path, capsys):
     response = data["episodes"][0]["response"]  # the env's default: a random draw, reported
     assert response["name"].startswith("random-") and response["est_vel_sigma"] >= 0.0
 
+
+
+def test_the_teacher_is_flown_only_when_named_and_reads_the_env_it_flies(tmp_path):
+    """``--baselines path_expert``: the DAgger teacher on the held-out worlds (its rate bounds the
+    student's); it needs the env, so a build without one is refused, and the avoidance task has none."""
+    from training.evaluate import AVOID_ENV_ID, NAV_ENV_ID, ControllerSpec, build_controller, parse_baselines
+
+    config = tmp_path / "nav.toml"
+    config.write_text(
+        'env_id = "flightsim/LidarNav-v0"\n[eval]\nfirst_seed = 500000\n'
+        '[env]\nfamilies = ["gaps"]\ndifficulty_range = [0.0, 0.3]\n'
+    )
+    out = tmp_path / "teacher.json"
+    argv = ["evaluate", "--config", str(config), "--seeds", "1", "--workers", "1"]
+    assert main([*argv, "--baselines", "path_expert", "--json", str(out)]) == 0
+    teacher = json.loads(out.read_text())["controllers"]["path_expert"]["overall"]
+    assert teacher["success_rate"] == 1.0 and teacher["spl"] > 0.8
+    assert parse_baselines("goal_follower,path_expert", NAV_ENV_ID) == ["goal_follower", "path_expert"]
+    with pytest.raises(UserError, match="'path_expert' is not a baseline of this task"):
+        parse_baselines("path_expert", AVOID_ENV_ID)
+    with pytest.raises(ValueError, match="path_expert reads the env it flies"):
+        build_controller(ControllerSpec("path_expert"), None, seed=0)
 
 
 def test_each_goal_world_flies_its_own_reset_seed_and_every_controller_the_same():
