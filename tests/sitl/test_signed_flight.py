@@ -100,7 +100,7 @@ def test_signed_px4_flight_engages_through_mavsdk(tmp_path):
         assert f.wait_engaged(25.0), f.companion_log()
         # what PX4 took and flies: the signed command, at the speed its estimator sees. Not the true
         # speed: PX4's estimate error keeps this circle's true speed under 0.6 m/s for 5 s now and
-        # then (2 of 22 runs on 2026-11-24), while its estimate was past 0.6 within 3.2 s in all 12
+        # then (3 of 38 runs on 2026-11-24), while its estimate was past 0.6 within 3.2 s in all 12
         wait_for(lambda: estimated_speed(f) > 0.6, 5.0, "PX4 to fly the setpoints")
         target = f.server.call(lambda a: a.target)
         assert target is not None and np.linalg.norm(target.velocity[:2]) == pytest.approx(1.0, abs=0.01)
