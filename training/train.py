@@ -29,6 +29,7 @@ import csv
 import json
 import logging
 import multiprocessing
+import os
 import shutil
 import signal
 import sys
@@ -199,6 +200,17 @@ def checkpoint_steps(path: Path) -> int:
         raise UserError(f"{path}: not a stable-baselines3 model ({exc})") from None
 
 
+def save_atomically(model: Any, path: Path) -> None:
+    """``model.save(path)`` under a temporary name, then renamed: a Ctrl-C or a kill during the
+    save leaves no cut-off zip under a checkpoint's name for ``--resume`` to pick as the newest."""
+    partial = path.with_name(f".partial-{path.name}")
+    try:
+        model.save(partial)
+        os.replace(partial, path)
+    finally:
+        partial.unlink(missing_ok=True)
+
+
 def latest_checkpoint(run_dir: Path) -> Path:
     """The checkpoint of ``run_dir`` with the most steps: ``checkpoints/ppo_<N>_steps.zip`` or
     ``interrupted.zip``; before any PPO step, the last DAgger iteration's
@@ -254,7 +266,7 @@ def truncate_eval_log(run_dir: Path, steps: int, target_difficulty: float) -> No
 
 def make_callbacks(config: TrainConfig, run_dir: Path, n_envs: int, executor: Any, start_difficulty: float):
     """Checkpoints every ``checkpoint_every`` steps and the held-out evaluation (+ curriculum)."""
-    from stable_baselines3.common.callbacks import BaseCallback, CheckpointCallback
+    from stable_baselines3.common.callbacks import BaseCallback
 
     # the held-out worlds are flown behind the companion's shield, as on the drone, and without it:
     # a policy that needs the shield to stay clear is not the best, however fast it flies behind it
@@ -366,12 +378,26 @@ def make_callbacks(config: TrainConfig, run_dir: Path, n_envs: int, executor: An
             self.training_env.env_method("set_difficulty", self.difficulty)
             log.info("curriculum: training difficulty now %.2f", self.difficulty)
 
-    checkpoints = CheckpointCallback(
+    checkpoints = atomic_checkpoint_callback()(
         save_freq=max(config.checkpoint_every // n_envs, 1),
         save_path=str(run_dir / "checkpoints"),
         name_prefix="ppo",
     )
     return [checkpoints, HeldOutEvaluation()]
+
+
+def atomic_checkpoint_callback() -> type:
+    """SB3's :class:`CheckpointCallback` writing each ``ppo_<N>_steps.zip`` with
+    :func:`save_atomically` (a Ctrl-C mid-save once left a cut-off one, and ``--resume`` failed on it)."""
+    from stable_baselines3.common.callbacks import CheckpointCallback
+
+    class AtomicCheckpointCallback(CheckpointCallback):
+        def _on_step(self) -> bool:
+            if self.n_calls % self.save_freq == 0:
+                save_atomically(self.model, Path(self._checkpoint_path(extension="zip")))
+            return True
+
+    return AtomicCheckpointCallback
 
 
 def build_model(config: TrainConfig, venv: Any, run_dir: Path, resume: Path | None):
@@ -441,7 +467,7 @@ def warm_start(
             dagger.save_iteration(run_dir / "dagger", iteration, rollouts)
             model.num_timesteps = collected
             (run_dir / "checkpoints").mkdir(exist_ok=True)
-            model.save(run_dir / "checkpoints" / f"dagger_{collected}_steps.zip")
+            save_atomically(model, run_dir / "checkpoints" / f"dagger_{collected}_steps.zip")
             evaluation.num_timesteps = collected  # imitation steps mark the evaluation log's rows
             evaluation.evaluate()
             model.logger.dump(collected)
@@ -532,7 +558,7 @@ def train(config: TrainConfig, resume: Path | None = None) -> Path:
             )
         except KeyboardInterrupt:
             interrupted = run_dir / "interrupted.zip"
-            model.save(interrupted)
+            save_atomically(model, interrupted)
             # SubprocVecEnv.close() would first wait for the step results of every worker, some of
             # which Ctrl-C's step_wait already read: forever. The workers ignore SIGINT, so they
             # read the close command right after the result nobody collects.

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import pytest
 
+from companion.errors import UserError
 from training.__main__ import main
 from training.train import EVAL_FIELDS, checkpoint_steps, truncate_eval_log, write_eval_log
 
@@ -175,6 +176,7 @@ class Missing(importlib.abc.MetaPathFinder):
         return None
 
 sys.meta_path.insert(0, Missing())
+from companion.errors import UserError
 from training.__main__ import main
 sys.exit(main(["train", "--config", {config!r}, "run_root={runs}"]))
 """
@@ -213,3 +215,30 @@ def test_ctrl_c_before_training_starts_is_one_line_130(monkeypatch, capsys, tmp_
     monkeypatch.setattr(training.train, "load_train_config", interrupted)
     assert main(["train", "--config", str(tmp_path / "tiny.toml")]) == 130
     assert capsys.readouterr().err.strip() == "avoid-train: interrupted"
+
+
+class _CutOffModel:
+    """Writes part of a zip, then Ctrl-C arrives (as in a real save's middle)."""
+
+    def save(self, path):
+        Path(path).write_bytes(b"PK\x03\x04 cut off")
+        raise KeyboardInterrupt
+
+
+def test_a_checkpoint_cut_off_by_ctrl_c_leaves_no_file_under_its_name(tmp_path):
+    """A Ctrl-C during a periodic save once left ``ppo_<N>_steps.zip`` cut off; ``--resume`` then
+    took it as the newest checkpoint and failed ("not a stable-baselines3 model")."""
+    from training.train import atomic_checkpoint_callback, latest_checkpoint, save_atomically
+
+    checkpoints = tmp_path / "checkpoints"
+    checkpoints.mkdir()
+    callback = atomic_checkpoint_callback()(save_freq=1, save_path=str(checkpoints), name_prefix="ppo")
+    callback.model, callback.n_calls, callback.num_timesteps = _CutOffModel(), 1, 1152
+    with pytest.raises(KeyboardInterrupt):
+        callback._on_step()
+    assert list(checkpoints.iterdir()) == []
+    with pytest.raises(KeyboardInterrupt):
+        save_atomically(_CutOffModel(), tmp_path / "interrupted.zip")
+    assert not (tmp_path / "interrupted.zip").exists() and not list(tmp_path.glob(".partial-*"))
+    with pytest.raises(UserError, match="no checkpoint to continue from"):
+        latest_checkpoint(tmp_path)
