@@ -202,7 +202,8 @@ def checkpoint_steps(path: Path) -> int:
 
 def save_atomically(model: Any, path: Path) -> None:
     """``model.save(path)`` under a temporary name, then renamed: a Ctrl-C or a kill during the
-    save leaves no cut-off zip under a checkpoint's name for ``--resume`` to pick as the newest."""
+    save leaves no cut-off zip under a model's name (a checkpoint ``--resume`` would pick as the
+    newest, the ``best_model.zip`` the run chose). Every model the run writes goes through it."""
     partial = path.with_name(f".partial-{path.name}")
     try:
         model.save(partial)
@@ -315,7 +316,7 @@ def make_callbacks(config: TrainConfig, run_dir: Path, n_envs: int, executor: An
 
         def evaluate(self) -> None:
             model_path = run_dir / "eval_model.zip"
-            self.model.save(model_path)
+            save_atomically(self.model, model_path)
             difficulty = self.difficulty if config.curriculum.enabled else config.eval.difficulty
             seeds = range(config.eval.first_seed, config.eval.first_seed + config.eval.n_worlds)
             if not config.is_goal_task:
@@ -366,7 +367,7 @@ def make_callbacks(config: TrainConfig, run_dir: Path, n_envs: int, executor: An
                 )
             if self._at_target(difficulty) and row["success_rate"] >= self.best:
                 self.best = row["success_rate"]
-                self.model.save(run_dir / "best_model.zip")
+                save_atomically(self.model, run_dir / "best_model.zip")
             self.advance_curriculum(row["success_rate"])
 
         def advance_curriculum(self, success_rate: float) -> None:
@@ -539,7 +540,7 @@ def train(config: TrainConfig, resume: Path | None = None) -> Path:
             warm_start(config, venv, model, callbacks[-1], resume)
             if config.total_timesteps == 0:
                 final = run_dir / "final_model.zip"
-                model.save(final)
+                save_atomically(model, final)
                 return final
         continued = resume is not None and not in_dagger  # PPO steps already taken
         remaining = config.total_timesteps - (model.num_timesteps if continued else 0)
@@ -566,7 +567,7 @@ def train(config: TrainConfig, resume: Path | None = None) -> Path:
                 venv.unwrapped.waiting = False
             raise TrainingInterrupted(interrupted, model.num_timesteps) from None
         final = run_dir / "final_model.zip"
-        model.save(final)
+        save_atomically(model, final)
         log.info("saved %s after %d steps", final, model.num_timesteps)
         return final
     finally:
