@@ -164,6 +164,30 @@ def stopped_at(flight: Any, since: float, threshold: float = 0.1) -> float | Non
     return first
 
 
+def estimated_stop_at(
+    flight: Any, since: float, threshold: float = 0.1, settle: float = 0.5, timeout: float = 5.0
+) -> float:
+    """Poll the autopilot's velocity estimate and return the first time after ``since`` from which it
+    stayed below ``threshold`` for ``settle`` s: the stop the autopilot flies when told to hold.
+
+    The true speed is the wrong judge: a held vehicle drifts at its estimate's error (ArduPilot's
+    calibrated sigma 0.03 m/s, up to 0.1 m/s at the tails), so the true speed can hover around
+    ``threshold`` for seconds after the autopilot has stopped.
+    """
+    first: float | None = None
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        now = time.monotonic()
+        if estimated_speed(flight) >= threshold:
+            first = None
+        elif first is None:
+            first = max(now, since)
+        elif now - first >= settle:
+            return first
+        time.sleep(0.02)
+    raise AssertionError(f"the autopilot's estimate did not stay under {threshold} m/s within {timeout} s")
+
+
 def companion_counters(flight: Any) -> str:
     """The companion's last counters log line."""
     lines = [line for line in flight.companion_log().splitlines() if " state=" in line]
