@@ -316,6 +316,46 @@ def _advance(
         x[_S_R] += ylag * (demand - x[_S_R])
 
 
+@njit(cache=True)
+def _predict(
+    x0: np.ndarray, p: np.ndarray, queue: np.ndarray, active: np.ndarray, delay: float, yaw0: float,
+    commands: np.ndarray, command_steps: int, total_steps: int, per_period: int, h: float,
+) -> np.ndarray:  # pragma: no cover - compiled
+    """The kernel of :meth:`AutopilotResponse.predict` (the same stepping as ``setpoint``)."""
+    k_count = commands.shape[0]
+    out = np.zeros((k_count, total_steps, 3))
+    n_queue = queue.shape[0]
+    dues = np.zeros(n_queue + total_steps)
+    values = np.zeros((n_queue + total_steps, 3))
+    for c in range(k_count):
+        x = x0.copy()
+        cmd = active.copy()
+        dues[:n_queue] = queue[:, 0]
+        values[:n_queue] = queue[:, 1:]
+        n = n_queue
+        head = 0
+        px = py = 0.0
+        yaw = yaw0
+        t = 0.0
+        for k in range(total_steps):
+            forward = commands[c, 0] if k < command_steps else 0.0
+            rate = commands[c, 1] if k < command_steps else 0.0
+            dues[n] = t + delay
+            values[n, 0], values[n, 1], values[n, 2] = forward * math.cos(yaw), forward * math.sin(yaw), rate
+            n += 1
+            for _ in range(per_period):
+                t += h
+                while head < n and dues[head] <= t + 1e-9:
+                    cmd[:] = values[head]
+                    head += 1
+                _advance(x, p, cmd[0], cmd[1], cmd[2], yaw, h, 1)
+                px += x[_S_VX] * h
+                py += x[_S_VY] * h
+                yaw += x[_S_R] * h
+            out[c, k, 0], out[c, k, 1], out[c, k, 2] = px, py, yaw
+    return out
+
+
 class AutopilotResponse:
     """A firmware's response to body-frame velocity + yaw-rate setpoints (see the module docstring)."""
 
@@ -403,6 +443,30 @@ class AutopilotResponse:
         return Setpoint(
             vx=x[_S_VX], vy=x[_S_VY], ax=x[_S_AX] - drag * x[_S_VX], ay=x[_S_AY] - drag * x[_S_VY],
             yaw_rate=x[_S_R], altitude=altitude, vz=vz,
+        )  # fmt: skip
+
+    def predict(
+        self, yaw: float, commands: np.ndarray, command_steps: int, total_steps: int, period: float = 0.1
+    ) -> np.ndarray:
+        """Where each of several command sequences would take the vehicle, from the model's state now.
+
+        Candidate ``i`` sends the body command ``commands[i]`` every ``period`` s for
+        ``command_steps`` periods, then zero (a hold) up to ``total_steps``; the commands already in
+        flight (the delay) act first. The airframe is the model's own (its velocity integrated), the
+        estimate error is held at today's value: a planner's prediction, not a simulation.
+
+        :param yaw: the vehicle's heading now, rad CCW from East
+        :param commands: (K, 2) body forward (m/s) and yaw rate (rad/s CCW)
+        :param command_steps: periods the command is sent for
+        :param total_steps: periods predicted
+        :param period: s between commands, a whole number of the internal 5 ms steps
+        :return: (K, total_steps, 3) displacement East, North (m) and heading (rad) at each period's end
+        """
+        queue = np.array([[due - self._time, *cmd] for due, *cmd in self._pending]).reshape(-1, 4)
+        return _predict(
+            self._x, self._p, queue, np.asarray(self._cmd, dtype=np.float64), self.params.command_delay_s,
+            float(yaw), np.asarray(commands, dtype=np.float64).reshape(-1, 2), int(command_steps),
+            int(total_steps), round(period / _INNER_DT), _INNER_DT,
         )  # fmt: skip
 
     def measured_body_velocity(self, state: Any) -> np.ndarray:

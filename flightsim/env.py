@@ -329,6 +329,12 @@ class LidarAvoidEnv(gym.Env):
         return None if self._response is None else self._response.params
 
     @property
+    def response(self) -> AutopilotResponse | None:
+        """The firmware response model flying this episode (None: the ideal autopilot). Privileged,
+        as :attr:`true_state`: a teacher may predict with it, a policy never reads it."""
+        return self._response
+
+    @property
     def true_state(self) -> VehicleState:
         """The vehicle as it truly is now (privileged: a teacher may read it, a policy never does)."""
         return self._state
