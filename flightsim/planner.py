@@ -219,6 +219,35 @@ def astar_cells(costs, si, sj, gi, gj):  # pragma: no cover - compiled
 
 
 @njit(cache=True)
+def cost_to_go(costs, gi, gj):  # pragma: no cover - compiled
+    """Every cell's cost of the cheapest path to cell ``(gi, gj)``, in cells, under the step costs of
+    :func:`astar_cells` (Dijkstra from the goal; ``inf`` where the goal cannot be reached). A
+    planner that scores many candidate end points reads them all from one search."""
+    nx, ny = costs.shape
+    dist = np.full((nx, ny), np.inf)
+    dist[gi, gj] = 0.0
+    heap = [(0.0, gi * ny + gj)]
+    di = (1, -1, 0, 0, 1, 1, -1, -1)
+    dj = (0, 0, 1, -1, 1, -1, 1, -1)
+    while heap:
+        d, cur = heapq.heappop(heap)
+        ci, cj = cur // ny, cur % ny
+        if d > dist[ci, cj]:
+            continue
+        for k in range(8):
+            ni, nj = ci + di[k], cj + dj[k]
+            if ni < 0 or nj < 0 or ni >= nx or nj >= ny or not np.isfinite(costs[ni, nj]):
+                continue
+            if k >= 4 and not (np.isfinite(costs[ci + di[k], cj]) and np.isfinite(costs[ci, cj + dj[k]])):
+                continue
+            cost = d + (1.0 if k < 4 else _SQRT2) * 0.5 * (costs[ci, cj] + costs[ni, nj])
+            if cost < dist[ni, nj]:
+                dist[ni, nj] = cost
+                heapq.heappush(heap, (cost, ni * ny + nj))
+    return dist
+
+
+@njit(cache=True)
 def _visible(free, origin, res, ax, ay, bx, by):  # pragma: no cover - compiled
     """True if every sample of segment a-b (at most a quarter cell apart) lies in a free cell."""
     nx, ny = free.shape

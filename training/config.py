@@ -81,14 +81,16 @@ class PretrainConfig:
     """Imitation before PPO; ``steps = 0``: none.
 
     ``method = "bc"``: behaviour cloning of a classical controller (:mod:`training.pretrain`).
-    ``method = "dagger"`` (goal task): DAgger from the privileged path-following teacher
-    (:mod:`training.dagger`, :mod:`training.path_expert`), with the held-out evaluation after
-    every iteration (``best_model.zip`` is the best of them, and of PPO's evaluations after).
+    ``method = "dagger"`` (goal task): DAgger from a privileged teacher (:mod:`training.dagger`;
+    ``teacher``: :mod:`training.path_expert` or :mod:`training.predictive_expert`), with the
+    held-out evaluation after every iteration (``best_model.zip`` is the best of them, and of
+    PPO's evaluations after).
 
     :param method: ``"bc"`` or ``"dagger"``
     :param steps: env steps recorded (all envs together; per iteration for DAgger; not counted in
         ``total_timesteps``)
     :param demonstrator: the classical controller imitated (``bc`` only)
+    :param teacher: DAgger's privileged teacher (``dagger`` only)
     :param iterations: DAgger's collect-and-fit rounds
     :param beta0: DAgger's teacher flies an episode with probability ``beta0 ** iteration``
     :param epochs: passes over the demonstrations
@@ -99,6 +101,7 @@ class PretrainConfig:
     method: Literal["bc", "dagger"] = "bc"
     steps: int = field(default=0, metadata={"min": 0, "max": 10_000_000})
     demonstrator: Literal["goal_follower", "gap_follower"] = "goal_follower"
+    teacher: Literal["path_expert", "predictive_expert"] = "path_expert"
     iterations: int = field(default=1, metadata={"min": 1, "max": 100})
     beta0: float = field(default=0.5, metadata={"min": 0.0, "max": 1.0})
     epochs: int = field(default=10, metadata={"min": 1, "max": 1000})

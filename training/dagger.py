@@ -4,9 +4,9 @@ Plain behaviour cloning (:mod:`training.pretrain`) imitates the teacher in the s
 teacher visits; the student, flying on its own, soon leaves them and has never seen how to
 recover. DAgger (Ross et al., 2011) lets the student fly and asks the teacher what it would have
 done in every state the student reaches, and fits the student to the aggregate of all such
-labels. The teacher here is :class:`~training.path_expert.PathExpert`, which reads the simulator's
-truth (map, pose, velocity, the autopilot's estimate error) that the student never sees; the
-student sees only its stacked observations, as in flight.
+labels. The teacher (:data:`TEACHERS`) reads the simulator's truth (map, pose, velocity, the
+autopilot's estimate error and, for the predictive one, the drawn autopilot response) that the
+student never sees; the student sees only its stacked observations, as in flight.
 
 Read top to bottom: :func:`run` (iterations: collect with a mixture, fit, evaluate), then
 :func:`collect` (who flies each episode, what is recorded), then :func:`save_iteration` and
@@ -25,9 +25,18 @@ import numpy as np
 
 from companion.errors import UserError
 from training.path_expert import PathExpert
+from training.predictive_expert import PredictiveExpert
 from training.pretrain import Demonstrations, discounted_returns, fit
 
 log = logging.getLogger(__name__)
+
+
+#: the teachers by ``[pretrain] teacher`` name: each is built on one unwrapped env, ``reset()`` at
+#: an episode's start and ``act()`` every step after, returning its action in ``[-1, 1]``
+TEACHERS: dict[str, Callable[[Any], Any]] = {
+    "path_expert": PathExpert,
+    "predictive_expert": PredictiveExpert,
+}
 
 
 @dataclass(frozen=True)
@@ -66,8 +75,9 @@ def nav_envs(venv: Any) -> list[Any]:
 
 
 def collect(
-    venv: Any, policy: Any, n_steps: int, beta: float, gamma: float, rng: np.random.Generator
-) -> Rollouts:
+    venv: Any, policy: Any, n_steps: int, beta: float, gamma: float, rng: np.random.Generator,
+    teacher: str = "path_expert",
+) -> Rollouts:  # fmt: skip
     """Fly ``n_steps`` env steps (all envs together), each episode by the teacher with probability
     ``beta`` and otherwise by the student (deterministic), recording the teacher's action at every step.
 
@@ -76,10 +86,11 @@ def collect(
     :param beta: probability that the teacher flies an episode
     :param gamma: discount of the recorded returns
     :param rng: draws who flies each episode
+    :param teacher: a :data:`TEACHERS` name
     """
     envs = nav_envs(venv)
     n_envs = venv.num_envs
-    teachers = [PathExpert(env) for env in envs]
+    teachers = [TEACHERS[teacher](env) for env in envs]
     obs = venv.reset()
     labels = np.stack([t.reset() for t in teachers])
     teacher_flies = rng.uniform(size=n_envs) < beta
@@ -123,6 +134,7 @@ def run(
     seed: int,
     previous: Sequence[Rollouts] = (),
     after_iteration: Callable[[int, int, Rollouts], None] | None = None,
+    teacher: str = "path_expert",
 ) -> Demonstrations:
     """DAgger: iteration 0 is the teacher's alone (plain behaviour cloning), then the student flies
     a growing share (teacher probability ``beta0 ** k``), and the student is refitted on every
@@ -138,6 +150,7 @@ def run(
         the run goes on with iteration ``len(previous)``
     :param after_iteration: called with (iteration, env steps collected so far, its rollouts),
         e.g. to save them and evaluate
+    :param teacher: a :data:`TEACHERS` name
     :return: every label gathered (the data of the last fit)
     """
     rows = max(1, steps // venv.num_envs) * venv.num_envs  # what one new iteration gathers
@@ -153,7 +166,8 @@ def run(
         if k < len(previous):
             rollouts = previous[k]
         else:  # the draws of iteration k are its own: a resumed run draws as an unbroken one would
-            rollouts = collect(venv, model.policy, steps, beta, model.gamma, np.random.default_rng([seed, k]))
+            rng = np.random.default_rng([seed, k])
+            rollouts = collect(venv, model.policy, steps, beta, model.gamma, rng, teacher)
         n = len(rollouts.actions)
         obs[collected : collected + n] = rollouts.obs
         actions[collected : collected + n] = rollouts.actions

@@ -13,8 +13,8 @@ within the world's time limit. Per controller, per world, per family and overall
 collision and timeout rates, mean time to the last waypoint and SPL (shortest safe path / path
 flown, both over successes only; ``spl_all`` is Anderson et al.'s, failures counting 0).
 Baselines: the goal follower and the straight line; named in ``--baselines``, also the DAgger
-teacher (``path_expert``, privileged: it reads the simulator's truth, so its rate bounds what
-imitating it can reach). ``--seeds N`` flies N test worlds per family
+teachers (``path_expert`` and ``predictive_expert``, privileged: they read the simulator's truth,
+so their rates bound what imitating them can reach). ``--seeds N`` flies N test worlds per family
 (:data:`flightsim.seeds.TEST`), difficulties spread evenly over the config's ``difficulty_range``.
 
 Every controller sees one scan per step through the same interface (``reset(scan)`` then
@@ -57,8 +57,9 @@ log = logging.getLogger(__name__)
 BASELINES = ("gap_follower", "random")
 GOAL_BASELINES = ("goal_follower", "straight_line")
 #: flown only when named: not a baseline a drone could fly, it reads the simulator's truth (the
-#: DAgger teacher, :class:`~training.path_expert.PathExpertController`): what imitation can reach
-PRIVILEGED_GOAL_CONTROLLERS = ("path_expert",)
+#: DAgger teachers, :mod:`training.path_expert`, :mod:`training.predictive_expert`): what
+#: imitation can reach
+PRIVILEGED_GOAL_CONTROLLERS = ("path_expert", "predictive_expert")
 AVOID_ENV_ID = "flightsim/LidarAvoid-v0"
 NAV_ENV_ID = "flightsim/LidarNav-v0"
 
@@ -327,7 +328,8 @@ def build_controller(
     """Build the controller ``spec`` describes, behind the shield if it says so (the shield braking
     and capping yaw as the env's autopilot response does, watching ``velocity`` as in flight).
 
-    :param env: the unwrapped env the controller flies, for a privileged one (``path_expert``)
+    :param env: the unwrapped env the controller flies, for a privileged one
+        (:data:`PRIVILEGED_GOAL_CONTROLLERS`)
     """
     controller = _bare_controller(spec, env_config, seed, n_stack, env)
     if not spec.shield:
@@ -336,6 +338,17 @@ def build_controller(
     return ShieldedController(
         controller, shield, float(env_config.max_speed), float(env_config.max_yaw_rate), velocity, lateral
     )
+
+
+def _teacher_controller(kind: str, env: Any) -> Controller:
+    """A privileged teacher flying ``env`` (imported here: evaluation needs them only when named)."""
+    if kind == "path_expert":
+        from training.path_expert import PathExpertController
+
+        return PathExpertController(env)
+    from training.predictive_expert import PredictiveExpertController
+
+    return PredictiveExpertController(env)
 
 
 def _bare_controller(
@@ -359,12 +372,10 @@ def _bare_controller(
         return GoalFollower(env_config.layout, GoalFollowerConfig(max_range=float(env_config.scan.max_range)))
     if spec.kind == "straight_line":
         return StraightLine(env_config.layout)
-    if spec.kind == "path_expert":
-        from training.path_expert import PathExpertController
-
+    if spec.kind in PRIVILEGED_GOAL_CONTROLLERS:
         if env is None:
-            raise ValueError("path_expert reads the env it flies: pass env")
-        return PathExpertController(env)
+            raise ValueError(f"{spec.kind} reads the env it flies: pass env")
+        return _teacher_controller(spec.kind, env)
     if spec.kind != "policy":
         raise ValueError(f"unknown controller kind {spec.kind!r}")
     # keyed by modification time too: training re-saves its evaluation model under one name

@@ -479,7 +479,7 @@ def warm_start(
         dagger.run(
             venv, model, iterations=p.iterations, steps=p.steps, beta0=p.beta0, epochs=p.epochs,
             batch_size=p.batch_size, learning_rate=p.learning_rate, seed=config.seed,
-            previous=previous, after_iteration=after,
+            previous=previous, after_iteration=after, teacher=p.teacher,
         )  # fmt: skip
         return
     data = pretrain.collect(

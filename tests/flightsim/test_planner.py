@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from flightsim.planner import clearance_grid, shortest_safe_path
+from flightsim.planner import astar_cells, clearance_grid, cost_to_go, shortest_safe_path
 from flightsim.world import Box, Cylinder, World, clearances
 
 R = 0.25
@@ -143,3 +143,31 @@ def test_clearance_grid_matches_world_clearance() -> None:
     )
     exact = np.minimum(clearances(world, centres), 1.0)
     assert grid.clearance.ravel() == pytest.approx(exact, abs=1e-9)
+
+
+def _path_cost(costs: np.ndarray, cells: np.ndarray) -> float:
+    steps = np.diff(cells, axis=0)
+    lengths = np.where(np.abs(steps).sum(axis=1) == 2, math.sqrt(2.0), 1.0)
+    factors = 0.5 * (costs[cells[:-1, 0], cells[:-1, 1]] + costs[cells[1:, 0], cells[1:, 1]])
+    return float((lengths * factors).sum())
+
+
+def test_cost_to_go_is_the_a_star_path_cost_from_every_start() -> None:
+    rng = np.random.default_rng(4)
+    costs = 1.0 + rng.uniform(0.0, 3.0, (30, 25))
+    costs[rng.uniform(size=costs.shape) < 0.2] = np.inf
+    costs[7, 3] = costs[20, 20] = 1.0
+    to_goal = cost_to_go(costs, 20, 20)
+    assert to_goal[20, 20] == 0.0
+    reachable = 0
+    for i, j in itertools.product(range(0, 30, 3), range(0, 25, 3)):
+        if not np.isfinite(costs[i, j]):
+            assert not np.isfinite(to_goal[i, j])
+            continue
+        cells = astar_cells(costs, i, j, 20, 20)
+        if len(cells) == 0:
+            assert not np.isfinite(to_goal[i, j])
+            continue
+        reachable += 1
+        assert to_goal[i, j] == pytest.approx(_path_cost(costs, cells), rel=1e-9)
+    assert reachable > 30

@@ -28,9 +28,12 @@ def setup(tmp_path):
     venv.close()
 
 
-def test_the_teacher_labels_the_states_the_student_flies_into(setup):
+@pytest.mark.parametrize("teacher", sorted(dagger.TEACHERS))
+def test_the_teacher_labels_the_states_the_student_flies_into(setup, teacher):
     _, venv, model = setup
-    rollouts = dagger.collect(venv, model.policy, 400, beta=0.0, gamma=0.9, rng=np.random.default_rng(0))
+    rollouts = dagger.collect(
+        venv, model.policy, 400, beta=0.0, gamma=0.9, rng=np.random.default_rng(0), teacher=teacher
+    )
     assert rollouts.obs.shape == (400, 4 * 365) and rollouts.actions.shape == (400, 2)
     frame = rollouts.obs[:, 3 * 365 :]  # the newest of the 4 stacked frames
     # the untrained student (beta 0: it flew) hardly moves, while the labels would fly on
@@ -38,7 +41,8 @@ def test_the_teacher_labels_the_states_the_student_flies_into(setup):
     # the labels are the teacher's: it turns toward the goal (bearing sin: feature 361)
     off = np.abs(frame[:, 361]) > 0.2
     assert off.sum() > 30
-    assert np.mean(np.sign(rollouts.actions[off, 1]) == np.sign(frame[off, 361])) > 0.9
+    # (the predictive one also holds its heading (a candidate yaw rate of 0) or goes round an obstacle)
+    assert np.mean(np.sign(rollouts.actions[off, 1]) == np.sign(frame[off, 361])) > 0.8
 
 
 def test_the_student_learns_the_teachers_actions(setup, tmp_path):

@@ -103,9 +103,10 @@ def test_goal_evaluation_end_to_end_writes_json_and_png(tmp_path, capsys):
 
 
 
-def test_the_teacher_is_flown_only_when_named_and_reads_the_env_it_flies(tmp_path):
-    """``--baselines path_expert``: the DAgger teacher on the held-out worlds (its rate bounds the
-    student's); it needs the env, so a build without one is refused, and the avoidance task has none."""
+def test_the_teachers_are_flown_only_when_named_and_read_the_env_they_fly(tmp_path):
+    """``--baselines path_expert,predictive_expert``: the DAgger teachers on the held-out worlds
+    (their rates bound the student's); they need the env, so a build without one is refused, and
+    the avoidance task has none."""
     from training.evaluate import AVOID_ENV_ID, NAV_ENV_ID, ControllerSpec, build_controller, parse_baselines
 
     config = tmp_path / "nav.toml"
@@ -115,14 +116,16 @@ def test_the_teacher_is_flown_only_when_named_and_reads_the_env_it_flies(tmp_pat
     )
     out = tmp_path / "teacher.json"
     argv = ["evaluate", "--config", str(config), "--seeds", "1", "--workers", "1"]
-    assert main([*argv, "--baselines", "path_expert", "--json", str(out)]) == 0
-    teacher = json.loads(out.read_text())["controllers"]["path_expert"]["overall"]
-    assert teacher["success_rate"] == 1.0 and teacher["spl"] > 0.8
+    assert main([*argv, "--baselines", "path_expert,predictive_expert", "--json", str(out)]) == 0
+    for name in ("path_expert", "predictive_expert"):
+        teacher = json.loads(out.read_text())["controllers"][name]["overall"]
+        assert teacher["success_rate"] == 1.0 and teacher["spl"] > 0.8
     assert parse_baselines("goal_follower,path_expert", NAV_ENV_ID) == ["goal_follower", "path_expert"]
     with pytest.raises(UserError, match="'path_expert' is not a baseline of this task"):
         parse_baselines("path_expert", AVOID_ENV_ID)
-    with pytest.raises(ValueError, match="path_expert reads the env it flies"):
-        build_controller(ControllerSpec("path_expert"), None, seed=0)
+    for name in ("path_expert", "predictive_expert"):
+        with pytest.raises(ValueError, match=f"{name} reads the env it flies"):
+            build_controller(ControllerSpec(name), None, seed=0)
 
 
 def test_each_goal_world_flies_its_own_reset_seed_and_every_controller_the_same():

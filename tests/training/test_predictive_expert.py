@@ -1,0 +1,96 @@
+"""The predictive teacher: every command it flies is predicted to stop clear through the episode's
+own autopilot response, it is the path expert where there is nothing to predict with, and it
+reaches goals in real LidarNav-v0 worlds where the path expert collides."""
+
+from __future__ import annotations
+
+import zlib
+
+import numpy as np
+import pytest
+
+from flightsim.families import FAMILIES
+from flightsim.nav_env import LidarNavEnv, NavEnvConfig
+from flightsim.world import Box, World, clearances
+from tests.training.test_path_expert import RADIUS, corridor, env_for, fly
+from training.config import load_train_config
+from training.path_expert import PathExpert
+from training.predictive_expert import PredictiveExpert, PredictiveExpertConfig
+
+
+def wall_ahead() -> World:
+    """A wall 3 m ahead of the start across the whole room; the waypoint behind it, round its end."""
+    return World(
+        name="wall-ahead",
+        room_size=(20.0, 12.0),
+        room_height=3.0,
+        obstacles=(Box((0.0, -1.0, 1.5), (0.4, 10.0, 3.0)),),
+        start_position=(-3.0, -1.0, 1.5),
+        start_yaw_deg=0.0,
+        waypoints=((4.0, -1.0, 1.5),),
+    )
+
+
+def test_with_the_ideal_autopilot_it_is_the_path_expert():
+    env = env_for(corridor(width=2.0))
+    twin = env_for(corridor(width=2.0))
+    expert, reference = PredictiveExpert(env), PathExpert(twin)
+    action, expected = expert.reset(), reference.reset()
+    for _ in range(30):
+        np.testing.assert_array_equal(action, expected)
+        env.step(action)
+        twin.step(expected)
+        action, expected = expert.act(), reference.act()
+
+
+@pytest.mark.parametrize("response", ["px4", "ardupilot"])
+def test_every_command_it_flies_is_predicted_to_stop_clear(response):
+    """Flying at the wall at full speed, each action it picks keeps the radius and the margin over
+    its whole predicted stop, and the flight itself never comes closer than the radius."""
+    env = env_for(wall_ahead(), response=response)
+    expert = PredictiveExpert(env, PredictiveExpertConfig())
+    cfg = expert.config
+    action = expert.reset()
+    closest = np.inf
+    for _ in range(80):
+        state = env.true_state
+        scale = np.array([env.config.max_speed, env.config.max_yaw_rate])
+        path = env.response.predict(float(state.yaw), (action * scale)[None], 10, 35)[0]
+        points = np.column_stack([path[:, :2] + state.position[:2], np.full(len(path), 1.5)])
+        if action[0] > 0.0:  # a forward command must be safe (a hold may start inside the margin)
+            assert clearances(env.world, points).min() > RADIUS + cfg.margin - 0.1
+        _, _, terminated, truncated, info = env.step(action)
+        closest = min(closest, info["min_distance"])
+        if terminated or truncated:
+            break
+        action = expert.act()
+    assert closest > RADIUS
+
+
+@pytest.mark.parametrize("response", ["px4", "ardupilot"])
+def test_it_reaches_the_goal_through_the_gap_with_a_real_autopilot_response(response):
+    env = env_for(corridor(width=1.4), response=response)
+    info = fly(env, PredictiveExpert(env))
+    assert info["success"], info
+    assert info["min_distance"] > RADIUS
+
+
+def test_it_reaches_more_validation_goals_than_the_path_expert():
+    """The path expert's own check (two validation worlds per family, 500,006-7, difficulty 0 and
+    1, the random response, training's env), where the path expert reaches 14 of 18
+    (``test_path_expert``); this teacher was tuned on 500,000-5, and reached 16 when this was written."""
+    env = LidarNavEnv(load_train_config("training/configs/nav.toml").env_config())
+    successes = 0
+    for family in FAMILIES:
+        for k, seed in enumerate((500_006, 500_007)):
+            options = {"family": family, "world_seed": seed, "difficulty": float(k)}
+            env.reset(seed=zlib.crc32(f"{family}/{seed}".encode()), options=options)
+            successes += fly(env, PredictiveExpert(env))["success"]
+    assert successes >= 16
+
+
+def test_config_defaults_build_a_candidate_grid_with_hold_and_full_speed():
+    expert = PredictiveExpert(LidarNavEnv(NavEnvConfig()))
+    candidates = expert._candidates
+    assert len(candidates) == len(expert.config.forward_options) * len(expert.config.yaw_options)
+    assert [0.0, 0.0] in candidates.tolist() and [1.0, 0.0] in candidates.tolist()
