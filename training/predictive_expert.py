@@ -1,13 +1,15 @@
 """A privileged teacher that looks ahead: it predicts each candidate command through the episode's
-own autopilot response and picks the one that makes the most progress and can still stop clear.
+own autopilot response and flies the path expert's command, or the least change of it that can
+still stop clear.
 
 :class:`~training.path_expert.PathExpert` follows a planned path with feedback and collides where
 the autopilot's lag carries the vehicle into an obstacle while it brakes and turns (78 % of the
 held-out worlds). This teacher wraps it in a sampling model-predictive safety filter. Every step it
 takes a fixed set of (forward, yaw rate) commands, plus the path expert's own command and that
 command slowed, and for each it predicts the vehicle's path with
-:meth:`flightsim.autopilot_response.AutopilotResponse.predict` (privileged: the drawn firmware's delays and state, the commands already in flight): the command
-sent for ``command_s``, then a hold for ``stop_s``. A candidate is safe if the whole prediction
+:meth:`flightsim.autopilot_response.AutopilotResponse.predict` (privileged: the drawn firmware's
+delays and state, the commands already in flight): the command sent for ``command_s``, then a hold
+for ``stop_s``. A candidate is safe if the whole prediction
 keeps the vehicle's radius plus a margin that grows with the look-ahead (the prediction's error
 grows too). Of the safe ones it flies the one of least cost: mostly the distance from the path
 expert's command (so it flies that command wherever it is predicted safe, and otherwise the
