@@ -342,13 +342,13 @@ def build_controller(
 
 def _teacher_controller(kind: str, env: Any) -> Controller:
     """A privileged teacher flying ``env`` (imported here: evaluation needs them only when named)."""
+    from training.path_expert import ExpertController, PathExpert
+
     if kind == "path_expert":
-        from training.path_expert import PathExpertController
+        return ExpertController(PathExpert(env))
+    from training.predictive_expert import PredictiveExpert
 
-        return PathExpertController(env)
-    from training.predictive_expert import PredictiveExpertController
-
-    return PredictiveExpertController(env)
+    return ExpertController(PredictiveExpert(env))
 
 
 def _bare_controller(

@@ -11,7 +11,7 @@ Behaviour cloning on its actions, in the states the student itself reaches (DAgg
 is defeated: a drifting velocity estimate, a lagging autopilot, a concave trap.
 
 It is a training tool: no figure of what a drone flies comes from it. ``avoid-train evaluate
---baselines path_expert`` flies it (:class:`PathExpertController`) to measure what imitating it
+--baselines path_expert`` flies it (:class:`ExpertController`) to measure what imitating it
 can reach at most.
 """
 
@@ -20,6 +20,7 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -318,15 +319,17 @@ def _stopping_speed(free: float, accel: float, lag: float) -> float:
     return -accel * lag + math.sqrt((accel * lag) ** 2 + 2.0 * accel * max(free, 0.0))
 
 
-class PathExpertController:
-    """The teacher as an evaluation controller: it ignores the frames it is given and reads the env
+class ExpertController:
+    """A teacher as an evaluation controller: it ignores the frames it is given and reads the env
     it flies (privileged), so its success rate bounds what a student imitating it can reach.
 
-    :param env: the unwrapped env it flies (the evaluation resets it before :meth:`reset`)
+    :param expert: a teacher built on the unwrapped env it flies (:class:`PathExpert`,
+        :class:`~training.predictive_expert.PredictiveExpert`; the evaluation resets the env before
+        :meth:`reset`)
     """
 
-    def __init__(self, env: LidarNavEnv) -> None:
-        self._expert = PathExpert(env)
+    def __init__(self, expert: Any) -> None:
+        self._expert = expert
 
     def reset(self, obs: np.ndarray) -> np.ndarray:
         return self._expert.reset()

@@ -173,19 +173,3 @@ class PredictiveExpert:
         index = np.floor((points - np.asarray(grid.origin)) / grid.resolution).astype(np.int64)
         return np.clip(index, 0, np.array(grid.clearance.shape) - 1)
 
-
-class PredictiveExpertController:
-    """The predictive teacher as an evaluation controller (privileged, as
-    :class:`~training.path_expert.PathExpertController`).
-
-    :param env: the unwrapped env it flies (the evaluation resets it before :meth:`reset`)
-    """
-
-    def __init__(self, env: LidarNavEnv) -> None:
-        self._expert = PredictiveExpert(env)
-
-    def reset(self, obs: np.ndarray) -> np.ndarray:
-        return self._expert.reset()
-
-    def act(self, obs: np.ndarray) -> np.ndarray:
-        return self._expert.act()
