@@ -17,7 +17,7 @@ gentlest change that is: a student imitates smooth labels far better than a choi
 across a grid), plus the cost to the current waypoint from the predicted end
 (:func:`flightsim.planner.cost_to_go` over the clearance-weighted grid the path expert plans on)
 and small costs on turning and on changing the command. With no safe candidate, it flies the
-one that keeps the most clearance.
+least costly of those that keep the most clearance (within ``recovery_tolerance``).
 
 On the 54 validation worlds (6 per family) it reaches 52 (the path expert 46); scored on the
 cost to go alone, with a bonus for the path expert's command, it reached 51 and 27 % faster, but
@@ -64,6 +64,9 @@ class PredictiveExpertConfig:
     :param resolution: the cost-to-go grid's cell, metres
     :param preferred_margin: clearance beyond the radius the cost-to-go prefers, metres
     :param clearance_cost: extra cost per metre in a cell with no margin (as the path expert's)
+    :param recovery_tolerance: with no safe candidate, those within this much of the most clearance
+        are equals and the least cost decides among them, metres (the first of a tie was an
+        arbitrary, jumping label)
     """
 
     forward_options: tuple[float, ...] = (-0.25, 0.0, 0.15, 0.3, 0.5, 0.7, 0.85, 1.0)
@@ -82,6 +85,16 @@ class PredictiveExpertConfig:
     resolution: float = 0.1
     preferred_margin: float = 0.8
     clearance_cost: float = 8.0
+    recovery_tolerance: float = 0.05
+
+
+def pick(spare: np.ndarray, score: np.ndarray, recovery_tolerance: float) -> int:
+    """The candidate to fly: the least ``score`` of those with clearance to spare (``spare > 0``,
+    metres), or, when none has, of those within ``recovery_tolerance`` of the most spare."""
+    eligible = spare > 0.0
+    if not eligible.any():
+        eligible = spare >= spare.max() - recovery_tolerance
+    return int(np.argmin(np.where(eligible, score, np.inf)))
 
 
 class PredictiveExpert:
@@ -150,8 +163,7 @@ class PredictiveExpert:
             + cfg.follow_weight * np.abs(candidates - planned).sum(axis=1)
         )
         score[-1] -= cfg.path_expert_bonus
-        safe = spare > 0.0
-        best = int(np.argmin(np.where(safe, score, np.inf))) if safe.any() else int(np.argmax(spare))
+        best = pick(spare, score, cfg.recovery_tolerance)
         self._previous = candidates[best]
         return candidates[best].astype(np.float32)
 

@@ -11,7 +11,7 @@ from flightsim.nav_env import LidarNavEnv, NavEnvConfig
 from flightsim.world import Box, World, clearances
 from tests.training.test_path_expert import RADIUS, corridor, env_for, fly, validation_successes
 from training.path_expert import PathExpert
-from training.predictive_expert import PredictiveExpert, PredictiveExpertConfig
+from training.predictive_expert import PredictiveExpert, PredictiveExpertConfig, pick
 
 
 def wall_ahead() -> World:
@@ -37,6 +37,21 @@ def test_with_the_ideal_autopilot_it_is_the_path_expert():
         env.step(action)
         twin.step(expected)
         action, expected = expert.act(), reference.act()
+
+
+def test_it_flies_the_least_cost_of_the_safe_candidates():
+    spare = np.array([-0.1, 0.2, 0.05, 0.3])
+    score = np.array([0.0, 5.0, 1.0, 2.0])
+    assert pick(spare, score, 0.05) == 2
+
+
+def test_with_no_safe_candidate_the_cost_decides_among_the_clearest():
+    """A tie in clearance is settled by the cost (the path, the last command), not by the order
+    of the candidate grid: the first of a tie made recovery labels jump from side to side."""
+    spare = np.array([-0.30, -0.12, -0.10, -0.11, -0.50])
+    score = np.array([0.0, 1.0, 3.0, 2.0, 0.5])
+    assert pick(spare, score, 0.05) == 1
+    assert pick(spare, score, 0.0) == 2  # no tolerance: the clearest alone
 
 
 @pytest.mark.parametrize("response", ["px4", "ardupilot"])
