@@ -342,13 +342,10 @@ def build_controller(
 
 def _teacher_controller(kind: str, env: Any) -> Controller:
     """A privileged teacher flying ``env`` (imported here: evaluation needs them only when named)."""
-    from training.path_expert import ExpertController, PathExpert
+    from training.dagger import TEACHERS
+    from training.path_expert import ExpertController
 
-    if kind == "path_expert":
-        return ExpertController(PathExpert(env))
-    from training.predictive_expert import PredictiveExpert
-
-    return ExpertController(PredictiveExpert(env))
+    return ExpertController(TEACHERS[kind](env))
 
 
 def _bare_controller(

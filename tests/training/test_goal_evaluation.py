@@ -107,8 +107,11 @@ def test_the_teachers_are_flown_only_when_named_and_read_the_env_they_fly(tmp_pa
     """``--baselines path_expert,predictive_expert``: the DAgger teachers on the held-out worlds
     (their rates bound the student's); they need the env, so a build without one is refused, and
     the avoidance task has none."""
+    from training import evaluate
+    from training.dagger import TEACHERS
     from training.evaluate import AVOID_ENV_ID, NAV_ENV_ID, ControllerSpec, build_controller, parse_baselines
 
+    assert set(evaluate.PRIVILEGED_GOAL_CONTROLLERS) == set(TEACHERS)  # evaluation flies every DAgger teacher
     config = tmp_path / "nav.toml"
     config.write_text(
         'env_id = "flightsim/LidarNav-v0"\n[eval]\nfirst_seed = 500000\n'
