@@ -56,7 +56,7 @@ from companion.goal_source import (
     request_message,
 )
 from companion.notify import SystemdNotifier
-from companion.observation import build_frame, drift_features, goal_features
+from companion.observation import build_frame, command_features, drift_features, goal_features
 from companion.obstacle_distance import obstacle_distance_allowed, obstacle_distance_from_scan
 from companion.policy import InferenceFault, OnnxPolicy, PolicySpec
 from companion.recording.recorder import FlightRecorder, open_recorder
@@ -445,6 +445,9 @@ class Companion:
             dt, self._drift_time = now - self._drift_time, now
             bias = self._drift.observe(scan, np.asarray(status.velocity_body), forward, left, dt)
             features = np.concatenate([features, drift_features(bias, self.layout)])
+        if self.layout.command:  # what the autopilot is still answering (LidarNav-v0's command)
+            sent = self._last_command
+            features = np.concatenate([features, command_features(sent.forward, sent.yaw_rate, self.layout)])
         return build_frame(scan, features, self.layout)
 
     def _send_obstacle_distance(self) -> None:

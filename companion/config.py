@@ -127,6 +127,9 @@ class PolicyConfig:
     :param drift: the frame also carries the drift estimate (:class:`companion.drift.DriftEstimator`,
         from consecutive scans): a model trained with ``env.drift = true``, as the shipped one is;
         the metadata says which. Goal frames only: a scan frame has none, whatever this says
+    :param command: the frame also carries the last setpoint sent (forward / ``max_speed``, yaw rate
+        / ``max_yaw_rate``): a model trained with ``env.command = true``; the metadata says which.
+        Goal frames only
     :param trt_cache_dir: directory for TensorRT's engine cache (empty: no cache; relative: to the
         config file); the service's StateDirectory is meant for it
     :param sha256: the model file's SHA-256 (64 hex digits, as ``avoid-train export`` prints it);
@@ -143,14 +146,16 @@ class PolicyConfig:
     observation: Literal["goal", "scan"] = "goal"
     goal_range: float = field(default=30.0, metadata={"min": 1.0, "max": 100.0})
     drift: bool = True
+    command: bool = False
 
     @property
     def layout(self) -> ObservationLayout:
         """One frame as ``observation`` says, scaled as LidarNav-v0 scales it (``goal_range``, and
-        ``max_speed`` for the velocity)."""
+        ``max_speed`` for the velocity, ``max_yaw_rate`` for the yaw-rate command)."""
         goal = self.observation == "goal"
         return ObservationLayout(n_bins=N_BINS, goal=goal, goal_range=self.goal_range,
-                                 velocity_scale=self.max_speed, drift=self.drift and goal)
+                                 velocity_scale=self.max_speed, drift=self.drift and goal,
+                                 command=self.command and goal, yaw_rate_scale=self.max_yaw_rate)
 
     def __post_init__(self) -> None:
         if self.sha256 and not re.fullmatch(r"[0-9a-fA-F]{64}", self.sha256):

@@ -12,7 +12,11 @@ frame stacked (SB3's ``VecFrameStack`` does the same in training). Two layouts e
 * goal with drift: the goal layout, then :data:`DRIFT_FEATURES` — the velocity estimate's error
   (reported minus true, body FLU) that :class:`companion.drift.DriftEstimator` tracks from the
   scans, ``/ velocity_scale`` clipped to ``[-1, 1]``. The autopilot flies its estimate, so a policy
-  that cannot see the error cannot see the drift it causes.
+  that cannot see the error cannot see the drift it causes;
+* goal with commands: then :data:`COMMAND_FEATURES` — the last command sent to the autopilot (after
+  the shield), forward ``/ velocity_scale`` and yaw rate ``/ yaw_rate_scale``, clipped to
+  ``[-1, 1]``. A real autopilot answers a command late and slowly, so what the vehicle does next
+  depends on the commands still in flight, which the measured velocity does not show yet.
 
 :attr:`ObservationLayout.name` spells a layout out (sizes and scales included); the training export
 writes it into the ONNX metadata and the companion refuses a model whose name differs from its own.
@@ -30,18 +34,22 @@ import numpy as np
 GOAL_FEATURES = ("goal_cos", "goal_sin", "goal_distance", "velocity_forward", "velocity_left")
 #: the drift features after the goal features (``drift`` layouts), in order
 DRIFT_FEATURES = ("drift_forward", "drift_left")
+#: the last command sent, after the goal (and drift) features (``command`` layouts), in order
+COMMAND_FEATURES = ("command_forward", "command_yaw_rate")
 
 
 @dataclass(frozen=True)
 class ObservationLayout:
     """One observation frame: ``n_bins`` scan values, then (``goal``) the :data:`GOAL_FEATURES`,
-    then (``drift``) the :data:`DRIFT_FEATURES`.
+    then (``drift``) the :data:`DRIFT_FEATURES`, then (``command``) the :data:`COMMAND_FEATURES`.
 
     :param n_bins: scan bins
     :param goal: the frame carries the goal and the measured velocity
     :param drift: the frame also carries the drift estimate (a goal layout only)
     :param goal_range: metres a distance feature of 1.0 stands for (farther goals read 1.0)
     :param velocity_scale: m/s a velocity feature of 1.0 stands for (the env's ``max_speed``)
+    :param command: the frame also carries the last command sent (a goal layout only)
+    :param yaw_rate_scale: rad/s a yaw-rate command feature of 1.0 stands for (``max_yaw_rate``)
     """
 
     n_bins: int = 360
@@ -49,30 +57,40 @@ class ObservationLayout:
     goal_range: float = 10.0
     velocity_scale: float = 2.0
     drift: bool = False
+    command: bool = False
+    yaw_rate_scale: float = 1.5
 
     def __post_init__(self) -> None:
-        if self.n_bins < 1 or not self.goal_range > 0.0 or not self.velocity_scale > 0.0:
+        scales = (self.goal_range, self.velocity_scale, self.yaw_rate_scale)
+        if self.n_bins < 1 or not all(scale > 0.0 for scale in scales):
             raise ValueError(f"invalid observation layout {self}")
-        if self.drift and not self.goal:
-            raise ValueError("the drift features come after the goal features: drift needs goal")
+        for part in ("drift", "command"):
+            if getattr(self, part) and not self.goal:
+                raise ValueError(f"the {part} features come after the goal features: {part} needs goal")
 
     @property
     def frame_size(self) -> int:
         """Floats per frame."""
         extras = (len(GOAL_FEATURES) if self.goal else 0) + (len(DRIFT_FEATURES) if self.drift else 0)
-        return self.n_bins + extras
+        return self.n_bins + extras + (len(COMMAND_FEATURES) if self.command else 0)
 
     @property
     def name(self) -> str:
         """The layout spelled out, e.g. ``scan360`` or
-        ``scan360+goal(cos,sin,distance/10m)+velocity(forward,left/2m/s)[+drift(forward,left/2m/s)]``."""
+        ``scan360+goal(cos,sin,distance/10m)+velocity(forward,left/2m/s)[+drift(forward,left/2m/s)]``
+        ``[+command(forward/2m/s,yaw/1.5rad/s)]``."""
         scan = f"scan{self.n_bins}"
         if not self.goal:
             return scan
         drift = f"+drift(forward,left/{self.velocity_scale:g}m/s)" if self.drift else ""
+        command = (
+            f"+command(forward/{self.velocity_scale:g}m/s,yaw/{self.yaw_rate_scale:g}rad/s)"
+            if self.command
+            else ""
+        )
         return (
             f"{scan}+goal(cos,sin,distance/{self.goal_range:g}m)"
-            f"+velocity(forward,left/{self.velocity_scale:g}m/s){drift}"
+            f"+velocity(forward,left/{self.velocity_scale:g}m/s){drift}{command}"
         )
 
     def slices(self) -> dict[str, slice]:
@@ -84,6 +102,8 @@ class ObservationLayout:
             parts["velocity"] = slice(n + 3, n + 5)
         if self.drift:
             parts["drift"] = slice(self.n_bins + 5, self.n_bins + 7)
+        if self.command:
+            parts["command"] = slice(self.frame_size - 2, self.frame_size)
         return parts
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -92,7 +112,7 @@ class ObservationLayout:
         high = np.ones(self.frame_size, dtype=np.float32)
         if self.goal:
             low[self.n_bins : self.n_bins + 2] = -1.0  # bearing cos, sin
-            low[self.n_bins + 3 :] = -1.0  # velocity (and drift)
+            low[self.n_bins + 3 :] = -1.0  # velocity (and drift, command)
         return low, high
 
 
@@ -152,6 +172,20 @@ def drift_features(bias: np.ndarray, layout: ObservationLayout) -> np.ndarray:
     if bias.shape != (2,) or not np.isfinite(bias).all():
         raise ValueError(f"the drift estimate must be 2 finite values, got {bias}")
     return np.clip(bias / layout.velocity_scale, -1.0, 1.0).astype(np.float32)
+
+
+def command_features(forward: float, yaw_rate: float, layout: ObservationLayout) -> np.ndarray:
+    """The :data:`COMMAND_FEATURES` of a frame (float32): the last command sent, forward m/s
+    ``/ velocity_scale`` and yaw rate rad/s ``/ yaw_rate_scale``, clipped to ``[-1, 1]``.
+
+    :raises ValueError: a non-finite command or a layout without command features
+    """
+    if not layout.command:
+        raise ValueError(f"layout {layout.name} has no command features")
+    if not (math.isfinite(forward) and math.isfinite(yaw_rate)):
+        raise ValueError(f"the last command must be finite, got {(forward, yaw_rate)}")
+    values = (forward / layout.velocity_scale, yaw_rate / layout.yaw_rate_scale)
+    return np.clip(np.array(values, dtype=np.float32), -1.0, 1.0)
 
 
 def build_frame(scan: np.ndarray, features: np.ndarray | None, layout: ObservationLayout) -> np.ndarray:

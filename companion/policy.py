@@ -279,10 +279,15 @@ class OnnxPolicy:
             scan_only = meta[PREFIX + "obs_layout"] == ObservationLayout(n_bins=self.spec.n_bins).name
             if scan_only and self.spec.layout.goal:  # the default config is the goal layout
                 raise UserError(f'{exc} (a scan-only model: set policy.observation = "scan")') from None
-            with_drift = "+drift(" in meta[PREFIX + "obs_layout"]
-            if self.spec.layout.goal and with_drift != self.spec.layout.drift:
-                hint = "set policy.drift = true" if with_drift else "the model has none: policy.drift = false"
-                raise UserError(f"{exc} (drift features: {hint})") from None
+            for part in ("drift", "command"):
+                in_model = f"+{part}(" in meta[PREFIX + "obs_layout"]
+                if self.spec.layout.goal and in_model != getattr(self.spec.layout, part):
+                    hint = (
+                        f"set policy.{part} = true"
+                        if in_model
+                        else f"the model has none: policy.{part} = false"
+                    )
+                    raise UserError(f"{exc} ({part} features: {hint})") from None
             raise
 
     def _check_metadata(self) -> None:

@@ -81,6 +81,8 @@ def recorded_config(rec: Recording) -> tuple[CompanionConfig, dict[str, str]]:
         data.setdefault("policy", {}).setdefault("observation", "scan")
         # and before policy.drift existed, no drift features
         data["policy"].setdefault("drift", False)
+        # and before policy.command existed, no command features
+        data["policy"].setdefault("command", False)
         return from_dict(CompanionConfig, data, "recorded config: "), meta
     except (KeyError, ValueError) as exc:
         raise UserError(f"{rec.path}: recorded config unreadable: {exc}") from None

@@ -13,6 +13,7 @@ from companion.drift import DriftConfig, DriftEstimator
 from companion.observation import (
     ObservationLayout,
     build_frame,
+    command_features,
     drift_features,
     goal_features,
     goal_in_body,
@@ -49,6 +50,8 @@ class NavEnvConfig(EnvConfig):
     :param goal_reward: the reward's weights
     :param drift: each frame also carries the drift estimate (:class:`companion.drift.DriftEstimator`
         on this episode's frames, as the companion computes it in flight)
+    :param command: each frame also carries the command just flown (after the shield), as the
+        companion's frames carry the last setpoint it sent
     """
 
     reward: Literal["goal"] = "goal"
@@ -62,6 +65,7 @@ class NavEnvConfig(EnvConfig):
     time_limit_slack_s: float = field(default=10.0, metadata={"min": 0.0, "max": 600.0})
     goal_reward: GoalRewardConfig = field(default_factory=GoalRewardConfig)
     drift: bool = False
+    command: bool = False
 
     def __post_init__(self) -> None:
         unknown = [f for f in self.families if f not in FAMILIES]
@@ -76,7 +80,7 @@ class NavEnvConfig(EnvConfig):
         """One observation frame of this env (the companion and the ONNX metadata use the same)."""
         return ObservationLayout(
             n_bins=360, goal=True, goal_range=self.goal_range, velocity_scale=self.max_speed,
-            drift=self.drift,
+            drift=self.drift, command=self.command, yaw_rate_scale=self.max_yaw_rate,
         )  # fmt: skip
 
 
@@ -104,7 +108,8 @@ class LidarNavEnv(LidarAvoidEnv):
     ## Observation Space
     ``Box(low, high, (365,), float32)``, one frame of :class:`companion.observation.ObservationLayout`
     ``scan360+goal(cos,sin,distance/30m)+velocity(forward,left/2m/s)``; with ``drift``,
-    ``Box(low, high, (367,), float32)``, ``...+drift(forward,left/2m/s)``:
+    ``Box(low, high, (367,), float32)``, ``...+drift(forward,left/2m/s)``; with ``command`` as well,
+    ``Box(low, high, (369,), float32)``, ``...+command(forward/2m/s,yaw/1.5rad/s)``:
 
     ========== ===================================================== ==========
     index      meaning                                               range
@@ -117,6 +122,8 @@ class LidarNavEnv(LidarAvoidEnv):
     365, 366   (``drift`` only) the drift estimate forward, left /   [-1, 1]
                ``max_speed``: the reported minus the scan-matched velocity, low-pass
                filtered (:class:`companion.drift.DriftEstimator`, reset with the episode)
+    last 2     (``command`` only) the command just flown, after the  [-1, 1]
+               shield: forward / ``max_speed``, yaw rate / ``max_yaw_rate``; (0, 0) at reset
     ========== ===================================================== ==========
 
     The goal features are the current pose's; the scan follows ``latency_scans``. Frame stacking
@@ -158,7 +165,7 @@ class LidarNavEnv(LidarAvoidEnv):
     ## Version History
     * v0: initial version (families, goal + velocity features, goal reward, path-proportional time
       limit). ``drift`` (off by default, so earlier configs keep their 365-float frame) adds the
-      drift features.
+      drift features; ``command`` (off by default too) adds the command features.
     """
 
     def __init__(self, config: NavEnvConfig | None = None, render_mode: str | None = None) -> None:
@@ -179,6 +186,7 @@ class LidarNavEnv(LidarAvoidEnv):
         self.time_limit_steps = 0
         self._planned: dict[World, float] = {}
         self._drift = DriftEstimator(DriftConfig(max_range=config.scan.max_range))
+        self._flown = (0.0, 0.0)  # the command of the last step, m/s and rad/s (command features)
 
     # ------------------------------------------------------------------ gymnasium API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
@@ -191,6 +199,7 @@ class LidarNavEnv(LidarAvoidEnv):
         self._waypoint = 0
         self._goal_distance = self._distance_to_goal()
         self._drift.reset()
+        self._flown = (0.0, 0.0)
         return self._frame(scan, info["measured_velocity_body"]), self._nav_info(info)
 
     def _conclude(self, command: StepCommand, scan: np.ndarray):
@@ -198,6 +207,7 @@ class LidarNavEnv(LidarAvoidEnv):
         finished = self._waypoint >= len(self.world.waypoints)
         terminated = collided or finished
         truncated = not terminated and (truncated or self._steps >= self.time_limit_steps)
+        self._flown = (command.forward, command.yaw_rate)
         frame = self._frame(scan, info["measured_velocity_body"])
         return frame, reward, terminated, truncated, self._nav_info(info)
 
@@ -302,6 +312,8 @@ class LidarNavEnv(LidarAvoidEnv):
         if self.layout.drift:
             bias = self._drift.observe(scan, velocity, forward, left, 1.0 / CONTROL_HZ)
             features = np.concatenate([features, drift_features(bias, self.layout)])
+        if self.layout.command:
+            features = np.concatenate([features, command_features(*self._flown, self.layout)])
         return build_frame(scan, features, self.layout)
 
     def _nav_info(self, info: dict[str, Any]) -> dict[str, Any]:

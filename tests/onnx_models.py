@@ -11,6 +11,8 @@ Each model is ``Gemm(obs, W, b)`` (optionally followed by ``Clip`` to [-1, 1]) b
 - ``echo_goal``: a = (newest goal cos, goal sin) (goal layout): flies toward the goal's bearing
 - ``echo_velocity``: a = (0, newest measured velocity left feature) (goal layout)
 - ``echo_drift``: a = (newest drift forward feature, drift left feature) (drift layout)
+- ``echo_command``: a = (0, 0.4 − newest yaw-rate command feature) (command layout): alternates
+  between 0.4 and 0 when the frame carries the last command sent, 0.4 throughout when it does not
 - ``big``: a = (5, −5) without the Clip node (the companion must clip)
 - ``nan`` / ``inf``: non-finite output (an inference fault)
 - ``error``: raises inside ONNX Runtime at inference (a Reshape that cannot fit)
@@ -35,7 +37,7 @@ COMPANION_SPEC = policy_spec(CompanionConfig())
 SCAN_SPEC = PolicySpec()
 
 KINDS = ("forward", "stop", "turn_left", "turn_right", "steer", "echo", "echo_goal", "echo_velocity",
-         "echo_drift", "big", "nan", "inf", "error")
+         "echo_drift", "echo_command", "big", "nan", "inf", "error")
 OPSET = 17
 IR_VERSION = 8  # accepted by every onnxruntime the project supports
 
@@ -80,6 +82,12 @@ def _weights(kind: str, spec: PolicySpec, input_size: int, output_size: int) -> 
             raise ValueError(f"{kind} needs a drift layout, not {spec.layout.name}")
         w[newest + parts["drift"].start, 0] = 1.0
         w[newest + parts["drift"].start + 1, 1] = 1.0
+    elif kind == "echo_command":
+        parts = spec.layout.slices()
+        if "command" not in parts:
+            raise ValueError(f"{kind} needs a command layout, not {spec.layout.name}")
+        w[newest + parts["command"].start + 1, 1] = -1.0
+        b[1] = 0.4
     else:
         raise ValueError(f"unknown policy kind {kind!r}; choose from {', '.join(KINDS)}")
     return w, b

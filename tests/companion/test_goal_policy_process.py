@@ -8,9 +8,13 @@ the climb toward a waypoint's height beside the policy's horizontal command.
 
 from __future__ import annotations
 
+import itertools
 import math
+import time
 from pathlib import Path
 
+from companion.app import policy_spec
+from companion.config import CompanionConfig, PolicyConfig
 from tests.companion.companion_process import WEST_AND_UP, Flight, free_udp_port, run_to_exit, write_config
 from tests.companion.companion_process import wait_until as _wait
 from tests.companion.mavlink_peer import SETPOINT
@@ -86,6 +90,39 @@ def test_a_drift_model_under_a_config_without_drift_is_refused_naming_both_layou
     assert result.returncode == 2
     assert "+drift(forward,left/2m/s)" in result.stderr and len(result.stderr.strip().splitlines()) == 1
     assert result.stderr.strip().endswith("(drift features: set policy.drift = true)")
+
+
+def _command_model(tmp_path: Path) -> Path:
+    config = CompanionConfig(policy=PolicyConfig(command=True))
+    return write_policy(tmp_path / "command.onnx", kind="echo_command", spec=policy_spec(config))
+
+
+def test_the_last_setpoint_sent_reaches_a_command_model(tmp_path):
+    # a1 = 0.4 - the last yaw-rate command / 1.5: each setpoint's yaw rate and the one before sum to
+    # 0.6 rad/s, and they alternate (the shield's yaw acceleration limit set where it started). A
+    # frame without the last command would give 0.6 rad/s throughout. Sent as FRD: negative.
+    lidar_port, mavlink_port = free_udp_port(), free_udp_port()
+    config = write_config(tmp_path, _command_model(tmp_path), lidar_port, mavlink_port)
+    config.write_text(config.read_text().replace("[policy]\n", "[policy]\ncommand = true\n"))
+    f = Flight(config, lidar_port, mavlink_port)
+    try:
+        def alternating():
+            rates = [m.yaw_rate for m in f.setpoints(since=time.monotonic() - 1.0)]
+            pairs = list(itertools.pairwise(rates))
+            settled = len(pairs) >= 5 and all(abs(a + b + 0.6) < 0.02 for a, b in pairs)
+            return settled and all(abs(a - b) > 0.1 for a, b in pairs)
+
+        _wait(alternating, 20.0, "yaw rates alternating, each pair summing to 0.6 rad/s")
+    finally:
+        f.close()
+
+
+def test_a_command_model_under_a_config_without_command_is_refused_naming_the_fix(tmp_path):
+    path = write_config(tmp_path, _command_model(tmp_path), free_udp_port(), free_udp_port())
+    result = run_to_exit(["run", "--config", str(path)])
+    assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1
+    assert "+command(forward/2m/s,yaw/1.5rad/s)" in result.stderr
+    assert result.stderr.strip().endswith("(command features: set policy.command = true)")
 
 
 def test_scan_only_model_with_a_goal_source_is_refused_in_one_line(tmp_path):

@@ -9,7 +9,14 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from companion.observation import ObservationLayout, build_frame, drift_features, goal_features, goal_in_body
+from companion.observation import (
+    ObservationLayout,
+    build_frame,
+    command_features,
+    drift_features,
+    goal_features,
+    goal_in_body,
+)
 
 GOAL = ObservationLayout(goal=True, goal_range=10.0, velocity_scale=2.0)
 
@@ -48,6 +55,29 @@ def test_the_drift_layout_adds_two_features_after_the_goal() -> None:
         drift_features(np.array([np.nan, 0.0]), drift)
     with pytest.raises(ValueError, match="no drift"):
         drift_features(np.zeros(2), GOAL)
+
+
+def test_the_command_layout_adds_the_last_command_after_the_drift() -> None:
+    command = ObservationLayout(goal=True, goal_range=10.0, drift=True, command=True, yaw_rate_scale=1.5)
+    assert command.name == GOAL.name + "+drift(forward,left/2m/s)+command(forward/2m/s,yaw/1.5rad/s)"
+    assert command.frame_size == 369
+    assert command.slices() == GOAL.slices() | {"drift": slice(365, 367), "command": slice(367, 369)}
+    low, high = command.bounds()
+    assert low[365:].tolist() == [-1] * 4 and high[365:].tolist() == [1] * 4
+    # forward / 2 m/s, yaw rate / 1.5 rad/s, clipped
+    np.testing.assert_allclose(command_features(1.0, -0.75, command), [0.5, -0.5])
+    np.testing.assert_allclose(command_features(-5.0, 4.0, command), [-1.0, 1.0])
+    # without drift, the command follows the goal features directly
+    no_drift = ObservationLayout(goal=True, goal_range=10.0, command=True)
+    assert no_drift.slices()["command"] == slice(365, 367) and no_drift.frame_size == 367
+    with pytest.raises(ValueError, match="command needs goal"):
+        ObservationLayout(command=True)
+    with pytest.raises(ValueError, match="finite"):
+        command_features(math.inf, 0.0, command)
+    with pytest.raises(ValueError, match="no command"):
+        command_features(0.0, 0.0, GOAL)
+    with pytest.raises(ValueError):
+        ObservationLayout(goal=True, command=True, yaw_rate_scale=0.0)
 
 
 def test_goal_features_bearing_distance_and_velocity() -> None:

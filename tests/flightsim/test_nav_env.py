@@ -216,6 +216,30 @@ def test_the_drift_layout_passes_both_checkers_and_documents_its_frame() -> None
     env.close()
 
 
+def test_the_command_features_carry_the_command_flown_after_the_shield() -> None:
+    from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+    free = LidarNavEnv(NavEnvConfig(max_steps=50, drift=True, command=True))
+    assert free.observation_space.shape == (369,)
+    assert free.layout.name.endswith("+command(forward/2m/s,yaw/1.5rad/s)")
+    gym_check_env(free)
+    sb3_check_env(free, warn=True)
+    obs, _ = free.reset(seed=2, options={"world": HALL})
+    assert obs[367:].tolist() == [0.0, 0.0]  # nothing commanded yet
+    obs, *_ = free.step(np.array([0.6, -0.4], np.float32))
+    np.testing.assert_allclose(obs[367:], [0.6, -0.4], atol=1e-6)
+    obs, *_ = free.step(np.array([3.0, 0.2], np.float32))  # clipped to the action space
+    np.testing.assert_allclose(obs[367:], [1.0, 0.2], atol=1e-6)
+    free.close()
+    # behind the shield, the frame carries what the shield let through: a wall 1.7 m ahead
+    shielded = LidarNavEnv(NavEnvConfig(shield=True, command=True, autopilot_response="ideal"))
+    obs, _ = shielded.reset(seed=2, options={"world": BLOCKED})
+    for _ in range(5):
+        obs, *_ = shielded.step(FORWARD)
+    assert 0.0 < obs[365] < 0.9  # full speed (1.0) was asked, less was flown
+    shielded.close()
+
+
 @pytest.mark.parametrize("action", [HOVER, np.array([0.3, 0.4], np.float32)])
 def test_the_drift_features_find_the_error_the_reported_velocity_hides(action) -> None:
     # PX4's calibrated response: a velocity estimate that wanders by 0.25 m/s (one sigma)
