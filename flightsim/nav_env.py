@@ -186,7 +186,7 @@ class LidarNavEnv(LidarAvoidEnv):
         self.time_limit_steps = 0
         self._planned: dict[World, float] = {}
         self._drift = DriftEstimator(DriftConfig(max_range=config.scan.max_range))
-        self._flown = (0.0, 0.0)  # the command of the last step, m/s and rad/s (command features)
+        self._flown = np.zeros(2, np.float32)  # the action the last step flew (command features)
 
     # ------------------------------------------------------------------ gymnasium API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
@@ -199,7 +199,7 @@ class LidarNavEnv(LidarAvoidEnv):
         self._waypoint = 0
         self._goal_distance = self._distance_to_goal()
         self._drift.reset()
-        self._flown = (0.0, 0.0)
+        self._flown = np.zeros(2, np.float32)
         return self._frame(scan, info["measured_velocity_body"]), self._nav_info(info)
 
     def _conclude(self, command: StepCommand, scan: np.ndarray):
@@ -207,7 +207,7 @@ class LidarNavEnv(LidarAvoidEnv):
         finished = self._waypoint >= len(self.world.waypoints)
         terminated = collided or finished
         truncated = not terminated and (truncated or self._steps >= self.time_limit_steps)
-        self._flown = (command.forward, command.yaw_rate)
+        self._flown = command.action.copy()
         frame = self._frame(scan, info["measured_velocity_body"])
         return frame, reward, terminated, truncated, self._nav_info(info)
 
@@ -231,6 +231,12 @@ class LidarNavEnv(LidarAvoidEnv):
         """(2,) the drift estimate of the newest frame (velocity estimate's error, body FLU, m/s):
         what the frame's drift features carry, unscaled (zeros without ``drift``)."""
         return self._drift.bias.copy()
+
+    @property
+    def last_command(self) -> np.ndarray:
+        """(2,) the action the last step flew, after clipping and the shield (zeros at reset): what
+        the command features carry, in action units, whether or not the layout has them."""
+        return self._flown.copy()
 
     @property
     def waypoint_index(self) -> int:
@@ -313,7 +319,10 @@ class LidarNavEnv(LidarAvoidEnv):
             bias = self._drift.observe(scan, velocity, forward, left, 1.0 / CONTROL_HZ)
             features = np.concatenate([features, drift_features(bias, self.layout)])
         if self.layout.command:
-            features = np.concatenate([features, command_features(*self._flown, self.layout)])
+            forward, yaw_rate = self._flown.tolist()
+            cfg = self.config
+            sent = command_features(forward * cfg.max_speed, yaw_rate * cfg.max_yaw_rate, self.layout)
+            features = np.concatenate([features, sent])
         return build_frame(scan, features, self.layout)
 
     def _nav_info(self, info: dict[str, Any]) -> dict[str, Any]:

@@ -16,7 +16,9 @@ expert's command (so it flies that command wherever it is predicted safe, and ot
 gentlest change that is: a student imitates smooth labels far better than a choice that jumps
 across a grid), plus the cost to the current waypoint from the predicted end
 (:func:`flightsim.planner.cost_to_go` over the clearance-weighted grid the path expert plans on)
-and small costs on turning and on changing the command. With no safe candidate, it flies the
+and small costs on turning and on changing the command from the one the last step flew (the
+env's, not this teacher's last label: when the student flies, that is the student's command, which
+its frame shows). With no safe candidate, it flies the
 least costly of those that keep the most clearance (within ``recovery_tolerance``).
 
 On the 54 validation worlds (6 per family) it reaches 52 (the path expert 46); scored on the
@@ -59,8 +61,8 @@ class PredictiveExpertConfig:
     :param slowdowns: the path expert's command at these fractions of its forward speed are
         candidates too (the gentlest way to make its command safe is often to slow it)
     :param yaw_cost: cost per unit of yaw-rate command (fraction of the top rate)
-    :param forward_change_cost: cost per unit of change of the forward command from the last one
-    :param yaw_change_cost: cost per unit of change of the yaw-rate command from the last one
+    :param forward_change_cost: cost per unit of change of the forward command from the last flown
+    :param yaw_change_cost: cost per unit of change of the yaw-rate command from the last flown
     :param resolution: the cost-to-go grid's cell, metres
     :param preferred_margin: clearance beyond the radius the cost-to-go prefers, metres
     :param clearance_cost: extra cost per metre in a cell with no margin (as the path expert's)
@@ -114,7 +116,6 @@ class PredictiveExpert:
         self._costs = np.zeros((0, 0))
         self._to_goal = np.zeros((0, 0))
         self._goal_index = -1
-        self._previous = np.zeros(2)
 
     def reset(self) -> np.ndarray:
         """A new episode: rasterise the world and return the first action."""
@@ -124,7 +125,6 @@ class PredictiveExpert:
         self._grid = clearance_grid(env.world, float(env.world.start_position[2]), cfg.resolution, cap)
         self._costs = _cell_costs(self._grid.clearance, radius, cfg.preferred_margin, cfg.clearance_cost)
         self._goal_index = -1
-        self._previous = np.zeros(2)
         return self._choose(self._path_expert.reset())
 
     def act(self) -> np.ndarray:
@@ -155,16 +155,16 @@ class PredictiveExpert:
         required = env.config.vehicle_radius + cfg.margin + growth
         spare = (grid.clearance[cells[..., 0], cells[..., 1]] - required).min(axis=1)
         end = cells[:, -1]
+        flown = env.last_command.astype(np.float64)
         score = (
             self._to_goal[end[:, 0], end[:, 1]]
             + cfg.yaw_cost * np.abs(candidates[:, 1])
-            + cfg.forward_change_cost * np.abs(candidates[:, 0] - self._previous[0])
-            + cfg.yaw_change_cost * np.abs(candidates[:, 1] - self._previous[1])
+            + cfg.forward_change_cost * np.abs(candidates[:, 0] - flown[0])
+            + cfg.yaw_change_cost * np.abs(candidates[:, 1] - flown[1])
             + cfg.follow_weight * np.abs(candidates - planned).sum(axis=1)
         )
         score[-1] -= cfg.path_expert_bonus
         best = pick(spare, score, cfg.recovery_tolerance)
-        self._previous = candidates[best]
         return candidates[best].astype(np.float32)
 
     def _cost_to_waypoint(self, index: int) -> np.ndarray:

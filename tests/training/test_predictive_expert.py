@@ -54,6 +54,21 @@ def test_with_no_safe_candidate_the_cost_decides_among_the_clearest():
     assert pick(spare, score, 0.0) == 2  # no tolerance: the clearest alone
 
 
+def test_the_change_cost_is_from_the_command_the_env_flew_not_the_teachers_last_label():
+    """When the student flies, the teacher's own last label was never flown; a change cost measured
+    from it would be state the student cannot see. Its frame shows the command flown."""
+    env = env_for(wall_ahead(), response="px4")
+    sticky = PredictiveExpertConfig(forward_change_cost=100.0, yaw_change_cost=100.0)
+    teacher = PredictiveExpert(env, sticky)
+    label = teacher.reset()
+    flown = np.array([0.3, -0.3], np.float32)  # a grid candidate, safe 3 m from the wall
+    assert not np.allclose(label, flown)
+    for _ in range(3):
+        env.step(flown)  # the student flies
+        label = teacher.act()
+        np.testing.assert_allclose(label, flown)  # the least change from what was flown: none
+
+
 @pytest.mark.parametrize("response", ["px4", "ardupilot"])
 def test_every_command_it_flies_is_predicted_to_stop_clear(response):
     """Flying at the wall at full speed, each action it picks keeps the radius and the margin over
