@@ -93,6 +93,8 @@ class PretrainConfig:
     :param teacher: DAgger's privileged teacher (``dagger`` only)
     :param iterations: DAgger's collect-and-fit rounds
     :param beta0: DAgger's teacher flies an episode with probability ``beta0 ** iteration``
+    :param teacher_noise: DAgger's teacher flies its label plus Gaussian noise of this standard
+        deviation (action units; DART): its own last command then does not foretell its next label
     :param epochs: passes over the demonstrations
     :param batch_size: demonstrations per gradient step
     :param learning_rate: Adam's, for the warm start only
@@ -104,6 +106,7 @@ class PretrainConfig:
     teacher: Literal["path_expert", "predictive_expert"] = "path_expert"
     iterations: int = field(default=1, metadata={"min": 1, "max": 100})
     beta0: float = field(default=0.5, metadata={"min": 0.0, "max": 1.0})
+    teacher_noise: float = field(default=0.0, metadata={"min": 0.0, "max": 1.0})
     epochs: int = field(default=10, metadata={"min": 1, "max": 1000})
     batch_size: int = field(default=256, metadata={"min": 1})
     learning_rate: float = field(default=1e-3, metadata={"min": 1e-7, "max": 1.0})

@@ -76,10 +76,16 @@ def nav_envs(venv: Any) -> list[Any]:
 
 def collect(
     venv: Any, policy: Any, n_steps: int, beta: float, gamma: float, rng: np.random.Generator,
-    teacher: str = "path_expert",
+    teacher: str = "path_expert", teacher_noise: float = 0.0,
 ) -> Rollouts:  # fmt: skip
     """Fly ``n_steps`` env steps (all envs together), each episode by the teacher with probability
     ``beta`` and otherwise by the student (deterministic), recording the teacher's action at every step.
+
+    With ``teacher_noise``, the teacher flies its label plus Gaussian noise (DART, Laskey et al.,
+    2017) and the label stays the clean one. A frame carrying the last command (``env.command``)
+    otherwise shows, in the teacher's episodes, almost the next label: fitted to those, a student
+    learnt to repeat its last command (the "copycat" of imitation from histories) and flew into
+    what it should have turned from.
 
     :param venv: the training vector env (frame-stacked, in-process)
     :param policy: the student, an SB3 ``ActorCriticPolicy``
@@ -87,6 +93,7 @@ def collect(
     :param gamma: discount of the recorded returns
     :param rng: draws who flies each episode
     :param teacher: a :data:`TEACHERS` name
+    :param teacher_noise: the noise's standard deviation, action units (0: none drawn)
     """
     envs = nav_envs(venv)
     n_envs = venv.num_envs
@@ -103,7 +110,10 @@ def collect(
     for t in range(rows):
         all_obs[t], all_actions[t] = obs, labels
         student, _ = policy.predict(obs, deterministic=True)
-        actions = np.where(teacher_flies[:, None], labels, student)
+        flown = labels
+        if teacher_noise > 0.0:
+            flown = np.clip(labels + rng.normal(0.0, teacher_noise, labels.shape), -1.0, 1.0)
+        actions = np.where(teacher_flies[:, None], flown, student).astype(np.float32)
         obs, rewards[t], dones[t], infos = venv.step(actions)
         for i in np.flatnonzero(dones[t]):
             success = bool(infos[i].get("success", False))
@@ -135,6 +145,7 @@ def run(
     previous: Sequence[Rollouts] = (),
     after_iteration: Callable[[int, int, Rollouts], None] | None = None,
     teacher: str = "path_expert",
+    teacher_noise: float = 0.0,
 ) -> Demonstrations:
     """DAgger: iteration 0 is the teacher's alone (plain behaviour cloning), then the student flies
     a growing share (teacher probability ``beta0 ** k``), and the student is refitted on every
@@ -151,6 +162,7 @@ def run(
     :param after_iteration: called with (iteration, env steps collected so far, its rollouts),
         e.g. to save them and evaluate
     :param teacher: a :data:`TEACHERS` name
+    :param teacher_noise: see :func:`collect`
     :return: every label gathered (the data of the last fit)
     """
     rows = max(1, steps // venv.num_envs) * venv.num_envs  # what one new iteration gathers
@@ -167,7 +179,7 @@ def run(
             rollouts = previous[k]
         else:  # the draws of iteration k are its own: a resumed run draws as an unbroken one would
             rng = np.random.default_rng([seed, k])
-            rollouts = collect(venv, model.policy, steps, beta, model.gamma, rng, teacher)
+            rollouts = collect(venv, model.policy, steps, beta, model.gamma, rng, teacher, teacher_noise)
         n = len(rollouts.actions)
         obs[collected : collected + n] = rollouts.obs
         actions[collected : collected + n] = rollouts.actions

@@ -479,7 +479,7 @@ def warm_start(
         dagger.run(
             venv, model, iterations=p.iterations, steps=p.steps, beta0=p.beta0, epochs=p.epochs,
             batch_size=p.batch_size, learning_rate=p.learning_rate, seed=config.seed,
-            previous=previous, after_iteration=after, teacher=p.teacher,
+            previous=previous, after_iteration=after, teacher=p.teacher, teacher_noise=p.teacher_noise,
         )  # fmt: skip
         return
     data = pretrain.collect(

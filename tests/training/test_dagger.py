@@ -45,6 +45,34 @@ def test_the_teacher_labels_the_states_the_student_flies_into(setup, teacher):
     assert np.mean(np.sign(rollouts.actions[off, 1]) == np.sign(frame[off, 361])) > 0.8
 
 
+@pytest.mark.parametrize("noise", [0.0, 0.3])
+def test_with_teacher_noise_the_frame_shows_the_noisy_command_and_the_label_stays_clean(tmp_path, noise):
+    path = tmp_path / "dagger.toml"
+    path.write_text(NAV)
+    config = load_train_config(path, [*DAGGER, f"run_root={tmp_path}", "env.command=true"])
+    venv = make_vec_env(config, 2, config.seed)
+    try:
+        model = build_model(config, venv, tmp_path, None)
+        rollouts = dagger.collect(
+            venv, model.policy, 200, beta=1.0, gamma=0.9, rng=np.random.default_rng(0),
+            teacher="predictive_expert", teacher_noise=noise,
+        )  # fmt: skip
+    finally:
+        venv.close()
+    layout = config.env_config().layout
+    stacks = rollouts.obs.reshape(100, 2, 4, layout.frame_size)  # per step and env, 4 frames
+    flown = stacks[1:, :, 3, layout.slices()["command"]]  # what the step before flew (action units)
+    labels = rollouts.actions.reshape(100, 2, 2)[:-1]
+    # a frame stack just reset has empty (zero) older frames: no step before it in its episode
+    same_episode = stacks[1:, :, 0].any(axis=-1)
+    difference = (flown - labels)[same_episode]
+    if noise == 0.0:  # the teacher flew its label: the frame after shows it
+        np.testing.assert_allclose(difference, 0.0, atol=1e-6)
+    else:  # it flew its label plus the noise (clipped to the action space), the label is clean
+        inside = np.abs(labels[same_episode]) < 0.5
+        assert 0.2 < difference[inside].std() < 0.4
+
+
 def test_the_student_learns_the_teachers_actions(setup, tmp_path):
     config, venv, model = setup
     seen: list[int] = []
