@@ -71,8 +71,8 @@ class ObservationLayout:
     @property
     def frame_size(self) -> int:
         """Floats per frame."""
-        extras = (len(GOAL_FEATURES) if self.goal else 0) + (len(DRIFT_FEATURES) if self.drift else 0)
-        return self.n_bins + extras + (len(COMMAND_FEATURES) if self.command else 0)
+        parts = ((self.goal, GOAL_FEATURES), (self.drift, DRIFT_FEATURES), (self.command, COMMAND_FEATURES))
+        return self.n_bins + sum(len(names) for present, names in parts if present)
 
     @property
     def name(self) -> str:

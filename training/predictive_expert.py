@@ -18,8 +18,8 @@ across a grid), plus the cost to the current waypoint from the predicted end
 (:func:`flightsim.planner.cost_to_go` over the clearance-weighted grid the path expert plans on)
 and small costs on turning and on changing the command from the one the last step flew (the
 env's, not this teacher's last label: when the student flies, that is the student's command, which
-its frame shows). With no safe candidate, it flies the
-least costly of those that keep the most clearance (within ``recovery_tolerance``).
+its frame shows). With no safe candidate, it flies the least costly of those that keep the most
+clearance (within ``recovery_tolerance``).
 
 On the 54 validation worlds (6 per family) it reaches 52 (the path expert 46); scored on the
 cost to go alone, with a bonus for the path expert's command, it reached 51 and 27 % faster, but

@@ -3,6 +3,8 @@ reaches, and a real PPO policy fitted to the labels acts like the teacher."""
 
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 import numpy as np
 import pytest
 
@@ -17,15 +19,23 @@ from training.train import build_model, make_vec_env, read_eval_log
 DAGGER = ["name=dagger", "seed=2", "pretrain.method='dagger'"]
 
 
-@pytest.fixture
-def setup(tmp_path):
+@contextmanager
+def dagger_run(tmp_path, *overrides: str):
+    """The small DAgger run's (config, venv, model), with ``overrides``; the venv closed after."""
     path = tmp_path / "dagger.toml"
     path.write_text(NAV)
-    config = load_train_config(path, [*DAGGER, f"run_root={tmp_path}"])
+    config = load_train_config(path, [*DAGGER, f"run_root={tmp_path}", *overrides])
     venv = make_vec_env(config, 2, config.seed)
-    model = build_model(config, venv, tmp_path, None)
-    yield config, venv, model
-    venv.close()
+    try:
+        yield config, venv, build_model(config, venv, tmp_path, None)
+    finally:
+        venv.close()
+
+
+@pytest.fixture
+def setup(tmp_path):
+    with dagger_run(tmp_path) as run:
+        yield run
 
 
 @pytest.mark.parametrize("teacher", sorted(dagger.TEACHERS))
@@ -47,18 +57,11 @@ def test_the_teacher_labels_the_states_the_student_flies_into(setup, teacher):
 
 @pytest.mark.parametrize("noise", [0.0, 0.3])
 def test_with_teacher_noise_the_frame_shows_the_noisy_command_and_the_label_stays_clean(tmp_path, noise):
-    path = tmp_path / "dagger.toml"
-    path.write_text(NAV)
-    config = load_train_config(path, [*DAGGER, f"run_root={tmp_path}", "env.command=true"])
-    venv = make_vec_env(config, 2, config.seed)
-    try:
-        model = build_model(config, venv, tmp_path, None)
+    with dagger_run(tmp_path, "env.command=true") as (config, venv, model):
         rollouts = dagger.collect(
             venv, model.policy, 200, beta=1.0, gamma=0.9, rng=np.random.default_rng(0),
             teacher="predictive_expert", teacher_noise=noise,
         )  # fmt: skip
-    finally:
-        venv.close()
     layout = config.env_config().layout
     stacks = rollouts.obs.reshape(100, 2, 4, layout.frame_size)  # per step and env, 4 frames
     flown = stacks[1:, :, 3, layout.slices()["command"]]  # what the step before flew (action units)
