@@ -47,6 +47,10 @@ class PPOConfig:
     net_arch: list[int] = field(default_factory=lambda: [64, 64])
     #: initial log standard deviation of the Gaussian action noise
     log_std_init: float = field(default=0.0, metadata={"min": -5.0, "max": 2.0})
+    #: what reads the observation before ``net_arch``: "flat" (SB3's flatten), or "circular_scan"
+    #: (training/scan_features.py: circular 1-D convolutions over the stacked scans, the other
+    #: features beside them; the actor and the critic each have their own)
+    features_extractor: Literal["flat", "circular_scan"] = "flat"
 
 
 @dataclass(frozen=True)

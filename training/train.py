@@ -43,6 +43,7 @@ import gymnasium as gym
 import numpy as np
 
 from companion.errors import UserError
+from companion.scan import N_BINS
 from training.config import TrainConfig, config_to_toml, load_train_config
 from training.evaluate import (
     ControllerSpec,
@@ -401,6 +402,24 @@ def atomic_checkpoint_callback() -> type:
     return AtomicCheckpointCallback
 
 
+def policy_kwargs(config: TrainConfig) -> dict[str, Any]:
+    """SB3's ``policy_kwargs`` for the config's network."""
+    p = config.ppo
+    kwargs: dict[str, Any] = {
+        "net_arch": {"pi": list(p.net_arch), "vf": list(p.net_arch)},
+        "log_std_init": p.log_std_init,
+    }
+    if p.features_extractor == "circular_scan":
+        from training.scan_features import CircularScanExtractor
+
+        kwargs |= {
+            "features_extractor_class": CircularScanExtractor,
+            "features_extractor_kwargs": {"n_stack": config.n_stack, "n_bins": N_BINS},
+            "share_features_extractor": False,  # the critic's returns would swamp the actor's features
+        }
+    return kwargs
+
+
 def build_model(config: TrainConfig, venv: Any, run_dir: Path, resume: Path | None):
     """A fresh PPO model from the config, or the checkpoint ``resume`` attached to ``venv``."""
     from stable_baselines3 import PPO
@@ -426,10 +445,7 @@ def build_model(config: TrainConfig, venv: Any, run_dir: Path, resume: Path | No
         ent_coef=p.ent_coef,
         vf_coef=p.vf_coef,
         max_grad_norm=p.max_grad_norm,
-        policy_kwargs={
-            "net_arch": {"pi": list(p.net_arch), "vf": list(p.net_arch)},
-            "log_std_init": p.log_std_init,
-        },
+        policy_kwargs=policy_kwargs(config),
         tensorboard_log=str(run_dir / "tb"),
         seed=config.seed,
         device="cpu",

@@ -87,7 +87,7 @@ def test_ctrl_c_saves_interrupted_zip_exits_130_in_one_line_and_resume_continues
     time.sleep(1.0)  # into the next rollout: simulators stepping in their workers
     os.killpg(proc.pid, signal.SIGINT)
     out, err = proc.communicate(timeout=120)
-    assert proc.returncode == 130
+    assert proc.returncode == 130, err[-3000:]
     assert "Traceback" not in out + err and "KeyboardInterrupt" not in out + err
     last = err.strip().splitlines()[-1]
     assert last.startswith("avoid-train: interrupted after ") and "interrupted.zip" in last
