@@ -115,7 +115,10 @@ def scan_from_points(points: np.ndarray, config: ScanConfig) -> np.ndarray:
         x, y, xy2 = x[beyond_min], y[beyond_min], xy2[beyond_min]
     rng = np.sqrt(xy2, out=xy2)
     rng /= np.float32(config.max_range)
-    bins = np.arctan2(y, x)  # (-pi, pi], counter-clockwise from forward
+    # (-pi, pi], counter-clockwise from forward. In float64, then rounded: numpy's float32 arctan2
+    # differs by an ulp from one CPU to the next (its AVX-512 loop against the scalar one), enough to
+    # move a point across a bin edge; rounded from float64 it is the same float32 everywhere.
+    bins = np.arctan2(y.astype(np.float64), x.astype(np.float64)).astype(np.float32)
     bins *= _BINS_PER_RAD
     np.floor(bins, out=bins)  # [-180, 180]: as an index, -1 is bin 359 and -180 bin 180
     np.minimum.at(scan, bins.astype(np.intp), rng)

@@ -353,8 +353,9 @@ def _unit_bins(unit, bins_per_rad):  # pragma: no cover - compiled
 
 @njit(cache=True, inline="always")
 def _bin(x, y, bins_per_rad, n_bins):  # pragma: no cover - compiled
-    """``floor(atan2(y, x) · 360/2π)`` in float32, negative wrapped: ``scan_from_points``' bin."""
-    index = math.floor(np.float32(np.float32(math.atan2(y, x)) * bins_per_rad))
+    """``floor(atan2(y, x) · 360/2π)``, the angle in float64 rounded to float32 and the product in
+    float32, negative wrapped: ``scan_from_points``' bin."""
+    index = math.floor(np.float32(np.float32(math.atan2(np.float64(y), np.float64(x))) * bins_per_rad))
     return index + n_bins if index < 0 else index
 
 

@@ -156,3 +156,34 @@ def test_matches_the_reference_on_a_dense_ordered_revolution() -> None:
     for pts in (cloud, cloud[::-1], np.random.default_rng(0).permutation(cloud)):
         for cfg in ODD_CONFIGS:
             np.testing.assert_array_equal(scan_from_points(pts, cfg), _reference_scan(pts, cfg))
+
+
+_EDGE_SCAN = """
+import sys
+import numpy as np
+from companion.scan import ScanConfig, scan_from_points
+rng = np.random.default_rng(5)
+# points a few float32 ulps either side of every bin edge, at ranges that tell the bins apart
+edges = np.radians(np.repeat(np.arange(360.0), 40)) + rng.normal(0.0, 1e-6, 14400)
+dist = rng.uniform(0.5, 9.0, edges.size)
+pts = np.stack([dist * np.cos(edges), dist * np.sin(edges), np.zeros(edges.size)], 1).astype(np.float32)
+sys.stdout.write(scan_from_points(pts, ScanConfig()).tobytes().hex())
+"""
+
+
+def test_the_scan_is_the_same_whichever_simd_loops_numpy_picks() -> None:
+    """numpy picks its float32 ``arctan2`` loop by CPU, and its AVX-512 loop rounds differently from
+    the scalar one: points at a bin edge moved bins, so the companion's scan, the single env's and
+    the batched env's compiled scan differed on an AVX-512 machine. The same cloud, with numpy's
+    AVX-512 loops on and off, must give the same scan (on a CPU without AVX-512 both runs take the
+    same loops, and this checks nothing)."""
+    import os
+    import subprocess
+    import sys
+
+    def run(disable: str) -> str:
+        env = {**os.environ, "NPY_DISABLE_CPU_FEATURES": disable}
+        return subprocess.run([sys.executable, "-c", _EDGE_SCAN], env=env, capture_output=True, text=True,
+                              check=True, timeout=60).stdout  # fmt: skip
+
+    assert run("") == run("X86_V4 AVX512_ICL")
