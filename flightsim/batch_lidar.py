@@ -8,7 +8,7 @@ generator in the same order (:func:`flightsim.raycast._corrupt`), and the scan k
 proves it on the same clouds). In the env's path no cloud is materialised: each return goes from
 the range grid straight into the scan bin its column fixes (:func:`column_bins`), through the same
 float32 tests. What batching removes is the per-call cost (numpy's boolean masks,
-``np.minimum.at``, some 20 small arrays per vehicle and step) and most ``atan2f`` calls.
+``np.minimum.at``, some 20 small arrays per vehicle and step) and most atan2 calls.
 
 The compiled scan covers the sensor mounted at the body origin, level (the project's mount);
 any other mount reduces each cloud with ``scan_from_points`` itself.
@@ -129,9 +129,9 @@ def column_bins(azimuth_deg: np.ndarray, unit: np.ndarray) -> np.ndarray | None:
     """The scan bin of every return of each column, ``(columns,)``, or None where that is not fixed.
 
     A return's direction in the sensor frame is its column's, whatever its range, noise or the
-    vehicle's pose: ``scan_from_points`` bins it by ``atan2f`` of its float32 x, y, which float32
+    vehicle's pose: ``scan_from_points`` bins it by the atan2 of its float32 x, y, which float32
     rounding moves by under 1e-4 bin. Columns at least 1e-3 bin from a bin edge (the 1° caster's
-    sit mid-bin, 0.5 bin away) therefore always land in the bin ``atan2f`` gives their unit
+    sit mid-bin, 0.5 bin away) therefore always land in the bin that atan2 gives their unit
     vector, the same for all 16 lasers of the column; a caster with a column nearer an edge gets
     None (the scan then bins point by point).
     """
