@@ -8,7 +8,7 @@ move the absolute times several-fold, the ratios much less. The load average is 
 
     python bench/bench_policy.py [--model models/policy.onnx] [--reference OLD.onnx] [--calls 2000]
 
-Both models must take the goal layout with drift features (the companion's default).
+Both models must take the observation the companion's default configuration builds.
 """
 
 from __future__ import annotations
@@ -24,13 +24,15 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from companion.app import policy_spec  # noqa: E402
+from companion.config import CompanionConfig  # noqa: E402
 from companion.errors import UserError  # noqa: E402
-from companion.observation import ObservationLayout  # noqa: E402
-from companion.policy import OnnxPolicy, PolicySpec  # noqa: E402
+from companion.policy import OnnxPolicy  # noqa: E402
 
 #: s between scans: the companion acts once per scan at 10 Hz
 CONTROL_PERIOD_S = 0.1
-SPEC = PolicySpec(layout=ObservationLayout(goal=True, drift=True, goal_range=30.0, velocity_scale=2.0))
+#: what the companion feeds the policy under its default configuration
+SPEC = policy_spec(CompanionConfig())
 
 
 def time_calls(policy: OnnxPolicy, observations: np.ndarray) -> np.ndarray:

@@ -16,6 +16,8 @@ import torch
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from torch import nn
 
+from companion.scan import N_BINS
+
 #: (output channels, kernel size, stride) of each convolution: 360 bins become 30 of 16 channels,
 #: and a training step costs about what the flat MLP's does
 DEFAULT_LAYERS: tuple[tuple[int, int, int], ...] = ((8, 5, 3), (16, 5, 2), (16, 5, 2))
@@ -59,7 +61,7 @@ class CircularScanExtractor(BaseFeaturesExtractor):
         self,
         observation_space: gym.spaces.Box,
         n_stack: int,
-        n_bins: int = 360,
+        n_bins: int = N_BINS,
         layers: tuple[tuple[int, int, int], ...] = DEFAULT_LAYERS,
     ) -> None:
         size = int(observation_space.shape[0])
