@@ -182,6 +182,14 @@ def response_params(name: str, rng: np.random.Generator | None = None) -> Respon
     return PRESETS[name]
 
 
+#: fields whose larger value makes a response harder to fly (slower, laggier, a worse estimate)
+_HARDER_UP = ("command_delay_s", "tilt_lag_s", "drag_per_s", "yaw_input_tc", "yaw_lag_s", "est_vel_sigma")
+#: fields whose smaller value makes it harder (tighter caps)
+_HARDER_DOWN = ("yaw_rate_gain", "yaw_rate_max", "yaw_accel_max", "accel_max")
+#: a firmware's structure: it shapes its input, or holds a heading, or it does not
+_STRUCTURAL = ("shape_accel_max", "shape_jerk_max", "yaw_angle_p", "yaw_input_tc")
+
+
 def random_ranges(margin: float = 0.25) -> dict[str, tuple[float, float]]:
     """Per numeric field, the range :func:`random_params` draws from: the two presets' span,
     widened by ``margin`` of each end toward the harder side only (slower, laggier, tighter caps,
@@ -189,20 +197,35 @@ def random_ranges(margin: float = 0.25) -> dict[str, tuple[float, float]]:
 
     :param margin: fraction to widen by
     """
-    harder_up = {"command_delay_s", "tilt_lag_s", "drag_per_s", "yaw_input_tc", "yaw_lag_s",
-                 "est_vel_sigma"}  # fmt: skip
-    harder_down = {"yaw_rate_gain", "yaw_rate_max", "yaw_accel_max", "accel_max"}
     out: dict[str, tuple[float, float]] = {}
     for f in fields(ResponseParams):
         if f.name == "name":
             continue
         a, b = sorted((getattr(PX4, f.name), getattr(ARDUPILOT, f.name)))
-        if f.name in harder_up:
+        if f.name in _HARDER_UP:
             b *= 1.0 + margin
-        elif f.name in harder_down:
+        elif f.name in _HARDER_DOWN:
             a *= 1.0 - margin
         out[f.name] = (a, b)
     return out
+
+
+def hardest_params(params: ResponseParams, margin: float = 0.25) -> ResponseParams:
+    """``params`` at the end of every range of :func:`random_ranges` that makes it stop latest:
+    delays and lags longest, caps tightest, and the airframe's drag least (drag slows the
+    speeding-up :func:`random_ranges` counts as harder, but it also brakes a coasting vehicle).
+    The firmware's structure (shaping, yaw loop) and loop gains are kept. A teacher that must stop
+    clear through it as well as through the drawn response brakes where a student, which cannot
+    see the draw, must brake too.
+
+    :param params: the response (its structural fields are kept)
+    :param margin: see :func:`random_ranges`
+    """
+    ranges = random_ranges(margin)
+    hard = {name: ranges[name][1] for name in _HARDER_UP} | {name: ranges[name][0] for name in _HARDER_DOWN}
+    kept = {name: getattr(params, name) for name in _STRUCTURAL}
+    coasting = {"drag_per_s": ranges["drag_per_s"][0]}
+    return replace(params, name=f"{params.name}-hardest", **(hard | kept | coasting))
 
 
 def random_params(rng: np.random.Generator, margin: float = 0.25) -> ResponseParams:
@@ -216,7 +239,7 @@ def random_params(rng: np.random.Generator, margin: float = 0.25) -> ResponsePar
     values: dict[str, Any] = {"name": f"random-{base.name}"}
     for name, (low, high) in random_ranges(margin).items():
         values[name] = float(rng.uniform(low, high))
-    for structural in ("shape_accel_max", "shape_jerk_max", "yaw_angle_p", "yaw_input_tc"):
+    for structural in _STRUCTURAL:
         values[structural] = getattr(base, structural)  # a firmware shapes, or it does not
     return ResponseParams(**values)
 
@@ -356,6 +379,11 @@ def _predict(
     return out
 
 
+def _param_vector(params: ResponseParams) -> np.ndarray:
+    """The numbers the compiled kernels read, in their order."""
+    return np.array([getattr(params, name) for name in _P_NAMES], dtype=np.float64)
+
+
 class AutopilotResponse:
     """A firmware's response to body-frame velocity + yaw-rate setpoints (see the module docstring)."""
 
@@ -364,7 +392,7 @@ class AutopilotResponse:
         :param rng: drives the velocity-estimate error (None: no estimate error whatever params say)
         """
         self.params = params
-        self._p = np.array([getattr(params, name) for name in _P_NAMES], dtype=np.float64)
+        self._p = _param_vector(params)
         self._rng = rng if params.est_vel_sigma > 0.0 else None
         self._x = np.zeros(_N_STATE)
         self.reset(0.0)
@@ -446,8 +474,9 @@ class AutopilotResponse:
         )  # fmt: skip
 
     def predict(
-        self, yaw: float, commands: np.ndarray, command_steps: int, total_steps: int, period: float = 0.1
-    ) -> np.ndarray:
+        self, yaw: float, commands: np.ndarray, command_steps: int, total_steps: int, period: float = 0.1,
+        params: ResponseParams | None = None,
+    ) -> np.ndarray:  # fmt: skip
         """Where each of several command sequences would take the vehicle, from the model's state now.
 
         Candidate ``i`` sends the body command ``commands[i]`` every ``period`` s for
@@ -460,11 +489,15 @@ class AutopilotResponse:
         :param command_steps: periods the command is sent for
         :param total_steps: periods predicted
         :param period: s between commands, a whole number of the internal 5 ms steps
+        :param params: predict with these numbers instead of the model's own, from the model's state
+            (they must keep its structure: :func:`hardest_params`); the new commands take their delay
         :return: (K, total_steps, 3) displacement East, North (m) and heading (rad) at each period's end
         """
         queue = np.array([[due - self._time, *cmd] for due, *cmd in self._pending]).reshape(-1, 4)
+        p = self._p if params is None else _param_vector(params)
+        delay = (params or self.params).command_delay_s
         return _predict(
-            self._x, self._p, queue, np.asarray(self._cmd, dtype=np.float64), self.params.command_delay_s,
+            self._x, p, queue, np.asarray(self._cmd, dtype=np.float64), delay,
             float(yaw), np.asarray(commands, dtype=np.float64).reshape(-1, 2), int(command_steps),
             int(total_steps), round(period / _INNER_DT), _INNER_DT,
         )  # fmt: skip

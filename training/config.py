@@ -102,18 +102,21 @@ class PretrainConfig:
     :param epochs: passes over the demonstrations
     :param batch_size: demonstrations per gradient step
     :param learning_rate: Adam's, for the warm start only
+    :param learning_rate_schedule: each fit's: ``"constant"``, or ``"cosine"`` (annealed to 0 over
+        the fit's epochs)
     """
 
     method: Literal["bc", "dagger"] = "bc"
     steps: int = field(default=0, metadata={"min": 0, "max": 10_000_000})
     demonstrator: Literal["goal_follower", "gap_follower"] = "goal_follower"
-    teacher: Literal["path_expert", "predictive_expert"] = "path_expert"
+    teacher: Literal["path_expert", "predictive_expert", "robust_expert"] = "path_expert"
     iterations: int = field(default=1, metadata={"min": 1, "max": 100})
     beta0: float = field(default=0.5, metadata={"min": 0.0, "max": 1.0})
     teacher_noise: float = field(default=0.0, metadata={"min": 0.0, "max": 1.0})
     epochs: int = field(default=10, metadata={"min": 1, "max": 1000})
     batch_size: int = field(default=256, metadata={"min": 1})
     learning_rate: float = field(default=1e-3, metadata={"min": 1e-7, "max": 1.0})
+    learning_rate_schedule: Literal["constant", "cosine"] = "constant"
 
 
 @dataclass(frozen=True)

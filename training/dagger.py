@@ -25,7 +25,7 @@ import numpy as np
 
 from companion.errors import UserError
 from training.path_expert import PathExpert
-from training.predictive_expert import PredictiveExpert
+from training.predictive_expert import PredictiveExpert, robust_expert
 from training.pretrain import Demonstrations, discounted_returns, fit
 
 log = logging.getLogger(__name__)
@@ -36,6 +36,7 @@ log = logging.getLogger(__name__)
 TEACHERS: dict[str, Callable[[Any], Any]] = {
     "path_expert": PathExpert,
     "predictive_expert": PredictiveExpert,
+    "robust_expert": robust_expert,
 }
 
 
@@ -146,6 +147,7 @@ def run(
     after_iteration: Callable[[int, int, Rollouts], None] | None = None,
     teacher: str = "path_expert",
     teacher_noise: float = 0.0,
+    schedule: str = "constant",
 ) -> Demonstrations:
     """DAgger: iteration 0 is the teacher's alone (plain behaviour cloning), then the student flies
     a growing share (teacher probability ``beta0 ** k``), and the student is refitted on every
@@ -163,6 +165,7 @@ def run(
         e.g. to save them and evaluate
     :param teacher: a :data:`TEACHERS` name
     :param teacher_noise: see :func:`collect`
+    :param schedule: each fit's learning-rate schedule (:func:`training.pretrain.fit`)
     :return: every label gathered (the data of the last fit)
     """
     rows = max(1, steps // venv.num_envs) * venv.num_envs  # what one new iteration gathers
@@ -201,7 +204,7 @@ def run(
             "dagger iteration %d/%d (teacher share %.2f): %d/%d episodes reached every waypoint%s",
             k + 1, iterations, beta, rollouts.successes, rollouts.episodes, student,
         )  # fmt: skip
-        fit(model.policy, data, epochs, batch_size, learning_rate, seed + k)
+        fit(model.policy, data, epochs, batch_size, learning_rate, seed + k, schedule)
         if after_iteration is not None:
             after_iteration(k, collected, rollouts)
     return data

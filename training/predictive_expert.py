@@ -37,6 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from flightsim.autopilot_response import hardest_params
 from flightsim.nav_env import LidarNavEnv
 from flightsim.planner import ClearanceGrid, clearance_grid, cost_to_go
 from training.path_expert import PathExpert, _cell_costs
@@ -69,6 +70,10 @@ class PredictiveExpertConfig:
     :param recovery_tolerance: with no safe candidate, those within this much of the most clearance
         are equals and the least cost decides among them, metres (the first of a tie was an
         arbitrary, jumping label)
+    :param hardest_response: a candidate must also stop clear through the drawn firmware's hardest
+        response (:func:`flightsim.autopilot_response.hardest_params`): the student cannot see the
+        draw, so a label that brakes for a slow draw only and flies on for a quick one is, to the
+        student, the same state with two answers, which regression averages into too fast for both
     """
 
     forward_options: tuple[float, ...] = (-0.25, 0.0, 0.15, 0.3, 0.5, 0.7, 0.85, 1.0)
@@ -88,6 +93,7 @@ class PredictiveExpertConfig:
     preferred_margin: float = 0.8
     clearance_cost: float = 8.0
     recovery_tolerance: float = 0.05
+    hardest_response: bool = False
 
 
 def pick(spare: np.ndarray, score: np.ndarray, recovery_tolerance: float) -> int:
@@ -146,7 +152,8 @@ class PredictiveExpert:
         scale = np.array([env.config.max_speed, env.config.max_yaw_rate])
         command_steps = round(cfg.command_s / PERIOD_S)
         total_steps = command_steps + round(cfg.stop_s / PERIOD_S)
-        paths = response.predict(float(state.yaw), candidates * scale, command_steps, total_steps, PERIOD_S)
+        commands = candidates * scale
+        paths = response.predict(float(state.yaw), commands, command_steps, total_steps, PERIOD_S)
         cells = self._cells(paths[:, :, :2] + np.asarray(state.position[:2]))
         grid = self._grid
         assert grid is not None
@@ -154,6 +161,12 @@ class PredictiveExpert:
         growth = np.minimum(cfg.margin_growth * ahead, cfg.growth_cap)
         required = env.config.vehicle_radius + cfg.margin + growth
         spare = (grid.clearance[cells[..., 0], cells[..., 1]] - required).min(axis=1)
+        if cfg.hardest_response:
+            hardest = hardest_params(response.params)
+            slow = response.predict(float(state.yaw), commands, command_steps, total_steps, PERIOD_S, hardest)
+            slow_cells = self._cells(slow[:, :, :2] + np.asarray(state.position[:2]))
+            slow_spare = (grid.clearance[slow_cells[..., 0], slow_cells[..., 1]] - required).min(axis=1)
+            spare = np.minimum(spare, slow_spare)
         end = cells[:, -1]
         flown = env.last_command.astype(np.float64)
         score = (
@@ -185,3 +198,9 @@ class PredictiveExpert:
         index = np.floor((points - np.asarray(grid.origin)) / grid.resolution).astype(np.int64)
         return np.clip(index, 0, np.array(grid.clearance.shape) - 1)
 
+
+
+def robust_expert(env: LidarNavEnv) -> PredictiveExpert:
+    """The predictive teacher whose every command also stops clear through the hardest response
+    of the drawn firmware (``[pretrain] teacher = "robust_expert"``)."""
+    return PredictiveExpert(env, PredictiveExpertConfig(hardest_response=True))

@@ -105,11 +105,14 @@ def discounted_returns(rewards: np.ndarray, dones: np.ndarray, gamma: float) -> 
 
 
 def fit(
-    policy: Any, data: Demonstrations, epochs: int, batch_size: int, learning_rate: float, seed: int
-) -> dict[str, float]:
+    policy: Any, data: Demonstrations, epochs: int, batch_size: int, learning_rate: float, seed: int,
+    schedule: str = "constant",
+) -> dict[str, float]:  # fmt: skip
     """Fit ``policy``'s action mean to the demonstrations and its value to their returns.
 
     :param policy: an SB3 ``ActorCriticPolicy`` (the PPO model's ``policy``)
+    :param schedule: ``"constant"`` learning rate, or ``"cosine"``: annealed to 0 over the fit
+        (Loshchilov & Hutter), so the fit ends in a minimum rather than at the last batches' noise
     :returns: the last epoch's mean losses (``action_mse``, ``value_mse``)
     """
     import torch
@@ -120,6 +123,10 @@ def fit(
     returns = torch.as_tensor(data.returns)
     parameters = [p for name, p in policy.named_parameters() if name != "log_std"]
     optimizer = torch.optim.Adam(parameters, lr=learning_rate)
+    annealing = None
+    if schedule == "cosine":
+        batches = epochs * -(-len(obs) // batch_size)
+        annealing = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, batches)
     policy.set_training_mode(True)
     losses: dict[str, float] = {}
     for epoch in range(epochs):
@@ -136,6 +143,8 @@ def fit(
             (action_mse + 0.5 * value_mse).backward()
             torch.nn.utils.clip_grad_norm_(parameters, 0.5)
             optimizer.step()
+            if annealing is not None:
+                annealing.step()
             totals += (action_mse.item() * len(index), value_mse.item() * len(index))
         losses = {"action_mse": totals[0] / len(obs), "value_mse": totals[1] / len(obs)}
         log.info("pretrain epoch %d/%d: action mse %.4f, value mse %.2f", epoch + 1, epochs, *losses.values())

@@ -496,6 +496,7 @@ def warm_start(
             venv, model, iterations=p.iterations, steps=p.steps, beta0=p.beta0, epochs=p.epochs,
             batch_size=p.batch_size, learning_rate=p.learning_rate, seed=config.seed,
             previous=previous, after_iteration=after, teacher=p.teacher, teacher_noise=p.teacher_noise,
+            schedule=p.learning_rate_schedule,
         )  # fmt: skip
         return
     data = pretrain.collect(
@@ -505,7 +506,9 @@ def warm_start(
         "warm start: %d steps of %s, %d episodes ended, %d of them successes",
         len(data.actions), p.demonstrator, data.episodes, data.successes,
     )  # fmt: skip
-    pretrain.fit(model.policy, data, p.epochs, p.batch_size, p.learning_rate, config.seed)
+    pretrain.fit(
+        model.policy, data, p.epochs, p.batch_size, p.learning_rate, config.seed, p.learning_rate_schedule
+    )
 
 
 class TrainingInterrupted(Exception):

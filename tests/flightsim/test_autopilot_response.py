@@ -33,6 +33,7 @@ from flightsim.autopilot_response import (
     PRESETS,
     PX4,
     AutopilotResponse,
+    hardest_params,
     random_params,
     random_ranges,
     response_params,
@@ -370,3 +371,24 @@ def test_predict_foresees_the_jsbsim_vehicle_through_a_random_response():
             env.step(command)
         errors.append(float(np.linalg.norm(start + predicted[-1, :2] - env.true_state.position[:2])))
     assert max(errors) < 0.15, errors
+
+
+@pytest.mark.parametrize("params", [ARDUPILOT, PX4])
+def test_the_hardest_response_keeps_the_structure_and_stops_later(params):
+    """At the end of every drawn range that stops latest, the firmware's structure kept: a forward
+    flight told to hold carries on farther through it than through the firmware's own numbers, and
+    predict flies those numbers from the same state."""
+    hardest = hardest_params(params)
+    for structural in ("shape_accel_max", "shape_jerk_max", "yaw_angle_p", "yaw_input_tc", "vel_p"):
+        assert getattr(hardest, structural) == getattr(params, structural)
+    ranges = random_ranges()
+    assert hardest.command_delay_s == ranges["command_delay_s"][1] > params.command_delay_s
+    assert hardest.yaw_rate_max == ranges["yaw_rate_max"][0] < params.yaw_rate_max
+    model = AutopilotResponse(params)
+    model.reset(0.0, (2.0, 0.0))
+    hold = np.zeros((1, 2))
+    own = model.predict(0.0, hold, 1, 30)[0, -1, 0]
+    slow = model.predict(0.0, hold, 1, 30, params=hardest)[0, -1, 0]
+    assert slow > own + (0.3 if params is PX4 else 0.01)  # ArduPilot's stop: mostly its shaping
+    same = model.predict(0.0, hold, 1, 30, params=params)
+    np.testing.assert_array_equal(same, model.predict(0.0, hold, 1, 30))

@@ -11,7 +11,7 @@ from flightsim.nav_env import LidarNavEnv, NavEnvConfig
 from flightsim.world import Box, World, clearances
 from tests.training.test_path_expert import RADIUS, corridor, env_for, fly, validation_successes
 from training.path_expert import PathExpert
-from training.predictive_expert import PredictiveExpert, PredictiveExpertConfig, pick
+from training.predictive_expert import PredictiveExpert, PredictiveExpertConfig, pick, robust_expert
 
 
 def wall_ahead() -> World:
@@ -113,3 +113,22 @@ def test_config_defaults_build_a_candidate_grid_with_hold_and_full_speed():
     candidates = expert._candidates
     assert len(candidates) == len(expert.config.forward_options) * len(expert.config.yaw_options)
     assert [0.0, 0.0] in candidates.tolist() and [1.0, 0.0] in candidates.tolist()
+
+
+def test_the_robust_teacher_brakes_where_only_a_slower_draw_of_the_firmware_would_not_stop():
+    """Flying the plain teacher's way through the 1 m gap on ArduPilot's response, the robust
+    teacher, which must also stop clear through that firmware's hardest draw, never asks for more
+    speed and somewhere asks for much less: the student, blind to the draw, sees one label."""
+    plain_env, robust_env = (env_for(corridor(width=1.0), "ardupilot") for _ in range(2))
+    plain, robust = PredictiveExpert(plain_env), robust_expert(robust_env)
+    assert robust.config.hardest_response and not plain.config.hardest_response
+    flown, label = plain.reset(), robust.reset()
+    slower = []
+    for _ in range(300):
+        slower.append(float(flown[0] - label[0]))
+        _, _, terminated, truncated, _ = plain_env.step(flown)
+        robust_env.step(flown)
+        if terminated or truncated:
+            break
+        flown, label = plain.act(), robust.act()
+    assert min(slower) >= 0.0 and max(slower) > 0.25
