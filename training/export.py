@@ -5,6 +5,11 @@ Only the deterministic actor goes in (feature extractor → policy MLP → actio
 ``model.predict(obs, deterministic=True)`` computes, and the export proves it: on observations
 from real rollouts the ONNX Runtime output must match SB3's within ``PARITY_TOLERANCE``.
 
+Several ``--model`` checkpoints of one task export as their ensemble: one file whose action is the
+mean of the members' (each clipped, as each predicts), so the companion runs it as any other
+model. Students imitating one teacher from different seeds err in different places; their mean
+errs less (bagging).
+
 The exporter is torch's TorchScript-based one (``dynamo=False``): for a plain MLP it writes one
 self-contained file in well under a second, with parity; the dynamo exporter took ~10 s and
 wrote the weights to a side file by default.
@@ -17,6 +22,7 @@ import hashlib
 import json
 import logging
 import warnings
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -65,18 +71,38 @@ def actor_module(model: PPO) -> torch.nn.Module:
     return DeterministicActor().eval()
 
 
-def export_onnx(model: PPO, out: Path, metadata: dict[str, str]) -> None:
-    """Write the actor to ``out`` with ``metadata`` as ONNX metadata_props; ``onnx.checker`` must pass.
+def ensemble_module(models: Sequence[PPO]) -> torch.nn.Module:
+    """The mean of the models' deterministic actors (:func:`actor_module`); one model: its actor."""
+    import torch
 
-    :param model: trained PPO model
+    actors = [actor_module(model) for model in models]
+    if len(actors) == 1:
+        return actors[0]
+
+    class MeanActor(torch.nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.members = torch.nn.ModuleList(actors)
+
+        def forward(self, obs: torch.Tensor) -> torch.Tensor:
+            return torch.stack([member(obs) for member in self.members]).mean(dim=0)
+
+    return MeanActor().eval()
+
+
+def export_onnx(models: Sequence[PPO], out: Path, metadata: dict[str, str]) -> None:
+    """Write the actor (several models: their mean) to ``out`` with ``metadata`` as ONNX
+    metadata_props; ``onnx.checker`` must pass.
+
+    :param models: trained PPO models of one observation and action space (usually one)
     :param out: destination ``.onnx`` file
     :param metadata: key → value strings the companion checks at load time
     """
     import onnx
     import torch
 
-    actor = actor_module(model)
-    dummy = torch.zeros((1, *model.observation_space.shape), dtype=torch.float32)
+    actor = ensemble_module(models)
+    dummy = torch.zeros((1, *models[0].observation_space.shape), dtype=torch.float32)
     out.parent.mkdir(parents=True, exist_ok=True)
     with warnings.catch_warnings():
         # The TorchScript exporter announces its own deprecation; it is still the right tool here.
@@ -98,7 +124,10 @@ def export_onnx(model: PPO, out: Path, metadata: dict[str, str]) -> None:
         entry = proto.metadata_props.add()
         entry.key, entry.value = key, value
     layout = metadata.get("lidar_avoid.obs_layout", "scan360")
-    proto.doc_string = f"lidar-avoid deterministic PPO actor (stacked {layout} frames -> [forward, yaw rate])"
+    actors = "actor" if len(models) == 1 else f"actors' mean ({len(models)} members)"
+    proto.doc_string = (
+        f"lidar-avoid deterministic PPO {actors} (stacked {layout} frames -> [forward, yaw rate])"
+    )
     onnx.checker.check_model(proto, full_check=True)
     onnx.save(proto, str(out))
     log.info("wrote %s (%d bytes)", out, out.stat().st_size)
@@ -144,13 +173,14 @@ def rollout_observations(model: PPO, config: TrainConfig, n: int, seed: int = 0)
     return out
 
 
-def parity_max_abs_diff(model: PPO, onnx_path: Path, observations: np.ndarray) -> float:
-    """Max |ONNX Runtime − ``model.predict(obs, deterministic=True)``| over ``observations``."""
+def parity_max_abs_diff(models: Sequence[PPO], onnx_path: Path, observations: np.ndarray) -> float:
+    """Max |ONNX Runtime − ``model.predict(obs, deterministic=True)``| over ``observations`` (several
+    models: the mean of their predictions)."""
     import onnxruntime as ort
 
     session = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
     got = session.run(None, {INPUT_NAME: observations.astype(np.float32)})[0]
-    want, _ = model.predict(observations, deterministic=True)
+    want = np.mean([model.predict(observations, deterministic=True)[0] for model in models], axis=0)
     return float(np.max(np.abs(got - want)))
 
 
@@ -176,39 +206,48 @@ def load_model(path: Path) -> PPO:
 
 
 def export_policy(
-    model_path: Path, out: Path, config_path: Path | None, samples: int = PARITY_SAMPLES
+    paths: Sequence[Path], out: Path, config_path: Path | None, samples: int = PARITY_SAMPLES
 ) -> float:
-    """Export ``model_path`` to ``out`` and return the parity max abs difference (raise if too large).
+    """Export the checkpoints ``paths`` (several: their ensemble) to ``out`` and return the parity max abs
+    difference (raise if too large).
 
-    :param model_path: SB3 ``.zip`` checkpoint
+    :param paths: SB3 ``.zip`` checkpoints, usually one
     :param out: ``.onnx`` destination
-    :param config_path: the run's training config (default: found in the run directory)
+    :param config_path: the runs' training config (default: found in each run directory; the
+        first model's goes into the metadata, and every member's must feed the same observation)
     :param samples: rollout observations for the parity check
     """
     from companion.policy import policy_metadata
     from companion.tomlconfig import to_dict
     from training.config import load_train_config
 
-    model = load_model(model_path)
-    config = load_train_config(config_path or find_run_config(model_path))
+    models = [load_model(path) for path in paths]
+    configs = [load_train_config(config_path or find_run_config(path)) for path in paths]
+    config = configs[0]
     spec = policy_spec_for(config)
     expected = (spec.obs_size,)
-    if model.observation_space.shape != expected:
-        raise UserError(
-            f"{model_path}: observation shape {model.observation_space.shape} does not match the config's "
-            f"{config.n_stack} stacked {spec.layout.name} frames {expected}"
-        )
+    for path, model, member_config in zip(paths, models, configs, strict=True):
+        if model.observation_space.shape != expected:
+            raise UserError(
+                f"{path}: observation shape {model.observation_space.shape} does not match the config's "
+                f"{config.n_stack} stacked {spec.layout.name} frames {expected}"
+            )
+        if policy_spec_for(member_config) != spec:
+            raise UserError(f"{path}: trained for another observation or action scaling than {paths[0]}")
     config_json = json.dumps(to_dict(config), sort_keys=True)
-    export_onnx(model, out, policy_metadata(spec, config_json))
-    observations = rollout_observations(model, config, samples, seed=config.seed + 12345)
-    diff = parity_max_abs_diff(model, out, observations)
+    export_onnx(models, out, policy_metadata(spec, config_json))
+    observations = rollout_observations(models[0], config, samples, seed=config.seed + 12345)
+    diff = parity_max_abs_diff(models, out, observations)
     if diff > PARITY_TOLERANCE:
         raise RuntimeError(f"ONNX parity failed: max abs diff {diff:.3g} > {PARITY_TOLERANCE:g}")
     return diff
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--model", type=Path, required=True, help="SB3 PPO checkpoint (.zip)")
+    parser.add_argument(
+        "--model", type=Path, required=True, action="append",
+        help="SB3 PPO checkpoint (.zip); give it again for each member of an ensemble (the mean action)",
+    )  # fmt: skip
     parser.add_argument("--out", type=Path, required=True, help="ONNX file to write")
     parser.add_argument("--config", type=Path, default=None, help="training config (default: the run's)")
     parser.add_argument(

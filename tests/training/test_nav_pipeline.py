@@ -87,3 +87,34 @@ def test_evaluate_flies_the_exported_goal_policy(nav_run, tmp_path, capsys):
     data = json.loads(out.read_text())
     assert set(data["controllers"]) == {"policy", "goal_follower", "straight_line"}
     assert data["controllers"]["policy"]["per_family"]["gaps"]["episodes"] == 1
+
+
+def test_two_checkpoints_export_as_one_model_flying_their_mean_action(nav_run, tmp_path):
+    """Two members (the run's final model, and a copy whose action bias is moved so they differ)
+    export as one file the companion loads; its action is the mean of theirs, within parity."""
+    import onnxruntime as ort
+    import torch
+    from stable_baselines3 import PPO
+
+    run_dir = nav_run["run_dir"]
+    other = tmp_path / "other.zip"
+    model = PPO.load(str(run_dir / "final_model.zip"), device="cpu")
+    with torch.no_grad():
+        model.policy.action_net.bias.add_(torch.tensor([0.3, -0.2]))
+    model.save(str(other))
+    (tmp_path / "config.toml").write_text((run_dir / "config.toml").read_text())
+    out = tmp_path / "mean.onnx"
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        argv = ["export", "--model", str(run_dir / "final_model.zip"), "--model", str(other),
+                "--out", str(out), "--parity-samples", "50"]  # fmt: skip
+        assert main(argv) == 0
+    obs = np.random.default_rng(0).uniform(size=(20, 1460)).astype(np.float32)
+    session = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"])
+    got = session.run(None, {"observation": obs})[0]
+    members = [PPO.load(str(path), device="cpu") for path in (run_dir / "final_model.zip", other)]
+    predictions = [member.predict(obs, deterministic=True)[0] for member in members]
+    assert np.abs(predictions[0] - predictions[1]).max() > 0.1  # the members differ
+    np.testing.assert_allclose(got, np.mean(predictions, axis=0), atol=1e-5)
+    assert "members" in onnx.load(str(out)).doc_string
+    OnnxPolicy(out, PolicySpec(layout=GOAL))  # the companion takes it as any model
