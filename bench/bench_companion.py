@@ -263,7 +263,8 @@ def run_companion(args: argparse.Namespace, revolutions: int, recording: bool = 
                     cpu_start = cpu_seconds(proc.pid)
                     print(f"engaged after {index} revolutions; measuring {revolutions}", flush=True)
                 elif time.monotonic() > deadline:
-                    raise SystemExit("the companion never engaged: " + proc.stderr.read1()[-2000:])
+                    proc.terminate()
+                    raise SystemExit("the companion never engaged: " + proc.communicate()[1][-2000:])
             elif arrived is None:
                 missed += 1
             else:
