@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from flightsim.autopilot_response import hardest_params
+from flightsim.autopilot_response import ResponseParams, hardest_params
 from flightsim.nav_env import LidarNavEnv
 from flightsim.planner import ClearanceGrid, clearance_grid, cost_to_go
 from training.path_expert import PathExpert, _cell_costs
@@ -122,6 +122,7 @@ class PredictiveExpert:
         self._costs = np.zeros((0, 0))
         self._to_goal = np.zeros((0, 0))
         self._goal_index = -1
+        self._hardest: ResponseParams | None = None  # the episode's slowest response, when asked for
 
     def reset(self) -> np.ndarray:
         """A new episode: rasterise the world and return the first action."""
@@ -131,6 +132,8 @@ class PredictiveExpert:
         self._grid = clearance_grid(env.world, float(env.world.start_position[2]), cfg.resolution, cap)
         self._costs = _cell_costs(self._grid.clearance, radius, cfg.preferred_margin, cfg.clearance_cost)
         self._goal_index = -1
+        response = env.response
+        self._hardest = hardest_params(response.params) if cfg.hardest_response and response else None
         return self._choose(self._path_expert.reset())
 
     def act(self) -> np.ndarray:
@@ -152,21 +155,12 @@ class PredictiveExpert:
         scale = np.array([env.config.max_speed, env.config.max_yaw_rate])
         command_steps = round(cfg.command_s / PERIOD_S)
         total_steps = command_steps + round(cfg.stop_s / PERIOD_S)
-        commands = candidates * scale
-        paths = response.predict(float(state.yaw), commands, command_steps, total_steps, PERIOD_S)
-        cells = self._cells(paths[:, :, :2] + np.asarray(state.position[:2]))
-        grid = self._grid
-        assert grid is not None
-        ahead = PERIOD_S * np.arange(1, total_steps + 1)
-        growth = np.minimum(cfg.margin_growth * ahead, cfg.growth_cap)
-        required = env.config.vehicle_radius + cfg.margin + growth
-        spare = (grid.clearance[cells[..., 0], cells[..., 1]] - required).min(axis=1)
-        if cfg.hardest_response:
-            hardest = hardest_params(response.params)
-            slow = response.predict(float(state.yaw), commands, command_steps, total_steps, PERIOD_S, hardest)
-            slow_cells = self._cells(slow[:, :, :2] + np.asarray(state.position[:2]))
-            slow_spare = (grid.clearance[slow_cells[..., 0], slow_cells[..., 1]] - required).min(axis=1)
-            spare = np.minimum(spare, slow_spare)
+        steps = (command_steps, total_steps, PERIOD_S)
+        paths = response.predict(float(state.yaw), candidates * scale, *steps)
+        spare, cells = self._spare(paths, state.position)
+        if self._hardest is not None:
+            slow = response.predict(float(state.yaw), candidates * scale, *steps, self._hardest)
+            spare = np.minimum(spare, self._spare(slow, state.position)[0])
         end = cells[:, -1]
         flown = env.last_command.astype(np.float64)
         score = (
@@ -179,6 +173,21 @@ class PredictiveExpert:
         score[-1] -= cfg.path_expert_bonus
         best = pick(spare, score, cfg.recovery_tolerance)
         return candidates[best].astype(np.float32)
+
+    def _spare(self, paths: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Each predicted path's least clearance beyond what it must keep (the radius, the margin
+        and its growth with the look-ahead), metres, and the grid cells it passes.
+
+        :param paths: ``(K, steps, 3)`` displacements from ``position`` (:meth:`AutopilotResponse.predict`)
+        :param position: the vehicle now, world metres
+        """
+        cfg, grid = self.config, self._grid
+        assert grid is not None
+        ahead = PERIOD_S * np.arange(1, paths.shape[1] + 1)
+        growth = np.minimum(cfg.margin_growth * ahead, cfg.growth_cap)
+        required = self.env.config.vehicle_radius + cfg.margin + growth
+        cells = self._cells(paths[:, :, :2] + np.asarray(position[:2]))
+        return (grid.clearance[cells[..., 0], cells[..., 1]] - required).min(axis=1), cells
 
     def _cost_to_waypoint(self, index: int) -> np.ndarray:
         """Each cell's clearance-weighted cost to waypoint ``index``, metres (unreachable: 1e4)."""
@@ -197,7 +206,6 @@ class PredictiveExpert:
         assert grid is not None
         index = np.floor((points - np.asarray(grid.origin)) / grid.resolution).astype(np.int64)
         return np.clip(index, 0, np.array(grid.clearance.shape) - 1)
-
 
 
 def robust_expert(env: LidarNavEnv) -> PredictiveExpert:
