@@ -118,3 +118,22 @@ def test_two_checkpoints_export_as_one_model_flying_their_mean_action(nav_run, t
     np.testing.assert_allclose(got, np.mean(predictions, axis=0), atol=1e-5)
     assert "members" in onnx.load(str(out)).doc_string
     OnnxPolicy(out, PolicySpec(layout=GOAL))  # the companion takes it as any model
+
+
+def test_an_ensemble_member_for_another_action_scaling_is_refused_in_one_line(nav_run, tmp_path, capsys):
+    """A member whose run flew another top speed would be averaged in the wrong units: refused."""
+    import shutil
+
+    run_dir = nav_run["run_dir"]
+    member = tmp_path / "faster" / "final_model.zip"
+    member.parent.mkdir()
+    shutil.copy(run_dir / "final_model.zip", member)
+    config = (run_dir / "config.toml").read_text().replace("[env]\n", "[env]\nmax_speed = 3.0\n", 1)
+    (member.parent / "config.toml").write_text(config)
+    argv = ["export", "--model", str(run_dir / "final_model.zip"), "--model", str(member),
+            "--out", str(tmp_path / "mean.onnx"), "--parity-samples", "10"]  # fmt: skip
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert f"{member}: trained for another observation or action scaling than" in err
+    assert not (tmp_path / "mean.onnx").exists()
