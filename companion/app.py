@@ -61,6 +61,7 @@ from companion.obstacle_distance import obstacle_distance_allowed, obstacle_dist
 from companion.policy import InferenceFault, OnnxPolicy, PolicySpec
 from companion.recording.recorder import FlightRecorder, open_recorder
 from companion.recording.taps import tap_parts
+from companion.route import RoutePlanner, enu_pose
 from companion.scan import BIN_CONVENTION, N_BINS, scan_from_points
 from companion.shield import Command, SafetyShield, command_from_action
 from companion.supervisor import CommandKind, Supervisor, SupervisorState, Transition
@@ -320,6 +321,9 @@ class Companion:
         self.goal = open_goal(config, self.link, clock)
         # with a goal source: hold until the goal is first evaluated, and announce what it says then
         self._goal_output = GoalOutput(None if self.goal is None else "starting")
+        # goal.route: a map of the scans and a route on it (needs the goal source's position)
+        route = config.goal.route and self.goal is not None and self.layout.goal
+        self._route = RoutePlanner(config.goal.route_planner, config.scan.max_range) if route else None
         self._completion_requested = False
         self.recorder = self._start_recorder()
 
@@ -439,7 +443,7 @@ class Companion:
             return VELOCITY_STALE
         # no goal source: a goal GOAL_AHEAD_M ahead on the current heading, wherever the vehicle is
         forward, left = goal.goal_body[:2] if goal.goal_body is not None else (GOAL_AHEAD_M, 0.0)
-        features = goal_features(forward, left, *status.velocity_body, self.layout)
+        features = goal_features(*self._toward(scan, forward, left), *status.velocity_body, self.layout)
         if self.layout.drift:
             now = self._clock()
             dt, self._drift_time = now - self._drift_time, now
@@ -449,6 +453,21 @@ class Companion:
             sent = self._last_command
             features = np.concatenate([features, command_features(sent.forward, sent.yaw_rate, self.layout)])
         return build_frame(scan, features, self.layout)
+
+    def _toward(self, scan: np.ndarray, forward: float, left: float) -> tuple[float, float]:
+        """Where the goal features point, body FLU metres: along the route on the map of the scans
+        (``goal.route``, LidarNav-v0's ``route``), else at the goal (``forward``, ``left``)."""
+        if self._route is None or self.goal is None:
+            return forward, left
+        nav, tracker = self.goal.nav, self.goal.tracker
+        if nav.position is None or nav.heading is None or tracker.index >= len(tracker.waypoints):
+            return forward, left
+        x, y, heading = enu_pose(nav.position[0], nav.position[1], nav.heading)
+        self._route.observe(scan, x, y, heading)
+        waypoint = tracker.waypoints[tracker.index]
+        goal_x, goal_y, _ = enu_pose(waypoint.north, waypoint.east, 0.0)
+        subgoal = self._route.subgoal(x, y, heading, goal_x, goal_y)
+        return subgoal.forward, subgoal.left
 
     def _send_obstacle_distance(self) -> None:
         """OBSTACLE_DISTANCE for the newest scan (the autopilot's own avoidance layer).

@@ -20,6 +20,7 @@ from companion.autopilot.signing import load_signing_key
 from companion.connection import Connection, parse_connection
 from companion.errors import UserError
 from companion.observation import ObservationLayout
+from companion.route import RouteConfig
 from companion.scan import N_BINS, ScanConfig
 from companion.shield import ShieldConfig
 from companion.supervisor import SupervisorConfig
@@ -298,6 +299,10 @@ class GoalConfig:
         changes the mode), or request ``land`` / ``rtl`` once
     :param download_timeout: wait for each mission-protocol reply, s
     :param download_retries: repeats of an unanswered mission request before the download fails
+    :param route: the policy's goal features point along a route planned on a map of the scans
+        (:class:`companion.route.RoutePlanner`), not straight at the waypoint: the evaluation's
+        ``env.route``. Needs a goal source (the map lives in the autopilot's local frame)
+    :param route_planner: that planner's tuning (``[goal.route_planner]``)
     """
 
     source: Literal["none", "fixed", "mission"] = "none"
@@ -307,6 +312,8 @@ class GoalConfig:
     on_complete: Literal["hold", "land", "rtl"] = "hold"
     download_timeout: float = field(default=1.0, metadata={"min": 0.1, "max": 10.0})
     download_retries: int = field(default=5, metadata={"min": 0, "max": 50})
+    route: bool = True
+    route_planner: RouteConfig = field(default_factory=RouteConfig)
 
     def __post_init__(self) -> None:
         if self.source == "fixed" and not self.waypoints:

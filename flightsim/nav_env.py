@@ -18,6 +18,7 @@ from companion.observation import (
     goal_features,
     goal_in_body,
 )
+from companion.route import RouteConfig, RoutePlanner
 from flightsim import seeds
 from flightsim.env import CONTROL_HZ, EnvConfig, LidarAvoidEnv, StepCommand
 from flightsim.families import FAMILIES, generate_family_world
@@ -52,6 +53,10 @@ class NavEnvConfig(EnvConfig):
         on this episode's frames, as the companion computes it in flight)
     :param command: each frame also carries the command just flown (after the shield), as the
         companion's frames carry the last setpoint it sent
+    :param route: the goal features point along a route planned on the scans seen so far
+        (:class:`companion.route.RoutePlanner`, on the true pose, as the goal features are), not
+        straight at the waypoint; the companion's ``goal.route`` does the same in flight
+    :param route_planner: that planner's tuning
     """
 
     reward: Literal["goal"] = "goal"
@@ -66,6 +71,8 @@ class NavEnvConfig(EnvConfig):
     goal_reward: GoalRewardConfig = field(default_factory=GoalRewardConfig)
     drift: bool = False
     command: bool = False
+    route: bool = False
+    route_planner: RouteConfig = field(default_factory=RouteConfig)
 
     def __post_init__(self) -> None:
         unknown = [f for f in self.families if f not in FAMILIES]
@@ -126,7 +133,11 @@ class LidarNavEnv(LidarAvoidEnv):
                shield: forward / ``max_speed``, yaw rate / ``max_yaw_rate``; (0, 0) at reset
     ========== ===================================================== ==========
 
-    The goal features are the current pose's; the scan follows ``latency_scans``. Frame stacking
+    The goal features are the current pose's; the scan follows ``latency_scans``. With ``route``
+    they describe a subgoal instead of the waypoint (:class:`companion.route.RoutePlanner`: an
+    occupancy grid of this episode's scans, the cheapest route on it, the farthest point of it in
+    sight within 5 m), with the route's length as the distance; the drift estimate still guesses
+    the turn from the waypoint's bearing. Frame stacking
     (4 frames in the project, the whole 365-float frame stacked, oldest first) is the training
     code's ``VecFrameStack`` and the companion's ``FrameStack``.
 
@@ -165,7 +176,9 @@ class LidarNavEnv(LidarAvoidEnv):
     ## Version History
     * v0: initial version (families, goal + velocity features, goal reward, path-proportional time
       limit). ``drift`` (off by default, so earlier configs keep their 365-float frame) adds the
-      drift features; ``command`` (off by default too) adds the command features.
+      drift features; ``command`` (off by default too) adds the command features; ``route`` (off by
+      default) points the goal features along a route on the map of the scans so far, the same
+      layout.
     """
 
     def __init__(self, config: NavEnvConfig | None = None, render_mode: str | None = None) -> None:
@@ -187,6 +200,7 @@ class LidarNavEnv(LidarAvoidEnv):
         self._planned: dict[World, float] = {}
         self._drift = DriftEstimator(DriftConfig(max_range=config.scan.max_range))
         self._flown = np.zeros(2, np.float32)  # the action the last step flew (command features)
+        self._route = RoutePlanner(config.route_planner, config.scan.max_range) if config.route else None
 
     # ------------------------------------------------------------------ gymnasium API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
@@ -200,6 +214,8 @@ class LidarNavEnv(LidarAvoidEnv):
         self._goal_distance = self._distance_to_goal()
         self._drift.reset()
         self._flown = np.zeros(2, np.float32)
+        if self._route is not None:
+            self._route.reset()
         return self._frame(scan, info["measured_velocity_body"]), self._nav_info(info)
 
     def _conclude(self, command: StepCommand, scan: np.ndarray):
@@ -314,7 +330,14 @@ class LidarNavEnv(LidarAvoidEnv):
         forward, left = goal_in_body(goal[0] - x, goal[1] - y, float(self._state.yaw))
         if self._waypoint >= n:  # done: the goal is where the vehicle is
             forward = left = 0.0
-        features = goal_features(forward, left, *velocity.tolist(), self.layout)
+        toward = (forward, left)
+        if self._route is not None:
+            yaw = float(self._state.yaw)
+            self._route.observe(scan, x, y, yaw)
+            if self._waypoint < n:
+                subgoal = self._route.subgoal(x, y, yaw, goal[0], goal[1])
+                toward = (subgoal.forward, subgoal.left)
+        features = goal_features(*toward, *velocity.tolist(), self.layout)
         if self.layout.drift:
             bias = self._drift.observe(scan, velocity, forward, left, 1.0 / CONTROL_HZ)
             features = np.concatenate([features, drift_features(bias, self.layout)])

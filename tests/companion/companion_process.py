@@ -24,17 +24,22 @@ from tests.companion.mavlink_peer import SETPOINT, SimulatedAutopilot, free_udp_
 REPO = Path(__file__).resolve().parents[2]
 
 
-def revolution_packets(index: int, step_deg: float = 0.2, range_m: float = 8.0) -> list[bytes]:
+def revolution_packets(index: int, step_deg: float = 0.2, range_m: float = 8.0,
+                       scene: Callable[[np.ndarray], np.ndarray] | None = None) -> list[bytes]:
     """The packets of one whole revolution, laid out so the azimuth wraps inside the last packet.
 
     Revolutions of consecutive ``index`` continue each other, so each one completes the previous.
     The default 0.2° step is the VLP-16's at 600 rpm (75 packets): the companion drops turns no
     VLP-16 can make (1° = 15 packets a turn would be 2,400 rpm).
+
+    :param range_m: every laser's range, metres (a round room)
+    :param scene: instead, the range of each azimuth (degrees clockwise from the front), metres
     """
     n = round(360 / step_deg)
     start = step_deg * (FIRINGS_PER_PACKET // 2)  # the wrap falls half-way through the last packet
     azimuth = (start + step_deg * np.arange(n)) % 360.0
-    ranges = np.full((n, 16), range_m)
+    per_azimuth = np.full(n, range_m) if scene is None else scene(azimuth)
+    ranges = np.repeat(per_azimuth[:, None], 16, axis=1)
     first_stamp = index * (n // FIRINGS_PER_PACKET) * PACKET_DURATION_US
     return encode_packets(azimuth, ranges, start_timestamp_us=first_stamp)
 
@@ -44,6 +49,7 @@ class LidarSender:
 
     def __init__(self, port: int, rate_hz: float = 10.0, step_deg: float = 0.2) -> None:
         self.address = ("127.0.0.1", port)
+        self.scene: Callable[[np.ndarray], np.ndarray] | None = None  # see revolution_packets
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.period = 1.0 / rate_hz
         self.step_deg = step_deg
@@ -60,7 +66,7 @@ class LidarSender:
                 self.send_one()
 
     def send_one(self) -> None:
-        for packet in revolution_packets(self._index, self.step_deg):
+        for packet in revolution_packets(self._index, self.step_deg, scene=self.scene):
             self.sock.sendto(packet, self.address)
         self.sent.append(time.monotonic())
         self._index += 1

@@ -13,6 +13,9 @@ import math
 import time
 from pathlib import Path
 
+import numpy as np
+import pytest
+
 from companion.app import policy_spec
 from companion.config import CompanionConfig, PolicyConfig
 from tests.companion.companion_process import WEST_AND_UP, Flight, free_udp_port, run_to_exit, write_config
@@ -166,5 +169,32 @@ def test_the_shipped_exported_goal_model_flies_toward_a_fixed_goal(tmp_path):
               "the shipped policy commanding")
         assert any("goal: tracking" in m.text for m in f.vehicle.messages("STATUSTEXT"))
         assert any(m.vz < -0.1 for m in f.vehicle.messages(SETPOINT))  # climbing toward the waypoint
+    finally:
+        f.close()
+
+
+def _wall_west(azimuth_deg: np.ndarray) -> np.ndarray:
+    """A wall 2 m west of a vehicle facing north, from 4 m south of it to 1.5 m north, in a round
+    room of 8 m: ranges per azimuth (degrees clockwise from the front)."""
+    a = np.radians(azimuth_deg)
+    west = -np.sin(a)
+    t = np.where(west > 1e-6, 2.0 / np.maximum(west, 1e-6), np.inf)
+    north = t * np.cos(a)
+    return np.where((t < 8.0) & (north >= -4.0) & (north <= 1.5), t, 8.0)
+
+
+@pytest.mark.parametrize("route", [True, False])
+def test_a_goal_behind_a_wall_is_flown_to_around_its_nearer_end(tmp_path, route):
+    """The waypoint 5 m west lies behind the wall: with goal.route the goal features point past the
+    wall's north end (ahead and left), without it straight at the waypoint (left, nothing ahead)."""
+    extra = WEST_AND_UP.replace("[goal]\n", f"[goal]\nroute = {str(route).lower()}\n")
+    f = Flight.with_model(tmp_path, "echo_goal", extra)
+    f.lidar.scene = _wall_west
+    try:
+        if route:
+            last = f.settled(lambda m: m.vx > 0.6 and m.yaw_rate < -0.3, "ahead and left, around the wall")
+            assert last.vx < 1.8  # not straight ahead either: the end is north-west
+        else:
+            f.settled(lambda m: abs(m.vx) < 0.05 and m.yaw_rate < -1.0, "turning toward the waypoint")
     finally:
         f.close()

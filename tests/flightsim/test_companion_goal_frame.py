@@ -17,8 +17,9 @@ from companion.autopilot.mavlink_adapter import mavlink
 from companion.config import CompanionConfig
 from companion.goal import GoalTracker, NavInputs, Waypoint
 from companion.observation import goal_features
+from companion.route import RoutePlanner, enu_pose
 from flightsim.nav_env import LidarNavEnv, NavEnvConfig
-from flightsim.world import World
+from flightsim.world import Box, World
 
 HALL = World("hall", (20.0, 8.0), 3.0, (), (-8.0, 0.0, 1.5), 30.0, ((6.0, 2.5, 1.5), (-4.0, -3.0, 1.5)))
 
@@ -48,5 +49,36 @@ def test_companion_features_equal_the_envs(action) -> None:
         features = goal_features(out.goal_body[0], out.goal_body[1], *velocity, layout)
         np.testing.assert_allclose(features, obs[360:365], atol=2e-5)
         assert abs(features[4]) > 0.01 or abs(features[3]) > 0.1  # moving: the velocity part is tested
+    finally:
+        env.close()
+
+
+# the hall with a wall across it, a gap at its north side: the route matters
+WALLED = World("walled", (20.0, 8.0), 3.0, (Box((-5.0, -1.0, 1.5), (0.3, 6.0, 3.0)),), (-8.0, 0.0, 1.5), 0.0,
+               ((0.0, 0.0, 1.5),))
+
+
+def test_the_companions_route_equals_the_envs() -> None:
+    """The companion's planner, fed the same scans and the pose as the autopilot reports it (local
+    NED through :func:`enu_pose`), sends the policy where the env's ``route`` does."""
+    env = LidarNavEnv(NavEnvConfig(autopilot_response="ideal", route=True))
+    layout = env.layout
+    route = RoutePlanner(CompanionConfig().goal.route_planner, CompanionConfig().scan.max_range)
+    gx, gy, _ = WALLED.waypoints[0]
+    try:
+        obs, _ = env.reset(seed=1, options={"world": WALLED})
+        for step in range(40):
+            state = env._state
+            x, y, _ = map(float, state.position)
+            pose = enu_pose(y, x, math.pi / 2 - float(state.yaw))  # LOCAL_POSITION_NED and ATTITUDE
+            route.observe(obs[:360], *pose)
+            goal_x, goal_y, _ = enu_pose(gy, gx, 0.0)
+            sub = route.subgoal(*pose, goal_x, goal_y)
+            features = goal_features(sub.forward, sub.left, 0.0, 0.0, layout)
+            np.testing.assert_allclose(features[:3], obs[360:363], atol=2e-5)
+            if step == 0:
+                assert obs[361] > 0.3  # left, toward the gap: not straight at the waypoint ahead
+            obs, *_ = env.step(np.array([0.8, 0.5 if step < 10 else 0.0], np.float32))
+        assert route.plans > 1
     finally:
         env.close()

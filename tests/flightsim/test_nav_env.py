@@ -261,3 +261,25 @@ def test_the_drift_features_find_the_error_the_reported_velocity_hides(action) -
     # within a second (0.59 of it measured; none found would be 1.0, a sign error 2.0)
     assert rms(seen - truth) < 0.7 * rms(truth)
     env.close()
+
+
+def test_the_route_sends_the_goal_features_through_the_gap_and_passes_both_checkers() -> None:
+    """BLOCKED's wall leaves a gap at y 1..3: with ``route`` the goal features point at it (left of
+    the waypoint straight ahead) and read the longer way round; without, straight ahead."""
+    from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+    routed = LidarNavEnv(NavEnvConfig(autopilot_response="ideal", route=True, max_steps=50))
+    straight = LidarNavEnv(NavEnvConfig(autopilot_response="ideal", max_steps=50))
+    try:
+        obs, _ = routed.reset(seed=0, options={"world": BLOCKED})
+        direct, _ = straight.reset(seed=0, options={"world": BLOCKED})
+        assert direct[360:363] == pytest.approx([1.0, 0.0, 6.0 / 30.0], abs=1e-3)
+        cos, sin, distance = obs[360:363]
+        assert sin > 0.4 and cos > 0.3  # ahead-left, toward the gap's near side
+        assert distance * 30.0 > 6.5  # around the wall's end, not the straight 6 m
+        np.testing.assert_array_equal(obs[:360], direct[:360])  # the scan is untouched
+        gym_check_env(routed)
+        sb3_check_env(routed, warn=True)
+    finally:
+        routed.close()
+        straight.close()

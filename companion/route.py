@@ -1,0 +1,313 @@
+"""A route to the goal on a map of what the scans have shown: the goal features then point along it.
+
+A reactive policy sees one scan slice and a goal bearing. Where the goal lies behind a wall (the
+next room of an office, the far end of an aisle) the bearing points into the wall, and the policy
+slides along it until the time runs out. :class:`RoutePlanner` keeps an occupancy grid of every
+scan (returns mark cells occupied, the free ray before them clears cells), plans the cheapest
+8-connected route from the goal to the vehicle over it (cells near what was seen cost more, cells
+too near cost far more, unseen cells are free) and hands the policy a subgoal instead of the goal:
+the farthest point of the route, at most ``lookahead`` along it, that the vehicle can see in a
+straight line. Its distance feature is the route's length, so the policy does not slow for a
+subgoal that is not the end. With the goal in plain sight the subgoal is the goal itself, and
+nothing changes.
+
+Coordinates are planar metres in a right-handed frame with the heading counter-clockwise from +x:
+the environment's world frame (ENU) as is; the companion turns local NED into it with
+:func:`enu_pose`, so both build the same grid from the same flight. The map is fixed in that
+frame, so it trusts the pose it is given: the environment's true pose, or the autopilot's estimate
+in flight. Pure numpy and scipy (the
+distance transform and Dijkstra): the companion runs it in flight and the environment in
+training and evaluation, the same code.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import dijkstra
+
+#: A cell nearer than ``blocked_clearance`` costs this many times a free one (the route may still
+#: leave such a cell, or squeeze through when nothing else joins vehicle and goal).
+BLOCKED_COST = 200.0
+_SQRT2 = math.sqrt(2.0)
+# the 4 edges each cell owns (the other 4 are its neighbours'): right, up, up-right, down-right
+_EDGES = ((1, 0, 1.0), (0, 1, 1.0), (1, 1, _SQRT2), (1, -1, _SQRT2))
+
+
+@dataclass(frozen=True)
+class RouteConfig:
+    """Tuning of :class:`RoutePlanner` (strict-loadable: every bound is checked).
+
+    :param resolution: map cell size, metres
+    :param extent: side of the square map, metres, centred where the first scan was taken
+    :param blocked_clearance: cells nearer a seen obstacle than this are (nearly) blocked, metres:
+        the vehicle's radius and a margin
+    :param preferred_clearance: cells nearer than this cost more, in proportion, metres
+    :param lookahead: the subgoal lies at most this far along the route, metres
+    :param replan_every: scans between two plans; in between the subgoal moves along the last route
+    :param hit: evidence a return adds to its cell
+    :param miss: evidence a ray passing through a cell takes away
+    :param evidence_max: evidence saturates here (a cell seen occupied this often needs as many
+        misses to clear)
+    """
+
+    resolution: float = field(default=0.2, metadata={"min": 0.05, "max": 1.0})
+    extent: float = field(default=100.0, metadata={"min": 10.0, "max": 1000.0})
+    blocked_clearance: float = field(default=0.4, metadata={"min": 0.05, "max": 5.0})
+    preferred_clearance: float = field(default=1.0, metadata={"min": 0.05, "max": 10.0})
+    lookahead: float = field(default=5.0, metadata={"min": 0.5, "max": 50.0})
+    replan_every: int = field(default=5, metadata={"min": 1, "max": 100})
+    hit: float = field(default=3.0, metadata={"min": 0.1, "max": 100.0})
+    miss: float = field(default=1.0, metadata={"min": 0.0, "max": 100.0})
+    evidence_max: float = field(default=9.0, metadata={"min": 0.1, "max": 1000.0})
+
+    def __post_init__(self) -> None:
+        if self.preferred_clearance < self.blocked_clearance:
+            raise ValueError(
+                f"preferred_clearance {self.preferred_clearance} must be at least "
+                f"blocked_clearance {self.blocked_clearance}"
+            )
+
+
+@dataclass(frozen=True)
+class Subgoal:
+    """Where the policy is sent: ``(forward, left)`` metres in the body frame (FLU), and the route's
+    length to the goal (metres; the straight distance when no route was needed or found)."""
+
+    forward: float
+    left: float
+    distance: float
+
+
+class RoutePlanner:
+    """Occupancy grid of the scans, and the subgoal along the cheapest route to the goal.
+
+    :param config: tuning
+    :param max_range: the scan's range, metres (a bin of 1.0 saw nothing within it)
+    """
+
+    def __init__(self, config: RouteConfig, max_range: float) -> None:
+        self.config = config
+        self.max_range = float(max_range)
+        n = math.ceil(config.extent / config.resolution)
+        self._evidence = np.zeros((n, n), np.float32)
+        self._origin: np.ndarray | None = None  # world (x, y) of cell (0, 0)'s corner
+        self._route: np.ndarray | None = None  # (N, 2) world points, vehicle end first
+        self._route_goal: tuple[float, float] | None = None
+        self._since_plan = 0
+        self._window: tuple[int, int, np.ndarray] = (0, 0, np.zeros((0, 0)))  # the last plan's clearance
+        self.plans = 0
+
+    def reset(self) -> None:
+        """Forget the map and the route (a new episode, a new flight)."""
+        self._evidence[:] = 0.0
+        self._origin = None
+        self._route = None
+        self._route_goal = None
+        self._since_plan = 0
+
+    @property
+    def occupied(self) -> np.ndarray:
+        """(n, n) bool: cells the scans say are occupied (index ``[i, j]`` = x, y)."""
+        return self._evidence > 0.0
+
+    # ------------------------------------------------------------------ the map
+    def observe(self, scan: np.ndarray, x: float, y: float, heading: float) -> None:
+        """Add one scan taken at ``(x, y)`` facing ``heading`` (rad, CCW from +x).
+
+        :param scan: the normalised scan (bin i covers [i°, i+1°) CCW from the nose; 1.0 = nothing)
+        :raises ValueError: a non-finite pose or scan (the map must not take a false picture)
+        """
+        scan = np.asarray(scan, dtype=np.float64).reshape(-1)
+        pose_ok = all(math.isfinite(v) for v in (x, y, heading))
+        if not pose_ok or not np.isfinite(scan).all():
+            raise ValueError("the route map takes finite scans and poses only")
+        cfg = self.config
+        if self._origin is None:
+            self._origin = np.array([x, y]) - cfg.extent / 2.0
+        angles = heading + (np.arange(scan.size) + 0.5) * (2.0 * math.pi / scan.size)
+        ranges = np.clip(scan, 0.0, 1.0) * self.max_range
+        hit = scan < 1.0
+        # free space: samples every half cell, up to a cell short of each return
+        steps = np.arange(0.5, self.max_range / (0.5 * cfg.resolution)) * 0.5 * cfg.resolution
+        free_to = np.where(hit, ranges - cfg.resolution, self.max_range)
+        rr = steps[None, :]
+        keep = rr < free_to[:, None]
+        fx = (x + rr * np.cos(angles)[:, None])[keep]
+        fy = (y + rr * np.sin(angles)[:, None])[keep]
+        i, j, inside = self._cells(fx, fy)
+        self._evidence[i[inside], j[inside]] -= cfg.miss
+        hx = x + ranges[hit] * np.cos(angles[hit])
+        hy = y + ranges[hit] * np.sin(angles[hit])
+        i, j, inside = self._cells(hx, hy)
+        self._evidence[i[inside], j[inside]] += cfg.hit
+        np.clip(self._evidence, -cfg.evidence_max, cfg.evidence_max, out=self._evidence)
+
+    def _cells(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        assert self._origin is not None
+        n = self._evidence.shape[0]
+        i = np.floor((x - self._origin[0]) / self.config.resolution).astype(np.int64)
+        j = np.floor((y - self._origin[1]) / self.config.resolution).astype(np.int64)
+        inside = (i >= 0) & (j >= 0) & (i < n) & (j < n)
+        return i, j, inside
+
+    # ------------------------------------------------------------------ the route
+    def subgoal(self, x: float, y: float, heading: float, goal_x: float, goal_y: float) -> Subgoal:
+        """Where to send the policy from ``(x, y)``, facing ``heading``, for the goal ``(goal_x, goal_y)``.
+
+        Replans every ``replan_every`` calls and whenever the goal moves; in between the subgoal
+        moves along the last route. The goal itself when nothing has been seen yet, when the goal or
+        the vehicle lies off the map, or when no route joins them.
+        """
+        cfg = self.config
+        goal = (float(goal_x), float(goal_y))
+        position = np.array([x, y], dtype=np.float64)
+        if self._route is None or goal != self._route_goal or self._since_plan >= cfg.replan_every:
+            self._route = self._plan(position, np.array(goal))
+            self._route_goal = goal
+            self._since_plan = 0
+            self.plans += 1
+        self._since_plan += 1
+        if self._route is None:
+            return _in_body(goal[0] - x, goal[1] - y, heading, math.hypot(goal[0] - x, goal[1] - y))
+        target, length = self._along_route(position)
+        return _in_body(target[0] - x, target[1] - y, heading, length)
+
+    def _plan(self, start: np.ndarray, goal: np.ndarray) -> np.ndarray | None:
+        """The cheapest route ``(N, 2)``, world points from ``start`` to ``goal``, or None."""
+        if self._origin is None:
+            return None
+        cfg, res = self.config, self.config.resolution
+        occupied = self.occupied
+        (si, gi), (sj, gj), inside = self._cells(np.array([start[0], goal[0]]), np.array([start[1], goal[1]]))
+        rows, cols = np.flatnonzero(occupied.any(axis=1)), np.flatnonzero(occupied.any(axis=0))
+        if not inside.all() or rows.size == 0:
+            return None
+        # outside the box around every occupied cell, the vehicle and the goal, all is free: the
+        # cheapest route never leaves it by more than the clearance it prefers
+        n = occupied.shape[0]
+        margin = math.ceil(cfg.preferred_clearance / res) + 2
+        i0, i1 = max(min(rows[0], si, gi) - margin, 0), min(max(rows[-1], si, gi) + margin + 1, n)
+        j0, j1 = max(min(cols[0], sj, gj) - margin, 0), min(max(cols[-1], sj, gj) + margin + 1, n)
+        window = occupied[i0:i1, j0:j1]
+        clearance = ndimage.distance_transform_edt(~window) * res
+        cost = 1.0 + 2.0 * np.clip((cfg.preferred_clearance - clearance) / cfg.preferred_clearance, 0.0, 1.0)
+        cost[clearance < cfg.blocked_clearance] = BLOCKED_COST
+        cost[window] = np.inf
+        a, b = (si - i0, sj - j0), (gi - i0, gj - j0)
+        cost[a] = min(cost[a], BLOCKED_COST)  # the vehicle and the goal may sit in a cell seen occupied
+        cost[b] = min(cost[b], BLOCKED_COST)
+        self._window = (i0, j0, clearance)
+        cells = _cheapest_cells(cost, a, b)
+        if cells is None:
+            return None
+        points = (cells + np.array([i0, j0]) + 0.5) * res + self._origin
+        points[0], points[-1] = start, goal
+        return self._pull_taut(points)
+
+    def _pull_taut(self, points: np.ndarray) -> np.ndarray:
+        """Drop the corners a straight leg can skip while keeping ``blocked_clearance`` (the cell
+        path's staircase would read longer than the route is)."""
+        keep, anchor = [0], 0
+        while anchor < len(points) - 1:
+            nxt = anchor + 1
+            while nxt + 1 < len(points) and self._visible(points[anchor], points[nxt + 1]):
+                nxt += 1
+            keep.append(nxt)
+            anchor = nxt
+        return points[keep]
+
+    def _along_route(self, position: np.ndarray) -> tuple[np.ndarray, float]:
+        """The subgoal on the current route, seen from ``position``, and the route's length from there.
+
+        The vehicle is placed on the route where it is nearest to it; the candidates are the corners
+        ahead within ``lookahead`` and the point ``lookahead`` along, the farthest one in sight wins.
+        """
+        route = self._route
+        assert route is not None
+        a, b = route[:-1], route[1:]
+        seg = b - a
+        along = np.einsum("ij,ij->i", position - a, seg) / np.maximum(np.einsum("ij,ij->i", seg, seg), 1e-12)
+        foot = a + np.clip(along, 0.0, 1.0)[:, None] * seg
+        k = int(np.argmin(np.hypot(*(foot - position).T)))
+        ahead = np.concatenate([foot[k : k + 1], route[k + 1 :]])
+        arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(ahead, axis=0).T))])
+        arc += float(np.hypot(*(ahead[0] - position)))
+        lookahead = self.config.lookahead
+        inside = int(np.searchsorted(arc, lookahead, side="right"))
+        candidates = list(ahead[: max(inside, 1)])  # the foot of the route at least
+        if 0 < inside < len(ahead):  # the point lookahead along, on the leg that crosses it
+            frac = (lookahead - arc[inside - 1]) / max(arc[inside] - arc[inside - 1], 1e-12)
+            candidates.append(ahead[inside - 1] + frac * (ahead[inside] - ahead[inside - 1]))
+        for target in candidates[::-1]:
+            if self._visible(position, target):
+                return target, float(arc[-1])
+        return ahead[min(1, len(ahead) - 1)], float(arc[-1])
+
+    def _visible(self, a: np.ndarray, b: np.ndarray) -> bool:
+        """True if the segment a-b keeps ``blocked_clearance`` from what was seen (the part within
+        that distance of ``a`` excepted: the vehicle may already be that near a wall)."""
+        cfg = self.config
+        i0, j0, clearance = self._window
+        length = float(np.hypot(*(b - a)))
+        t = np.arange(0.0, length + 1e-9, 0.5 * cfg.resolution)
+        t = t[t >= cfg.blocked_clearance]
+        if t.size == 0:
+            return True
+        points = a + (b - a) * (t / max(length, 1e-9))[:, None]
+        i, j, inside = self._cells(points[:, 0], points[:, 1])
+        i, j = i - i0, j - j0
+        h, w = clearance.shape
+        on = inside & (i >= 0) & (j >= 0) & (i < h) & (j < w)
+        return bool((clearance[i[on], j[on]] >= cfg.blocked_clearance).all())
+
+
+def enu_pose(north: float, east: float, yaw: float) -> tuple[float, float, float]:
+    """A local NED position and heading (clockwise from north, rad) as the planner's ENU ``(x, y,
+    heading)``: x east, y north, heading counter-clockwise from east."""
+    return east, north, math.pi / 2.0 - yaw
+
+
+def _in_body(dx: float, dy: float, heading: float, length: float) -> Subgoal:
+    """The offset (dx, dy) turned into the body frame and stretched to ``length`` metres."""
+    c, s = math.cos(heading), math.sin(heading)
+    forward, left = c * dx + s * dy, -s * dx + c * dy
+    norm = math.hypot(forward, left)
+    if norm < 1e-9:
+        return Subgoal(0.0, 0.0, 0.0)
+    scale = max(length, norm) / norm
+    return Subgoal(float(forward * scale), float(left * scale), float(max(length, norm)))
+
+
+def _cheapest_cells(cost: np.ndarray, start: tuple[int, int], goal: tuple[int, int]) -> np.ndarray | None:
+    """The cheapest 8-connected cell path ``(N, 2)`` from ``start`` to ``goal`` over per-cell cost
+    factors (``inf``: impassable; a step costs its length times the mean of its two cells' factors;
+    no diagonal past an impassable corner), or None when none joins them. Dijkstra from the goal."""
+    h, w = cost.shape
+    index = np.arange(h * w).reshape(h, w)
+    finite = np.isfinite(cost)
+    rows, cols, weights = [], [], []
+    for di, dj, length in _EDGES:
+        # cells (i, j) and (i + di, j + dj), both inside
+        a = (slice(0, h - di), slice(max(-dj, 0), w - max(dj, 0)))
+        b = (slice(di, h), slice(max(dj, 0), w + min(dj, 0)))
+        ok = finite[a] & finite[b]
+        if di and dj:  # the two cells the diagonal passes between
+            ok &= finite[(slice(di, h), a[1])] & finite[(a[0], b[1])]
+        rows.append(index[a][ok])
+        cols.append(index[b][ok])
+        weights.append(length * 0.5 * (cost[a][ok] + cost[b][ok]))
+    n = h * w
+    graph = coo_matrix((np.concatenate(weights), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
+    source, target = index[goal], index[start]
+    _, predecessors = dijkstra(graph.tocsr(), directed=False, indices=source, return_predecessors=True)
+    if target != source and predecessors[target] < 0:
+        return None
+    path = [target]
+    while path[-1] != source:
+        path.append(int(predecessors[path[-1]]))
+    return np.stack(np.divmod(np.array(path), w), axis=1)

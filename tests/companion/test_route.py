@@ -1,0 +1,128 @@
+"""The route planner maps what the scans show and sends the policy around what blocks the goal."""
+
+import math
+
+import numpy as np
+import pytest
+
+from companion.route import RouteConfig, RoutePlanner
+
+MAX_RANGE = 10.0
+
+
+def segment_scan(x, y, heading, segments, n_bins=360):
+    """A normalised scan at (x, y) facing ``heading`` (CCW from +x) of line segments ((x0, y0), (x1, y1))."""
+    scan = np.ones(n_bins)
+    for i in range(n_bins):
+        a = heading + math.radians(i + 0.5)
+        d = np.array([math.cos(a), math.sin(a)])
+        for p, q in segments:
+            p, q = np.asarray(p, float), np.asarray(q, float)
+            e = q - p
+            det = d[0] * -e[1] + d[1] * e[0]
+            if abs(det) < 1e-12:
+                continue
+            rel = p - (x, y)
+            t = (rel[0] * -e[1] + rel[1] * e[0]) / det
+            u = (d[0] * rel[1] - d[1] * rel[0]) / det
+            if 0.0 < t < MAX_RANGE and 0.0 <= u <= 1.0:
+                scan[i] = min(scan[i], t / MAX_RANGE)
+    return scan
+
+
+#: a wall across the way from (0, 0) to the goal at (6, 0), open beyond y = 4 and below y = -6
+WALL = [((3.0, -6.0), (3.0, 4.0))]
+
+
+def planner(**changes):
+    return RoutePlanner(RouteConfig(**changes), MAX_RANGE)
+
+
+def test_nothing_seen_sends_the_policy_straight_at_the_goal():
+    route = planner()
+    sub = route.subgoal(0.0, 0.0, 0.0, 6.0, 0.0)
+    assert (sub.forward, sub.left, sub.distance) == pytest.approx((6.0, 0.0, 6.0))
+
+
+def test_a_goal_in_plain_sight_is_the_subgoal():
+    route = planner()
+    far_wall = [((9.0, -5.0), (9.0, 5.0))]
+    route.observe(segment_scan(0.0, 0.0, 0.0, far_wall), 0.0, 0.0, 0.0)
+    sub = route.subgoal(0.0, 0.0, 0.0, 6.0, 1.0)
+    assert (sub.forward, sub.left) == pytest.approx((6.0, 1.0), abs=1e-6)
+
+
+def test_a_wall_in_the_way_sends_the_policy_around_its_nearer_end():
+    route = planner()
+    route.observe(segment_scan(0.0, 0.0, 0.0, WALL), 0.0, 0.0, 0.0)
+    sub = route.subgoal(0.0, 0.0, 0.0, 6.0, 0.0)
+    bearing = math.degrees(math.atan2(sub.left, sub.forward))
+    assert 30.0 < bearing < 80.0  # to the left, toward the end at y = 4, not into the wall
+    # the distance feature is the route's length, around the end: longer than the straight 6 m
+    assert sub.distance > 2 * math.hypot(3.0, 4.0) - 0.5
+    assert math.hypot(sub.forward, sub.left) == pytest.approx(sub.distance)
+
+
+def test_the_subgoal_turns_with_the_vehicle():
+    """Facing +y, the same route reads as ahead-and-right in the body frame."""
+    route = planner()
+    route.observe(segment_scan(0.0, 0.0, math.pi / 2, WALL), 0.0, 0.0, math.pi / 2)
+    sub = route.subgoal(0.0, 0.0, math.pi / 2, 6.0, 0.0)
+    assert sub.forward > 0.0 and sub.left < 0.0
+
+
+def test_a_route_is_followed_between_plans_and_replanned_when_the_goal_moves():
+    route = planner(replan_every=10)
+    route.observe(segment_scan(0.0, 0.0, 0.0, WALL), 0.0, 0.0, 0.0)
+    route.subgoal(0.0, 0.0, 0.0, 6.0, 0.0)
+    route.subgoal(0.5, 1.0, 0.0, 6.0, 0.0)
+    assert route.plans == 1
+    route.subgoal(0.5, 1.0, 0.0, -6.0, 0.0)
+    assert route.plans == 2
+
+
+def test_a_free_ray_clears_a_cell_once_seen_occupied():
+    route = planner()
+    post = [((2.0, -0.2), (2.0, 0.2))]
+    route.observe(segment_scan(0.0, 0.0, 0.0, post), 0.0, 0.0, 0.0)
+    assert route.occupied.sum() > 0
+    for _ in range(12):  # the post is gone: every ray now passes where it stood
+        route.observe(np.ones(360), 0.0, 0.0, 0.0)
+    assert route.occupied.sum() == 0
+
+
+def test_a_goal_walled_in_all_round_falls_back_to_the_goal_itself():
+    route = planner()
+    corners = [(5.0, -1.0), (7.0, -1.0), (7.0, 1.0), (5.0, 1.0)]
+    box = list(zip(corners, corners[1:] + corners[:1], strict=True))
+    for x, y in ((0.0, 0.0), (8.5, 0.0), (6.0, 3.5), (6.0, -3.5)):  # every wall seen face on
+        route.observe(segment_scan(x, y, 0.0, box), x, y, 0.0)
+    sub = route.subgoal(0.0, 0.0, 0.0, 6.0, 0.0)
+    assert (sub.forward, sub.left) == pytest.approx((6.0, 0.0), abs=1e-6)
+
+
+@pytest.mark.parametrize(
+    "scan, pose",
+    [
+        (np.full(360, np.nan), (0.0, 0.0, 0.0)),
+        (np.ones(360), (math.nan, 0.0, 0.0)),
+        (np.ones(360), (0.0, 0.0, math.inf)),
+    ],
+)
+def test_a_false_picture_is_refused(scan, pose):
+    with pytest.raises(ValueError, match="finite"):
+        planner().observe(scan, *pose)
+
+
+def test_preferred_clearance_below_the_blocked_one_is_refused():
+    with pytest.raises(ValueError, match="preferred_clearance"):
+        RouteConfig(blocked_clearance=0.5, preferred_clearance=0.3)
+
+
+def test_reset_forgets_the_map():
+    route = planner()
+    route.observe(segment_scan(0.0, 0.0, 0.0, WALL), 0.0, 0.0, 0.0)
+    route.reset()
+    assert route.occupied.sum() == 0
+    sub = route.subgoal(0.0, 0.0, 0.0, 6.0, 0.0)
+    assert (sub.forward, sub.left) == pytest.approx((6.0, 0.0))
