@@ -1,8 +1,10 @@
 """End-to-end latency of the real companion process: VLP-16 packets in → setpoint bytes out.
 
 Starts ``avoid-companion run`` as a subprocess (ArduPilot link over UDP loopback, VLP-16 source on
-UDP loopback, a small ONNX policy) and plays ArduPilot to it from this process with a pymavlink
-socket (armed, GUIDED, in the air at 1.5 m). Each revolution is 75 real VLP-16 data packets at
+UDP loopback, a small ONNX policy under the default config: a goal-layout model) and plays ArduPilot
+to it from this process with the process tests' peer (tests/companion/mavlink_peer.py ``AutopilotPeer``:
+armed, GUIDED, hovering at 1.5 m, with ATTITUDE + LOCAL_POSITION_NED, the measured velocity without
+which a goal policy never engages). Each revolution is 75 real VLP-16 data packets at
 0.2° (28,800 returns); its azimuth wraps inside the last packet, so the companion can finish the
 revolution only once that packet is in. Per revolution this script records
 
@@ -47,22 +49,12 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from pymavlink import mavutil  # noqa: E402
-
-from companion.autopilot.mavlink_adapter import mavlink  # noqa: E402  (selects MAVLink 2 first)
 from companion.lidar.velodyne import PACKET_DURATION_US, encode_packets  # noqa: E402
+from tests.companion.mavlink_peer import SETPOINT, SO_TIMESTAMPNS, AutopilotPeer, free_udp_port  # noqa: E402
 from tests.onnx_models import write_policy  # noqa: E402
 
 FIRINGS = 1800  # 0.2° steps: 75 packets, 28,800 returns
 STEP_DEG = 0.2
-COPTER_GUIDED = 4
-SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def revolution(index: int) -> list[bytes]:
@@ -88,28 +80,32 @@ def cpu_seconds(pid: int) -> float:
 
 
 class Autopilot:
-    """This process's end of the MAVLink link: plays an ArduPilot Copter, catches setpoints."""
+    """This process's end of the MAVLink link: plays an ArduPilot Copter, catches setpoints.
+
+    The status streams are the process tests' (:class:`AutopilotPeer`, what ``SimulatedAutopilot``
+    sends every period), so the bench engages under whatever the companion's default config needs:
+    a goal policy flies only on a fresh measured velocity, LOCAL_POSITION_NED turned into the body
+    frame by a fresh ATTITUDE heading. Single-threaded (unlike ``SimulatedAutopilot``, whose thread
+    would stamp setpoints late by its GIL waits): it sends between revolutions only and reads the
+    setpoint's kernel receive timestamp itself.
+    """
 
     def __init__(self, port: int) -> None:
-        self.conn = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1,
-                                               source_component=1)
+        self.peer = AutopilotPeer(f"udpout:127.0.0.1:{port}")  # ArduPilot Copter, system 1 component 1
+        self.conn = self.peer.conn
         self.sock = self.conn.port
         self.sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
         self.last_status = 0.0
 
     def status(self) -> None:
-        """Heartbeat and status streams, at most every 0.1 s (between revolutions only)."""
+        """Heartbeat and status streams, at most every 0.1 s (between revolutions only): armed,
+        GUIDED, in the air at 1.5 m, climb settled, hovering (zero velocity, heading north)."""
         now = time.monotonic()
         if now - self.last_status < 0.1:
             return
         self.last_status = now
-        mav = self.conn.mav
-        base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mavlink.MAV_MODE_FLAG_SAFETY_ARMED
-        mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, base,
-                           COPTER_GUIDED, mavlink.MAV_STATE_ACTIVE)
-        mav.extended_sys_state_send(0, mavlink.MAV_LANDED_STATE_IN_AIR)
-        mav.global_position_int_send(0, 0, 0, 101_500, 1500, 0, 0, 0, 0)
-        mav.vfr_hud_send(0.0, 0.0, 0, 0, 101.5, 0.0)
+        self.peer.heartbeat()
+        self.peer.flying()
 
     def wait_setpoint(self, timeout: float) -> float | None:
         """When a SET_POSITION_TARGET_LOCAL_NED datagram reached this socket (kernel receive
@@ -127,7 +123,7 @@ class Autopilot:
                     seconds, nanoseconds = struct.unpack("qq", payload[:16])
                     arrived = seconds + nanoseconds * 1e-9
             for msg in parser.parse_buffer(data) or ():
-                if msg.get_type() == "SET_POSITION_TARGET_LOCAL_NED":
+                if msg.get_type() == SETPOINT:
                     return arrived
         return None
 
@@ -206,7 +202,7 @@ class Result:
 def run_companion(args: argparse.Namespace, revolutions: int, recording: bool = False) -> Result:
     """Start the companion, engage it, measure ``revolutions`` revolutions, stop it."""
     tmp = Path(tempfile.mkdtemp(prefix="bench-companion-"))
-    lidar_port, mavlink_port = free_port(), free_port()
+    lidar_port, mavlink_port = free_udp_port(), free_udp_port()
     model = write_policy(tmp / "steer.onnx", kind="steer")
     config = tmp / "companion.toml"
     recorder = (f'[recorder]\nenabled = true\ndirectory = "{tmp / "flights"}"\n'
