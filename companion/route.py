@@ -47,6 +47,8 @@ class RouteConfig:
     :param blocked_clearance: cells nearer a seen obstacle than this are (nearly) blocked, metres:
         the vehicle's radius and a margin
     :param preferred_clearance: cells nearer than this cost more, in proportion, metres
+    :param proximity_cost: extra cost of a cell next to a seen obstacle, in free cells (falling
+        linearly to 0 at ``preferred_clearance``): how far the route goes round for a wider way
     :param lookahead: the subgoal lies at most this far along the route, metres
     :param replan_every: scans between two plans; in between the subgoal moves along the last route
     :param hit: evidence a return adds to its cell
@@ -59,6 +61,7 @@ class RouteConfig:
     extent: float = field(default=100.0, metadata={"min": 10.0, "max": 1000.0})
     blocked_clearance: float = field(default=0.4, metadata={"min": 0.05, "max": 5.0})
     preferred_clearance: float = field(default=1.0, metadata={"min": 0.05, "max": 10.0})
+    proximity_cost: float = field(default=2.0, metadata={"min": 0.0, "max": 100.0})
     lookahead: float = field(default=5.0, metadata={"min": 0.5, "max": 50.0})
     replan_every: int = field(default=5, metadata={"min": 1, "max": 100})
     hit: float = field(default=3.0, metadata={"min": 0.1, "max": 100.0})
@@ -195,7 +198,8 @@ class RoutePlanner:
         j0, j1 = max(min(cols[0], sj, gj) - margin, 0), min(max(cols[-1], sj, gj) + margin + 1, n)
         window = occupied[i0:i1, j0:j1]
         clearance = ndimage.distance_transform_edt(~window) * res
-        cost = 1.0 + 2.0 * np.clip((cfg.preferred_clearance - clearance) / cfg.preferred_clearance, 0.0, 1.0)
+        nearness = np.clip((cfg.preferred_clearance - clearance) / cfg.preferred_clearance, 0.0, 1.0)
+        cost = 1.0 + cfg.proximity_cost * nearness
         cost[clearance < cfg.blocked_clearance] = BLOCKED_COST
         cost[window] = np.inf
         a, b = (si - i0, sj - j0), (gi - i0, gj - j0)
