@@ -103,7 +103,7 @@ class RoutePlanner:
         self._route_goal: tuple[float, float] | None = None
         self._since_plan = 0
         self._window: tuple[int, int, np.ndarray] = (0, 0, np.zeros((0, 0)))  # the last plan's clearance
-        self.plans = 0
+        self.plans = 0  # plans made so far (benches and tests read it)
 
     def reset(self) -> None:
         """Forget the map and the route (a new episode, a new flight)."""
