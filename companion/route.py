@@ -30,6 +30,8 @@ from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
+from companion.observation import goal_in_body
+
 #: A cell nearer than ``blocked_clearance`` costs this many times a free one (the route may still
 #: leave such a cell, or squeeze through when nothing else joins vehicle and goal).
 BLOCKED_COST = 200.0
@@ -78,12 +80,17 @@ class RouteConfig:
 
 @dataclass(frozen=True)
 class Subgoal:
-    """Where the policy is sent: ``(forward, left)`` metres in the body frame (FLU), and the route's
-    length to the goal (metres; the straight distance when no route was needed or found)."""
+    """Where the policy is sent: ``(forward, left)`` metres in the body frame (FLU), stretched so
+    that their length is the route's to the goal (the straight distance when no route was needed
+    or found)."""
 
     forward: float
     left: float
-    distance: float
+
+    @property
+    def distance(self) -> float:
+        """The route's length to the goal, metres (what the distance feature reads)."""
+        return math.hypot(self.forward, self.left)
 
 
 class RoutePlanner:
@@ -142,13 +149,17 @@ class RoutePlanner:
         keep = rr < free_to[:, None]
         fx = (x + rr * np.cos(angles)[:, None])[keep]
         fy = (y + rr * np.sin(angles)[:, None])[keep]
-        i, j, inside = self._cells(fx, fy)
-        self._evidence[i[inside], j[inside]] -= cfg.miss
+        fi, fj, inside = self._cells(fx, fy)
+        fi, fj = fi[inside], fj[inside]
+        self._evidence[fi, fj] -= cfg.miss
         hx = x + ranges[hit] * np.cos(angles[hit])
         hy = y + ranges[hit] * np.sin(angles[hit])
-        i, j, inside = self._cells(hx, hy)
-        self._evidence[i[inside], j[inside]] += cfg.hit
-        np.clip(self._evidence, -cfg.evidence_max, cfg.evidence_max, out=self._evidence)
+        hi, hj, inside = self._cells(hx, hy)
+        hi, hj = hi[inside], hj[inside]
+        self._evidence[hi, hj] += cfg.hit
+        # only the cells this scan touched can have left the bounds
+        touched = (np.concatenate([fi, hi]), np.concatenate([fj, hj]))
+        self._evidence[touched] = np.clip(self._evidence[touched], -cfg.evidence_max, cfg.evidence_max)
 
     def _cells(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         assert self._origin is not None
@@ -277,14 +288,14 @@ def enu_pose(north: float, east: float, yaw: float) -> tuple[float, float, float
 
 
 def _in_body(dx: float, dy: float, heading: float, length: float) -> Subgoal:
-    """The offset (dx, dy) turned into the body frame and stretched to ``length`` metres."""
-    c, s = math.cos(heading), math.sin(heading)
-    forward, left = c * dx + s * dy, -s * dx + c * dy
+    """The offset (dx, dy) turned into the body frame and stretched to ``length`` metres (never
+    shorter than the offset itself)."""
+    forward, left = goal_in_body(dx, dy, heading)
     norm = math.hypot(forward, left)
     if norm < 1e-9:
-        return Subgoal(0.0, 0.0, 0.0)
+        return Subgoal(0.0, 0.0)
     scale = max(length, norm) / norm
-    return Subgoal(float(forward * scale), float(left * scale), float(max(length, norm)))
+    return Subgoal(float(forward * scale), float(left * scale))
 
 
 def _cheapest_cells(cost: np.ndarray, start: tuple[int, int], goal: tuple[int, int]) -> np.ndarray | None:
