@@ -92,6 +92,10 @@ def test_defaults_and_overrides(tmp_path):
          r"autopilot: connect: .*'udpin:0\.0\.0\.0:99999': port '99999' is not a port number 1-65535"),
         ("[autopilot]\nconnect = \"udpin//0.0.0.0:14550\"\n", r"autopilot: connect: .*unknown scheme"),
         ("[params_check]\nmode = \"refuse\"\n", r"params_check: mode is 'refuse' but no file is given"),
+        ("[goal.route_planner]\npreferred_clearance = 0.1\n",
+         r"goal\.route_planner: preferred_clearance 0\.1 must be at least blocked_clearance 0\.4"),
+        ("[goal.route_planner]\nreplan_every = 0\n",
+         r"goal\.route_planner\.replan_every: 0 is below the minimum 1"),
     ],
 )
 def test_mistakes_name_the_key(tmp_path, text, message):
