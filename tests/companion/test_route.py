@@ -126,3 +126,16 @@ def test_reset_forgets_the_map():
     assert route.occupied.sum() == 0
     sub = route.subgoal(0.0, 0.0, 0.0, 6.0, 0.0)
     assert (sub.forward, sub.left) == pytest.approx((6.0, 0.0))
+
+
+def test_a_gap_the_vehicle_barely_fits_is_passed_up_for_a_way_round_a_little_longer():
+    """A 0.9 m gap straight ahead (it keeps ``blocked_clearance``, just) and the wall's end 2 m to the
+    side: the default route goes round the end, 2.4 m longer; at proximity_cost 2 (the default
+    before) it threads the gap."""
+    walls = [((3.0, -6.0), (3.0, -0.45)), ((3.0, 0.45), (3.0, 2.0))]
+    for route, through_the_gap in ((planner(), False), (planner(proximity_cost=2.0), True)):
+        route.observe(segment_scan(0.0, 0.0, 0.0, walls), 0.0, 0.0, 0.0)
+        sub = route.subgoal(0.0, 0.0, 0.0, 6.0, 0.0)
+        bearing = math.degrees(math.atan2(sub.left, sub.forward))
+        assert (abs(bearing) < 1.0) == through_the_gap, bearing
+        assert (sub.distance < 6.01) == through_the_gap, sub.distance
