@@ -51,6 +51,14 @@ class PPOConfig:
     #: (training/scan_features.py: circular 1-D convolutions over the stacked scans, the other
     #: features beside them; the actor and the critic each have their own)
     features_extractor: Literal["flat", "circular_scan"] = "flat"
+    #: stop an update's epochs once the approximate KL divergence from the policy that collected
+    #: the rollout passes this (SB3's ``target_kl``; 0: never), so a fine-tune's first updates,
+    #: against a critic that has not yet seen the policy fly, cannot tear up what it learnt
+    target_kl: float = field(default=0.0, metadata={"min": 0.0, "max": 10.0})
+    #: a trained model (.zip) whose actor and critic start PPO: a fine-tune, e.g. of a DAgger
+    #: student. The hyperparameters stay this config's, and the action noise restarts at
+    #: ``log_std_init``. "": a fresh network
+    init_from: str = ""
 
 
 @dataclass(frozen=True)
@@ -171,6 +179,11 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if not isinstance(self.env, dict):
             raise ValueError("env must be a table")
+        if self.ppo.init_from and self.pretrain.steps:
+            raise ValueError(
+                "ppo.init_from starts PPO from a trained model and [pretrain] steps would train one "
+                "first: give one of them"
+            )
         if self.total_timesteps == 0 and not self.pretrain.steps:
             raise ValueError("total_timesteps 0 trains nothing: give it steps, or [pretrain] steps")
         if self.pretrain.steps and self.pretrain.method == "dagger":

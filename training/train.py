@@ -432,7 +432,7 @@ def build_model(config: TrainConfig, venv: Any, run_dir: Path, resume: Path | No
         return PPO.load(str(resume), env=venv, device="cpu", tensorboard_log=str(run_dir / "tb"))
     p = config.ppo
     linear = p.learning_rate_schedule == "linear"
-    return PPO(
+    model = PPO(
         "MlpPolicy",
         venv,
         learning_rate=LinearSchedule(p.learning_rate, 0.0, 1.0) if linear else p.learning_rate,
@@ -450,7 +450,34 @@ def build_model(config: TrainConfig, venv: Any, run_dir: Path, resume: Path | No
         seed=config.seed,
         device="cpu",
         verbose=1,
+        target_kl=p.target_kl or None,
     )
+    if p.init_from:
+        start_from(model, Path(p.init_from), p.log_std_init)
+    return model
+
+
+def start_from(model: Any, path: Path, log_std: float) -> None:
+    """Give ``model`` the actor and critic weights of the trained model ``path`` (a fine-tune).
+
+    Only the network's weights are taken: the optimizer restarts, the hyperparameters stay the
+    config's, and the action noise restarts at ``log_std`` (a DAgger student never fitted its own).
+
+    :raises UserError: ``path`` is not a checkpoint, or its network is not this config's
+    """
+    import torch
+
+    from training.export import load_model
+
+    trained = load_model(path).policy.state_dict()
+    try:
+        model.policy.load_state_dict(trained)
+    except RuntimeError as exc:
+        first = str(exc).strip().splitlines()
+        detail = next((line.strip() for line in first[1:] if line.strip()), first[0] if first else "")
+        raise UserError(f"ppo.init_from {path}: its network is not this config's ({detail})") from None
+    with torch.no_grad():
+        model.policy.log_std.fill_(log_std)
 
 
 def warm_start(

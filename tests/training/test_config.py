@@ -68,6 +68,8 @@ def test_overrides_reach_nested_tables_and_env(tmp_path):
         ("total_timesteps = 0\n", [], "total_timesteps"),  # nothing to train
         ("[pretrain]\nsteps = 10\nmethod = 'dagger'\n", [], "dagger"),  # the avoid task
         ("[pretrain]\nmethod = 'imitate'\n", [], "pretrain.method"),
+        ("[ppo]\ntarget_kl = -0.1\n", [], "ppo.target_kl"),
+        ("[ppo]\ninit_from = 'a.zip'\n[pretrain]\nsteps = 10\n", [], "ppo.init_from"),  # one or the other
     ],
 )
 def test_mistakes_name_the_key(tmp_path, text, overrides, named):

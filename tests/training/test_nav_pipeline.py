@@ -137,3 +137,35 @@ def test_an_ensemble_member_for_another_action_scaling_is_refused_in_one_line(na
     assert len(err.splitlines()) == 1
     assert f"{member}: trained for another observation or action scaling than" in err
     assert not (tmp_path / "mean.onnx").exists()
+
+
+def _fine_tune(nav_run, tmp_path, *overrides: str) -> int:
+    trained = nav_run["run_dir"] / "final_model.zip"
+    argv = ["train", "--config", str(nav_run["config"]), f"run_root={tmp_path / 'runs'}", "name=tiny-ft",
+            f"ppo.init_from={trained}", "total_timesteps=64", *overrides]  # fmt: skip
+    return main(argv)
+
+
+def test_a_fine_tune_starts_from_the_trained_weights_with_fresh_action_noise(nav_run, tmp_path):
+    """PPO from a trained model: its actor and critic carry over, the noise restarts at log_std_init
+    (one update at the smallest learning rate moves the weights by far less than the tolerance)."""
+    import torch
+    from stable_baselines3 import PPO
+
+    assert _fine_tune(nav_run, tmp_path, "ppo.log_std_init=-2.0", "ppo.learning_rate=1e-7") == 0
+    trained = PPO.load(str(nav_run["run_dir"] / "final_model.zip"), device="cpu").policy.state_dict()
+    tuned_path = tmp_path / "runs" / "tiny-ft-s2" / "final_model.zip"
+    tuned = PPO.load(str(tuned_path), device="cpu").policy.state_dict()
+    assert set(tuned) == set(trained)
+    for name, weights in tuned.items():
+        if name == "log_std":
+            torch.testing.assert_close(weights, torch.full_like(weights, -2.0), atol=1e-4, rtol=0)
+        else:
+            torch.testing.assert_close(weights, trained[name], atol=1e-4, rtol=0)
+
+
+def test_a_fine_tune_from_another_network_is_refused_in_one_line(nav_run, tmp_path, capsys):
+    assert _fine_tune(nav_run, tmp_path, "ppo.net_arch=[32, 32]") == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert "ppo.init_from" in err and "its network is not this config's" in err and "size mismatch" in err
