@@ -107,3 +107,15 @@ def test_learning_rate_schedule_reaches_the_ppo_model(tmp_path, schedule, at_end
     assert model.lr_schedule(1.0) == pytest.approx(3e-4)  # progress_remaining 1: the start
     assert model.lr_schedule(0.5) == pytest.approx((3e-4 + at_end) / 2)
     assert model.lr_schedule(0.0) == pytest.approx(at_end)
+
+
+@pytest.mark.parametrize(("value", "reaches"), [(0.0, None), (0.02, 0.02)])
+def test_target_kl_reaches_the_ppo_model_and_zero_means_none(tmp_path, value, reaches):
+    import gymnasium as gym
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from training.train import build_model
+
+    c = load_train_config(None, [f"ppo.target_kl={value}", "ppo.n_steps=64"])
+    model = build_model(c, DummyVecEnv([lambda: gym.make("Pendulum-v1")]), tmp_path, None)
+    assert model.target_kl == reaches
