@@ -467,9 +467,7 @@ def start_from(model: Any, path: Path, log_std: float) -> None:
     """
     import torch
 
-    from training.export import load_model
-
-    trained = load_model(path).policy.state_dict()
+    trained = initial_model(path).policy.state_dict()
     try:
         model.policy.load_state_dict(trained)
     except RuntimeError as exc:
@@ -478,6 +476,19 @@ def start_from(model: Any, path: Path, log_std: float) -> None:
         raise UserError(f"ppo.init_from {path}: its network is not this config's ({detail})") from None
     with torch.no_grad():
         model.policy.log_std.fill_(log_std)
+
+
+def initial_model(path: Path) -> Any:
+    """The model ``ppo.init_from`` names, loaded.
+
+    :raises UserError: naming ``ppo.init_from``, when ``path`` is missing or not an SB3 checkpoint
+    """
+    from training.export import load_model
+
+    try:
+        return load_model(path)
+    except UserError as exc:
+        raise UserError(f"ppo.init_from: {exc}") from None
 
 
 def warm_start(
@@ -661,6 +672,8 @@ def command(args: argparse.Namespace) -> int:
     if args.resume is not None and args.overwrite:
         raise UserError("--resume and --overwrite exclude each other")
     resume = resume_checkpoint(args.resume, config.run_dir)
+    if config.ppo.init_from and resume is None:
+        initial_model(Path(config.ppo.init_from))  # before the run directory: a typo leaves none
     prepare_run_dir(config, resume is not None, args.overwrite)
     try:
         final = train(config, resume)

@@ -139,8 +139,8 @@ def test_an_ensemble_member_for_another_action_scaling_is_refused_in_one_line(na
     assert not (tmp_path / "mean.onnx").exists()
 
 
-def _fine_tune(nav_run, tmp_path, *overrides: str) -> int:
-    trained = nav_run["run_dir"] / "final_model.zip"
+def _fine_tune(nav_run, tmp_path, *overrides: str, trained=None) -> int:
+    trained = trained or nav_run["run_dir"] / "final_model.zip"
     argv = ["train", "--config", str(nav_run["config"]), f"run_root={tmp_path / 'runs'}", "name=tiny-ft",
             f"ppo.init_from={trained}", "total_timesteps=64", *overrides]  # fmt: skip
     return main(argv)
@@ -169,3 +169,11 @@ def test_a_fine_tune_from_another_network_is_refused_in_one_line(nav_run, tmp_pa
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1
     assert "ppo.init_from" in err and "its network is not this config's" in err and "size mismatch" in err
+
+
+def test_a_missing_fine_tune_start_is_refused_in_one_line_before_the_run_directory(tmp_path, nav_run, capsys):
+    assert _fine_tune(nav_run, tmp_path, trained=tmp_path / "nowhere.zip") == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert err.endswith(f"ppo.init_from: model file not found: {tmp_path / 'nowhere.zip'}")
+    assert not (tmp_path / "runs" / "tiny-ft-s2").exists()  # nothing to --overwrite after the fix
