@@ -471,8 +471,9 @@ def start_from(model: Any, path: Path, log_std: float) -> None:
     try:
         model.policy.load_state_dict(trained)
     except RuntimeError as exc:
-        first = str(exc).strip().splitlines()
-        detail = next((line.strip() for line in first[1:] if line.strip()), first[0] if first else "")
+        # torch: "Error(s) in loading state_dict for ...:" then one line per mismatch; name the first
+        lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+        detail = lines[1] if len(lines) > 1 else " ".join(lines)
         raise UserError(f"ppo.init_from {path}: its network is not this config's ({detail})") from None
     with torch.no_grad():
         model.policy.log_std.fill_(log_std)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+from pathlib import Path
 
 import numpy as np
 import onnx
@@ -139,7 +140,7 @@ def test_an_ensemble_member_for_another_action_scaling_is_refused_in_one_line(na
     assert not (tmp_path / "mean.onnx").exists()
 
 
-def _fine_tune(nav_run, tmp_path, *overrides: str, trained=None) -> int:
+def _fine_tune(nav_run, tmp_path, *overrides: str, trained: Path | None = None) -> int:
     trained = trained or nav_run["run_dir"] / "final_model.zip"
     argv = ["train", "--config", str(nav_run["config"]), f"run_root={tmp_path / 'runs'}", "name=tiny-ft",
             f"ppo.init_from={trained}", "total_timesteps=64", *overrides]  # fmt: skip
