@@ -21,8 +21,9 @@ Every controller sees one scan per step through the same interface (``reset(scan
 ``act(scan)``). The learned policy goes through the companion's own :class:`FrameStack`; an
 ``.onnx`` file runs through the companion's :class:`OnnxPolicy`, so the figures are those of what
 flies, not of the training framework. With ``--shield`` every controller's actions also pass
-through the companion's :class:`SafetyShield` (default ``[shield]`` limits), as they do in flight;
-the report labels those rows ``<controller>+shield``.
+through the companion's :class:`SafetyShield` (default ``[shield]`` limits, or the ``[shield]`` table
+of the companion config given in ``--shield-config``), as they do in flight; the report labels those
+rows ``<controller>+shield``.
 
 Episodes are independent tasks run in a process pool (one process per core by default) or, with
 ``--executor ray``, as Ray tasks on a local Ray or a cluster (``--address``); both feed the same
@@ -50,6 +51,7 @@ from companion.errors import UserError
 from companion.framestack import FrameStack
 from companion.scan import N_BINS
 from companion.shield import SafetyShield, ShieldConfig, command_from_action
+from companion.tomlconfig import from_dict, load_toml
 from training.config import NEAR_MISS_DISTANCE, STEP_SECONDS, SUCCESS_MIN_MEAN_SPEED
 
 log = logging.getLogger(__name__)
@@ -160,12 +162,13 @@ def sb3_controller(model: Any, n_stack: int, frame_size: int = N_BINS) -> Stacke
 class ControllerSpec:
     """What to build in a worker: ``kind`` is ``policy`` (``path``) or one of :data:`BASELINES` /
     :data:`GOAL_BASELINES` / :data:`PRIVILEGED_GOAL_CONTROLLERS`; ``shield``: behind the
-    companion's safety shield."""
+    companion's safety shield, with ``shield_config``'s limits (None: the defaults)."""
 
     kind: str
     path: str = ""
     name: str = ""
     shield: bool = False
+    shield_config: ShieldConfig | None = None
 
     @property
     def label(self) -> str:
@@ -334,7 +337,8 @@ def build_controller(
     controller = _bare_controller(spec, env_config, seed, n_stack, env)
     if not spec.shield:
         return controller
-    shield = SafetyShield(ShieldConfig(), float(env_config.scan.max_range), env_config.autopilot_response)
+    limits = spec.shield_config or ShieldConfig()
+    shield = SafetyShield(limits, float(env_config.scan.max_range), env_config.autopilot_response)
     return ShieldedController(
         controller, shield, float(env_config.max_speed), float(env_config.max_yaw_rate), velocity, lateral
     )
@@ -442,8 +446,6 @@ def _worker_env(env_dict: dict[str, Any], env_id: str = AVOID_ENV_ID) -> Any:
 
 def make_eval_env(env_dict: dict[str, Any], env_id: str = AVOID_ENV_ID) -> Any:
     """A single simulator environment of ``env_id`` from an ``[env]`` table (strictly checked)."""
-    from companion.tomlconfig import from_dict
-
     if env_id == NAV_ENV_ID:
         from flightsim.nav_env import LidarNavEnv, NavEnvConfig
 
@@ -791,21 +793,23 @@ def evaluate(
     env_id: str = AVOID_ENV_ID,
     executor: str = "local",
     address: str | None = None,
+    shield_config: ShieldConfig | None = None,
 ) -> tuple[dict[str, Any], list[EpisodeResult]]:
     """Evaluate ``policy`` (optional) and ``baselines`` on ``worlds``: (report dict, episode results).
 
     :param baselines: default: the task's (:data:`BASELINES` or :data:`GOAL_BASELINES`)
     :param shield: every controller behind the companion's safety shield
     :param env_id: the task
+    :param shield_config: the shield's limits (None: the defaults)
     :param executor: one of :data:`EXECUTORS` (see :func:`make_executor`; ``local`` with one worker
         runs in this process)
     :param address: the Ray cluster to join (``ray`` only; default: start a local Ray)
     """
     if baselines is None:
         baselines = GOAL_BASELINES if env_id == NAV_ENV_ID else BASELINES
-    controllers = ([ControllerSpec("policy", str(policy), "policy", shield)] if policy else []) + [
-        ControllerSpec(b, shield=shield) for b in baselines
-    ]
+    controllers = (
+        [ControllerSpec("policy", str(policy), "policy", shield, shield_config)] if policy else []
+    ) + [ControllerSpec(b, shield=shield, shield_config=shield_config) for b in baselines]
     tasks = make_tasks(controllers, worlds, episodes, env, env_id)
     if workers <= 1 and executor == "local":
         results = run_tasks(tasks)
@@ -859,6 +863,12 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         help="fly every controller behind the companion's safety shield (default limits), as in flight",
     )
     parser.add_argument(
+        "--shield-config",
+        type=Path,
+        metavar="TOML",
+        help="a companion config whose [shield] table gives the shield's limits (implies --shield)",
+    )
+    parser.add_argument(
         "--autopilot-response",
         metavar="NAME",
         help="how the autopilot answers the setpoints (sets env.autopilot_response): ideal, the calibrated "
@@ -901,6 +911,18 @@ def parse_baselines(value: str | None, env_id: str) -> list[str] | None:
     return names
 
 
+def read_shield_table(path: Path) -> ShieldConfig:
+    """The ``[shield]`` table of a companion config (the file the drone flies; its other tables are
+    not read), checked as the companion checks it.
+
+    :raises UserError: naming the file when it has no ``[shield]`` table, or the key that is wrong
+    """
+    table = load_toml(path).get("shield")
+    if not isinstance(table, dict):
+        raise UserError(f"--shield-config {path}: no [shield] table")
+    return from_dict(ShieldConfig, table, "shield.")
+
+
 def command(args: argparse.Namespace) -> int:
     from training.config import load_train_config
 
@@ -922,13 +944,15 @@ def command(args: argparse.Namespace) -> int:
     baselines = parse_baselines(args.baselines, config.env_id)
     if args.policy is None and baselines == []:
         raise UserError("--baselines '' and no --policy: nothing to evaluate")
+    limits = read_shield_table(args.shield_config) if args.shield_config else ShieldConfig()
+    shield = args.shield or args.shield_config is not None
     summary, results = evaluate(
-        args.policy, worlds, args.episodes, config.env, workers, baselines=baselines, shield=args.shield,
-        env_id=config.env_id, executor=args.executor, address=args.address,
+        args.policy, worlds, args.episodes, config.env, workers, baselines=baselines, shield=shield,
+        env_id=config.env_id, executor=args.executor, address=args.address, shield_config=limits,
     )  # fmt: skip
     summary["env_id"] = config.env_id
     summary["policy"] = None if args.policy is None else str(args.policy)
-    summary["shield"] = asdict(ShieldConfig()) if args.shield else None
+    summary["shield"] = asdict(limits) if shield else None
     print(format_table(summary, per_world=args.per_world or args.worlds is not None))
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -177,6 +177,44 @@ def test_evaluate_behind_the_shield_flies_every_controller_through_it(pipeline, 
     assert data["shield"]["estop_distance"] == 0.3
 
 
+def test_evaluate_flies_the_shield_limits_of_a_companion_config(capsys, tmp_path):
+    """``--shield-config``: the [shield] table of the file the drone flies sets the limits (and implies
+    ``--shield``); the same episode flies slower under a lower speed limit."""
+    companion = tmp_path / "companion.toml"
+    companion.write_text('[policy]\nmodel = "policy.onnx"\n\n[shield]\nmax_speed = 0.3\n')
+    flown = {}
+    for name, extra in (("default", ["--shield"]), ("slow", ["--shield-config", str(companion)])):
+        report = tmp_path / f"{name}.json"
+        argv = ["evaluate", "--baselines", "gap_follower", "--seeds", "1", "--workers", "1",
+                "--set", "env.max_steps=40", *extra, "--json", str(report)]  # fmt: skip
+        assert main(argv) == 0
+        data = json.loads(report.read_text())
+        assert set(data["controllers"]) == {"gap_follower+shield"}
+        flown[name] = data["episodes"][0]["distance"]
+        if name == "slow":
+            assert data["shield"]["max_speed"] == 0.3 and data["shield"]["estop_distance"] == 0.3
+    assert 0.0 < flown["slow"] <= 0.3 * 40 * 0.1 * 1.2  # 40 steps of 0.1 s at 0.3 m/s, and some lag
+    assert flown["slow"] < flown["default"] / 2
+
+
+@pytest.mark.parametrize(
+    ("text", "named"),
+    [
+        ("[policy]\nmodel = 'p.onnx'\n", "no [shield] table"),
+        ("[shield]\nmax_speed = -1.0\n", "shield.max_speed"),
+        ("[shield]\nmax_sped = 1.0\n", "shield.max_sped"),
+        ("[shield\n", "companion.toml"),
+    ],
+)
+def test_a_bad_shield_config_is_one_line_naming_what_is_wrong(capsys, tmp_path, text, named):
+    companion = tmp_path / "companion.toml"
+    companion.write_text(text)
+    argv = ["evaluate", "--baselines", "gap_follower", "--seeds", "1", "--shield-config", str(companion)]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("avoid-train: error: ") and "\n" not in err and named in err
+
+
 def test_evaluate_through_a_firmware_response_flies_differently(pipeline, capsys, tmp_path):
     """``--autopilot-response px4`` reaches the env: the same episodes fly less far than ideal."""
     flown = {}
