@@ -245,14 +245,31 @@ class SafetyShield:
         self._previous = Command(0.0, 0.0)
         self._previous_nearest = None
 
-    def forward_cap(self, scan: np.ndarray) -> float:
+    def forward_cap(self, scan: np.ndarray, velocity: tuple[float, float] | None = None) -> float:
         """The fastest forward speed the shield lets through against ``scan`` (0 inside
-        ``estop_distance``), m/s: what a policy that needs no shield asks for at most.
+        ``estop_distance``), m/s: what a policy that needs no shield asks for at most. Counts no
+        intervention and changes no state.
 
         :param scan: ``(360,)`` normalised ranges, bins counter-clockwise from forward
+        :param velocity: the measured body velocity (forward, left), m/s; given, the cap also
+            holds along the travel as in :meth:`filter` (the clearance from the course round to
+            the nose), and is 0 where the shield would brake against the motion or where the
+            velocity is not finite; None: the nose sector alone
         """
         values, _ = _finite_scan(scan)
-        return self._allowed_speed(float(values[self._forward_bins].min()) * self.max_range)
+        cap = self._allowed_speed(float(values[self._forward_bins].min()) * self.max_range)
+        if velocity is None:
+            return cap
+        v_forward, v_left = float(velocity[0]), float(velocity[1])
+        if not (math.isfinite(v_forward) and math.isfinite(v_left)):
+            return 0.0
+        speed = math.hypot(v_forward, v_left)
+        if speed < MIN_TRAVEL_SPEED:
+            return cap
+        clearance = self._travel_clearance(values, v_forward, v_left, 0.0)
+        if not self._can_stop(speed, clearance):
+            return 0.0
+        return min(cap, self._allowed_speed(clearance))
 
     def filter(
         self,
@@ -339,19 +356,29 @@ class SafetyShield:
         speed = math.hypot(v_forward, v_left)
         if speed < MIN_TRAVEL_SPEED:
             return math.inf, None
-        course = math.degrees(math.atan2(v_left, v_forward))
-        heading = 0.0 if forward >= 0.0 else 180.0
-        width = self.config.travel_sector_deg
-        clearance = float(values[arc_bins(course, heading, width)].min()) * self.max_range
+        clearance = self._travel_clearance(values, v_forward, v_left, 0.0 if forward >= 0.0 else 180.0)
         cap = self._clearance_cap(abs(forward), clearance, "estop_travel")
-        margin = clearance - self.config.estop_distance
-        if stopping_distance(speed, self.max_decel, self.reaction_time) < margin:
+        if self._can_stop(speed, clearance):
             return cap, None
         self.interventions["motion_stop"] += 1
         # brake against the motion, no faster than max_reverse_speed nor than the room behind it allows
+        course = math.degrees(math.atan2(v_left, v_forward))
+        width = self.config.travel_sector_deg
         behind = float(values[sector_bins((course + 180.0) % 360.0, width)].min()) * self.max_range
         magnitude = min(speed, self.config.max_reverse_speed, self._allowed_speed(behind))
         return cap, (-v_forward / speed * magnitude, -v_left / speed * magnitude)
+
+    def _travel_clearance(self, values: np.ndarray, v_forward: float, v_left: float, heading: float) -> float:
+        """Nearest return, m, over the arc from the measured course round to ``heading`` (0: the
+        nose, 180: the tail), ±``travel_sector_deg``."""
+        course = math.degrees(math.atan2(v_left, v_forward))
+        bins = arc_bins(course, heading, self.config.travel_sector_deg)
+        return float(values[bins].min()) * self.max_range
+
+    def _can_stop(self, speed: float, clearance: float) -> bool:
+        """Whether the measured ``speed`` stops short of ``estop_distance`` before ``clearance``."""
+        margin = clearance - self.config.estop_distance
+        return stopping_distance(speed, self.max_decel, self.reaction_time) < margin
 
     def _keep_out(
         self, values: np.ndarray, forward: float, lateral: float, dt: float

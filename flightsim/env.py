@@ -56,6 +56,10 @@ class EnvConfig:
     :param overspeed_penalty: reward cost per step of asking for more forward speed than the
         shield lets through (:meth:`SafetyShield.forward_cap`), per ``max_speed`` of excess: a
         policy trained behind the shield then brakes by itself instead of leaving it to the shield
+    :param overspeed_travel: the cap of ``overspeed_penalty`` also watches the measured velocity,
+        as the shield does in flight: the clearance from the course round to the nose, and 0 where
+        the shield would brake against the motion (:meth:`SafetyShield.forward_cap` given the
+        velocity); off: the nose sector alone, as every run before it was trained
     :param autopilot_response: how the autopilot answers the setpoints (:mod:`flightsim.autopilot_response`):
         ``"ideal"`` flies them as given (the vehicle of every result so far), ``"px4"`` and
         ``"ardupilot"`` as those firmwares do (calibrated on recordings of real SITL), ``"random"``
@@ -78,6 +82,7 @@ class EnvConfig:
     shield: bool = False
     unshielded_fraction: float = field(default=0.0, metadata={"min": 0.0, "max": 1.0})
     overspeed_penalty: float = field(default=0.0, metadata={"min": 0.0, "max": 100.0})
+    overspeed_travel: bool = False
     autopilot_response: Literal["ideal", "px4", "ardupilot", "random"] = "ideal"
 
 
@@ -155,7 +160,8 @@ class LidarAvoidEnv(gym.Env):
     proximity penalty, −0.2 sharp turn, collision −200). Success is flying ≥ 40 m in 100 s without
     a collision: the tutorial's reward lets a hovering policy score well, "progress" does not.
     With ``overspeed_penalty`` > 0, asking for more forward speed than the safety shield would let
-    through costs that much per step per ``max_speed`` of excess, with or without the shield.
+    through costs that much per step per ``max_speed`` of excess, with or without the shield (with
+    ``overspeed_travel``, what it would let through given the measured velocity too).
 
     ## Starting State
     Hovering at the world's start position and heading, motors at hover thrust, zero velocity.
@@ -272,16 +278,18 @@ class LidarAvoidEnv(gym.Env):
         a0, a1 = _clip_unit(v0), _clip_unit(v1)
         cfg = self.config
         seen = self._previous_scan if cfg.latency_scans else self._scan
+        # as in flight: the shield also watches the velocity the autopilot measures
+        measured = self.measured_body_velocity()
+        velocity = (float(measured[0]), float(measured[1]))
         overspeed = 0.0
         if cfg.overspeed_penalty > 0.0:
-            overspeed = max(0.0, a0 - self._shield.forward_cap(seen) / cfg.max_speed)
+            cap = self._shield.forward_cap(seen, velocity if cfg.overspeed_travel else None)
+            overspeed = max(0.0, a0 - cap / cfg.max_speed)
         lateral, self._lateral = self._lateral, 0.0
         if self._shielded:
-            # as in flight: the shield also watches the velocity the autopilot measures
-            velocity = self.measured_body_velocity()
             safe = self._shield.filter(
                 command_from_action((a0, a1), cfg.max_speed, cfg.max_yaw_rate), seen, 1.0 / CONTROL_HZ,
-                velocity=(float(velocity[0]), float(velocity[1])),
+                velocity=velocity,
             )
             a0, a1 = safe.forward / cfg.max_speed, safe.yaw_rate / cfg.max_yaw_rate
             lateral = safe.lateral

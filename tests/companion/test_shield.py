@@ -114,6 +114,39 @@ def test_forward_cap_is_the_speed_the_filter_lets_through(bins: dict[int, float]
         shield.forward_cap(np.ones(359))
 
 
+def test_forward_cap_given_the_motion_is_what_the_filter_lets_through_along_it() -> None:
+    """With the measured velocity, the cap holds along the travel as in ``filter``: capped by the
+    clearance along the course, 0 where the filter would brake, and no intervention counted."""
+    wall = scan_with({b: 2.0 for b in bins_around(-60.0)})  # nothing ahead of the nose
+    shield = SafetyShield(ShieldConfig(keepout_distance=0.0), MAX_RANGE, "ardupilot")
+    assert shield.forward_cap(wall) == shield.forward_cap(CLEAR)  # the nose alone: nothing ahead
+    slow_slide = (0.0, -0.3)  # drifting right: can stop, but the speed is capped by the wall there
+    out = Command(0.0, 0.0)
+    for _ in range(30):
+        out = shield.filter(Command(2.0, 0.0), wall, 0.1, velocity=slow_slide)
+    assert shield.forward_cap(wall, slow_slide) == pytest.approx(out.forward)
+    assert out.forward < 2.0
+    counted = dict(shield.interventions)
+    close = scan_with({b: 0.8 for b in bins_around(-57.0)})
+    sliding = (0.9, -0.6)  # the filter brakes against this motion (the u-trap test below)
+    assert shield.forward_cap(close, sliding) == 0.0
+    assert shield.forward_cap(close, (0.05, 0.0)) == shield.forward_cap(close)  # below the noise floor
+    assert shield.forward_cap(CLEAR, (math.nan, 0.0)) == 0.0  # as filter: a non-finite velocity stops
+    assert dict(shield.interventions) == counted
+
+
+@given(
+    hnp.arrays(np.float32, 360, elements=st.floats(0.0, 1.0, width=32)),
+    st.tuples(st.floats(-2.5, 2.5), st.floats(-2.5, 2.5)),
+)
+@settings(max_examples=200, deadline=None)
+def test_forward_cap_given_the_motion_is_never_above_the_nose_alone(
+    scan: np.ndarray, velocity: tuple[float, float]
+) -> None:
+    shield = SafetyShield(ShieldConfig(), MAX_RANGE, "px4")
+    assert 0.0 <= shield.forward_cap(scan, velocity) <= shield.forward_cap(scan)
+
+
 def test_returns_outside_the_forward_sector_do_not_slow_forward_flight() -> None:
     shield = SafetyShield(BASE, MAX_RANGE)
     # 0.5 m at 31°-left and at 31°-right (bins 31 and 328) are outside ±30°

@@ -259,6 +259,33 @@ def test_overspeed_penalty_charges_asking_for_more_than_the_shield_allows() -> N
     assert rewards(2.0, 0.0) == rewards(0.0, 0.0)  # asking for nothing costs nothing
 
 
+def test_overspeed_along_the_travel_charges_where_the_motion_is_capped_too() -> None:
+    """``overspeed_travel``: the cap also watches the measured velocity, as the shield in flight
+    does, so it charges at least as much as the nose alone, more when the course runs closer to a
+    wall than the nose, and flies the very same episode."""
+
+    def flight(travel: bool, a0_turning: float) -> tuple[list[float], list[np.ndarray]]:
+        config = EnvConfig(overspeed_penalty=2.0, overspeed_travel=travel, autopilot_response="px4")
+        env = LidarAvoidEnv(config)
+        env.reset(seed=0, options={"world": CORRIDOR})
+        rewards, positions = [], []
+        for k in range(40):  # along the corridor, then a hard turn towards its wall
+            action = [1.0, 0.0] if k < 15 else [a0_turning, 1.0]
+            _, reward, terminated, truncated, info = env.step(np.array(action, np.float32))
+            rewards.append(reward)
+            positions.append(info["position"])
+            if terminated or truncated:
+                break
+        env.close()
+        return rewards, positions
+
+    (nose, nose_path), (travel, travel_path) = flight(False, 1.0), flight(True, 1.0)
+    np.testing.assert_array_equal(np.array(nose_path), np.array(travel_path))  # a reward term only
+    assert all(t <= n + 1e-9 for t, n in zip(travel, nose, strict=True))
+    assert sum(nose) - sum(travel) > 0.5
+    assert flight(True, 0.0)[0][15:] == flight(False, 0.0)[0][15:]  # asking for nothing costs nothing
+
+
 def test_truncated_at_max_steps() -> None:
     env = LidarAvoidEnv(EnvConfig(max_steps=5))
     env.reset(seed=0, options={"world": CORRIDOR})
