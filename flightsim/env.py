@@ -278,9 +278,11 @@ class LidarAvoidEnv(gym.Env):
         a0, a1 = _clip_unit(v0), _clip_unit(v1)
         cfg = self.config
         seen = self._previous_scan if cfg.latency_scans else self._scan
-        # as in flight: the shield also watches the velocity the autopilot measures
-        measured = self.measured_body_velocity()
-        velocity = (float(measured[0]), float(measured[1]))
+        # as in flight: the shield also watches the velocity the autopilot measures (read only when used)
+        velocity = None
+        if self._shielded or (cfg.overspeed_penalty > 0.0 and cfg.overspeed_travel):
+            measured = self.measured_body_velocity()
+            velocity = (float(measured[0]), float(measured[1]))
         overspeed = 0.0
         if cfg.overspeed_penalty > 0.0:
             cap = self._shield.forward_cap(seen, velocity if cfg.overspeed_travel else None)
