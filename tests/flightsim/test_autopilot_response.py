@@ -19,7 +19,7 @@ estimate error). The ideal vehicle (today's env) breaks them, the calibrated mod
 from __future__ import annotations
 
 import math
-from dataclasses import fields
+from dataclasses import fields, replace
 
 import numpy as np
 import pytest
@@ -351,6 +351,27 @@ def test_predict_matches_the_model_flown_including_the_command_in_flight(params)
     moved = _sent_just_now(params).predict(0.0, np.zeros((1, 2)), 10, 25)[0, -1, 0]
     assert moved > 0.001
     assert AutopilotResponse(params).predict(0.0, np.zeros((1, 2)), 10, 25)[0, -1, 0] == 0.0
+
+
+def test_predict_lets_the_estimate_error_decay_as_its_expectation_does():
+    """From a hover with a large estimate error, the predicted hold drifts as the mean of many
+    flights does (the error relaxes with est_vel_tau_s); held at today's value it was predicted
+    to carry on, twice as far over 4 s."""
+    params = replace(PX4, est_vel_sigma=0.6)
+    base = AutopilotResponse(params, np.random.default_rng(3))
+    error = base.estimate_error
+    assert np.hypot(*error) > 0.5
+    predicted = base.predict(0.0, np.zeros((1, 2)), 1, 40)[0, -1, :2]
+    flown = []
+    for seed in range(400):
+        model = AutopilotResponse(params, np.random.default_rng(seed))
+        model.reset(0.0)
+        model._x[:] = base._x  # the same error to start from, each flight its own noise after
+        flown.append(_fly_point_mass(model, [(0.0, 0.0)] * 40)[-1, :2])
+    mean = np.mean(flown, axis=0)
+    assert np.linalg.norm(predicted - mean) < 0.25, (predicted, mean)  # the mean of 400: ±0.07 m an axis
+    held = -error * 4.0  # the autopilot holds the estimate still: truly, it flies minus the error
+    assert np.linalg.norm(held - mean) > 0.5 * np.hypot(*error)
 
 
 def test_predict_foresees_the_jsbsim_vehicle_through_a_random_response():

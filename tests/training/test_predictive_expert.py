@@ -42,16 +42,26 @@ def test_with_the_ideal_autopilot_it_is_the_path_expert():
 def test_it_flies_the_least_cost_of_the_safe_candidates():
     spare = np.array([-0.1, 0.2, 0.05, 0.3])
     score = np.array([0.0, 5.0, 1.0, 2.0])
-    assert pick(spare, score, 0.05) == 2
+    assert pick(spare, spare, score, 0.05) == 2
 
 
 def test_with_no_safe_candidate_the_cost_decides_among_the_clearest():
     """A tie in clearance is settled by the cost (the path, the last command), not by the order
     of the candidate grid: the first of a tie made recovery labels jump from side to side."""
-    spare = np.array([-0.30, -0.12, -0.10, -0.11, -0.50])
+    near = np.array([-0.30, -0.12, -0.10, -0.11, -0.50])
     score = np.array([0.0, 1.0, 3.0, 2.0, 0.5])
-    assert pick(spare, score, 0.05) == 1
-    assert pick(spare, score, 0.0) == 2  # no tolerance: the clearest alone
+    assert pick(near - 0.2, near, score, 0.05) == 1
+    assert pick(near - 0.2, near, score, 0.0) == 2  # no tolerance: the clearest alone
+
+
+def test_with_no_safe_candidate_the_clearance_while_the_command_is_sent_decides():
+    """Every stop drifting into the wall alike (the hold carries the estimate error) ties the
+    whole predictions' spare; the candidate that keeps clear while it is sent wins, not the one
+    that costs least (towards the goal, through the wall)."""
+    spare = np.array([-0.40, -0.41, -0.40])
+    near = np.array([-0.30, 0.10, -0.05])
+    score = np.array([0.0, 2.0, 1.0])
+    assert pick(spare, near, score, 0.05) == 1
 
 
 def test_the_change_cost_is_from_the_command_the_env_flew_not_the_teachers_last_label():
@@ -131,4 +141,4 @@ def test_the_robust_teacher_brakes_where_only_a_slower_draw_of_the_firmware_woul
         if terminated or truncated:
             break
         flown, label = plain.act(), robust.act()
-    assert min(slower) >= 0.0 and max(slower) > 0.25
+    assert min(slower) >= 0.0 and max(slower) >= 0.2  # a fifth of the top speed less
