@@ -50,7 +50,7 @@ import numpy as np
 from companion.errors import UserError
 from companion.framestack import FrameStack
 from companion.scan import N_BINS
-from companion.shield import SafetyShield, ShieldConfig, command_from_action
+from companion.shield import Command, SafetyShield, ShieldConfig, command_from_action
 from companion.tomlconfig import from_dict, load_toml
 from training.config import NEAR_MISS_DISTANCE, STEP_SECONDS, SUCCESS_MIN_MEAN_SPEED
 
@@ -122,6 +122,8 @@ class ShieldedController:
         self._scale = (max_speed, max_yaw_rate)
         self._velocity = velocity
         self._lateral = lateral
+        #: the last (requested, sent) commands, for a trace (``avoid-train trace``)
+        self.last: tuple[Command, Command] | None = None
 
     def reset(self, scan: np.ndarray) -> np.ndarray:
         self.shield.reset()
@@ -137,9 +139,9 @@ class ShieldedController:
         if self._velocity is not None:
             v = self._velocity()
             measured = (float(v[0]), float(v[1]))
-        safe = self.shield.filter(
-            command_from_action(action, max_speed, max_yaw_rate), scan, STEP_SECONDS, measured
-        )
+        requested = command_from_action(action, max_speed, max_yaw_rate)
+        safe = self.shield.filter(requested, scan, STEP_SECONDS, measured)
+        self.last = (requested, safe)
         if self._lateral is not None:
             self._lateral(safe.lateral)
         return np.array([safe.forward / max_speed, safe.yaw_rate / max_yaw_rate], dtype=np.float32)
@@ -455,14 +457,20 @@ def make_eval_env(env_dict: dict[str, Any], env_id: str = AVOID_ENV_ID) -> Any:
     return LidarAvoidEnv(from_dict(EnvConfig, env_dict, prefix="env."))
 
 
-def run_task(task: EpisodeTask) -> EpisodeResult:
-    """Run one :class:`EpisodeTask` (in a worker process or in-line)."""
+def run_task(task: EpisodeTask, wrap: Callable[[Controller, Any], Controller] | None = None) -> EpisodeResult:
+    """Run one :class:`EpisodeTask` (in a worker process or in-line).
+
+    :param wrap: given the controller and the unwrapped env, the controller to fly instead (one that
+        watches it: :class:`training.trace.Tracer`)
+    """
     env = _worker_env(task.env, task.env_id)
     unwrapped = env.unwrapped
-    controller = build_controller(
+    controller: Controller = build_controller(
         task.controller, unwrapped.config, task.seed,
         velocity=unwrapped.measured_body_velocity, lateral=unwrapped.command_lateral, env=unwrapped,
     )  # fmt: skip
+    if wrap is not None:
+        controller = wrap(controller, unwrapped)
     result = run_episode(env, controller, task.world.reset_options(), seed=task.seed)
     result.controller, result.world, result.episode = task.controller.label, task.world.name, task.episode
     return result
@@ -819,15 +827,9 @@ def evaluate(
     return report(results, worlds), results
 
 
-def configure_parser(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--policy", type=Path, help="policy to evaluate (.onnx or SB3 .zip); without one, the baselines alone"
-    )
-    parser.add_argument(
-        "--baselines",
-        metavar="NAMES",
-        help="comma-separated baselines to fly beside the policy (default: the task's; empty: none)",
-    )
+def add_flight_arguments(parser: argparse.ArgumentParser) -> None:
+    """The arguments that say where and how an episode is flown (``evaluate`` and ``trace``): the
+    worlds, the config and its overrides, the shield and the autopilot response."""
     where = parser.add_mutually_exclusive_group(required=True)
     where.add_argument("--worlds", type=Path, help="directory of world JSON files")
     where.add_argument(
@@ -845,7 +847,6 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         type=float,
         help="generator difficulty for --seeds (default 0.5; goal task: spread over env.difficulty_range)",
     )
-    parser.add_argument("--episodes", type=int, default=1, help="episodes per world")
     parser.add_argument(
         "--config", type=Path, help="training config whose [env] table to fly in (default: env defaults)"
     )
@@ -874,6 +875,19 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         help="how the autopilot answers the setpoints (sets env.autopilot_response): ideal, the calibrated "
         "px4 or ardupilot firmware response, or random per episode (default: the config's, else ideal)",
     )
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--policy", type=Path, help="policy to evaluate (.onnx or SB3 .zip); without one, the baselines alone"
+    )
+    parser.add_argument(
+        "--baselines",
+        metavar="NAMES",
+        help="comma-separated baselines to fly beside the policy (default: the task's; empty: none)",
+    )
+    add_flight_arguments(parser)
+    parser.add_argument("--episodes", type=int, default=1, help="episodes per world")
     parser.add_argument(
         "--workers",
         type=int,
@@ -897,8 +911,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--png", type=Path, help="draw the trajectories over each world here")
 
 
-def parse_baselines(value: str | None, env_id: str) -> list[str] | None:
-    """``--baselines``: None (not given: the task's), or the names, each checked against the task's."""
+def parse_baselines(value: str | None, env_id: str, flag: str = "--baselines") -> list[str] | None:
+    """``--baselines``: None (not given: the task's), or the names, each checked against the task's
+    (``flag``: the option named in the error)."""
     if value is None:
         return None
     known = GOAL_BASELINES + PRIVILEGED_GOAL_CONTROLLERS if env_id == NAV_ENV_ID else BASELINES
@@ -906,7 +921,7 @@ def parse_baselines(value: str | None, env_id: str) -> list[str] | None:
     unknown = [name for name in names if name not in known]
     if unknown:
         raise UserError(
-            f"--baselines: {unknown[0]!r} is not a baseline of this task; known: {', '.join(known)}"
+            f"{flag}: {unknown[0]!r} is not a baseline of this task; known: {', '.join(known)}"
         )
     return names
 
@@ -923,29 +938,57 @@ def read_shield_table(path: Path) -> ShieldConfig:
     return from_dict(ShieldConfig, table, "shield.")
 
 
-def command(args: argparse.Namespace) -> int:
+@dataclass(frozen=True)
+class Flight:
+    """What :func:`add_flight_arguments` said, loaded and checked.
+
+    :param config: the training config (its ``env`` table, with the overrides)
+    :param env_config: its env's config object
+    :param worlds: the worlds named
+    :param shield_config: the shield's limits
+    :param shield: whether controllers fly behind the shield
+    """
+
+    config: Any
+    env_config: Any
+    worlds: list[WorldSpec]
+    shield_config: ShieldConfig
+    shield: bool
+
+
+def load_flight(args: argparse.Namespace) -> Flight:
+    """The :class:`Flight` of :func:`add_flight_arguments`' arguments.
+
+    :raises UserError: a bad config, override, world or shield table, in one line
+    """
     from training.config import load_train_config
 
-    if args.episodes < 1:
-        raise UserError("--episodes must be at least 1")
-    if args.address is not None and args.executor != "ray":
-        raise UserError("--address names a Ray cluster: it needs --executor ray")
-    if args.address is not None and args.workers:
-        raise UserError("--workers sizes a local pool or Ray; with --address the cluster's CPUs decide")
     overrides = list(args.overrides)
     if args.autopilot_response:
         overrides.append(f"env.autopilot_response={args.autopilot_response}")
     config = load_train_config(args.config, overrides)
     env_config = config.env_config()
     worlds = worlds_from_args(args, env_config)
+    limits = read_shield_table(args.shield_config) if args.shield_config else ShieldConfig()
+    return Flight(config, env_config, worlds, limits, args.shield or args.shield_config is not None)
+
+
+def command(args: argparse.Namespace) -> int:
+    if args.episodes < 1:
+        raise UserError("--episodes must be at least 1")
+    if args.address is not None and args.executor != "ray":
+        raise UserError("--address names a Ray cluster: it needs --executor ray")
+    if args.address is not None and args.workers:
+        raise UserError("--workers sizes a local pool or Ray; with --address the cluster's CPUs decide")
+    flight = load_flight(args)
+    config, env_config, worlds = flight.config, flight.env_config, flight.worlds
+    limits, shield = flight.shield_config, flight.shield
     workers = args.workers or (os.cpu_count() or 1)
     if args.policy is not None:
         load_policy(args.policy, env_config, config.n_stack)  # fail fast, with a one-line error
     baselines = parse_baselines(args.baselines, config.env_id)
     if args.policy is None and baselines == []:
         raise UserError("--baselines '' and no --policy: nothing to evaluate")
-    limits = read_shield_table(args.shield_config) if args.shield_config else ShieldConfig()
-    shield = args.shield or args.shield_config is not None
     summary, results = evaluate(
         args.policy, worlds, args.episodes, config.env, workers, baselines=baselines, shield=shield,
         env_id=config.env_id, executor=args.executor, address=args.address, shield_config=limits,
