@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import csv
 import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -91,7 +92,7 @@ class Tracer:
     def act(self, scan: np.ndarray) -> np.ndarray:
         return self._record(scan, lambda: self._inner.act(scan))
 
-    def _record(self, scan: np.ndarray, choose: Any) -> np.ndarray:
+    def _record(self, scan: np.ndarray, choose: Callable[[], np.ndarray]) -> np.ndarray:
         shielded = self._inner if isinstance(self._inner, ShieldedController) else None
         before = dict(shielded.shield.interventions) if shielded else {}
         action = choose()
