@@ -364,6 +364,11 @@ class LidarAvoidEnv(gym.Env):
             raise RuntimeError("call reset() before measured_body_velocity()")
         if self._response is not None:
             return self._response.measured_body_velocity(self._state)
+        return self.true_body_velocity()
+
+    def true_body_velocity(self) -> np.ndarray:
+        """The horizontal velocity the vehicle truly has: (forward, left) m/s, body FLU. Privileged,
+        as :attr:`true_state` (a trace shows it beside :meth:`measured_body_velocity`)."""
         c, s = math.cos(self._state.yaw), math.sin(self._state.yaw)
         vx, vy = float(self._state.velocity[0]), float(self._state.velocity[1])
         return np.array([c * vx + s * vy, -s * vx + c * vy])

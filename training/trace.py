@@ -105,9 +105,7 @@ class Tracer:
             asked = sent = command_from_action(action, config.max_speed, config.max_yaw_rate)
             acted = {}
         state = self._env.true_state
-        cos, sin = math.cos(state.yaw), math.sin(state.yaw)
-        vx, vy = float(state.velocity[0]), float(state.velocity[1])
-        reported = self._env.measured_body_velocity()
+        reported, true = self._env.measured_body_velocity(), self._env.true_body_velocity()
         ranges = np.asarray(scan[:N_BINS], dtype=np.float64) * float(config.scan.max_range)
         nearest = int(np.argmin(ranges))
         self.steps.append(StepTrace(
@@ -116,7 +114,7 @@ class Tracer:
             asked_forward=asked.forward, asked_yaw_rate=asked.yaw_rate, sent_forward=sent.forward,
             sent_lateral=sent.lateral, sent_yaw_rate=sent.yaw_rate,
             reported_forward=float(reported[0]), reported_left=float(reported[1]),
-            true_forward=cos * vx + sin * vy, true_left=-sin * vx + cos * vy,
+            true_forward=float(true[0]), true_left=float(true[1]),
             shield=" ".join(f"{k}" if n == 1 else f"{k}x{n}" for k, n in acted.items()),
         ))  # fmt: skip
         return action
