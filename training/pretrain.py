@@ -55,7 +55,7 @@ def collect(
     :param n_steps: env steps to record, all envs together
     :param gamma: discount of the recorded returns (PPO's)
     """
-    from training.evaluate import ControllerSpec, build_controller
+    from training.controllers import ControllerSpec, build_controller
 
     n_envs = venv.num_envs
     frame = venv.observation_space.shape[0] // n_stack

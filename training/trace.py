@@ -2,7 +2,7 @@
 
 An evaluation says that a world failed; a trace says how. It flies the same episode as
 ``avoid-train evaluate`` with the same arguments (the same world, response draw and sensor noise:
-:func:`~training.evaluate.episode_seed`) and records, at every command: where the vehicle truly is,
+:func:`~training.episodes.episode_seed`) and records, at every command: where the vehicle truly is,
 the nearest return of the scan the controller saw, what the controller asked, what the shield sent
 and which of its limits acted, the velocity the autopilot reported and the true one (the difference
 is the estimate error that made most shielded collisions). Rows print as a table, or go to a CSV.
@@ -26,19 +26,9 @@ import numpy as np
 from companion.errors import UserError
 from companion.scan import N_BINS
 from companion.shield import command_from_action
-from training.evaluate import (
-    Controller,
-    ControllerSpec,
-    EpisodeResult,
-    Flight,
-    ShieldedController,
-    add_flight_arguments,
-    load_flight,
-    load_policy,
-    make_tasks,
-    parse_baselines,
-    run_task,
-)
+from training.controllers import Controller, ControllerSpec, ShieldedController, load_policy
+from training.episodes import EpisodeResult, make_tasks, run_task
+from training.evaluate import Flight, add_flight_arguments, load_flight, parse_baselines
 
 
 @dataclass(frozen=True)
@@ -76,7 +66,7 @@ class StepTrace:
 class Tracer:
     """Flies ``inner`` and records a :class:`StepTrace` for each of its commands.
 
-    :param inner: the controller (a :class:`~training.evaluate.ShieldedController` shows its shield)
+    :param inner: the controller (a :class:`~training.controllers.ShieldedController` shows its shield)
     :param env: the unwrapped env it flies (its true state is read, never changed)
     """
 

@@ -45,14 +45,10 @@ import numpy as np
 from companion.errors import UserError
 from companion.scan import N_BINS
 from training.config import TrainConfig, config_to_toml, load_train_config
-from training.evaluate import (
-    ControllerSpec,
-    WorldSpec,
-    goal_worlds,
-    make_tasks,
-    run_tasks,
-    summarise,
-)
+from training.controllers import ControllerSpec
+from training.episodes import WorldSpec, goal_worlds, make_tasks
+from training.evaluate import run_tasks
+from training.report import summarise
 
 log = logging.getLogger(__name__)
 

@@ -172,7 +172,7 @@ def test_goal_follower_brakes_when_it_slides_toward_a_wall_beside_it():
 def test_goal_follower_reaches_a_validation_forest_it_used_to_hit_a_tree_in():
     # validation world forest-500000 (difficulty 0.1) through the randomised autopilot response of
     # reset seed 0 (PX4-like, yaw rate capped at 0.88 rad/s): the old controller hit a tree after 6 s
-    from training.evaluate import NAV_ENV_ID, make_eval_env, run_episode
+    from training.episodes import NAV_ENV_ID, make_eval_env, run_episode
 
     env = make_eval_env({"autopilot_response": "random", "wind_gust_max": 0.5}, NAV_ENV_ID)
     layout = env.unwrapped.config.layout

@@ -6,16 +6,9 @@ import numpy as np
 import pytest
 
 from companion.shield import SafetyShield, ShieldConfig
-from training.evaluate import (
-    ControllerSpec,
-    EpisodeResult,
-    ShieldedController,
-    WorldSpec,
-    format_table,
-    is_success,
-    report,
-    run_episode,
-)
+from training.controllers import ControllerSpec, ShieldedController
+from training.episodes import EpisodeResult, WorldSpec, is_success, run_episode
+from training.report import format_table, report
 
 
 class ScriptedEnv:
@@ -171,7 +164,8 @@ def test_shielded_rows_are_labelled_as_such():
 def test_every_controller_has_its_own_colour_and_the_legend_names_them_all():
     """With --shield every label ends in "+shield": each still gets its own colour."""
     from flightsim.env import EnvConfig
-    from training.evaluate import EpisodeResult, WorldSpec, controller_colours, trajectory_figure
+    from training.episodes import EpisodeResult, WorldSpec
+    from training.report import controller_colours, trajectory_figure
 
     shielded = ["policy+shield", "gap_follower+shield", "random+shield"]
     colours = controller_colours(shielded)

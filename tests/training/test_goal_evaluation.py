@@ -10,7 +10,8 @@ from companion.errors import UserError
 from flightsim import seeds
 from flightsim.families import FAMILIES
 from training.__main__ import main
-from training.evaluate import EpisodeResult, format_table, goal_summary, goal_worlds, report
+from training.episodes import EpisodeResult, goal_worlds
+from training.report import format_table, goal_summary, report
 
 
 def _episode(controller, world, family, *, success=False, collision=False, timeout=False, steps=100, flown=12.0):  # noqa: E501
@@ -107,11 +108,13 @@ def test_the_teachers_are_flown_only_when_named_and_read_the_env_they_fly(tmp_pa
     """``--baselines path_expert,predictive_expert``: the DAgger teachers on the held-out worlds
     (their rates bound the student's); they need the env, so a build without one is refused, and
     the avoidance task has none."""
-    from training import evaluate
+    from training import controllers
+    from training.controllers import ControllerSpec, build_controller
     from training.dagger import TEACHERS
-    from training.evaluate import AVOID_ENV_ID, NAV_ENV_ID, ControllerSpec, build_controller, parse_baselines
+    from training.episodes import AVOID_ENV_ID, NAV_ENV_ID
+    from training.evaluate import parse_baselines
 
-    assert set(evaluate.PRIVILEGED_GOAL_CONTROLLERS) == set(TEACHERS)  # evaluation flies every DAgger teacher
+    assert set(controllers.PRIVILEGED_GOAL_CONTROLLERS) == set(TEACHERS)  # every DAgger teacher is flown
     config = tmp_path / "nav.toml"
     config.write_text(
         'env_id = "flightsim/LidarNav-v0"\n[eval]\nfirst_seed = 500000\n'
@@ -133,7 +136,8 @@ def test_the_teachers_are_flown_only_when_named_and_read_the_env_they_fly(tmp_pa
 
 def test_each_goal_world_flies_its_own_reset_seed_and_every_controller_the_same():
     """The reset seed decides the random autopilot response: one seed for all worlds was one draw."""
-    from training.evaluate import NAV_ENV_ID, ControllerSpec, make_tasks
+    from training.controllers import ControllerSpec
+    from training.episodes import NAV_ENV_ID, make_tasks
 
     worlds = goal_worlds(FAMILIES[:2], seeds.TEST.start, 5, (0.0, 1.0))
     controllers = [ControllerSpec("goal_follower"), ControllerSpec("straight_line")]

@@ -33,7 +33,7 @@ def config(tmp_path_factory):
     from companion.policy import PolicySpec
     from companion.scan import BIN_CONVENTION, N_BINS
     from training.config import load_train_config
-    from training.evaluate import _layout
+    from training.controllers import observation_layout
 
     path = tmp_path_factory.mktemp("ray-evaluation") / "nav.toml"
     path.write_text(CONFIG)
@@ -42,7 +42,7 @@ def config(tmp_path_factory):
     spec = PolicySpec(
         stack=train.n_stack, n_bins=N_BINS, max_range=float(env.scan.max_range),
         bin_convention=BIN_CONVENTION, max_speed=float(env.max_speed), max_yaw_rate=float(env.max_yaw_rate),
-        layout=_layout(env),
+        layout=observation_layout(env),
     )  # fmt: skip
     write_policy(path.parent / "policy.onnx", kind="steer", spec=spec)  # actions follow the scan
     return path

@@ -8,7 +8,8 @@ import math
 import pytest
 
 from training.__main__ import main
-from training.evaluate import ControllerSpec, make_tasks, run_task
+from training.controllers import ControllerSpec
+from training.episodes import make_tasks, run_task
 from training.trace import trace
 
 CONFIG = (

@@ -1,0 +1,260 @@
+"""What the evaluation flies: the learned policy (ONNX through the companion's own
+:class:`~companion.policy.OnnxPolicy`, or an SB3 checkpoint), the baselines and the privileged
+teachers, each turning one scan per step into an action, optionally behind the companion's
+:class:`~companion.shield.SafetyShield` as in flight.
+
+:class:`ControllerSpec` describes one picklably (tasks cross process boundaries);
+:func:`build_controller` builds it in the worker that flies it.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from companion.errors import UserError
+from companion.framestack import FrameStack
+from companion.scan import N_BINS
+from companion.shield import Command, SafetyShield, ShieldConfig, command_from_action
+from training.config import STEP_SECONDS
+
+BASELINES = ("gap_follower", "random")
+GOAL_BASELINES = ("goal_follower", "straight_line")
+#: flown only when named: not a baseline a drone could fly, it reads the simulator's truth (the
+#: DAgger teachers, :mod:`training.path_expert`, :mod:`training.predictive_expert`): what
+#: imitation can reach
+PRIVILEGED_GOAL_CONTROLLERS = ("path_expert", "predictive_expert", "robust_expert")
+
+
+class Controller(Protocol):
+    """Anything that turns one scan per step into an action in ``[-1, 1]²``."""
+
+    def reset(self, scan: np.ndarray) -> np.ndarray: ...
+
+    def act(self, scan: np.ndarray) -> np.ndarray: ...
+
+
+class StackedPolicyController:
+    """A stacked-scan policy behind the companion's :class:`FrameStack` (as on the drone).
+
+    :param act_stacked: maps one ``(n_stack * frame_size,)`` observation to a ``(2,)`` action
+    :param n_stack: stack depth
+    :param frame_size: floats per frame (360 scan bins, 365 with the goal features)
+    """
+
+    def __init__(
+        self, act_stacked: Callable[[np.ndarray], np.ndarray], n_stack: int, frame_size: int = N_BINS
+    ) -> None:
+        self._act = act_stacked
+        self._stack = FrameStack(n_stack, frame_size)
+
+    def reset(self, scan: np.ndarray) -> np.ndarray:
+        return np.asarray(self._act(self._stack.reset(scan)), dtype=np.float32)
+
+    def act(self, scan: np.ndarray) -> np.ndarray:
+        return np.asarray(self._act(self._stack.push(scan)), dtype=np.float32)
+
+
+class ShieldedController:
+    """Another controller's actions filtered by the companion's safety shield, as in flight.
+
+    :param inner: the controller whose actions are filtered
+    :param shield: the companion's shield (its limits are the flight configuration's)
+    :param max_speed: m/s that an action of 1 stands for (the env's action scaling)
+    :param max_yaw_rate: rad/s that an action of 1 stands for
+    :param velocity: the measured body velocity (forward, left) now, as the companion reads it from
+        the autopilot (the env's :meth:`~flightsim.env.LidarAvoidEnv.measured_body_velocity`)
+    :param lateral: where the shield's sideways brake goes (the env's
+        :meth:`~flightsim.env.LidarAvoidEnv.command_lateral`), since an action carries none
+    """
+
+    def __init__(
+        self,
+        inner: Controller,
+        shield: SafetyShield,
+        max_speed: float,
+        max_yaw_rate: float,
+        velocity: Callable[[], np.ndarray] | None = None,
+        lateral: Callable[[float], None] | None = None,
+    ) -> None:
+        self._inner = inner
+        self.shield = shield
+        self._scale = (max_speed, max_yaw_rate)
+        self._velocity = velocity
+        self._lateral = lateral
+        #: the last (requested, sent) commands, for a trace (``avoid-train trace``)
+        self.last: tuple[Command, Command] | None = None
+
+    def reset(self, scan: np.ndarray) -> np.ndarray:
+        self.shield.reset()
+        return self._filter(self._inner.reset(scan), scan)
+
+    def act(self, scan: np.ndarray) -> np.ndarray:
+        return self._filter(self._inner.act(scan), scan)
+
+    def _filter(self, action: np.ndarray, scan: np.ndarray) -> np.ndarray:
+        max_speed, max_yaw_rate = self._scale
+        scan = scan[:N_BINS]  # a goal frame's scan part
+        measured = None
+        if self._velocity is not None:
+            v = self._velocity()
+            measured = (float(v[0]), float(v[1]))
+        requested = command_from_action(action, max_speed, max_yaw_rate)
+        safe = self.shield.filter(requested, scan, STEP_SECONDS, measured)
+        self.last = (requested, safe)
+        if self._lateral is not None:
+            self._lateral(safe.lateral)
+        return np.array([safe.forward / max_speed, safe.yaw_rate / max_yaw_rate], dtype=np.float32)
+
+
+def sb3_controller(model: Any, n_stack: int, frame_size: int = N_BINS) -> StackedPolicyController:
+    """An SB3 model acting deterministically (what ``model.predict(..., deterministic=True)`` gives)."""
+
+    def act(obs: np.ndarray) -> np.ndarray:
+        action, _ = model.predict(obs[None, :], deterministic=True)
+        return action[0]
+
+    return StackedPolicyController(act, n_stack, frame_size)
+
+
+@dataclass(frozen=True)
+class ControllerSpec:
+    """What to build in a worker: ``kind`` is ``policy`` (``path``) or one of :data:`BASELINES` /
+    :data:`GOAL_BASELINES` / :data:`PRIVILEGED_GOAL_CONTROLLERS`; ``shield``: behind the
+    companion's safety shield, with ``shield_config``'s limits (None: the defaults)."""
+
+    kind: str
+    path: str = ""
+    name: str = ""
+    shield: bool = False
+    shield_config: ShieldConfig | None = None
+
+    @property
+    def label(self) -> str:
+        return (self.name or self.kind) + ("+shield" if self.shield else "")
+
+
+#: policies loaded in this process (one at a time), so each episode does not load its own
+_POLICIES: dict[Any, Any] = {}
+
+
+def build_controller(
+    spec: ControllerSpec,
+    env_config: Any,
+    seed: int,
+    n_stack: int = 4,
+    velocity: Callable[[], np.ndarray] | None = None,
+    lateral: Callable[[float], None] | None = None,
+    env: Any = None,
+) -> Controller:
+    """Build the controller ``spec`` describes, behind the shield if it says so (the shield braking
+    and capping yaw as the env's autopilot response does, watching ``velocity`` as in flight).
+
+    :param env: the unwrapped env the controller flies, for a privileged one
+        (:data:`PRIVILEGED_GOAL_CONTROLLERS`)
+    """
+    controller = _bare_controller(spec, env_config, seed, n_stack, env)
+    if not spec.shield:
+        return controller
+    limits = spec.shield_config or ShieldConfig()
+    shield = SafetyShield(limits, float(env_config.scan.max_range), env_config.autopilot_response)
+    return ShieldedController(
+        controller, shield, float(env_config.max_speed), float(env_config.max_yaw_rate), velocity, lateral
+    )
+
+
+def _teacher_controller(kind: str, env: Any) -> Controller:
+    """A privileged teacher flying ``env`` (imported here: evaluation needs them only when named)."""
+    from training.dagger import TEACHERS
+    from training.path_expert import ExpertController
+
+    return ExpertController(TEACHERS[kind](env))
+
+
+def _bare_controller(
+    spec: ControllerSpec, env_config: Any, seed: int, n_stack: int, env: Any = None
+) -> Controller:
+    """The controller itself (policies are loaded once per process)."""
+    from training.baselines import (
+        GapFollower,
+        GapFollowerConfig,
+        GoalFollower,
+        GoalFollowerConfig,
+        RandomController,
+        StraightLine,
+    )
+
+    if spec.kind == "random":
+        return RandomController(seed)
+    if spec.kind == "gap_follower":
+        return GapFollower(GapFollowerConfig(max_range=float(env_config.scan.max_range)))
+    if spec.kind == "goal_follower":
+        return GoalFollower(env_config.layout, GoalFollowerConfig(max_range=float(env_config.scan.max_range)))
+    if spec.kind == "straight_line":
+        return StraightLine(env_config.layout)
+    if spec.kind in PRIVILEGED_GOAL_CONTROLLERS:
+        if env is None:
+            raise ValueError(f"{spec.kind} reads the env it flies: pass env")
+        return _teacher_controller(spec.kind, env)
+    if spec.kind != "policy":
+        raise ValueError(f"unknown controller kind {spec.kind!r}")
+    # keyed by modification time too: training re-saves its evaluation model under one name
+    key = ("policy", spec.path, os.stat(spec.path).st_mtime_ns, env_config.scan.max_range)
+    if key not in _POLICIES:
+        _POLICIES.clear()
+        _POLICIES[key] = load_policy(Path(spec.path), env_config, n_stack)
+    act, stack = _POLICIES[key]
+    return StackedPolicyController(act, stack, observation_layout(env_config).frame_size)
+
+
+def observation_layout(env_config: Any) -> Any:
+    """The observation layout an env config produces (goal configs carry theirs)."""
+    from companion.observation import ObservationLayout
+
+    return getattr(env_config, "layout", None) or ObservationLayout(n_bins=N_BINS)
+
+
+def load_policy(
+    path: Path, env_config: Any, n_stack: int = 4
+) -> tuple[Callable[[np.ndarray], np.ndarray], int]:
+    """``(act_stacked, n_stack)`` for an ``.onnx`` file (companion OnnxPolicy) or an SB3 ``.zip``."""
+    if not path.is_file():
+        raise UserError(f"policy file not found: {path}")
+    if path.suffix == ".onnx":
+        from companion.policy import OnnxPolicy, PolicySpec
+        from companion.scan import BIN_CONVENTION
+
+        spec = PolicySpec(
+            stack=n_stack,
+            n_bins=N_BINS,
+            max_range=float(env_config.scan.max_range),
+            bin_convention=BIN_CONVENTION,
+            max_speed=float(env_config.max_speed),
+            max_yaw_rate=float(env_config.max_yaw_rate),
+            layout=observation_layout(env_config),
+        )
+        try:
+            policy = OnnxPolicy(path, spec)
+        except UserError:
+            raise
+        except Exception as exc:
+            raise UserError(f"{path}: cannot load the ONNX policy: {exc}") from None
+        return policy.act, n_stack
+    if path.suffix == ".zip":
+        import torch
+
+        from training.export import load_model
+
+        torch.set_num_threads(1)  # one episode per process: more threads only contend for the cores
+        model = load_model(path)
+        frame = observation_layout(env_config).frame_size
+        size = int(model.observation_space.shape[0])
+        if size % frame:
+            raise UserError(f"{path}: observation of {size} floats is not a stack of {frame}-float frames")
+        return sb3_controller(model, size // frame, frame)._act, size // frame
+    raise UserError(f"{path}: a policy is an .onnx or a stable-baselines3 .zip file")
