@@ -17,15 +17,9 @@ from typing import Any, ClassVar
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from flightsim.sim_autopilot.common import (
-    Command,
-    ExternalTarget,
-    Guidance,
-    Outgoing,
-    SimAutopilot,
-    decode_position_target,
-    yaw_enu_to_ned,
-)
+from flightsim.sim_autopilot.common import Command, Guidance, Outgoing, SimAutopilot
+from flightsim.sim_autopilot.frames import yaw_enu_to_ned
+from flightsim.sim_autopilot.position_target import ExternalTarget, decode_position_target
 
 AVOID_USE_PROXIMITY = 1 << 1
 PRX_TYPE_MAVLINK = 2

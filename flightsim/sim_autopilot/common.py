@@ -7,8 +7,8 @@ vehicle's own controller should do (armed or not, and a :class:`~flightsim.contr
 Sockets, framing and real time live in :mod:`flightsim.sim_autopilot.endpoint` and
 :mod:`flightsim.sim_autopilot.server`, so everything here can be unit-tested with a fake clock.
 
-Frames: the vehicle works in world ENU (x East, y North, z Up; yaw counter-clockwise from East,
-body FLU), MAVLink in NED (x North, y East, z Down; yaw clockwise from North, body FRD).
+Frames and the vehicle's place on Earth are in :mod:`flightsim.sim_autopilot.frames`; the decoding of
+a position target in :mod:`flightsim.sim_autopilot.position_target`.
 """
 
 from __future__ import annotations
@@ -25,32 +25,11 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from flightsim.autopilot_response import CHUNK_S, PRESETS, AutopilotResponse
 from flightsim.control import Setpoint
+from flightsim.sim_autopilot.frames import HOME_ALT_AMSL_M, enu_to_ned, lat_lon, yaw_enu_to_ned
 from flightsim.sim_autopilot.mission import MissionStore, StoredItem
+from flightsim.sim_autopilot.position_target import ExternalTarget
 
 log = logging.getLogger(__name__)
-
-# SET_POSITION_TARGET_* type mask bits (MAVLink POSITION_TARGET_TYPEMASK)
-MASK_POS_IGNORE = 0b0000_0000_0111
-MASK_VEL_IGNORE = 0b0000_0011_1000
-MASK_VZ_IGNORE = 0b0000_0010_0000
-MASK_ACC_IGNORE = 0b0001_1100_0000
-MASK_FORCE_SET = 0b0010_0000_0000
-MASK_YAW_IGNORE = 0b0100_0000_0000
-MASK_YAW_RATE_IGNORE = 0b1000_0000_0000
-
-BODY_FRAMES = (mavlink.MAV_FRAME_BODY_NED, mavlink.MAV_FRAME_BODY_OFFSET_NED)
-LOCAL_FRAMES = (
-    mavlink.MAV_FRAME_LOCAL_NED,
-    mavlink.MAV_FRAME_LOCAL_OFFSET_NED,
-    mavlink.MAV_FRAME_BODY_NED,
-    mavlink.MAV_FRAME_BODY_OFFSET_NED,
-)
-
-#: Where the simulated vehicle's home is on Earth (only GLOBAL_POSITION_INT/HOME_POSITION use it).
-HOME_LAT_DEG = 47.397742
-HOME_LON_DEG = 8.545594
-HOME_ALT_AMSL_M = 488.0
-EARTH_RADIUS_M = 6_378_137.0
 
 #: Horizontal speed limit of the position-hold loop and of return-to-launch, m/s.
 HOLD_SPEED_MAX = 1.0
@@ -102,26 +81,6 @@ class Guidance(Enum):
 
 
 @dataclass
-class ExternalTarget:
-    """A decoded SET_POSITION_TARGET_LOCAL_NED, already in world ENU.
-
-    :param velocity: (3,) m/s ENU, or None when velocity is ignored
-    :param position: (3,) m ENU, or None when position is ignored
-    :param vz_used: whether the vertical velocity component was given
-    :param yaw: absolute yaw (ENU, rad) to hold, or None
-    :param yaw_rate: ENU yaw rate (counter-clockwise, rad/s), or None
-    :param time: clock time it arrived
-    """
-
-    velocity: np.ndarray | None
-    position: np.ndarray | None
-    vz_used: bool
-    yaw: float | None
-    yaw_rate: float | None
-    time: float
-
-
-@dataclass
 class VehicleSnapshot:
     """The subset of the vehicle's state the autopilot uses (ENU, FLU), copied each physics step."""
 
@@ -154,89 +113,6 @@ def _setpoint(**kw: Any) -> Setpoint:
     if "yaw" in kw:
         kw.setdefault("yaw_rate", None)
     return Setpoint(**kw)
-
-
-def wrap_pi(angle: float) -> float:
-    """Angle wrapped to [-π, π)."""
-    return (angle + math.pi) % (2.0 * math.pi) - math.pi
-
-
-def ned_to_enu(v: np.ndarray | tuple[float, float, float]) -> np.ndarray:
-    """(north, east, down) → (east, north, up)."""
-    n, e, d = v
-    return np.array([e, n, -d], dtype=float)
-
-
-def enu_to_ned(v: np.ndarray) -> np.ndarray:
-    """(east, north, up) → (north, east, down)."""
-    return np.array([v[1], v[0], -v[2]], dtype=float)
-
-
-def yaw_enu_to_ned(yaw_enu: float) -> float:
-    """ENU yaw (CCW from East) → NED heading (CW from North), wrapped to [-π, π)."""
-    return wrap_pi(math.pi / 2.0 - yaw_enu)
-
-
-def yaw_ned_to_enu(yaw_ned: float) -> float:
-    """NED heading (CW from North) → ENU yaw (CCW from East), wrapped to [-π, π)."""
-    return wrap_pi(math.pi / 2.0 - yaw_ned)
-
-
-def body_to_world_xy(forward: float, right: float, yaw_ned: float) -> tuple[float, float]:
-    """Rotate a body FRD horizontal vector by the NED heading into (north, east)."""
-    c, s = math.cos(yaw_ned), math.sin(yaw_ned)
-    return forward * c - right * s, forward * s + right * c
-
-
-def decode_position_target(msg: Any, snap: VehicleSnapshot, now: float) -> ExternalTarget | None:
-    """Decode SET_POSITION_TARGET_LOCAL_NED the way ArduCopter does (None: invalid → stop).
-
-    Body frames rotate position/velocity by the current heading; the offset frames (and BODY_NED)
-    add the current position to a position target; yaw in a body frame is relative.
-    """
-    frame = msg.coordinate_frame
-    if frame not in LOCAL_FRAMES:
-        return None
-    mask = msg.type_mask
-    pos_ignore = bool(mask & MASK_POS_IGNORE)
-    vel_ignore = bool(mask & MASK_VEL_IGNORE)
-    acc_ignore = bool(mask & MASK_ACC_IGNORE)
-    if (mask & MASK_FORCE_SET) and not acc_ignore:
-        return None
-    heading = yaw_enu_to_ned(snap.yaw)
-    body = frame in BODY_FRAMES
-    position = velocity = None
-    if not pos_ignore:
-        n, e, d = float(msg.x), float(msg.y), float(msg.z)
-        if body:
-            n, e = body_to_world_xy(n, e, heading)
-        pos = ned_to_enu((n, e, d))
-        if frame != mavlink.MAV_FRAME_LOCAL_NED:
-            pos = pos + snap.position
-        position = pos
-    if not vel_ignore:
-        vn, ve, vd = float(msg.vx), float(msg.vy), float(msg.vz)
-        if not all(math.isfinite(v) and abs(v) < 1000.0 for v in (vn, ve, vd)):
-            return None
-        if body:
-            vn, ve = body_to_world_xy(vn, ve, heading)
-        velocity = ned_to_enu((vn, ve, vd))
-    if pos_ignore and vel_ignore:
-        return None  # acceleration-only targets are not modelled; ArduCopter would stop as well
-    yaw = yaw_rate = None
-    if not mask & MASK_YAW_IGNORE and math.isfinite(msg.yaw):
-        yaw_ned = float(msg.yaw) + (heading if body else 0.0)
-        yaw = yaw_ned_to_enu(yaw_ned)
-    if not mask & MASK_YAW_RATE_IGNORE and math.isfinite(msg.yaw_rate):
-        yaw_rate = -float(msg.yaw_rate)  # NED clockwise → ENU counter-clockwise
-    return ExternalTarget(
-        velocity=velocity,
-        position=position,
-        vz_used=not (mask & MASK_VZ_IGNORE),
-        yaw=yaw,
-        yaw_rate=yaw_rate,
-        time=now,
-    )
 
 
 class SimAutopilot:
@@ -326,7 +202,7 @@ class SimAutopilot:
 
     def _mission_home(self) -> StoredItem:
         """Home as ArduPilot reports it in mission item 0 (absolute altitude)."""
-        lat, lon = self.lat_lon(np.zeros(3))
+        lat, lon = lat_lon(np.zeros(3))
         return StoredItem(mavlink.MAV_FRAME_GLOBAL, mavlink.MAV_CMD_NAV_WAYPOINT, (0.0, 0.0, 0.0, 0.0),
                           lat, lon, HOME_ALT_AMSL_M)
 
@@ -820,7 +696,7 @@ class SimAutopilot:
             return mavlink.MAVLink_local_position_ned_message(t, *map(float, pos), *map(float, vel))
         if name == "GLOBAL_POSITION_INT":
             rel = s.position - self.home
-            lat, lon = self.lat_lon(rel)
+            lat, lon = lat_lon(rel)
             vel = enu_to_ned(self.reported_velocity())
             hdg = round(math.degrees(yaw_enu_to_ned(s.yaw)) % 360.0 * 100) % 36000
             return mavlink.MAVLink_global_position_int_message(
@@ -835,7 +711,7 @@ class SimAutopilot:
         if name == "EXTENDED_SYS_STATE":
             return mavlink.MAVLink_extended_sys_state_message(self.vtol_state(), self.landed_state())
         if name == "HOME_POSITION":
-            lat, lon = self.lat_lon(np.zeros(3))
+            lat, lon = lat_lon(np.zeros(3))
             return mavlink.MAVLink_home_position_message(
                 lat,
                 lon,
@@ -883,10 +759,3 @@ class SimAutopilot:
 
     def flight_sw_version(self) -> int:
         return 0
-
-    @staticmethod
-    def lat_lon(rel_enu: np.ndarray) -> tuple[int, int]:
-        lat = HOME_LAT_DEG + math.degrees(rel_enu[1] / EARTH_RADIUS_M)
-        east_radius = EARTH_RADIUS_M * math.cos(math.radians(HOME_LAT_DEG))
-        lon = HOME_LON_DEG + math.degrees(rel_enu[0] / east_radius)
-        return round(lat * 1e7), round(lon * 1e7)

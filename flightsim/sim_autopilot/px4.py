@@ -16,14 +16,9 @@ from typing import Any, ClassVar
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from flightsim.sim_autopilot.common import (
-    HOME_ALT_AMSL_M,
-    Command,
-    Guidance,
-    Outgoing,
-    SimAutopilot,
-    decode_position_target,
-)
+from flightsim.sim_autopilot.common import Command, Guidance, Outgoing, SimAutopilot
+from flightsim.sim_autopilot.frames import HOME_ALT_AMSL_M
+from flightsim.sim_autopilot.position_target import decode_position_target
 
 log = logging.getLogger(__name__)
 

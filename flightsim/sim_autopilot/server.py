@@ -25,8 +25,9 @@ from typing import Any
 import numpy as np
 
 from flightsim.sim_autopilot.ardupilot import ArduCopterAutopilot
-from flightsim.sim_autopilot.common import HOME_ALT_AMSL_M, SimAutopilot, enu_to_ned, yaw_enu_to_ned
+from flightsim.sim_autopilot.common import SimAutopilot
 from flightsim.sim_autopilot.endpoint import MavlinkEndpoint, mavlink
+from flightsim.sim_autopilot.frames import HOME_ALT_AMSL_M, enu_to_ned, lat_lon, yaw_enu_to_ned
 from flightsim.sim_autopilot.params import default_table
 from flightsim.sim_autopilot.px4 import PX4Autopilot
 from flightsim.vehicle import Vehicle, VehicleConfig, VehicleState
@@ -52,7 +53,7 @@ def ground_truth_message(personality: str, autopilot: SimAutopilot, state: Vehic
     """The simulator's truth as the real SITL sends it: SIMSTATE (ArduPilot SITL: attitude, gyro,
     lat/lng) or HIL_STATE_QUATERNION (PX4 SIH: quaternion, rates, lat/lon/alt, NED velocity)."""
     rel = state.position - autopilot.home
-    lat, lon = autopilot.lat_lon(rel)
+    lat, lon = lat_lon(rel)
     roll, pitch, yaw = state.roll, -state.pitch, yaw_enu_to_ned(state.yaw)  # NED/FRD, as MAVLink
     p, q, r = (float(x) for x in state.angular_rate)
     if personality == "ardupilot":

@@ -14,7 +14,7 @@ from companion.config import AutopilotConfig, CompanionConfig, GoalConfig
 from companion.goal_frames import offset_global
 from companion.mission import Phase
 from flightsim.ground_station import GroundStation, MissionItemSpec
-from flightsim.sim_autopilot.common import HOME_LAT_DEG, HOME_LON_DEG
+from flightsim.sim_autopilot.frames import HOME_LAT_DEG, HOME_LON_DEG
 from flightsim.sim_autopilot.server import SimAutopilotServer
 from tests.companion.mavlink_peer import AutopilotPeer, free_udp_port
 

@@ -50,7 +50,7 @@ from flightsim.response_replay import (
     replay,
 )
 from flightsim.sim_autopilot.ardupilot import ArduCopterAutopilot, CopterMode
-from flightsim.sim_autopilot.common import enu_to_ned
+from flightsim.sim_autopilot.frames import enu_to_ned
 from flightsim.sim_autopilot.params import default_table
 from flightsim.vehicle import Vehicle
 from flightsim.world import World

@@ -8,7 +8,8 @@ import struct
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from flightsim.sim_autopilot.common import HOME_ALT_AMSL_M, Guidance
+from flightsim.sim_autopilot.common import Guidance
+from flightsim.sim_autopilot.frames import HOME_ALT_AMSL_M
 from flightsim.sim_autopilot.params import default_table
 from flightsim.sim_autopilot.px4 import AutoSubMode, MainMode, PX4Autopilot, px4_custom_mode
 from flightsim.vehicle import Vehicle, VehicleConfig

@@ -6,7 +6,8 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.mission import MISSION_CURRENT_MISSION_ID_OFFSET, MissionDownloader, Phase, extension_u32
-from flightsim.sim_autopilot.common import HOME_ALT_AMSL_M, VehicleSnapshot
+from flightsim.sim_autopilot.common import VehicleSnapshot
+from flightsim.sim_autopilot.frames import HOME_ALT_AMSL_M
 from flightsim.sim_autopilot.mission import UPLOAD_RETRIES
 from flightsim.sim_autopilot.server import make_autopilot
 
