@@ -7,8 +7,9 @@ generated config, and a pymavlink ground station that does what the pilot does: 
 take off to 1.5 m; on PX4 it streams zero setpoints as proof of life, switches to OFFBOARD and
 stops streaming once the companion's own setpoints arrive. The companion then flies; the harness
 watches (collision, clearance, setpoint rate, latency, the companion's STATUSTEXTs) and reports.
-The report itself (figures, printout, PNG) is :mod:`flightsim.flight_report`; the ``avoid-sim fly``
-command line is :mod:`flightsim.fly_cli`.
+What it observes is :mod:`flightsim.flight_recorder`, the companion's config and ports
+:mod:`flightsim.companion_setup`, the report itself (figures, printout, PNG)
+:mod:`flightsim.flight_report`; the ``avoid-sim fly`` command line is :mod:`flightsim.fly_cli`.
 
 With ``autopilot="external"`` a SITL flies its own physics; :mod:`flightsim.external_sitl` mirrors
 its pose (ground truth where it sends it) into the world and the lidar is cast from there.
@@ -16,13 +17,10 @@ its pose (ground truth where it sends it) into the world and the lidar is cast f
 
 from __future__ import annotations
 
-import dataclasses
-import json
 import logging
 import math
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -33,17 +31,18 @@ from typing import Any
 
 import numpy as np
 
-from companion.config import CompanionConfig
 from companion.errors import UserError
 from companion.scan import ScanConfig
 from companion.tomlconfig import to_dict
 from flightsim import external_sitl
+from flightsim.companion_setup import companion_config, free_udp_port, toml_dumps
 from flightsim.cosim import LidarCosim
+from flightsim.flight_recorder import Recorder
 from flightsim.flight_report import INTERRUPTED, FlightReport, latency_ms, plot_flight, waypoints_reached
 from flightsim.ground_station import GroundStation, mission_items
 from flightsim.raycast import LidarConfig
 from flightsim.recording import FlightRecording
-from flightsim.world import DEFAULT_VEHICLE_RADIUS, World
+from flightsim.world import World
 
 log = logging.getLogger(__name__)
 
@@ -55,76 +54,6 @@ COMPLETE_MARK = "goal: complete"
 COMPLETE_HOLD_S = 1.0
 #: the companion's STATUSTEXT on entering ACTIVE starts with this (supervisor state names)
 ACTIVE_MARK = "->ACTIVE"
-
-
-# ------------------------------------------------------------------------------------ config file
-def free_udp_port() -> int:
-    """A UDP port nobody on loopback uses right now."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def toml_dumps(data: dict[str, Any]) -> str:
-    """Serialise a config dict (tables, arrays of tables, scalars, scalar lists) as TOML."""
-
-    def scalar(v: Any) -> str:
-        if isinstance(v, bool):
-            return "true" if v else "false"
-        if isinstance(v, (int, float)):
-            return repr(v) if math.isfinite(v) else ("nan" if math.isnan(v) else ("inf" if v > 0 else "-inf"))
-        if isinstance(v, str):
-            return json.dumps(v)
-        if isinstance(v, (list, tuple)):
-            return "[" + ", ".join(scalar(x) for x in v) + "]"
-        raise TypeError(f"cannot write {type(v).__name__} to TOML")
-
-    lines: list[str] = []
-
-    def table(prefix: str, d: dict[str, Any]) -> None:
-        subs = []
-        for k, v in d.items():
-            if isinstance(v, dict):
-                subs.append((k, v))
-            elif isinstance(v, (list, tuple)) and v and all(isinstance(x, dict) for x in v):
-                subs.append((k, list(v)))
-            else:
-                lines.append(f"{k} = {scalar(v)}")
-        for k, v in subs:
-            name = f"{prefix}.{k}" if prefix else k
-            if isinstance(v, list):
-                for item in v:
-                    lines.extend(["", f"[[{name}]]"])
-                    table(name, item)
-            else:
-                lines.extend(["", f"[{name}]"])
-                table(name, v)
-
-    table("", data)
-    return "\n".join(lines).lstrip() + "\n"
-
-
-def companion_config(
-    *,
-    autopilot_type: str,
-    connect: str,
-    lidar_port: int,
-    policy: Path,
-    overrides: dict[str, Any] | None = None,
-) -> CompanionConfig:
-    """The companion's config for a SITL flight, built from its own dataclasses (not hand-written TOML)."""
-    base = CompanionConfig()
-    cfg = dataclasses.replace(
-        base,
-        lidar=dataclasses.replace(
-            base.lidar, velodyne=dataclasses.replace(base.lidar.velodyne, host="127.0.0.1", port=lidar_port)
-        ),
-        policy=dataclasses.replace(base.policy, model=str(policy)),
-        autopilot=dataclasses.replace(base.autopilot, type=autopilot_type, connect=connect),
-    )
-    for section, values in (overrides or {}).items():
-        cfg = dataclasses.replace(cfg, **{section: dataclasses.replace(getattr(cfg, section), **values)})
-    return cfg
 
 
 # ------------------------------------------------------------------------------------ records
@@ -163,70 +92,6 @@ class FlightOptions:
     signed: bool = False
     mission: bool = False
     ideal_response: bool = False
-
-
-@dataclass
-class Recorder:
-    """What the harness observes during a flight (filled from the autopilot's and cosim's threads)."""
-
-    t0: float  # monotonic time of the autopilot's clock zero
-    setpoint_times: list[float] = field(default_factory=list)  # monotonic arrival times (companion)
-    setpoints: list[tuple[float, float, float]] = field(default_factory=list)  # (t, vx body, yaw rate)
-    statustexts: list[tuple[float, str]] = field(default_factory=list)
-    companion_heartbeats: list[float] = field(default_factory=list)
-    companion_commands: list[tuple[float, str]] = field(default_factory=list)
-    items_reached: list[int] = field(default_factory=list)  # the companion's MISSION_ITEM_REACHED seqs
-    trajectory: list[tuple[float, float, float, float, float, float]] = field(default_factory=list)
-    min_clearance: float = math.inf
-    collision_time: float | None = None
-    lock: threading.Lock = field(default_factory=threading.Lock)
-    _chunks: dict[int, list[str]] = field(default_factory=dict)
-
-    def on_companion_message(self, msg: Any, t_mono: float) -> None:
-        kind = msg.get_type()
-        with self.lock:
-            if kind == "SET_POSITION_TARGET_LOCAL_NED":
-                self.setpoint_times.append(t_mono)
-                self.setpoints.append((t_mono, float(msg.vx), float(msg.yaw_rate)))
-            elif kind == "STATUSTEXT":
-                self._statustext(msg, t_mono)
-            elif kind == "HEARTBEAT":
-                self.companion_heartbeats.append(t_mono)
-            elif kind in ("COMMAND_LONG", "COMMAND_INT", "SET_MODE"):
-                self.companion_commands.append((t_mono, kind))
-            elif kind == "MISSION_ITEM_REACHED":
-                self.items_reached.append(int(msg.seq))
-
-    def on_pose(self, t_mono: float, position: np.ndarray, yaw: float, speed: float, world: World) -> None:
-        clearance = world.clearance(position) if position[2] > 0.3 else math.inf
-        with self.lock:
-            self.trajectory.append((t_mono, *map(float, position), float(yaw), float(speed)))
-            if position[2] > 0.3:
-                self.min_clearance = min(self.min_clearance, clearance)
-                if clearance < DEFAULT_VEHICLE_RADIUS and self.collision_time is None:
-                    self.collision_time = t_mono
-
-    def _statustext(self, msg: Any, t_mono: float) -> None:
-        """Join MAVLink 2 chunked STATUSTEXTs (same non-zero id; a chunk shorter than 50 ends it)."""
-        if msg.id == 0:
-            self.statustexts.append((t_mono, msg.text))
-            return
-        self._chunks.setdefault(msg.id, []).append(msg.text)
-        if len(msg.text) < 50:
-            self.statustexts.append((t_mono, "".join(self._chunks.pop(msg.id))))
-
-    def texts(self, since: float = 0.0) -> list[str]:
-        with self.lock:
-            return [text for t, text in self.statustexts if t >= since]
-
-    def first_text(self, mark: str, since: float) -> float | None:
-        """Arrival time of the first STATUSTEXT containing ``mark`` at or after ``since``."""
-        with self.lock:
-            return next((t for t, text in self.statustexts if t >= since and mark in text), None)
-
-    def setpoints_since(self, since: float) -> int:
-        with self.lock:
-            return sum(1 for t in self.setpoint_times if t >= since)
 
 
 # ------------------------------------------------------------------------------------ the flight

@@ -16,10 +16,10 @@ from companion.goal_frames import LATLON_TO_M
 from companion.lidar.velodyne import VelodyneUdpSource
 from companion.scan import ScanConfig, scan_from_points
 from companion.tomlconfig import to_dict
+from flightsim.companion_setup import companion_config, free_udp_port, toml_dumps
 from flightsim.cosim import LidarCosim
 from flightsim.flight_report import latency_ms
 from flightsim.fly_cli import load_flight_world
-from flightsim.harness import companion_config, free_udp_port, toml_dumps
 from flightsim.raycast import LidarConfig
 from flightsim.vehicle import VehicleState
 from flightsim.world import load_world
