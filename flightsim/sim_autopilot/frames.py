@@ -10,15 +10,13 @@ import math
 
 import numpy as np
 
-#: Where the simulated vehicle's home is on Earth (only GLOBAL_POSITION_INT/HOME_POSITION use it).
+from flightsim.control import wrap_angle
+
+#: Where the simulated vehicle's home is on Earth (the global positions and mission home it reports).
 HOME_LAT_DEG = 47.397742
 HOME_LON_DEG = 8.545594
 HOME_ALT_AMSL_M = 488.0
 EARTH_RADIUS_M = 6_378_137.0
-
-def wrap_pi(angle: float) -> float:
-    """Angle wrapped to [-π, π)."""
-    return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
 def ned_to_enu(v: np.ndarray | tuple[float, float, float]) -> np.ndarray:
@@ -34,19 +32,18 @@ def enu_to_ned(v: np.ndarray) -> np.ndarray:
 
 def yaw_enu_to_ned(yaw_enu: float) -> float:
     """ENU yaw (CCW from East) → NED heading (CW from North), wrapped to [-π, π)."""
-    return wrap_pi(math.pi / 2.0 - yaw_enu)
+    return wrap_angle(math.pi / 2.0 - yaw_enu)
 
 
 def yaw_ned_to_enu(yaw_ned: float) -> float:
     """NED heading (CW from North) → ENU yaw (CCW from East), wrapped to [-π, π)."""
-    return wrap_pi(math.pi / 2.0 - yaw_ned)
+    return wrap_angle(math.pi / 2.0 - yaw_ned)
 
 
 def body_to_world_xy(forward: float, right: float, yaw_ned: float) -> tuple[float, float]:
     """Rotate a body FRD horizontal vector by the NED heading into (north, east)."""
     c, s = math.cos(yaw_ned), math.sin(yaw_ned)
     return forward * c - right * s, forward * s + right * c
-
 
 
 def lat_lon(rel_enu: np.ndarray) -> tuple[int, int]:
