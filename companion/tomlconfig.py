@@ -1,4 +1,4 @@
-"""Load a (nested) dataclass from TOML with strict checking.
+"""Load a (nested) dataclass from TOML with strict checking, and write one back (:func:`toml_dumps`).
 
 Every program has one config dataclass. An unknown key, a wrong type, a float that is NaN or
 infinite, or a value outside the range declared in the field's metadata
@@ -10,6 +10,7 @@ silently falling back to a default.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import sys
 import types
@@ -146,6 +147,45 @@ def to_dict(obj: Any) -> dict[str, Any]:
         return v
 
     return plain(dataclasses.asdict(obj))
+
+
+def toml_dumps(data: dict[str, Any]) -> str:
+    """Serialise a config dict (tables, arrays of tables, scalars, scalar lists) as TOML."""
+
+    def scalar(v: Any) -> str:
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, (int, float)):
+            return repr(v) if math.isfinite(v) else ("nan" if math.isnan(v) else ("inf" if v > 0 else "-inf"))
+        if isinstance(v, str):
+            return json.dumps(v)
+        if isinstance(v, (list, tuple)):
+            return "[" + ", ".join(scalar(x) for x in v) + "]"
+        raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+    lines: list[str] = []
+
+    def table(prefix: str, d: dict[str, Any]) -> None:
+        subs = []
+        for k, v in d.items():
+            if isinstance(v, dict):
+                subs.append((k, v))
+            elif isinstance(v, (list, tuple)) and v and all(isinstance(x, dict) for x in v):
+                subs.append((k, list(v)))
+            else:
+                lines.append(f"{k} = {scalar(v)}")
+        for k, v in subs:
+            name = f"{prefix}.{k}" if prefix else k
+            if isinstance(v, list):
+                for item in v:
+                    lines.extend(["", f"[[{name}]]"])
+                    table(name, item)
+            else:
+                lines.extend(["", f"[{name}]"])
+                table(name, v)
+
+    table("", data)
+    return "\n".join(lines).lstrip() + "\n"
 
 
 def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any]:

@@ -1,11 +1,9 @@
-"""What a SITL flight hands the companion process: a free loopback port and its config file, built
-from the companion's own dataclasses and written as TOML."""
+"""What a SITL flight hands the companion process: a free loopback port and its config, built from
+the companion's own dataclasses (written with :func:`companion.tomlconfig.toml_dumps`)."""
 
 from __future__ import annotations
 
 import dataclasses
-import json
-import math
 import socket
 from pathlib import Path
 from typing import Any
@@ -18,45 +16,6 @@ def free_udp_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
-
-
-def toml_dumps(data: dict[str, Any]) -> str:
-    """Serialise a config dict (tables, arrays of tables, scalars, scalar lists) as TOML."""
-
-    def scalar(v: Any) -> str:
-        if isinstance(v, bool):
-            return "true" if v else "false"
-        if isinstance(v, (int, float)):
-            return repr(v) if math.isfinite(v) else ("nan" if math.isnan(v) else ("inf" if v > 0 else "-inf"))
-        if isinstance(v, str):
-            return json.dumps(v)
-        if isinstance(v, (list, tuple)):
-            return "[" + ", ".join(scalar(x) for x in v) + "]"
-        raise TypeError(f"cannot write {type(v).__name__} to TOML")
-
-    lines: list[str] = []
-
-    def table(prefix: str, d: dict[str, Any]) -> None:
-        subs = []
-        for k, v in d.items():
-            if isinstance(v, dict):
-                subs.append((k, v))
-            elif isinstance(v, (list, tuple)) and v and all(isinstance(x, dict) for x in v):
-                subs.append((k, list(v)))
-            else:
-                lines.append(f"{k} = {scalar(v)}")
-        for k, v in subs:
-            name = f"{prefix}.{k}" if prefix else k
-            if isinstance(v, list):
-                for item in v:
-                    lines.extend(["", f"[[{name}]]"])
-                    table(name, item)
-            else:
-                lines.extend(["", f"[{name}]"])
-                table(name, v)
-
-    table("", data)
-    return "\n".join(lines).lstrip() + "\n"
 
 
 def companion_config(

@@ -33,9 +33,9 @@ import numpy as np
 
 from companion.errors import UserError
 from companion.scan import ScanConfig
-from companion.tomlconfig import to_dict
+from companion.tomlconfig import to_dict, toml_dumps
 from flightsim import external_sitl
-from flightsim.companion_setup import companion_config, free_udp_port, toml_dumps
+from flightsim.companion_setup import companion_config, free_udp_port
 from flightsim.cosim import LidarCosim
 from flightsim.flight_recorder import Recorder
 from flightsim.flight_report import INTERRUPTED, FlightReport, latency_ms, plot_flight, waypoints_reached

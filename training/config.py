@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from companion.errors import UserError
-from companion.tomlconfig import apply_overrides, from_dict, load_toml, to_dict
+from companion.tomlconfig import apply_overrides, from_dict, load_toml, to_dict, toml_dumps
 
 #: success needs at least this mean speed over a full episode: 40 m in the default 100 s
 SUCCESS_MIN_MEAN_SPEED = 0.4
@@ -264,31 +264,4 @@ def load_train_config(path: str | Path | None, overrides: list[str] | None = Non
 
 def config_to_toml(config: TrainConfig) -> str:
     """The config as TOML text (saved into the run directory and the ONNX metadata)."""
-    return _dump_toml(to_dict(config))
-
-
-def _dump_toml(data: dict[str, Any], prefix: str = "") -> str:
-    """Minimal TOML writer for plain config values (scalars, lists, nested tables)."""
-    lines: list[str] = []
-    tables: list[tuple[str, dict[str, Any]]] = []
-    for key, value in data.items():
-        if isinstance(value, dict):
-            tables.append((f"{prefix}{key}", value))
-        else:
-            lines.append(f"{key} = {_toml_value(value)}")
-    out = "\n".join(lines) + ("\n" if lines else "")
-    for name, table in tables:
-        out += f"\n[{name}]\n" + _dump_toml(table, prefix=f"{name}.")
-    return out
-
-
-def _toml_value(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, (int, float)):
-        return repr(value)
-    if isinstance(value, str):
-        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    raise TypeError(f"cannot write {type(value).__name__} to TOML")
+    return toml_dumps(to_dict(config))

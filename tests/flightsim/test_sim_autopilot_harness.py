@@ -15,8 +15,8 @@ from companion.errors import UserError
 from companion.goal_frames import LATLON_TO_M
 from companion.lidar.velodyne import VelodyneUdpSource
 from companion.scan import ScanConfig, scan_from_points
-from companion.tomlconfig import to_dict
-from flightsim.companion_setup import companion_config, free_udp_port, toml_dumps
+from companion.tomlconfig import to_dict, toml_dumps
+from flightsim.companion_setup import companion_config, free_udp_port
 from flightsim.cosim import LidarCosim
 from flightsim.flight_report import latency_ms
 from flightsim.fly_cli import load_flight_world
