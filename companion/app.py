@@ -209,12 +209,14 @@ def check_parameters(config: CompanionConfig) -> tuple[list[str], float | None]:
     if pc.mode == "off":
         return [], None
     from companion import params
+    from companion.param_client import open_connection
+    from companion.param_files import load_param_file
 
-    wanted = params.load_param_file(pc.file, config.autopilot.type)
+    wanted = load_param_file(pc.file, config.autopilot.type)
     link = config.autopilot.link
     try:
         ensure_port_free(link)
-        conn = params.open_connection(link.pymavlink, link.baud or config.autopilot.baud)
+        conn = open_connection(link.pymavlink, link.baud or config.autopilot.baud)
         try:
             if config.autopilot.signing_key:  # a signing autopilot ignores unsigned parameter requests
                 from companion.autopilot.signing import enable_signing, load_signing_key

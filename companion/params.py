@@ -1,16 +1,11 @@
-"""Autopilot parameters the companion relies on: the parameter files, and check/apply over MAVLink.
+"""Autopilot parameters the companion relies on: ``avoid-companion params check|apply``, and the
+start-up check.
 
-Three layers, so each can be used (and tested) alone:
-
-- files: :func:`load_param_file` reads ``firmware_params/ardupilot-copter.parm`` (``NAME VALUE``,
-  ``#`` comments, comma accepted: the format mavparm and Mission Planner use) or
-  ``firmware_params/px4.params`` (QGroundControl's tab-separated ``sysid compid NAME VALUE TYPE``).
-  Strict where mavparm is lenient: a malformed line is a :class:`UserError` naming file and line,
-  never a printed warning and a skipped line.
-- comparison (pure): :func:`compare_parameter` decides whether what the autopilot holds is what
-  the file wants, in the parameter's own type.
-- wire: :class:`MavlinkParamClient` reads and writes one parameter at a time over a pymavlink
-  connection (PARAM_REQUEST_READ / PARAM_SET / PARAM_VALUE), with bounded timeouts and retries.
+Three layers, each usable (and tested) alone: the files (:mod:`companion.param_files`: what the
+autopilot should hold), the comparison here (pure: :func:`compare_parameter` decides whether what
+the autopilot holds is what the file wants, in the parameter's own type), and the wire
+(:mod:`companion.param_client`: one parameter at a time over MAVLink). This module joins them:
+check or apply a whole file, and the report.
 
 The float field of PARAM_VALUE/PARAM_SET is encoded differently by the two firmwares (see
 :mod:`companion.param_codec`); the encoding is taken from the autopilot's AUTOPILOT_VERSION
@@ -23,38 +18,31 @@ from __future__ import annotations
 import argparse
 import enum
 import math
-import os
 import re
 import struct
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from companion.connection import ensure_port_free, parse_connection
 from companion.errors import UserError
-from companion.param_codec import INT_TYPES, REAL32, decode_param_value, encode_param_value
-
-AUTOPILOTS = ("ardupilot", "px4")
-PARAM_FILE_NAMES = {"ardupilot": "ardupilot-copter.parm", "px4": "px4.params"}
-# Where the parameter files are looked for when --file is not given: the source checkout, then
-# the copy the install step puts next to the config.
-PARAM_FILE_DIRS = (
-    Path(__file__).resolve().parents[1] / "firmware_params",
-    Path("/etc/lidar-avoid/firmware_params"),
+from companion.param_client import (
+    LinkStats,
+    MavlinkParamClient,
+    mavlink_common,
+    open_connection,
+    wait_for_autopilot,
+)
+from companion.param_codec import INT_TYPES, REAL32
+from companion.param_files import (
+    AUTOPILOTS,
+    PARAM_NAME,
+    PARAM_TYPE_NAMES,
+    WantedParam,
+    default_param_file,
+    load_param_file,
 )
 
-# MAV_PARAM_TYPE values a file may name (MAVLink common.xml); 64-bit types cannot travel in the
-# float field and are refused.
-PARAM_TYPE_NAMES = {
-    1: "UINT8",
-    2: "INT8",
-    3: "UINT16",
-    4: "INT16",
-    5: "UINT32",
-    6: "INT32",
-    9: "REAL32",
-}
 # Parameters that only take effect after an autopilot reboot. ArduPilot: PRXn_TYPE is
 # @RebootRequired; serial ports are configured by the serial manager at boot only. PX4: the
 # MAV_n_* and SER_*_BAUD definitions carry reboot_required.
@@ -62,34 +50,10 @@ REBOOT_PATTERNS = {
     "ardupilot": (re.compile(r"SERIAL\d+_\w+"), re.compile(r"PRX\d+_TYPE")),
     "px4": (re.compile(r"MAV_\d+_\w+"), re.compile(r"SER_\w+_BAUD")),
 }
-_NAME = re.compile(r"[A-Za-z0-9_]{1,16}")
-REFUSED = object()  # the autopilot said it does not know the parameter
 #: The firmware parameter (deg/s) that caps the yaw rate the autopilot flies for a companion's
 #: setpoint. ArduCopter 4.8 holds 1.05 rad/s when 1.5 is asked: ATC_RATE_WPY_MAX, 60°/s by default
 #: (../shared/fixtures/autopilot-response); PX4 offboard is bounded by MC_YAWRATE_MAX (200°/s).
 YAW_RATE_LIMIT_PARAMS = {"ardupilot": "ATC_RATE_WPY_MAX", "px4": "MC_YAWRATE_MAX"}
-# MAVLink component id of an onboard computer; the companion's identity on the link.
-COMPANION_SYSTEM_ID = 1
-COMPANION_COMPONENT_ID = 191
-
-
-@dataclass(frozen=True)
-class WantedParam:
-    """One line of a parameter file.
-
-    :param name: parameter name as the firmware spells it
-    :param value: the wanted value
-    :param param_type: MAV_PARAM_TYPE named by the file (PX4 files), None when the file does not
-        say (ArduPilot files: the autopilot's own type is used)
-    :param line: 1-based line number, for messages
-    :param source: the file it came from
-    """
-
-    name: str
-    value: float
-    param_type: int | None
-    line: int
-    source: str
 
 
 class Status(enum.Enum):
@@ -132,107 +96,6 @@ class ParamResult:
         return self.status in (Status.OK, Status.CHANGED, Status.ABSENT_ALLOWED)
 
 
-# ---------------------------------------------------------------------------------------- files
-
-
-def default_param_file(autopilot: str) -> Path:
-    """The parameter file for ``autopilot`` from the checkout or the installed copy."""
-    name = PARAM_FILE_NAMES[autopilot]
-    for directory in PARAM_FILE_DIRS:
-        if (directory / name).is_file():
-            return directory / name
-    searched = ", ".join(str(d / name) for d in PARAM_FILE_DIRS)
-    raise UserError(f"no {autopilot} parameter file found (looked for {searched}); pass --file")
-
-
-def load_param_file(path: str | os.PathLike[str], autopilot: str) -> list[WantedParam]:
-    """Read a parameter file in the format of ``autopilot``'s tools.
-
-    :param path: the file
-    :param autopilot: ``"ardupilot"`` (``.parm``: NAME VALUE) or ``"px4"`` (QGroundControl ``.params``)
-    :raises UserError: unreadable file, malformed line (named by line number), unknown type,
-        duplicate or no parameters
-    """
-    if autopilot not in AUTOPILOTS:
-        raise UserError(f"unknown autopilot {autopilot!r} (expected one of {', '.join(AUTOPILOTS)})")
-    try:
-        text = Path(path).read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise UserError(f"cannot read parameter file {path}: {exc}") from exc
-    parse = parse_parm_text if autopilot == "ardupilot" else parse_qgc_params_text
-    params = parse(text, str(path))
-    if not params:
-        raise UserError(f"{path}: no parameters in the file")
-    seen: dict[str, int] = {}
-    for p in params:
-        if p.name in seen:
-            raise UserError(f"{path}:{p.line}: {p.name} already set on line {seen[p.name]}")
-        seen[p.name] = p.line
-    return params
-
-
-def parse_parm_text(text: str, source: str) -> list[WantedParam]:
-    """ArduPilot ``.parm``: ``NAME VALUE`` or ``NAME,VALUE``; ``#`` starts a comment anywhere."""
-    params = []
-    for number, raw in enumerate(text.splitlines(), start=1):
-        line = raw.split("#", 1)[0].strip()
-        if not line:
-            continue
-        fields = line.replace(",", " ").split()
-        if len(fields) != 2:
-            raise UserError(f"{source}:{number}: expected 'NAME VALUE', got {raw.strip()!r}")
-        name = _check_name(fields[0], source, number).upper()
-        params.append(WantedParam(name, _parse_number(fields[1], source, number), None, number, source))
-    return params
-
-
-def parse_qgc_params_text(text: str, source: str) -> list[WantedParam]:
-    """QGroundControl ``.params``: ``VEHICLE<TAB>COMPONENT<TAB>NAME<TAB>VALUE<TAB>TYPE``, ``#`` lines."""
-    params = []
-    for number, raw in enumerate(text.splitlines(), start=1):
-        if not raw.strip() or raw.lstrip().startswith("#"):
-            continue
-        fields = raw.rstrip("\r\n").split("\t")
-        if len(fields) != 5:
-            raise UserError(
-                f"{source}:{number}: expected 5 tab-separated fields "
-                f"(Vehicle-Id Component-Id Name Value Type), got {raw.strip()!r}"
-            )
-        for label, text_id in (("vehicle id", fields[0]), ("component id", fields[1])):
-            if not text_id.strip().isdigit():
-                raise UserError(f"{source}:{number}: {label} {text_id!r} is not a number")
-        name = _check_name(fields[2].strip(), source, number)
-        value = _parse_number(fields[3].strip(), source, number)
-        type_text = fields[4].strip()
-        if not type_text.isdigit() or int(type_text) not in PARAM_TYPE_NAMES:
-            known = ", ".join(f"{k} = {v}" for k, v in PARAM_TYPE_NAMES.items())
-            raise UserError(f"{source}:{number}: {name}: unknown parameter type {type_text!r} ({known})")
-        param_type = int(type_text)
-        if param_type in INT_TYPES and value != math.floor(value):
-            raise UserError(
-                f"{source}:{number}: {name} is {PARAM_TYPE_NAMES[param_type]} but the value {fields[3]} "
-                "is not an integer"
-            )
-        params.append(WantedParam(name, value, param_type, number, source))
-    return params
-
-
-def _check_name(name: str, source: str, number: int) -> str:
-    if not _NAME.fullmatch(name):
-        raise UserError(f"{source}:{number}: {name!r} is not a parameter name (letters, digits, _; ≤ 16)")
-    return name
-
-
-def _parse_number(text: str, source: str, number: int) -> float:
-    try:
-        value = float(int(text, 16)) if text.lower().startswith("0x") else float(text)
-    except ValueError:
-        raise UserError(f"{source}:{number}: value {text!r} is not a number") from None
-    if not math.isfinite(value):
-        raise UserError(f"{source}:{number}: value {text!r} is not a finite number")
-    return value
-
-
 def needs_reboot(autopilot: str, name: str) -> bool:
     """Whether a change of ``name`` only takes effect after the autopilot reboots."""
     return any(p.fullmatch(name) for p in REBOOT_PATTERNS[autopilot])
@@ -262,202 +125,6 @@ def compare_parameter(wanted: WantedParam, actual: tuple[float, int] | None) -> 
         return ParamResult(wanted, Status.TYPE_MISMATCH, value, param_type)
     status = Status.OK if values_match(wanted.value, value, param_type) else Status.DIFFERS
     return ParamResult(wanted, status, value, param_type)
-
-
-# ----------------------------------------------------------------------------------------- wire
-
-
-@dataclass
-class LinkStats:
-    """What the parameter exchange cost, for the report: requests sent, retries, timeouts."""
-
-    requests: int = 0
-    retries: int = 0
-    timeouts: int = 0
-
-
-@dataclass
-class AutopilotInfo:
-    """The autopilot found on the link (from its HEARTBEAT)."""
-
-    system_id: int
-    component_id: int
-    autopilot: int
-
-
-class MavlinkParamClient:
-    """One-parameter-at-a-time access to an autopilot's parameters over a pymavlink connection.
-
-    :param conn: a ``mavutil`` connection (``mavlink_connection(...)``)
-    :param target_system: the autopilot's system id
-    :param target_component: the autopilot's component id
-    :param timeout: seconds to wait for each reply
-    :param retries: extra attempts after the first before a parameter counts as not answered
-    :param bytewise: value encoding (see :meth:`detect_bytewise`, which sets it)
-    """
-
-    def __init__(
-        self,
-        conn: Any,
-        target_system: int,
-        target_component: int,
-        timeout: float = 1.0,
-        retries: int = 2,
-        bytewise: bool = False,
-    ) -> None:
-        self.conn = conn
-        self.target_system = target_system
-        self.target_component = target_component
-        self.timeout = timeout
-        self.retries = retries
-        self.bytewise = bytewise
-        self.stats = LinkStats()
-        self.encoding_source = "not detected"
-
-    def detect_bytewise(self, heartbeat_autopilot: int | None = None) -> bool:
-        """Ask for AUTOPILOT_VERSION and take the encoding from its capability bits.
-
-        Sends MAV_CMD_REQUEST_MESSAGE (falls back to the older MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES
-        when the autopilot rejects it). With no answer at all, the HEARTBEAT's autopilot field decides
-        (PX4 → bytewise), and :attr:`encoding_source` says so.
-
-        :param heartbeat_autopilot: MAV_AUTOPILOT from the autopilot's HEARTBEAT, for the fallback
-        """
-        mav = self.conn.mav
-        mavlink = _mavlink_module()
-        use_legacy = False
-        for attempt in range(self.retries + 1):
-            self._count_attempt(attempt)
-            if use_legacy:
-                mav.command_long_send(
-                    self.target_system,
-                    self.target_component,
-                    mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES,
-                    0,
-                    1,
-                    0,
-                    0,
-                    0,
-                    0,
-                    0,
-                    0,
-                )
-            else:
-                mav.command_long_send(
-                    self.target_system,
-                    self.target_component,
-                    mavlink.MAV_CMD_REQUEST_MESSAGE,
-                    0,
-                    mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION,
-                    0,
-                    0,
-                    0,
-                    0,
-                    0,
-                    0,
-                )
-            deadline = time.monotonic() + self.timeout
-            while (msg := self._recv(["AUTOPILOT_VERSION", "COMMAND_ACK"], deadline)) is not None:
-                if msg.get_type() == "AUTOPILOT_VERSION":
-                    self.bytewise = bool(
-                        msg.capabilities & mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE
-                    )
-                    self.encoding_source = "AUTOPILOT_VERSION capabilities"
-                    return self.bytewise
-                if (
-                    msg.command == mavlink.MAV_CMD_REQUEST_MESSAGE
-                    and msg.result != mavlink.MAV_RESULT_ACCEPTED
-                ):
-                    use_legacy = True  # an older firmware: ask the deprecated way on the next attempt
-                    break
-            else:
-                self.stats.timeouts += 1
-        self.bytewise = heartbeat_autopilot == mavlink.MAV_AUTOPILOT_PX4
-        self.encoding_source = "HEARTBEAT autopilot type (no AUTOPILOT_VERSION reply)"
-        return self.bytewise
-
-    def read(self, name: str) -> tuple[float, int] | None:
-        """The parameter's decoded value and MAV_PARAM_TYPE, None when the autopilot never answers.
-
-        Both firmwares stay silent for a name they do not know, so "no answer after all retries"
-        is how an unknown parameter shows up.
-        """
-        for attempt in range(self.retries + 1):
-            self._count_attempt(attempt)
-            self.conn.mav.param_request_read_send(
-                self.target_system, self.target_component, name.encode("ascii"), -1
-            )
-            reply = self._wait_param_value(name)
-            if reply is not None:
-                return reply
-            self.stats.timeouts += 1
-        return None
-
-    def link_alive(self) -> bool:
-        """Does the autopilot answer at all? Asks for its first parameter by index.
-
-        Both firmwares stay silent for a name they do not know, exactly as a dead link does; an
-        answer to this request tells the two apart.
-        """
-        for attempt in range(self.retries + 1):
-            self._count_attempt(attempt)
-            self.conn.mav.param_request_read_send(self.target_system, self.target_component, b"", 0)
-            if self._recv(["PARAM_VALUE"], time.monotonic() + self.timeout) is not None:
-                return True
-            self.stats.timeouts += 1
-        return False
-
-    def write(self, name: str, value: float, param_type: int) -> tuple[float, int] | None:
-        """Send PARAM_SET and wait for the PARAM_VALUE echo; None when none comes (or PX4 says unknown).
-
-        :param value: the value in the parameter's own type
-        :param param_type: the parameter's MAV_PARAM_TYPE (as the autopilot reports it)
-        """
-        field_value = encode_param_value(value, param_type, self.bytewise)
-        for attempt in range(self.retries + 1):
-            self._count_attempt(attempt)
-            self.conn.mav.param_set_send(
-                self.target_system, self.target_component, name.encode("ascii"), field_value, param_type
-            )
-            # PX4 answers a set of a name it does not know with this STATUSTEXT and nothing else
-            reply = self._wait_param_value(name, refused_text=f"unknown param: {name}")
-            if reply is REFUSED:
-                return None
-            if reply is not None:
-                return reply
-            self.stats.timeouts += 1
-        return None
-
-    def _count_attempt(self, attempt: int) -> None:
-        self.stats.requests += 1
-        if attempt:
-            self.stats.retries += 1
-
-    def _recv(self, types: list[str], deadline: float) -> Any:
-        """Next message of ``types`` from the target system before ``deadline``, else None."""
-        while (remaining := deadline - time.monotonic()) > 0:
-            msg = self.conn.recv_match(type=types, blocking=True, timeout=remaining)
-            if msg is not None and msg.get_srcSystem() == self.target_system:
-                return msg
-        return None
-
-    def _wait_param_value(self, name: str, refused_text: str | None = None) -> Any:
-        """The (value, type) of the next PARAM_VALUE for ``name``; :data:`REFUSED` or None on timeout."""
-        deadline = time.monotonic() + self.timeout
-        while (msg := self._recv(["PARAM_VALUE", "STATUSTEXT"], deadline)) is not None:
-            if msg.get_type() == "STATUSTEXT":
-                if refused_text is not None and msg.text.endswith(refused_text):
-                    return REFUSED
-                continue
-            if msg.param_id == name:
-                return decode_param_value(msg.param_value, msg.param_type, self.bytewise), msg.param_type
-        return None
-
-
-def _mavlink_module() -> Any:
-    from pymavlink.dialects.v20 import common
-
-    return common
 
 
 def read_and_compare(
@@ -511,54 +178,6 @@ def apply_parameters(
             )
         )
     return results
-
-
-# ------------------------------------------------------------------------------------ connection
-
-
-def open_connection(url: str, baud: int) -> Any:
-    """A MAVLink 2 pymavlink connection as the companion (system 1, component 191).
-
-    :param url: mavutil connection string: ``udpin:0.0.0.0:14550``, ``udpout:HOST:PORT``,
-        ``tcp:HOST:PORT``, a serial device such as ``/dev/ttyTHS1``
-    :param baud: serial baud rate (ignored for network links)
-    """
-    os.environ["MAVLINK20"] = "1"  # pymavlink picks the wire protocol from the environment
-    from pymavlink import mavutil
-
-    try:
-        return mavutil.mavlink_connection(
-            url,
-            baud=baud,
-            source_system=COMPANION_SYSTEM_ID,
-            source_component=COMPANION_COMPONENT_ID,
-            dialect="common",
-            autoreconnect=False,
-        )
-    except Exception as exc:  # pymavlink raises whatever the transport raises (OSError, SerialException…)
-        raise UserError(f"cannot open MAVLink connection {url!r}: {exc}") from exc
-
-
-def wait_for_autopilot(conn: Any, timeout: float) -> AutopilotInfo:
-    """Wait for an autopilot HEARTBEAT, sending the companion's own heartbeat meanwhile.
-
-    Sending first matters on ``udpout:`` links, where the autopilot learns our address from it.
-
-    :raises UserError: no autopilot heartbeat within ``timeout`` seconds
-    """
-    mavlink = _mavlink_module()
-    deadline = time.monotonic() + timeout
-    next_beat = 0.0
-    while (now := time.monotonic()) < deadline:
-        if now >= next_beat:
-            conn.mav.heartbeat_send(
-                mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0
-            )
-            next_beat = now + 0.5
-        msg = conn.recv_match(type="HEARTBEAT", blocking=True, timeout=min(0.5, deadline - now))
-        if msg is not None and msg.autopilot != mavlink.MAV_AUTOPILOT_INVALID:
-            return AutopilotInfo(msg.get_srcSystem(), msg.get_srcComponent(), msg.autopilot)
-    raise UserError(f"no autopilot HEARTBEAT within {timeout:g} s; check --connect and the wiring")
 
 
 @dataclass
@@ -616,7 +235,7 @@ def yaw_rate_limit(report: CheckReport, autopilot: str) -> float | None:
 
 def _check_firmware_family(autopilot: str, heartbeat_autopilot: int) -> None:
     """Refuse a file for one firmware against the other (every parameter would look unknown)."""
-    mavlink = _mavlink_module()
+    mavlink = mavlink_common()
     says = {mavlink.MAV_AUTOPILOT_PX4: "px4", mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA: "ardupilot"}
     found = says.get(heartbeat_autopilot)
     if found is not None and found != autopilot:
@@ -644,7 +263,7 @@ def _retries(text: str) -> int:
 
 def _names(text: str) -> frozenset[str]:
     names = frozenset(n.strip() for n in text.split(",") if n.strip())
-    bad = sorted(n for n in names if not _NAME.fullmatch(n))
+    bad = sorted(n for n in names if not PARAM_NAME.fullmatch(n))
     if bad or not names:
         raise argparse.ArgumentTypeError(f"{text!r} is not a comma-separated list of parameter names")
     return names

@@ -47,6 +47,8 @@ COMPANION_MODULES = (
     "companion.supervisor",
     "companion.notify",
     "companion.params",
+    "companion.param_client",
+    "companion.param_files",
     "companion.obstacle_distance",
     "companion.autopilot.ardupilot",
     "companion.autopilot.px4",

@@ -20,20 +20,16 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from companion.__main__ import main
 from companion.errors import UserError
+from companion.param_client import MavlinkParamClient, open_connection, wait_for_autopilot
 from companion.param_codec import encode_param_value
+from companion.param_files import WantedParam, default_param_file, load_param_file
 from companion.params import (
-    MavlinkParamClient,
     Status,
-    WantedParam,
     compare_parameter,
-    default_param_file,
-    load_param_file,
     needs_reboot,
-    open_connection,
     read_and_compare,
     run_params,
     values_match,
-    wait_for_autopilot,
     yaw_rate_limit,
 )
 from flightsim.sim_autopilot.params import ParameterTable, default_table
