@@ -85,8 +85,20 @@ def report(results: Sequence[EpisodeResult], worlds: Sequence[WorldSpec]) -> dic
                 f: summarise([r for r in mine if r.family == f])
                 for f in dict.fromkeys(r.family for r in mine)
             }
+            by_response = per_response(mine)
+            if len(by_response) > 1:
+                out["controllers"][c]["per_response"] = by_response
     out["episodes"] = [{k: v for k, v in asdict(r).items() if k != "trajectory"} for r in results]
     return out
+
+
+def per_response(results: Sequence[EpisodeResult]) -> dict[str, dict[str, Any]]:
+    """:func:`summarise` per autopilot response flown, by its name: with ``random``, the firmware
+    structure drawn (``random-px4``, ``random-ardupilot``). The structures fail differently behind
+    the shield: every shielded collision of the shipped policy on the validation and test worlds
+    came on an ArduPilot-structured draw (README, the shield variants)."""
+    names = sorted(dict.fromkeys(r.response.get("name", "ideal") for r in results))
+    return {n: summarise([r for r in results if r.response.get("name", "ideal") == n]) for n in names}
 
 
 def format_table(summary: dict[str, Any], per_world: bool) -> str:
@@ -130,7 +142,8 @@ def controller_colours(names: Iterable[str]) -> dict[str, str]:
 
 
 def format_goal_table(summary: dict[str, Any], per_world: bool) -> str:
-    """The goal task's table: a row per family (and per world with ``per_world``), then overall."""
+    """The goal task's table: a row per family (and per world with ``per_world``), per response
+    structure when more than one was flown, then overall."""
     header = f"{'controller':<22} {'family/world':<24} {'eps':>4} {'success':>8} {'coll':>6} {'timeout':>8} "
     header += f"{'time s':>7} {'SPL':>5} {'min clr':>8}"
     lines = [header, "-" * len(header)]
@@ -148,6 +161,7 @@ def format_goal_table(summary: dict[str, Any], per_world: bool) -> str:
         if per_world:
             lines += [row(name, world, s) for world, s in data["per_world"].items()]
         lines += [row(name, family, s) for family, s in data["per_family"].items()]
+        lines += [row(name, f"resp. {response}", s) for response, s in data.get("per_response", {}).items()]
         lines.append(row(name, "ALL", data["overall"]))
     return "\n".join(lines)
 

@@ -46,6 +46,28 @@ def test_goal_summary_rates_time_and_spl_over_successes_only():
     assert "forest" in table and "gaps" in table and "ALL" in table
 
 
+def test_the_report_breaks_the_figures_down_by_the_response_structure_drawn():
+    px4, ardupilot = {"name": "random-px4"}, {"name": "random-ardupilot"}
+    results = [
+        _episode("a", "w1", "forest", success=True),
+        _episode("a", "w2", "forest", collision=True),
+        _episode("a", "w3", "gaps", timeout=True),
+        _episode("a", "w4", "gaps", success=True),
+    ]
+    for r, response in zip(results, (px4, ardupilot, ardupilot, px4), strict=True):
+        r.response = response
+    a = report(results, [])["controllers"]["a"]
+    assert list(a["per_response"]) == ["random-ardupilot", "random-px4"]
+    assert a["per_response"]["random-px4"]["success_rate"] == 1.0
+    shaped = a["per_response"]["random-ardupilot"]
+    assert (shaped["episodes"], shaped["collision_rate"], shaped["timeout_rate"]) == (2, 0.5, 0.5)
+    table = format_table(report(results, []), per_world=False)
+    assert "resp. random-ardupilot" in table and "resp. random-px4" in table
+    for r in results:
+        r.response = px4  # one response flown: nothing to break down
+    assert "per_response" not in report(results, [])["controllers"]["a"]
+
+
 def test_goal_worlds_spread_difficulty_per_family_and_are_deterministic():
     worlds = goal_worlds(("forest", "traps"), 900_000, 4, (0.2, 1.0))
     assert [w.family for w in worlds] == ["forest"] * 4 + ["traps"] * 4
