@@ -49,7 +49,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from companion.lidar.velodyne import PACKET_DURATION_US, encode_packets  # noqa: E402
+from companion.lidar.vlp16_packet import PACKET_DURATION_US, encode_packets  # noqa: E402
 from tests.companion.mavlink_peer import SETPOINT, SO_TIMESTAMPNS, AutopilotPeer, free_udp_port  # noqa: E402
 from tests.onnx_models import write_policy  # noqa: E402
 

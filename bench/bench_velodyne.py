@@ -22,7 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from companion.lidar.velodyne import PACKET_SIZE, RevolutionAssembler, encode_packets
+from companion.lidar.velodyne import RevolutionAssembler
+from companion.lidar.vlp16_packet import PACKET_SIZE, encode_packets
 
 BACKENDS = ("numpy", "velodyne-decoder")
 

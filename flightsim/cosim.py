@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.lidar.velodyne import encode_packets
+from companion.lidar.vlp16_packet import encode_packets
 from companion.scan import ScanConfig
 from flightsim.raycast import LidarConfig, VLP16Raycaster
 from flightsim.world import World

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
-from companion.lidar.velodyne import VLP16_ELEVATIONS_DEG
+from companion.lidar.vlp16_packet import VLP16_ELEVATIONS_DEG
 from flightsim.world import World
 
 N_LASERS = 16

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.lidar.velodyne import FIRINGS_PER_PACKET, PACKET_DURATION_US, encode_packets
+from companion.lidar.vlp16_packet import FIRINGS_PER_PACKET, PACKET_DURATION_US, encode_packets
 from tests.companion.mavlink_peer import SETPOINT, SimulatedAutopilot, free_udp_port
 
 REPO = Path(__file__).resolve().parents[2]

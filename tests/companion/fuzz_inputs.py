@@ -36,14 +36,13 @@ from hypothesis import strategies as st
 
 from companion.config import CompanionConfig, load_config
 from companion.errors import UserError
-from companion.lidar.velodyne import (
+from companion.lidar.velodyne import RevolutionAssembler, revolution_problem
+from companion.lidar.vlp16_packet import (
     MAX_RANGE_M,
     PACKET_DTYPE,
     PACKET_SIZE,
-    RevolutionAssembler,
-    _firing_azimuths_array,
+    firing_azimuths_array,
     packet_error,
-    revolution_problem,
 )
 from tests.companion.vlp16_recording import load_recording
 
@@ -102,7 +101,7 @@ def hostile_streams(draw: st.DrawFn) -> list[bytes]:
 def firing_azimuths(packets: list[bytes]) -> np.ndarray:
     good = [p for p in packets if packet_error(p) is None]
     view = np.frombuffer(b"".join(good), dtype=PACKET_DTYPE)
-    return _firing_azimuths_array(view["blocks"]["azimuth"].astype(np.float64))
+    return firing_azimuths_array(view["blocks"]["azimuth"].astype(np.float64))
 
 
 def check_vlp16_stream(stream: list[bytes], cuts: list[int]) -> None:

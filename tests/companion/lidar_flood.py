@@ -22,7 +22,7 @@ import time
 
 import numpy as np
 
-from companion.lidar.velodyne import PACKET_DTYPE, PACKETS_PER_SECOND, PRODUCT_ID_VLP16, RETURN_STRONGEST
+from companion.lidar.vlp16_packet import PACKET_DTYPE, PACKETS_PER_SECOND, PRODUCT_ID_VLP16, RETURN_STRONGEST
 from tests.companion.vlp16_recording import looped_recording
 
 #: garbage: datagrams of random length and bytes, and 1206-byte packets with one header field wrong;

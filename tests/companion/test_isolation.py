@@ -53,6 +53,7 @@ COMPANION_MODULES = (
     "companion.autopilot.ardupilot",
     "companion.autopilot.px4",
     "companion.lidar.velodyne",
+    "companion.lidar.vlp16_packet",
 )
 
 

@@ -21,13 +21,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from companion.errors import UserError
-from companion.lidar import velodyne
-from companion.lidar.velodyne import (
+from companion.lidar import vlp16_packet
+from companion.lidar.velodyne import RevolutionAssembler, VelodyneUdpSource
+from companion.lidar.vlp16_packet import (
     MALFORMED_REASONS,
     PACKET_SIZE,
     VLP16_ELEVATIONS_DEG,
-    RevolutionAssembler,
-    VelodyneUdpSource,
     decode_packets_numpy,
     encode_packets,
     laser_azimuths_deg,
@@ -125,12 +124,12 @@ def test_batch_checks_agree_with_the_per_packet_ones(recording: list[bytes]) -> 
     packets = [*malformed_variants(recording[3]).values(), *recording[:50]]
     packets = [p for p in packets if len(p) == PACKET_SIZE]
     data = np.frombuffer(b"".join(packets), dtype=np.uint8).reshape(-1, PACKET_SIZE)
-    codes = velodyne._reason_codes(data)
+    codes = vlp16_packet.reason_codes(data)
     assert [MALFORMED_REASONS[c - 1] if c else None for c in codes] == [packet_error(p) for p in packets]
     good = data[codes == 0]
-    blocks = good.view(velodyne.PACKET_DTYPE)[:, 0]["blocks"]["azimuth"]
-    expected = [a for row in blocks.tolist() for a in velodyne.firing_azimuths(row)]
-    assert velodyne._firing_azimuths_array(blocks.astype(np.float64)).tolist() == expected
+    blocks = good.view(vlp16_packet.PACKET_DTYPE)[:, 0]["blocks"]["azimuth"]
+    expected = [a for row in blocks.tolist() for a in vlp16_packet.firing_azimuths(row)]
+    assert vlp16_packet.firing_azimuths_array(blocks.astype(np.float64)).tolist() == expected
     # and both agree with the plain-struct reference on the recording
     assert expected[: 24 * 50] == [az for az, _ in reference_firings(recording[:50])]
 

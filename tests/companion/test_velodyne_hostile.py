@@ -24,12 +24,11 @@ from companion.lidar.velodyne import (
     MAX_FIRINGS_PER_REVOLUTION,
     MAX_REVOLUTIONS_PER_SECOND,
     MIN_FIRINGS_PER_REVOLUTION,
-    PACKET_SIZE,
     RevolutionAssembler,
     VelodyneUdpSource,
-    encode_packets,
     revolution_problem,
 )
+from companion.lidar.vlp16_packet import PACKET_SIZE, encode_packets
 from companion.scan import ScanConfig, scan_from_points
 from tests.companion.vlp16_recording import load_recording
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from companion.lidar.velodyne import PACKET_DTYPE, PACKET_DURATION_US, PACKET_SIZE, US_PER_HOUR
+from companion.lidar.vlp16_packet import PACKET_DTYPE, PACKET_DURATION_US, PACKET_SIZE, US_PER_HOUR
 
 #: The packets from the first wrap to just before the last one: played in a loop, the azimuth runs on
 #: across the seam (355.5° → 356.7°) and every lap holds 12 whole revolutions.

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from companion.errors import UserError
-from companion.lidar.velodyne import VLP16_ELEVATIONS_DEG
+from companion.lidar.vlp16_packet import VLP16_ELEVATIONS_DEG
 from companion.scan import ScanConfig, scan_from_points
 from companion.tomlconfig import from_dict
 from flightsim.raycast import LidarConfig, RangeGrid, VLP16Raycaster, grid_to_points
