@@ -5,7 +5,7 @@ as a JSON-able report, a text table and a picture of the trajectories over each 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -81,24 +81,21 @@ def report(results: Sequence[EpisodeResult], worlds: Sequence[WorldSpec]) -> dic
             "per_world": {w.name: summarise([r for r in mine if r.world == w.name]) for w in worlds},
         }
         if goal:
-            out["controllers"][c]["per_family"] = {
-                f: summarise([r for r in mine if r.family == f])
-                for f in dict.fromkeys(r.family for r in mine)
-            }
-            by_response = per_response(mine)
-            if len(by_response) > 1:
-                out["controllers"][c]["per_response"] = by_response
+            out["controllers"][c]["per_family"] = summarise_by(mine, lambda r: r.family)
+            by_response = summarise_by(mine, lambda r: r.response.get("name", "ideal"))
+            if len(by_response) > 1:  # with ``random``: each firmware structure drawn
+                out["controllers"][c]["per_response"] = dict(sorted(by_response.items()))
     out["episodes"] = [{k: v for k, v in asdict(r).items() if k != "trajectory"} for r in results]
     return out
 
 
-def per_response(results: Sequence[EpisodeResult]) -> dict[str, dict[str, Any]]:
-    """:func:`summarise` per autopilot response flown, by its name: with ``random``, the firmware
-    structure drawn (``random-px4``, ``random-ardupilot``). The structures fail differently behind
-    the shield: every shielded collision of the shipped policy on the validation and test worlds
-    came on an ArduPilot-structured draw (README, the shield variants)."""
-    names = sorted(dict.fromkeys(r.response.get("name", "ideal") for r in results))
-    return {n: summarise([r for r in results if r.response.get("name", "ideal") == n]) for n in names}
+def summarise_by(results: Sequence[EpisodeResult], key: Callable[[EpisodeResult], str]) -> dict[str, Any]:
+    """:func:`summarise` per value of ``key`` (a family, the response flown), in first-seen order.
+
+    The response's name splits ``random`` draws by firmware structure (``random-px4``,
+    ``random-ardupilot``), which fail differently behind the shield.
+    """
+    return {k: summarise([r for r in results if key(r) == k]) for k in dict.fromkeys(key(r) for r in results)}
 
 
 def format_table(summary: dict[str, Any], per_world: bool) -> str:
