@@ -9,7 +9,7 @@ brake sees the true motion): the vehicle is settled at about 1 m/s, then braked 
 ``-min(brake, speed)`` until it is slower than 0.1 m/s. Printed per firmware structure (PX4-like:
 the command reaches the velocity PID unshaped; ArduPilot-like: input shaping limits the
 deceleration) and brake size: the median, 90th percentile and largest distance flown, and the
-median as a ratio to the 0.5 m/s brake's median over the same draws. The last column is the
+median as a ratio to the shield's brake's median over the same draws. The last column is the
 shield's model of the stop for ``random`` (``AUTOPILOT_LIMITS``: 1.2 m/s² after 0.8 s) from the
 same speed.
 
@@ -22,13 +22,15 @@ import argparse
 
 import numpy as np
 
-from companion.shield import AUTOPILOT_LIMITS, stopping_distance
+from companion.shield import AUTOPILOT_LIMITS, ShieldConfig, stopping_distance
 from flightsim.autopilot_response import AutopilotResponse, ResponseParams, fly, random_params
 from flightsim.vehicle import Vehicle
 
 ALTITUDE = 1.5
-BRAKES = (0.0, 0.5, 1.0)
-"""Brake sizes, m/s: 0 is a plain zero setpoint, 0.5 the shield's (``max_reverse_speed``)."""
+SHIELD_BRAKE = ShieldConfig().max_reverse_speed
+"""The shield's brake, m/s (its motion stop is at most ``max_reverse_speed``)."""
+BRAKES = (0.0, SHIELD_BRAKE, 1.0)
+"""Brake sizes, m/s: 0 is a plain zero setpoint."""
 
 
 def braking_distance(
@@ -63,17 +65,17 @@ def main() -> None:
     draws = [random_params(rng).without_estimate_error() for _ in range(args.draws)]
     limits = AUTOPILOT_LIMITS["random"]
     print(f"{'structure':<10} {'brake':>6} {'draws':>5} {'from m/s':>8} {'median m':>9} {'p90 m':>6} "
-          f"{'max m':>6} {'/ 0.5 brake (median)':>21} {'model m':>8}")  # fmt: skip
+          f"{'max m':>6} {'/ shield brake (median)':>24} {'model m':>8}")  # fmt: skip
     for structure in ("px4", "ardupilot"):
         chosen = [p for p in draws if p.name.endswith(structure)]
         runs = {b: np.array([braking_distance(vehicle, p, args.speed, b) for p in chosen]) for b in BRAKES}
         for brake, result in runs.items():
             speeds, distances = result[:, 0], result[:, 1]
-            ratio = np.median(distances) / np.median(runs[0.5][:, 1])
+            ratio = np.median(distances) / np.median(runs[SHIELD_BRAKE][:, 1])
             model = np.median([stopping_distance(v, limits.decel, limits.reaction_time) for v in speeds])
             print(f"{structure:<10} {brake:>6.1f} {len(chosen):>5} {speeds.mean():>8.2f} "
                   f"{np.median(distances):>9.2f} {np.quantile(distances, 0.9):>6.2f} {distances.max():>6.2f} "
-                  f"{ratio:>21.2f} {model:>8.2f}")  # fmt: skip
+                  f"{ratio:>24.2f} {model:>8.2f}")  # fmt: skip
 
 
 if __name__ == "__main__":
