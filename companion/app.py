@@ -56,7 +56,13 @@ from companion.goal_source import (
     request_message,
 )
 from companion.notify import SystemdNotifier
-from companion.observation import build_frame, command_features, drift_features, goal_features
+from companion.observation import (
+    build_frame,
+    command_features,
+    drift_features,
+    firmware_features,
+    goal_features,
+)
 from companion.obstacle_distance import obstacle_distance_allowed, obstacle_distance_from_scan
 from companion.policy import InferenceFault, OnnxPolicy, PolicySpec
 from companion.recording.recorder import FlightRecorder, open_recorder
@@ -454,6 +460,9 @@ class Companion:
         if self.layout.command:  # what the autopilot is still answering (LidarNav-v0's command)
             sent = self._last_command
             features = np.concatenate([features, command_features(sent.forward, sent.yaw_rate, self.layout)])
+        if self.layout.firmware:  # which firmware answers (LidarNav-v0's firmware)
+            ardupilot = self.config.autopilot.type == "ardupilot"
+            features = np.concatenate([features, firmware_features(ardupilot, self.layout)])
         return build_frame(scan, features, self.layout)
 
     def _toward(self, scan: np.ndarray, forward: float, left: float) -> tuple[float, float]:

@@ -131,6 +131,9 @@ class PolicyConfig:
     :param command: the frame also carries the last setpoint sent (forward / ``max_speed``, yaw rate
         / ``max_yaw_rate``): a model trained with ``env.command = true``; the metadata says which.
         Goal frames only
+    :param firmware: the frame also says which firmware flies the setpoints (1.0 for
+        ``autopilot.type = "ardupilot"``, 0.0 for ``"px4"``): a model trained with
+        ``env.firmware = true``; the metadata says which. Goal frames only
     :param trt_cache_dir: directory for TensorRT's engine cache (empty: no cache; relative: to the
         config file); the service's StateDirectory is meant for it
     :param sha256: the model file's SHA-256 (64 hex digits, as ``avoid-train export`` prints it);
@@ -148,6 +151,7 @@ class PolicyConfig:
     goal_range: float = field(default=30.0, metadata={"min": 1.0, "max": 100.0})
     drift: bool = True
     command: bool = False
+    firmware: bool = False
 
     @property
     def layout(self) -> ObservationLayout:
@@ -156,7 +160,8 @@ class PolicyConfig:
         goal = self.observation == "goal"
         return ObservationLayout(n_bins=N_BINS, goal=goal, goal_range=self.goal_range,
                                  velocity_scale=self.max_speed, drift=self.drift and goal,
-                                 command=self.command and goal, yaw_rate_scale=self.max_yaw_rate)
+                                 command=self.command and goal, yaw_rate_scale=self.max_yaw_rate,
+                                 firmware=self.firmware and goal)
 
     def __post_init__(self) -> None:
         if self.sha256 and not re.fullmatch(r"[0-9a-fA-F]{64}", self.sha256):

@@ -16,7 +16,11 @@ frame stacked (SB3's ``VecFrameStack`` does the same in training). Two layouts e
 * goal with commands: then :data:`COMMAND_FEATURES` — the last command sent to the autopilot (after
   the shield), forward ``/ velocity_scale`` and yaw rate ``/ yaw_rate_scale``, clipped to
   ``[-1, 1]``. A real autopilot answers a command late and slowly, so what the vehicle does next
-  depends on the commands still in flight, which the measured velocity does not show yet.
+  depends on the commands still in flight, which the measured velocity does not show yet;
+* goal with firmware: then :data:`FIRMWARE_FEATURES` — 1.0 when the autopilot is ArduPilot, 0.0
+  when it is PX4 (the companion's ``autopilot.type``; in simulation, the structure of the drawn
+  response). ArduPilot shapes a velocity setpoint (jerk- and acceleration-limited) before it flies
+  it, PX4's offboard mode does not, so the same command stops sooner on one than on the other.
 
 :attr:`ObservationLayout.name` spells a layout out (sizes and scales included); the training export
 writes it into the ONNX metadata and the companion refuses a model whose name differs from its own.
@@ -36,12 +40,15 @@ GOAL_FEATURES = ("goal_cos", "goal_sin", "goal_distance", "velocity_forward", "v
 DRIFT_FEATURES = ("drift_forward", "drift_left")
 #: the last command sent, after the goal (and drift) features (``command`` layouts), in order
 COMMAND_FEATURES = ("command_forward", "command_yaw_rate")
+#: the autopilot's firmware, last in the frame (``firmware`` layouts)
+FIRMWARE_FEATURES = ("firmware_ardupilot",)
 
 
 @dataclass(frozen=True)
 class ObservationLayout:
     """One observation frame: ``n_bins`` scan values, then (``goal``) the :data:`GOAL_FEATURES`,
-    then (``drift``) the :data:`DRIFT_FEATURES`, then (``command``) the :data:`COMMAND_FEATURES`.
+    then (``drift``) the :data:`DRIFT_FEATURES`, then (``command``) the :data:`COMMAND_FEATURES`,
+    then (``firmware``) the :data:`FIRMWARE_FEATURES`.
 
     :param n_bins: scan bins
     :param goal: the frame carries the goal and the measured velocity
@@ -50,6 +57,7 @@ class ObservationLayout:
     :param velocity_scale: m/s a velocity feature of 1.0 stands for (the env's ``max_speed``)
     :param command: the frame also carries the last command sent (a goal layout only)
     :param yaw_rate_scale: rad/s a yaw-rate command feature of 1.0 stands for (``max_yaw_rate``)
+    :param firmware: the frame also says which firmware flies the setpoints (a goal layout only)
     """
 
     n_bins: int = 360
@@ -59,26 +67,36 @@ class ObservationLayout:
     drift: bool = False
     command: bool = False
     yaw_rate_scale: float = 1.5
+    firmware: bool = False
 
     def __post_init__(self) -> None:
         scales = (self.goal_range, self.velocity_scale, self.yaw_rate_scale)
         if self.n_bins < 1 or not all(scale > 0.0 for scale in scales):
             raise ValueError(f"invalid observation layout {self}")
-        for part in ("drift", "command"):
+        for part in ("drift", "command", "firmware"):
             if getattr(self, part) and not self.goal:
                 raise ValueError(f"the {part} features come after the goal features: {part} needs goal")
 
     @property
     def frame_size(self) -> int:
         """Floats per frame."""
-        parts = ((self.goal, GOAL_FEATURES), (self.drift, DRIFT_FEATURES), (self.command, COMMAND_FEATURES))
-        return self.n_bins + sum(len(names) for present, names in parts if present)
+        return self.n_bins + sum(len(names) for _, names in self._parts())
+
+    def _parts(self) -> list[tuple[str, tuple[str, ...]]]:
+        """The feature groups after the scan this layout has, in frame order, by name."""
+        groups = (
+            ("goal", GOAL_FEATURES),
+            ("drift", DRIFT_FEATURES),
+            ("command", COMMAND_FEATURES),
+            ("firmware", FIRMWARE_FEATURES),
+        )
+        return [(part, names) for part, names in groups if getattr(self, part)]
 
     @property
     def name(self) -> str:
         """The layout spelled out, e.g. ``scan360`` or
         ``scan360+goal(cos,sin,distance/10m)+velocity(forward,left/2m/s)[+drift(forward,left/2m/s)]``
-        ``[+command(forward/2m/s,yaw/1.5rad/s)]``."""
+        ``[+command(forward/2m/s,yaw/1.5rad/s)][+firmware(ardupilot=1,px4=0)]``."""
         scan = f"scan{self.n_bins}"
         if not self.goal:
             return scan
@@ -88,9 +106,10 @@ class ObservationLayout:
             if self.command
             else ""
         )
+        firmware = "+firmware(ardupilot=1,px4=0)" if self.firmware else ""
         return (
             f"{scan}+goal(cos,sin,distance/{self.goal_range:g}m)"
-            f"+velocity(forward,left/{self.velocity_scale:g}m/s){drift}{command}"
+            f"+velocity(forward,left/{self.velocity_scale:g}m/s){drift}{command}{firmware}"
         )
 
     def slices(self) -> dict[str, slice]:
@@ -100,10 +119,10 @@ class ObservationLayout:
             n = self.n_bins
             parts |= {"goal_bearing": slice(n, n + 2), "goal_distance": slice(n + 2, n + 3)}
             parts["velocity"] = slice(n + 3, n + 5)
-        if self.drift:
-            parts["drift"] = slice(self.n_bins + 5, self.n_bins + 7)
-        if self.command:
-            parts["command"] = slice(self.frame_size - 2, self.frame_size)
+        start = self.n_bins + len(GOAL_FEATURES)
+        for part, names in self._parts()[1:]:
+            parts[part] = slice(start, start + len(names))
+            start += len(names)
         return parts
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -113,6 +132,8 @@ class ObservationLayout:
         if self.goal:
             low[self.n_bins : self.n_bins + 2] = -1.0  # bearing cos, sin
             low[self.n_bins + 3 :] = -1.0  # velocity (and drift, command)
+        if self.firmware:
+            low[self.slices()["firmware"]] = 0.0
         return low, high
 
 
@@ -186,6 +207,16 @@ def command_features(forward: float, yaw_rate: float, layout: ObservationLayout)
         raise ValueError(f"the last command must be finite, got {(forward, yaw_rate)}")
     values = (forward / layout.velocity_scale, yaw_rate / layout.yaw_rate_scale)
     return np.clip(np.array(values, dtype=np.float32), -1.0, 1.0)
+
+
+def firmware_features(ardupilot: bool, layout: ObservationLayout) -> np.ndarray:
+    """The :data:`FIRMWARE_FEATURES` of a frame (float32): 1.0 for ArduPilot, 0.0 for PX4.
+
+    :raises ValueError: a layout without the firmware feature
+    """
+    if not layout.firmware:
+        raise ValueError(f"layout {layout.name} has no firmware feature")
+    return np.array([1.0 if ardupilot else 0.0], dtype=np.float32)
 
 
 def build_frame(scan: np.ndarray, features: np.ndarray | None, layout: ObservationLayout) -> np.ndarray:

@@ -111,6 +111,12 @@ class ResponseParams:
     est_vel_sigma: float
     est_vel_tau_s: float
 
+    @property
+    def shapes_input(self) -> bool:
+        """ArduPilot's structure: a velocity setpoint is shaped (jerk- and acceleration-limited)
+        before the loop flies it; PX4's offboard setpoints reach the loop as sent."""
+        return self.shape_jerk_max > 0.0
+
     def without_estimate_error(self) -> ResponseParams:
         """The same response with a perfect velocity estimate (for replaying recorded commands)."""
         return replace(self, est_vel_sigma=0.0)

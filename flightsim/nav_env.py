@@ -15,6 +15,7 @@ from companion.observation import (
     build_frame,
     command_features,
     drift_features,
+    firmware_features,
     goal_features,
     goal_in_body,
 )
@@ -53,6 +54,9 @@ class NavEnvConfig(EnvConfig):
         on this episode's frames, as the companion computes it in flight)
     :param command: each frame also carries the command just flown (after the shield), as the
         companion's frames carry the last setpoint it sent
+    :param firmware: each frame also says which firmware's structure the episode's response has
+        (1.0 ArduPilot: shaped input; 0.0 PX4, or the ideal response), as the companion's frames
+        carry its ``autopilot.type``
     :param route: the goal features point along a route planned on the scans seen so far
         (:class:`companion.route.RoutePlanner`, on the true pose, as the goal features are), not
         straight at the waypoint; the companion's ``goal.route`` does the same in flight
@@ -71,6 +75,7 @@ class NavEnvConfig(EnvConfig):
     goal_reward: GoalRewardConfig = field(default_factory=GoalRewardConfig)
     drift: bool = False
     command: bool = False
+    firmware: bool = False
     route: bool = False
     route_planner: RouteConfig = field(default_factory=RouteConfig)
 
@@ -88,6 +93,7 @@ class NavEnvConfig(EnvConfig):
         return ObservationLayout(
             n_bins=360, goal=True, goal_range=self.goal_range, velocity_scale=self.max_speed,
             drift=self.drift, command=self.command, yaw_rate_scale=self.max_yaw_rate,
+            firmware=self.firmware,
         )  # fmt: skip
 
 
@@ -116,7 +122,8 @@ class LidarNavEnv(LidarAvoidEnv):
     ``Box(low, high, (365,), float32)``, one frame of :class:`companion.observation.ObservationLayout`
     ``scan360+goal(cos,sin,distance/30m)+velocity(forward,left/2m/s)``; with ``drift``,
     ``Box(low, high, (367,), float32)``, ``...+drift(forward,left/2m/s)``; with ``command`` as well,
-    ``Box(low, high, (369,), float32)``, ``...+command(forward/2m/s,yaw/1.5rad/s)``:
+    ``Box(low, high, (369,), float32)``, ``...+command(forward/2m/s,yaw/1.5rad/s)``; with
+    ``firmware``, one float more, ``...+firmware(ardupilot=1,px4=0)``:
 
     ========== ===================================================== ==========
     index      meaning                                               range
@@ -129,8 +136,10 @@ class LidarNavEnv(LidarAvoidEnv):
     365, 366   (``drift`` only) the drift estimate forward, left /   [-1, 1]
                ``max_speed``: the reported minus the scan-matched velocity, low-pass
                filtered (:class:`companion.drift.DriftEstimator`, reset with the episode)
-    last 2     (``command`` only) the command just flown, after the  [-1, 1]
+    next 2     (``command`` only) the command just flown, after the  [-1, 1]
                shield: forward / ``max_speed``, yaw rate / ``max_yaw_rate``; (0, 0) at reset
+    last 1     (``firmware`` only) 1.0 when the episode's response   {0, 1}
+               has ArduPilot's structure (shaped input), else 0.0
     ========== ===================================================== ==========
 
     The goal features are the current pose's; the scan follows ``latency_scans``. With ``route``
@@ -176,9 +185,9 @@ class LidarNavEnv(LidarAvoidEnv):
     ## Version History
     * v0: initial version (families, goal + velocity features, goal reward, path-proportional time
       limit). ``drift`` (off by default, so earlier configs keep their 365-float frame) adds the
-      drift features; ``command`` (off by default too) adds the command features; ``route`` (off by
-      default) points the goal features along a route on the map of the scans so far, the same
-      layout.
+      drift features; ``command`` (off by default too) adds the command features; ``firmware`` (off
+      by default) adds the firmware feature; ``route`` (off by default) points the goal features
+      along a route on the map of the scans so far, the same layout.
     """
 
     def __init__(self, config: NavEnvConfig | None = None, render_mode: str | None = None) -> None:
@@ -346,6 +355,9 @@ class LidarNavEnv(LidarAvoidEnv):
             cfg = self.config
             sent = command_features(forward * cfg.max_speed, yaw_rate * cfg.max_yaw_rate, self.layout)
             features = np.concatenate([features, sent])
+        if self.layout.firmware:
+            ardupilot = self._response is not None and self._response.params.shapes_input
+            features = np.concatenate([features, firmware_features(ardupilot, self.layout)])
         return build_frame(scan, features, self.layout)
 
     def _nav_info(self, info: dict[str, Any]) -> dict[str, Any]:

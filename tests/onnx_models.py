@@ -13,6 +13,8 @@ Each model is ``Gemm(obs, W, b)`` (optionally followed by ``Clip`` to [-1, 1]) b
 - ``echo_drift``: a = (newest drift forward feature, drift left feature) (drift layout)
 - ``echo_command``: a = (0, 0.4 − newest yaw-rate command feature) (command layout): alternates
   between 0.4 and 0 when the frame carries the last command sent, 0.4 throughout when it does not
+- ``echo_firmware``: a = (0.25 + 0.5 × newest firmware feature, 0) (firmware layout): 0.75 for
+  ArduPilot, 0.25 for PX4
 - ``big``: a = (5, −5) without the Clip node (the companion must clip)
 - ``nan`` / ``inf``: non-finite output (an inference fault)
 - ``error``: raises inside ONNX Runtime at inference (a Reshape that cannot fit)
@@ -37,7 +39,7 @@ COMPANION_SPEC = policy_spec(CompanionConfig())
 SCAN_SPEC = PolicySpec()
 
 KINDS = ("forward", "stop", "turn_left", "turn_right", "steer", "echo", "echo_goal", "echo_velocity",
-         "echo_drift", "echo_command", "big", "nan", "inf", "error")
+         "echo_drift", "echo_command", "echo_firmware", "big", "nan", "inf", "error")
 OPSET = 17
 IR_VERSION = 8  # accepted by every onnxruntime the project supports
 
@@ -88,6 +90,12 @@ def _weights(kind: str, spec: PolicySpec, input_size: int, output_size: int) -> 
             raise ValueError(f"{kind} needs a command layout, not {spec.layout.name}")
         w[newest + parts["command"].start + 1, 1] = -1.0
         b[1] = 0.4
+    elif kind == "echo_firmware":
+        parts = spec.layout.slices()
+        if "firmware" not in parts:
+            raise ValueError(f"{kind} needs a firmware layout, not {spec.layout.name}")
+        w[newest + parts["firmware"].start, 0] = 0.5
+        b[0] = 0.25
     else:
         raise ValueError(f"unknown policy kind {kind!r}; choose from {', '.join(KINDS)}")
     return w, b

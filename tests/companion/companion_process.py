@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from companion.autopilot.mavlink_adapter import mavlink
 from companion.lidar.vlp16_packet import FIRINGS_PER_PACKET, PACKET_DURATION_US, encode_packets
 from tests.companion.mavlink_peer import SETPOINT, SimulatedAutopilot, free_udp_port
 
@@ -245,11 +246,13 @@ class Flight:
     """The companion process with a config, a peer autopilot hovering at 1.5 m, the lidar on.
 
     :param position: the peer's LOCAL_POSITION_NED (north, east, down), None: over the origin
+    :param autopilot: the peer's MAV_AUTOPILOT; a PX4 peer starts in OFFBOARD
     """
 
     def __init__(self, config: Path, lidar_port: int, mavlink_port: int,
-                 position: tuple[float, float, float] | None = (0.0, 0.0, -1.5)) -> None:
-        self.vehicle = SimulatedAutopilot(f"udpout:127.0.0.1:{mavlink_port}")
+                 position: tuple[float, float, float] | None = (0.0, 0.0, -1.5),
+                 autopilot: int = mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA) -> None:
+        self.vehicle = SimulatedAutopilot(f"udpout:127.0.0.1:{mavlink_port}", autopilot=autopilot)
         self.vehicle.local_position = position
         self.proc = start_companion(config)
         self.lidar = LidarSender(lidar_port)

@@ -17,8 +17,15 @@ import numpy as np
 import pytest
 
 from companion.app import policy_spec
+from companion.autopilot.mavlink_adapter import mavlink
 from companion.config import CompanionConfig, PolicyConfig
-from tests.companion.companion_process import WEST_AND_UP, Flight, free_udp_port, run_to_exit, write_config
+from tests.companion.companion_process import (
+    WEST_AND_UP,
+    Flight,
+    free_udp_port,
+    run_to_exit,
+    write_config,
+)
 from tests.companion.companion_process import wait_until as _wait
 from tests.companion.mavlink_peer import SETPOINT
 from tests.onnx_models import SCAN_SPEC, write_policy
@@ -116,6 +123,22 @@ def test_the_last_setpoint_sent_reaches_a_command_model(tmp_path):
             return settled and all(abs(a - b) > 0.1 for a, b in pairs)
 
         _wait(alternating, 20.0, "yaw rates alternating, each pair summing to 0.6 rad/s")
+    finally:
+        f.close()
+
+
+@pytest.mark.parametrize(("autopilot", "speed"), [("ardupilot", 1.5), ("px4", 0.5)])
+def test_the_autopilot_type_reaches_a_firmware_model(tmp_path, autopilot, speed):
+    # a0 = 0.25 + 0.5 x the firmware feature: 1.5 m/s when it reads ArduPilot (1.0), 0.5 m/s for PX4
+    config = CompanionConfig(policy=PolicyConfig(firmware=True))
+    model = write_policy(tmp_path / "firmware.onnx", kind="echo_firmware", spec=policy_spec(config))
+    lidar_port, mavlink_port = free_udp_port(), free_udp_port()
+    path = write_config(tmp_path, model, lidar_port, mavlink_port, autopilot=autopilot)
+    path.write_text(path.read_text().replace("[policy]\n", "[policy]\nfirmware = true\n"))
+    peer = mavlink.MAV_AUTOPILOT_PX4 if autopilot == "px4" else mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
+    f = Flight(path, lidar_port, mavlink_port, autopilot=peer)
+    try:
+        f.settled(lambda m: abs(m.vx - speed) < 0.05, f"{speed} m/s forward for {autopilot}")
     finally:
         f.close()
 

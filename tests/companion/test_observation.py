@@ -14,6 +14,7 @@ from companion.observation import (
     build_frame,
     command_features,
     drift_features,
+    firmware_features,
     goal_features,
     goal_in_body,
 )
@@ -78,6 +79,26 @@ def test_the_command_layout_adds_the_last_command_after_the_drift() -> None:
         command_features(0.0, 0.0, GOAL)
     with pytest.raises(ValueError):
         ObservationLayout(goal=True, command=True, yaw_rate_scale=0.0)
+
+
+def test_the_firmware_layout_ends_the_frame_with_one_flag_in_0_1() -> None:
+    firmware = ObservationLayout(goal=True, goal_range=10.0, drift=True, firmware=True)
+    assert firmware.name == GOAL.name + "+drift(forward,left/2m/s)+firmware(ardupilot=1,px4=0)"
+    assert firmware.frame_size == 368
+    assert firmware.slices() == GOAL.slices() | {"drift": slice(365, 367), "firmware": slice(367, 368)}
+    low, high = firmware.bounds()
+    assert low[365:].tolist() == [-1, -1, 0] and high[365:].tolist() == [1, 1, 1]
+    assert firmware_features(True, firmware).tolist() == [1.0]
+    assert firmware_features(False, firmware).dtype == np.float32
+    assert firmware_features(False, firmware).tolist() == [0.0]
+    # after the command, when both are there
+    both = ObservationLayout(goal=True, drift=True, command=True, firmware=True)
+    assert both.slices()["command"] == slice(367, 369) and both.slices()["firmware"] == slice(369, 370)
+    assert both.name.endswith("+command(forward/2m/s,yaw/1.5rad/s)+firmware(ardupilot=1,px4=0)")
+    with pytest.raises(ValueError, match="firmware needs goal"):
+        ObservationLayout(firmware=True)
+    with pytest.raises(ValueError, match="no firmware"):
+        firmware_features(True, GOAL)
 
 
 def test_goal_features_bearing_distance_and_velocity() -> None:

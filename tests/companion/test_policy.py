@@ -289,3 +289,16 @@ def test_a_goal_model_without_drift_features_is_refused_with_the_fix(tmp_path: P
         OnnxPolicy(path, default)
     assert str(err.value).endswith("(drift features: the model has none: policy.drift = false)")
     assert old.layout.name in str(err.value) and default.layout.name in str(err.value)
+
+
+def test_a_firmware_model_under_a_config_without_the_feature_is_refused_with_the_fix(tmp_path: Path) -> None:
+    from companion.app import policy_spec
+    from companion.config import CompanionConfig
+
+    default = policy_spec(CompanionConfig())
+    assert not default.layout.firmware
+    firmware = PolicySpec(layout=dataclasses.replace(default.layout, firmware=True))
+    path = write_policy(tmp_path / "firmware.onnx", spec=firmware)
+    with pytest.raises(UserError) as err:
+        OnnxPolicy(path, default)
+    assert str(err.value).endswith("(firmware features: set policy.firmware = true)")

@@ -240,6 +240,27 @@ def test_the_command_features_carry_the_command_flown_after_the_shield() -> None
     shielded.close()
 
 
+def test_the_firmware_feature_says_which_structure_the_drawn_response_has() -> None:
+    env = LidarNavEnv(NavEnvConfig(max_steps=50, drift=True, firmware=True))
+    assert env.observation_space.shape == (368,)
+    assert env.layout.name.endswith("+firmware(ardupilot=1,px4=0)")
+    gym_check_env(env)
+    seen = {}
+    for seed in range(8):  # "random": each structure about half of the episodes
+        obs, _ = env.reset(seed=seed, options={"world": HALL})
+        params = env.response_params
+        seen[params.name] = obs[367]
+        obs, *_ = env.step(FORWARD)
+        assert obs[367] == seen[params.name]  # the whole episode
+    assert seen == {"random-ardupilot": 1.0, "random-px4": 0.0}
+    env.close()
+    for response, flag in (("ardupilot", 1.0), ("px4", 0.0), ("ideal", 0.0)):
+        fixed = LidarNavEnv(NavEnvConfig(firmware=True, autopilot_response=response))
+        obs, _ = fixed.reset(seed=0, options={"world": HALL})
+        assert obs[-1] == flag, response
+        fixed.close()
+
+
 @pytest.mark.parametrize("action", [HOVER, np.array([0.3, 0.4], np.float32)])
 def test_the_drift_features_find_the_error_the_reported_velocity_hides(action) -> None:
     # PX4's calibrated response: a velocity estimate that wanders by 0.25 m/s (one sigma)
