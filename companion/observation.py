@@ -2,7 +2,8 @@
 
 A frame is what the environment returns per step and what the companion pushes into its
 :class:`~companion.framestack.FrameStack`; the policy sees ``stack`` frames, oldest first, the whole
-frame stacked (SB3's ``VecFrameStack`` does the same in training). Two layouts exist:
+frame stacked (SB3's ``VecFrameStack`` does the same in training). A frame's parts, in order (the
+scan alone is a layout; drift, commands and firmware each come on top of the goal part, any subset):
 
 * scan only (``LidarAvoid-v0``): ``[0, n_bins)`` the scan, normalised ranges in ``[0, 1]``;
 * goal (``LidarNav-v0``): the scan, then :data:`GOAL_FEATURES` — the goal's bearing in the body

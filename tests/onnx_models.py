@@ -44,6 +44,15 @@ OPSET = 17
 IR_VERSION = 8  # accepted by every onnxruntime the project supports
 
 
+def _start(kind: str, spec: PolicySpec, part: str, layout: str = "") -> int:
+    """Where ``part`` starts in a frame of ``spec``; a ValueError naming the ``layout`` (default:
+    ``part``) that ``kind`` needs when the spec's has none."""
+    parts = spec.layout.slices()
+    if part not in parts:
+        raise ValueError(f"{kind} needs a {layout or part} layout, not {spec.layout.name}")
+    return parts[part].start
+
+
 def _weights(kind: str, spec: PolicySpec, input_size: int, output_size: int) -> tuple[np.ndarray, np.ndarray]:
     w = np.zeros((input_size, output_size), dtype=np.float32)
     b = np.zeros(output_size, dtype=np.float32)
@@ -69,32 +78,21 @@ def _weights(kind: str, spec: PolicySpec, input_size: int, output_size: int) -> 
     elif kind == "echo":
         w[newest + 0, 0] = 1.0
         w[newest + 90, 1] = 1.0
-    elif kind in ("echo_goal", "echo_velocity"):
-        parts = spec.layout.slices()
-        if "velocity" not in parts:
-            raise ValueError(f"{kind} needs a goal layout, not {spec.layout.name}")
-        if kind == "echo_goal":
-            w[newest + parts["goal_bearing"].start, 0] = 1.0
-            w[newest + parts["goal_bearing"].start + 1, 1] = 1.0
-        else:
-            w[newest + parts["velocity"].start + 1, 1] = 1.0
+    elif kind == "echo_goal":
+        bearing = newest + _start(kind, spec, "goal_bearing", "goal")
+        w[bearing, 0] = 1.0
+        w[bearing + 1, 1] = 1.0
+    elif kind == "echo_velocity":
+        w[newest + _start(kind, spec, "velocity", "goal") + 1, 1] = 1.0
     elif kind == "echo_drift":
-        parts = spec.layout.slices()
-        if "drift" not in parts:
-            raise ValueError(f"{kind} needs a drift layout, not {spec.layout.name}")
-        w[newest + parts["drift"].start, 0] = 1.0
-        w[newest + parts["drift"].start + 1, 1] = 1.0
+        drift = newest + _start(kind, spec, "drift")
+        w[drift, 0] = 1.0
+        w[drift + 1, 1] = 1.0
     elif kind == "echo_command":
-        parts = spec.layout.slices()
-        if "command" not in parts:
-            raise ValueError(f"{kind} needs a command layout, not {spec.layout.name}")
-        w[newest + parts["command"].start + 1, 1] = -1.0
+        w[newest + _start(kind, spec, "command") + 1, 1] = -1.0
         b[1] = 0.4
     elif kind == "echo_firmware":
-        parts = spec.layout.slices()
-        if "firmware" not in parts:
-            raise ValueError(f"{kind} needs a firmware layout, not {spec.layout.name}")
-        w[newest + parts["firmware"].start, 0] = 0.5
+        w[newest + _start(kind, spec, "firmware"), 0] = 0.5
         b[0] = 0.25
     else:
         raise ValueError(f"unknown policy kind {kind!r}; choose from {', '.join(KINDS)}")
