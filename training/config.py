@@ -112,6 +112,9 @@ class PretrainConfig:
     :param learning_rate: Adam's, for the warm start only
     :param learning_rate_schedule: each fit's: ``"constant"``, or ``"cosine"`` (annealed to 0 over
         the fit's epochs)
+    :param near_weight: DAgger's labels count ``1 + near_weight × (1 − d / near_distance)`` in each
+        fit, where the newest scan's nearest return ``d`` is within ``near_distance`` (0: all alike)
+    :param near_distance: where that weighting starts, metres
     """
 
     method: Literal["bc", "dagger"] = "bc"
@@ -125,6 +128,8 @@ class PretrainConfig:
     batch_size: int = field(default=256, metadata={"min": 1})
     learning_rate: float = field(default=1e-3, metadata={"min": 1e-7, "max": 1.0})
     learning_rate_schedule: Literal["constant", "cosine"] = "constant"
+    near_weight: float = field(default=0.0, metadata={"min": 0.0, "max": 100.0})
+    near_distance: float = field(default=1.5, metadata={"min": 0.1, "max": 100.0})
 
 
 @dataclass(frozen=True)

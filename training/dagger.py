@@ -148,6 +148,7 @@ def run(
     teacher: str = "path_expert",
     teacher_noise: float = 0.0,
     schedule: str = "constant",
+    weigh: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> Demonstrations:
     """DAgger: iteration 0 is the teacher's alone (plain behaviour cloning), then the student flies
     a growing share (teacher probability ``beta0 ** k``), and the student is refitted on every
@@ -166,6 +167,8 @@ def run(
     :param teacher: a :data:`TEACHERS` name
     :param teacher_noise: see :func:`collect`
     :param schedule: each fit's learning-rate schedule (:func:`training.pretrain.fit`)
+    :param weigh: observations → each label's weight in the fit (``training.pretrain.fit``'s
+        ``weights``); None: all alike
     :return: every label gathered (the data of the last fit)
     """
     rows = max(1, steps // venv.num_envs) * venv.num_envs  # what one new iteration gathers
@@ -204,7 +207,8 @@ def run(
             "dagger iteration %d/%d (teacher share %.2f): %d/%d episodes reached every waypoint%s",
             k + 1, iterations, beta, rollouts.successes, rollouts.episodes, student,
         )  # fmt: skip
-        fit(model.policy, data, epochs, batch_size, learning_rate, seed + k, schedule)
+        weights = None if weigh is None else weigh(data.obs)
+        fit(model.policy, data, epochs, batch_size, learning_rate, seed + k, schedule, weights)
         if after_iteration is not None:
             after_iteration(k, collected, rollouts)
     return data

@@ -104,15 +104,36 @@ def discounted_returns(rewards: np.ndarray, dones: np.ndarray, gamma: float) -> 
     return returns
 
 
+def proximity_weights(
+    obs: np.ndarray, n_stack: int, n_bins: int, max_range: float, near_weight: float, near_distance: float
+) -> np.ndarray:
+    """Per observation, ``1 + near_weight × (1 − d / near_distance)`` where the newest scan's nearest
+    return ``d`` is within ``near_distance`` metres, else 1.
+
+    The states beside obstacles, where an imitation error costs the episode, are a small share of
+    what a teacher flies; the weights make the fit count them more.
+
+    :param obs: stacked observations, ``n_stack`` frames side by side, oldest first, each starting
+        with ``n_bins`` scan values normalised by ``max_range``
+    """
+    frame = obs.shape[1] // n_stack
+    newest = obs[:, (n_stack - 1) * frame : (n_stack - 1) * frame + n_bins]
+    nearest = newest.min(axis=1) * max_range
+    closeness = np.clip(1.0 - nearest / near_distance, 0.0, 1.0)
+    return (1.0 + near_weight * closeness).astype(np.float32)
+
+
 def fit(
     policy: Any, data: Demonstrations, epochs: int, batch_size: int, learning_rate: float, seed: int,
-    schedule: str = "constant",
+    schedule: str = "constant", weights: np.ndarray | None = None,
 ) -> dict[str, float]:  # fmt: skip
     """Fit ``policy``'s action mean to the demonstrations and its value to their returns.
 
     :param policy: an SB3 ``ActorCriticPolicy`` (the PPO model's ``policy``)
     :param schedule: ``"constant"`` learning rate, or ``"cosine"``: annealed to 0 over the fit
         (Loshchilov & Hutter), so the fit ends in a minimum rather than at the last batches' noise
+    :param weights: per demonstration, its weight in the action loss (e.g. :func:`proximity_weights`);
+        None: all alike. The reported ``action_mse`` is the weighted one.
     :returns: the last epoch's mean losses (``action_mse``, ``value_mse``)
     """
     import torch
@@ -121,6 +142,7 @@ def fit(
     obs = torch.as_tensor(data.obs)
     actions = torch.as_tensor(data.actions)
     returns = torch.as_tensor(data.returns)
+    weight = torch.as_tensor(np.ones(len(obs), np.float32) if weights is None else weights)
     parameters = [p for name, p in policy.named_parameters() if name != "log_std"]
     optimizer = torch.optim.Adam(parameters, lr=learning_rate)
     annealing = None
@@ -135,7 +157,8 @@ def fit(
         for start in range(0, len(obs), batch_size):
             index = order[start : start + batch_size]
             distribution = policy.get_distribution(obs[index])
-            action_mse = torch.nn.functional.mse_loss(distribution.distribution.mean, actions[index])
+            errors = (distribution.distribution.mean - actions[index]).square().mean(dim=-1)
+            action_mse = (weight[index] * errors).sum() / weight[index].sum()
             value_mse = torch.nn.functional.mse_loss(
                 policy.predict_values(obs[index]).squeeze(-1), returns[index]
             )

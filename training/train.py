@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import functools
 import json
 import logging
 import multiprocessing
@@ -35,6 +36,7 @@ import signal
 import sys
 import time
 import zipfile
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -531,7 +533,7 @@ def warm_start(
             venv, model, iterations=p.iterations, steps=p.steps, beta0=p.beta0, epochs=p.epochs,
             batch_size=p.batch_size, learning_rate=p.learning_rate, seed=config.seed,
             previous=previous, after_iteration=after, teacher=p.teacher, teacher_noise=p.teacher_noise,
-            schedule=p.learning_rate_schedule,
+            schedule=p.learning_rate_schedule, weigh=label_weights(config),
         )  # fmt: skip
         return
     data = pretrain.collect(
@@ -544,6 +546,19 @@ def warm_start(
     pretrain.fit(
         model.policy, data, p.epochs, p.batch_size, p.learning_rate, config.seed, p.learning_rate_schedule
     )
+
+
+def label_weights(config: TrainConfig) -> Callable[[np.ndarray], np.ndarray] | None:
+    """DAgger's label weights (``[pretrain] near_weight``), or None when it is 0."""
+    from training.pretrain import proximity_weights
+
+    p, scan = config.pretrain, config.env_config().scan
+    if p.near_weight == 0.0:
+        return None
+    return functools.partial(
+        proximity_weights, n_stack=config.n_stack, n_bins=N_BINS, max_range=scan.max_range,
+        near_weight=p.near_weight, near_distance=p.near_distance,
+    )  # fmt: skip
 
 
 class TrainingInterrupted(Exception):

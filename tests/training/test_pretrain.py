@@ -8,8 +8,8 @@ import itertools
 import numpy as np
 
 from training.config import load_train_config
-from training.pretrain import Demonstrations, collect, discounted_returns, fit
-from training.train import build_model, make_vec_env
+from training.pretrain import Demonstrations, collect, discounted_returns, fit, proximity_weights
+from training.train import build_model, label_weights, make_vec_env
 
 NAV = """
 env_id = "flightsim/LidarNav-v0"
@@ -97,3 +97,43 @@ def test_a_cosine_fit_ends_at_a_learning_rate_of_zero(monkeypatch, tmp_path):
     rates.clear()
     fit(model.policy, data, epochs=2, batch_size=16, learning_rate=1e-3, seed=0)
     assert rates == [1e-3] * 8
+
+
+def test_labels_beside_obstacles_weigh_more_by_the_newest_scan_alone():
+    """1 + near_weight x (1 - d / near_distance) within near_distance of the newest scan's nearest
+    return, 1 beyond it; an older frame's obstacle does not count."""
+    frame, n_bins = 6, 4
+    obs = np.ones((4, 2 * frame), dtype=np.float32)  # 2 frames of 4 bins (max range 10 m) + 2 extras
+    obs[1, frame + 2] = 0.075  # newest frame: 0.75 m, half of near_distance
+    obs[2, frame + 0] = 0.0  # newest frame: touching
+    obs[3, 1] = 0.0  # the older frame only
+    weights = proximity_weights(obs, 2, n_bins, 10.0, near_weight=4.0, near_distance=1.5)
+    np.testing.assert_allclose(weights, [1.0, 3.0, 5.0, 1.0], rtol=1e-6)
+
+
+def test_a_weighted_fit_leans_to_the_heavier_labels(tmp_path):
+    """The same observation labelled +0.5 with weight 9 and -0.5 with weight 1 fits to their
+    weighted mean, 0.4; unweighted, to 0."""
+    path = tmp_path / "bc.toml"
+    path.write_text(NAV)
+    config = load_train_config(path, [f"run_root={tmp_path}", "pretrain.near_weight=8"])
+    venv = make_vec_env(config, 1, config.seed, subprocess=False)
+    try:
+        model = build_model(config, venv, tmp_path, None)
+        size = venv.observation_space.shape[0]
+    finally:
+        venv.close()
+    obs = np.full((128, size), 0.5, dtype=np.float32)  # every observation the same: one action fits
+    actions = np.where(np.arange(128)[:, None] % 2 == 0, 0.5, -0.5).repeat(2, axis=1).astype(np.float32)
+    data = Demonstrations(obs, actions, np.zeros(128, np.float32), 0, 0)
+    weights = np.where(np.arange(128) % 2 == 0, 9.0, 1.0).astype(np.float32)
+
+    def fitted(w):
+        fit(model.policy, data, epochs=300, batch_size=128, learning_rate=3e-3, seed=0, weights=w)
+        return model.predict(obs[:1], deterministic=True)[0][0]
+
+    np.testing.assert_allclose(fitted(weights), [0.4, 0.4], atol=0.03)
+    np.testing.assert_allclose(fitted(None), [0.0, 0.0], atol=0.03)
+    touching = np.ones((2, size), np.float32)
+    touching[1, (config.n_stack - 1) * (size // config.n_stack) :][:4] = 0.0  # newest scan: 0 m
+    np.testing.assert_allclose(label_weights(config)(touching), [1.0, 9.0])  # pretrain.near_weight=8
