@@ -79,6 +79,9 @@ AUTOPILOT_LIMITS: dict[str, AutopilotLimits] = {
     "random": AutopilotLimits(decel=1.2, reaction_time=0.8, max_yaw_rate=math.radians(60.0)),
 }
 
+#: The direction of each scan bin's centre, rad counter-clockwise from forward.
+_BIN_CENTRES_RAD = np.radians(np.arange(N_BINS) + 0.5)
+
 #: Below this measured speed the direction of travel is noise, m/s.
 MIN_TRAVEL_SPEED = 0.1
 
@@ -104,6 +107,14 @@ class ShieldConfig:
     :param rear_sector_deg: half-width of the rear sector, degrees
     :param travel_sector_deg: half-width of the sector around each direction between the measured
         course and the nose, degrees
+    :param lane_half_width: m; above 0, the forward and travel caps count only returns within
+        this distance of the line the vehicle flies along (a lane along every heading within
+        ``lane_spread_deg`` of the nose, or of the arc from the course round to it), each at the
+        distance flown before it enters the lane: a pillar beside the line no longer slows the
+        vehicle, as ArduPilot's avoidance limits only the velocity towards an obstacle. 0: the
+        nearest return in each sector, ``forward_sector_deg`` and ``travel_sector_deg``
+    :param lane_spread_deg: how far either side of the nose (and beyond either end of the travel
+        arc) the lane is also swept, degrees: the turn the course makes before a brake bites
     :param keepout_distance: a return closer than this, in any direction, pushes the vehicle away
         from it and removes what the command asks towards it, m (0: no keep-out at all). The push
         is what stops the drift a velocity estimate cannot show: PX4's velocity loop closes on an
@@ -128,6 +139,8 @@ class ShieldConfig:
     forward_sector_deg: float = field(default=30.0, metadata={"min": 1.0, "max": 90.0})
     rear_sector_deg: float = field(default=30.0, metadata={"min": 1.0, "max": 90.0})
     travel_sector_deg: float = field(default=30.0, metadata={"min": 1.0, "max": 90.0})
+    lane_half_width: float = field(default=0.0, metadata={"min": 0.0, "max": 5.0})
+    lane_spread_deg: float = field(default=10.0, metadata={"min": 0.0, "max": 90.0})
     keepout_distance: float = field(default=0.6, metadata={"min": 0.0, "max": 10.0})
     keepout_gain: float = field(default=2.0, metadata={"min": 0.0, "max": 20.0})
     keepout_max_speed: float = field(default=1.0, metadata={"min": 0.0, "max": 5.0})
@@ -153,6 +166,25 @@ def arc_bins(from_deg: float, to_deg: float, half_width_deg: float) -> np.ndarra
     offset = ((centres - from_deg) * (1.0 if span >= 0 else -1.0) + 180.0) % 360.0 - 180.0
     beyond = np.where(offset > abs(span), offset - abs(span), np.where(offset < 0.0, -offset, 0.0))
     return np.flatnonzero(beyond <= half_width_deg)
+
+
+def lane_distance(ranges: np.ndarray, headings_deg: np.ndarray, half_width: float) -> float:
+    """The nearest return in the lanes along ``headings_deg`` (counter-clockwise degrees), m: for
+    each return within ``half_width`` of a heading's line, the distance the centre flies before the
+    return enters the lane, plus ``half_width`` (so a return dead ahead reads its range, as in a
+    sector); inf when no lane holds a return. Returns behind a heading's abeam line never count.
+
+    :param ranges: ``(360,)`` metres, bins counter-clockwise from forward
+    """
+    delta = _BIN_CENTRES_RAD[None, :] - np.radians(np.asarray(headings_deg, dtype=np.float64))[:, None]
+    cos, sin = np.cos(delta), np.sin(delta)
+    along = ranges[None, :] * cos
+    side = np.abs(ranges[None, :] * sin)
+    inside = (cos > 0.0) & (side < half_width)
+    if not inside.any():
+        return math.inf
+    entry = along - np.sqrt(np.maximum(half_width * half_width - side * side, 0.0)) + half_width
+    return float(entry[inside].min())
 
 
 def stopping_distance(speed: float, decel: float, reaction_time: float) -> float:
@@ -257,7 +289,7 @@ class SafetyShield:
             velocity is not finite; None: the nose sector alone
         """
         values, _ = _finite_scan(scan)
-        cap = self._allowed_speed(float(values[self._forward_bins].min()) * self.max_range)
+        cap = self._allowed_speed(self._front_clearance(values))
         if velocity is None:
             return cap
         v_forward, v_left = float(velocity[0]), float(velocity[1])
@@ -297,7 +329,7 @@ class SafetyShield:
         values, had_non_finite = _finite_scan(scan)
         if had_non_finite:
             count["scan_nan"] += 1
-        front = float(values[self._forward_bins].min()) * self.max_range
+        front = self._front_clearance(values)
         rear = float(values[self._rear_bins].min()) * self.max_range
 
         if forward > cfg.max_speed:
@@ -368,10 +400,30 @@ class SafetyShield:
         magnitude = min(speed, self.config.max_reverse_speed, self._allowed_speed(behind))
         return cap, (-v_forward / speed * magnitude, -v_left / speed * magnitude)
 
+    def _front_clearance(self, values: np.ndarray) -> float:
+        """What limits forward flight, m: the lane's distance along the nose ±``lane_spread_deg``,
+        or without a lane the nearest return in the forward sector."""
+        if self.config.lane_half_width <= 0.0:
+            return float(values[self._forward_bins].min()) * self.max_range
+        spread = self.config.lane_spread_deg
+        return self._lane(values, np.linspace(-spread, spread, 2 * math.ceil(spread) + 1))
+
+    def _lane(self, values: np.ndarray, headings_deg: np.ndarray) -> float:
+        """:func:`lane_distance` over ``headings_deg`` for the normalised scan ``values``, m, at
+        most ``max_range`` (no return in the lane reads as the clearest scan)."""
+        ranges = values * self.max_range
+        return min(lane_distance(ranges, headings_deg, self.config.lane_half_width), self.max_range)
+
     def _travel_clearance(self, values: np.ndarray, v_forward: float, v_left: float, heading: float) -> float:
-        """Nearest return, m, over the arc from the measured course round to ``heading`` (0: the
-        nose, 180: the tail), ±``travel_sector_deg``."""
+        """What limits flight along the motion, m, over the arc from the measured course round to
+        ``heading`` (0: the nose, 180: the tail): the lane's distance, swept ``lane_spread_deg``
+        beyond both ends, or without a lane the nearest return within ±``travel_sector_deg``."""
         course = math.degrees(math.atan2(v_left, v_forward))
+        if self.config.lane_half_width > 0.0:
+            span = (heading - course + 180.0) % 360.0 - 180.0
+            beyond = math.copysign(self.config.lane_spread_deg, span if span else 1.0)
+            start, end = course - beyond, course + span + beyond
+            return self._lane(values, np.linspace(start, end, math.ceil(abs(end - start)) + 1))
         bins = arc_bins(course, heading, self.config.travel_sector_deg)
         return float(values[bins].min()) * self.max_range
 

@@ -18,6 +18,7 @@ from companion.shield import (
     ShieldConfig,
     arc_bins,
     command_from_action,
+    lane_distance,
     sector_bins,
     stopping_distance,
     stopping_speed,
@@ -155,6 +156,54 @@ def test_returns_outside_the_forward_sector_do_not_slow_forward_flight() -> None
     # at 29° they are inside
     out = settled(shield, Command(2.0, 0.0), scan_with({29: 0.5}))
     assert out.forward < 2.0
+
+
+def test_the_lane_distance_is_how_far_the_centre_flies_before_a_return_enters_the_lane() -> None:
+    ranges = np.full(360, np.inf)
+    ranges[0] = 2.0  # bin 0's centre is 0.5° left: 2 m ahead, 1.7 cm beside the line
+    assert lane_distance(ranges, np.array([0.5]), 0.3) == pytest.approx(2.0)
+    side = 2.0 * math.sin(math.radians(0.5))
+    entry = 2.0 * math.cos(math.radians(0.5)) - math.sqrt(0.3**2 - side**2) + 0.3
+    assert lane_distance(ranges, np.array([0.0]), 0.3) == pytest.approx(entry)
+    assert lane_distance(ranges, np.array([90.0]), 0.3) == math.inf  # abeam of a heading to the left
+    ranges[30] = 1.2  # 30.5° left, 0.61 m beside the nose's line: outside a 0.3 m lane, inside 0.7 m
+    assert lane_distance(ranges, np.array([0.0]), 0.3) == pytest.approx(entry)
+    along, side = 1.2 * math.cos(math.radians(30.5)), 1.2 * math.sin(math.radians(30.5))
+    wide = along - math.sqrt(0.49 - side**2) + 0.7
+    assert lane_distance(ranges, np.array([0.0]), 0.7) == pytest.approx(wide)
+    ranges[200] = 0.0  # an unknown bin behind does not block the way ahead; ahead it does
+    assert lane_distance(ranges, np.array([0.0]), 0.3) == pytest.approx(entry)
+    ranges[5] = 0.0
+    assert lane_distance(ranges, np.array([0.0]), 0.3) == 0.0
+
+
+def test_with_a_lane_only_returns_in_the_vehicles_way_slow_forward_flight() -> None:
+    lane = ShieldConfig(keepout_distance=0.0, lane_half_width=0.3, lane_spread_deg=10.0)
+    pillars = scan_with({25: 1.2, 335: 1.2})  # 0.5 m either side of the nose's line, 1.1 m ahead
+    assert settled(SafetyShield(BASE, MAX_RANGE), Command(2.0, 0.0), pillars).forward < 1.0
+    assert settled(SafetyShield(lane, MAX_RANGE), Command(2.0, 0.0), pillars).forward == 2.0
+    # within the spread a return in the lane slows it as the sector does
+    ahead = scan_with({8: 1.2})
+    cap = SafetyShield(lane, MAX_RANGE).forward_cap(ahead)
+    assert 0.0 < cap < 1.0
+    assert settled(SafetyShield(lane, MAX_RANGE), Command(2.0, 0.0), ahead).forward == pytest.approx(cap)
+    # a NaN ahead is blocked, as in the sectors
+    unknown = CLEAR.copy()
+    unknown[2] = np.nan
+    assert settled(SafetyShield(lane, MAX_RANGE), Command(2.0, 0.0), unknown).forward == 0.0
+
+
+def test_with_a_lane_the_motion_stop_watches_the_lane_along_the_course() -> None:
+    lane = ShieldConfig(keepout_distance=0.0, lane_half_width=0.3, lane_spread_deg=10.0)
+    wall_right = scan_with({i: 0.9 / math.cos(math.radians(270.5 - i)) for i in range(230, 311)})
+    # sliding right at 1 m/s towards a wall 0.9 m off: it cannot stop, so the shield brakes
+    shield = SafetyShield(lane, MAX_RANGE, "random")
+    out = shield.filter(Command(1.0, 0.0), wall_right, 0.1, velocity=(0.0, -1.0))
+    assert shield.interventions["motion_stop"] == 1
+    assert out.lateral > 0.0
+    # flying forward past that wall, parallel to it, is not slowed by it
+    shield = SafetyShield(lane, MAX_RANGE, "random")
+    assert shield.forward_cap(wall_right, (1.0, 0.0)) == shield.forward_cap(CLEAR, (1.0, 0.0))
 
 
 def test_estop_blocks_forward_but_allows_turning_in_place() -> None:
