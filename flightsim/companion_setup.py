@@ -4,18 +4,63 @@ the companion's own dataclasses (written with :func:`companion.tomlconfig.toml_d
 from __future__ import annotations
 
 import dataclasses
+import random
 import socket
 from pathlib import Path
 from typing import Any
 
 from companion.config import CompanionConfig
 
+#: Linux's default ephemeral range, for systems that do not publish theirs
+DEFAULT_EPHEMERAL = (32768, 60999)
+_handed_out: set[int] = set()
+
+
+def ephemeral_range() -> tuple[int, int]:
+    """The ports the kernel hands out to sockets bound to port 0 or sending unbound."""
+    try:
+        low, high = (int(v) for v in Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split())
+    except (OSError, ValueError):
+        return DEFAULT_EPHEMERAL
+    return low, high
+
+
+def free_port(kind: int = socket.SOCK_DGRAM) -> int:
+    """A loopback port nobody uses now, and one the kernel will not give another socket meanwhile.
+
+    A port the kernel picked (bind to 0) is ephemeral: between closing the probe and the
+    listener binding it, any socket of the flight that sends unbound (the lidar stream, the
+    ground-station relay) may be handed the same port, and the companion then refuses a link
+    whose port is in use. Ports below the ephemeral range are only ever taken on purpose; each
+    is handed out once per process, so two asked in a row differ.
+
+    :param kind: ``socket.SOCK_DGRAM`` (UDP) or ``socket.SOCK_STREAM`` (TCP)
+    """
+    low, high = ephemeral_range()
+    ports = range(1024, low) if low > 2048 else range(high + 1, 65536)
+    rng = random.SystemRandom()
+    for _ in range(500):
+        port = rng.choice(ports)
+        if port in _handed_out:
+            continue
+        with socket.socket(socket.AF_INET, kind) as probe:
+            try:
+                probe.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+        _handed_out.add(port)
+        return port
+    raise RuntimeError(f"no free loopback port in {ports.start}-{ports.stop - 1}")
+
 
 def free_udp_port() -> int:
-    """A UDP port nobody on loopback uses right now."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    """A UDP port nobody on loopback uses now, outside the ephemeral range (see :func:`free_port`)."""
+    return free_port(socket.SOCK_DGRAM)
+
+
+def free_tcp_port() -> int:
+    """A TCP port nobody on loopback uses now, outside the ephemeral range (see :func:`free_port`)."""
+    return free_port(socket.SOCK_STREAM)
 
 
 def companion_config(

@@ -19,23 +19,13 @@ from typing import Any
 from pymavlink import mavutil
 
 from companion.autopilot.mavlink_adapter import mavlink
+from flightsim.companion_setup import free_tcp_port as free_tcp_port  # the tests' ports, re-exported
+from flightsim.companion_setup import free_udp_port as free_udp_port
 
 COPTER_GUIDED = 4
 COPTER_LOITER = 5
 #: the message the companion's velocity setpoints travel in (both firmwares' GUIDED/OFFBOARD)
 SETPOINT = "SET_POSITION_TARGET_LOCAL_NED"
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def free_tcp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 class AutopilotPeer:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import socket
 import time
 
 import numpy as np
@@ -16,7 +17,7 @@ from companion.goal_frames import LATLON_TO_M
 from companion.lidar.velodyne import VelodyneUdpSource
 from companion.scan import ScanConfig, scan_from_points
 from companion.tomlconfig import to_dict, toml_dumps
-from flightsim.companion_setup import companion_config, free_udp_port
+from flightsim.companion_setup import companion_config, ephemeral_range, free_tcp_port, free_udp_port
 from flightsim.cosim import LidarCosim
 from flightsim.flight_report import latency_ms
 from flightsim.fly_cli import load_flight_world
@@ -80,6 +81,20 @@ def hover_state(x: float, y: float, yaw_deg: float) -> VehicleState:
         on_ground=False,
         armed=True,
     )
+
+
+def test_free_ports_are_outside_the_ephemeral_range_and_never_repeat():
+    """The harness's ports for the companion's listeners: outside the range the kernel gives
+    unbound senders (a port from it was once handed to the flight's own relay between the probe
+    and the companion's bind, and the companion refused its link), bindable, each handed out once."""
+    low, high = ephemeral_range()
+    udp = [free_udp_port() for _ in range(50)]
+    tcp = [free_tcp_port() for _ in range(50)]
+    assert len(set(udp + tcp)) == 100
+    for port, kind in [(p, socket.SOCK_DGRAM) for p in udp] + [(p, socket.SOCK_STREAM) for p in tcp]:
+        assert 1024 <= port < 65536 and not low <= port <= high, port
+        with socket.socket(socket.AF_INET, kind) as s:
+            s.bind(("127.0.0.1", port))
 
 
 @pytest.mark.parametrize("step", [0.2, 1.0])
