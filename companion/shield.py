@@ -230,6 +230,19 @@ def _finite_scan(scan: np.ndarray) -> tuple[np.ndarray, bool]:
     return np.nan_to_num(values, nan=0.0, posinf=1.0, neginf=0.0), True
 
 
+def _commanded_side(course: float, heading: float) -> float:
+    """Where the arc the command's own speed is flown along ends: the course, or 90° from
+    ``heading`` towards it when the course points farther away (degrees).
+
+    While the velocity changes from the measured one to the command's, what points more than 90°
+    off the command is never faster than the measured motion (its part across the command only
+    shrinks), so only the motion's stop watches those directions. Capping the command there too
+    held a forward command that brakes a backward slide at 0.
+    """
+    swing = (course - heading + 180.0) % 360.0 - 180.0
+    return heading + max(-90.0, min(90.0, swing))
+
+
 def _slew(target: float, previous: float, step: float) -> float:
     """Limit how fast ``target`` moves away from zero; moving towards zero is never limited."""
     lo = min(previous, 0.0) - step
@@ -285,8 +298,8 @@ class SafetyShield:
         :param scan: ``(360,)`` normalised ranges, bins counter-clockwise from forward
         :param velocity: the measured body velocity (forward, left), m/s; given, the cap also
             holds along the travel as in :meth:`filter` (the clearance from the course round to
-            the nose), and is 0 where the shield would brake against the motion or where the
-            velocity is not finite; None: the nose sector alone
+            the nose, at most 90° off it), and is 0 where the shield would brake against the
+            motion or where the velocity is not finite; None: the nose sector alone
         """
         values, _ = _finite_scan(scan)
         cap = self._allowed_speed(self._front_clearance(values))
@@ -298,10 +311,11 @@ class SafetyShield:
         speed = math.hypot(v_forward, v_left)
         if speed < MIN_TRAVEL_SPEED:
             return cap
-        clearance = self._travel_clearance(values, v_forward, v_left, 0.0)
-        if not self._can_stop(speed, clearance):
+        course = math.degrees(math.atan2(v_left, v_forward))
+        if not self._can_stop(speed, self._travel_clearance(values, course, 0.0)):
             return 0.0
-        return min(cap, self._allowed_speed(clearance))
+        along = self._travel_clearance(values, _commanded_side(course, 0.0), 0.0)
+        return min(cap, self._allowed_speed(along))
 
     def filter(
         self,
@@ -376,8 +390,10 @@ class SafetyShield:
         self, values: np.ndarray, velocity: tuple[float, float] | None, forward: float
     ) -> tuple[float, tuple[float, float] | None]:
         """What the measured motion allows: the speed cap from the clearance along the travel (over
-        the arc from the course round to where the command points), and None while the motion can
-        stop before that clearance, else the brake: the (forward, left) setpoint against the motion.
+        the arc from where the command points round to the course, at most 90°: see
+        :func:`_commanded_side`), and None while the motion can stop before the clearance over the
+        whole arc from the course round to the command, else the brake: the (forward, left)
+        setpoint against the motion.
         """
         if velocity is None:
             return math.inf, None
@@ -388,13 +404,14 @@ class SafetyShield:
         speed = math.hypot(v_forward, v_left)
         if speed < MIN_TRAVEL_SPEED:
             return math.inf, None
-        clearance = self._travel_clearance(values, v_forward, v_left, 0.0 if forward >= 0.0 else 180.0)
-        cap = self._clearance_cap(abs(forward), clearance, "estop_travel")
-        if self._can_stop(speed, clearance):
+        course = math.degrees(math.atan2(v_left, v_forward))
+        heading = 0.0 if forward >= 0.0 else 180.0
+        along = self._travel_clearance(values, _commanded_side(course, heading), heading)
+        cap = self._clearance_cap(abs(forward), along, "estop_travel")
+        if self._can_stop(speed, self._travel_clearance(values, course, heading)):
             return cap, None
         self.interventions["motion_stop"] += 1
         # brake against the motion, no faster than max_reverse_speed nor than the room behind it allows
-        course = math.degrees(math.atan2(v_left, v_forward))
         width = self.config.travel_sector_deg
         behind = float(values[sector_bins((course + 180.0) % 360.0, width)].min()) * self.max_range
         magnitude = min(speed, self.config.max_reverse_speed, self._allowed_speed(behind))
@@ -414,11 +431,11 @@ class SafetyShield:
         ranges = values * self.max_range
         return min(lane_distance(ranges, headings_deg, self.config.lane_half_width), self.max_range)
 
-    def _travel_clearance(self, values: np.ndarray, v_forward: float, v_left: float, heading: float) -> float:
-        """What limits flight along the motion, m, over the arc from the measured course round to
-        ``heading`` (0: the nose, 180: the tail): the lane's distance, swept ``lane_spread_deg``
-        beyond both ends, or without a lane the nearest return within ±``travel_sector_deg``."""
-        course = math.degrees(math.atan2(v_left, v_forward))
+    def _travel_clearance(self, values: np.ndarray, course: float, heading: float) -> float:
+        """What limits flight along the motion, m, over the arc from ``course`` round to ``heading``
+        (degrees counter-clockwise from the nose; 0: the nose, 180: the tail): the lane's distance,
+        swept ``lane_spread_deg`` beyond both ends, or without a lane the nearest return within
+        ±``travel_sector_deg``."""
         if self.config.lane_half_width > 0.0:
             span = (heading - course + 180.0) % 360.0 - 180.0
             beyond = math.copysign(self.config.lane_spread_deg, span if span else 1.0)

@@ -414,6 +414,23 @@ def test_backing_into_an_obstacle_behind_stops() -> None:
     assert shield.filter(Command(-1.0, 0.0), blocked, 0.1, velocity=(-0.8, 0.4)).forward == 0.0
 
 
+def test_a_forward_command_brakes_a_backward_slide_towards_a_wall_behind() -> None:
+    """A yaw at the autopilot's cap while braking carried the vehicle backwards (a warehouse
+    validation world): the forward command is then the brake. Capped by the wall behind, over the
+    arc from the course round to the nose, it was held at 0 and the vehicle slid on."""
+    close = scan_with({b: 0.3 for b in bins_around(180.0)})
+    shield = SafetyShield(BASE, MAX_RANGE, "ardupilot")
+    settled(shield, Command(1.0, 0.0), close)
+    out = shield.filter(Command(1.0, 0.0), close, 0.1, velocity=(-0.5, 0.0))
+    assert (out.forward, shield.interventions["motion_stop"]) == (0.5, 1)  # against the motion
+    near = scan_with({b: 0.6 for b in bins_around(180.0)})
+    settled(shield, Command(1.0, 0.0), near)
+    assert shield.filter(Command(1.0, 0.0), near, 0.1, velocity=(-0.15, 0.0)).forward == 1.0  # it can stop
+    assert shield.forward_cap(near, (-0.15, 0.0)) == shield.forward_cap(near)
+    beside = scan_with({b: 1.0 for b in bins_around(70.0)})  # the command's speed is flown past it
+    assert shield.forward_cap(beside, (-0.1, 0.6)) < shield.forward_cap(beside)
+
+
 def test_braking_figures_per_autopilot() -> None:
     """The fixture's ArduPilot stop from 2 m/s took 1.68 m; PX4 reached 0.5 m/s after 1.2 m from
     1.8 m/s and then crept: each assumed braking distance covers what was measured."""
