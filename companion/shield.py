@@ -356,13 +356,14 @@ class SafetyShield:
             count["yaw_limit"] += 1
             yaw_rate = math.copysign(self.max_yaw_rate, yaw_rate)
 
-        forward_cap = self._clearance_cap(forward, front, "estop")
-        reverse_cap = self._clearance_cap(-forward, rear - cfg.rear_clear_margin, "reverse_blocked")
+        front_cap = self._clearance_cap(forward, front, "estop")
+        rear_cap = self._clearance_cap(-forward, rear - cfg.rear_clear_margin, "reverse_blocked")
         travel_cap, brake = self._travel_limit(values, velocity, forward)
+        forward_cap, reverse_cap = front_cap, rear_cap
         if forward >= 0.0:
-            forward_cap = min(forward_cap, travel_cap)
+            forward_cap = min(front_cap, travel_cap)
         else:
-            reverse_cap = min(reverse_cap, travel_cap)
+            reverse_cap = min(rear_cap, travel_cap)
 
         step = max(dt, 0.0) if math.isfinite(dt) else 0.0
         slewed = _slew(forward, self._previous.forward, cfg.max_accel * step)
@@ -376,12 +377,15 @@ class SafetyShield:
         lateral = 0.0
         if brake is not None:
             # The measured motion cannot stop before what lies along it: stop, braking against the
-            # motion (never slew-limited), forward no further than the forward and rear caps allow.
-            lowest = -min(reverse_cap, cfg.max_reverse_speed)
-            forward = min(max(brake[0], lowest), max(min(forward_cap, cfg.max_speed), 0.0))
+            # motion (never slew-limited), forward no further than the nose and tail sectors allow.
+            lowest = -min(rear_cap, cfg.max_reverse_speed)
+            forward = min(max(brake[0], lowest), max(min(front_cap, cfg.max_speed), 0.0))
             lateral = brake[1]
         forward, lateral = self._keep_out(values, forward, lateral, step)
-        forward = min(max(forward, -reverse_cap), max(forward_cap, 0.0))  # the sector caps hold for all
+        # The sector caps hold for all. The travel cap bounds the policy's command alone: the brake
+        # and the push point away from what they answer, each bounded by the room on its far side,
+        # and the travel's arc can hold the very return they move away from.
+        forward = min(max(forward, -rear_cap), max(front_cap, 0.0))
         out = Command(forward=forward, yaw_rate=slewed_yaw, lateral=lateral)
         self._previous = out
         return out

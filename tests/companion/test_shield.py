@@ -431,6 +431,32 @@ def test_a_forward_command_brakes_a_backward_slide_towards_a_wall_behind() -> No
     assert shield.forward_cap(beside, (-0.1, 0.6)) < shield.forward_cap(beside)
 
 
+def test_the_brake_is_not_capped_by_the_travel_it_brakes_from() -> None:
+    """Sliding back-left onto a wall 0.31 m away: the brake points away from the wall, forward and
+    right. The travel's arc (nose round to 90° left, ±30°) holds that wall, and capping the brake
+    by it left the forward part at 0.01 m/s."""
+    wall = scan_with({b: 0.31 for b in range(105, 121)})
+    shield = SafetyShield(BASE, MAX_RANGE, "ardupilot")
+    settled(shield, Command(1.0, 0.0), CLEAR)
+    out = shield.filter(Command(1.0, 0.0), wall, 0.1, velocity=(-0.4, 0.7))
+    speed = math.hypot(-0.4, 0.7)
+    assert (out.forward, out.lateral) == pytest.approx((0.5 * 0.4 / speed, -0.5 * 0.7 / speed))
+    assert shield.interventions["motion_stop"] == 1
+
+
+def test_with_a_lane_the_push_away_from_a_return_behind_is_not_capped_by_the_travel() -> None:
+    """warehouse-500004 of the validation worlds behind the 0.3 m lane: backing left into a rack
+    0.28 m behind, the keep-out pushed forward, away from it, and the travel cap, whose lanes
+    swept to 100° hold a return that close, cut the push to 0: the vehicle backed into the rack."""
+    shield = SafetyShield(ShieldConfig(lane_half_width=0.3), MAX_RANGE, "ardupilot")
+    settled(shield, Command(1.0, 0.0), CLEAR)
+    sliding, behind = (-0.12, 0.26), bins_around(180.0)
+    shield.filter(Command(1.0, 0.0), scan_with({b: 0.32 for b in behind}), 0.1, velocity=sliding)
+    out = shield.filter(Command(1.0, 0.0), scan_with({b: 0.28 for b in behind}), 0.1, velocity=sliding)
+    assert out.forward > 0.5 and out.lateral < 0.0  # away from the rack and against the slide
+    assert shield.interventions["estop_travel"] == 1  # the command itself is still held by it
+
+
 def test_braking_figures_per_autopilot() -> None:
     """The fixture's ArduPilot stop from 2 m/s took 1.68 m; PX4 reached 0.5 m/s after 1.2 m from
     1.8 m/s and then crept: each assumed braking distance covers what was measured."""
