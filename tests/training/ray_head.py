@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import os
 import secrets
-import socket
 import subprocess
 import sys
 import tempfile
@@ -14,11 +13,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from flightsim.companion_setup import free_tcp_port
 
 
 @contextmanager
@@ -26,7 +21,7 @@ def ray_head(log: Path, token: str | None = None) -> Iterator[tuple[int, int, di
     """`ray start --head --block` with token authentication (``token``, default a new one), its
     output in ``log``, stopped (all its processes) on leaving: ``(gcs_port, client_port, env)``,
     ``env`` holding the token for the driver as the README says to give it to every machine."""
-    gcs, client = free_port(), free_port()
+    gcs, client = free_tcp_port(), free_tcp_port()
     # Ray's defaults otherwise: its Ray Client server per driver answers within 1-3 s here, well
     # inside the 30 s Ray gives it; when one dies at birth instead (ray-project/ray#63202), the
     # driver's failed attempt lasts about that long, so a longer wait would only slow the retry

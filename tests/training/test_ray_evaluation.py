@@ -12,8 +12,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 
+from flightsim.companion_setup import free_tcp_port
 from tests.onnx_models import write_policy
-from tests.training.ray_head import free_port
 from tests.training.ray_head import ray_head as start_ray_head
 from training.__main__ import main
 from training.ray_executor import JOIN_ATTEMPTS, join, server_died_at_start
@@ -116,7 +116,7 @@ def test_without_ray_installed_the_error_names_the_extra(config, monkeypatch, ca
     ],
 )
 def test_an_unreachable_address_is_one_line_and_exit_2(config, capsys, address, message):
-    address = address.format(port=free_port())
+    address = address.format(port=free_tcp_port())
     assert main(_evaluate(config, "--executor", "ray", "--address", address)) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"--address {address}" in err[0] and message in err[0]
@@ -124,7 +124,7 @@ def test_an_unreachable_address_is_one_line_and_exit_2(config, capsys, address, 
 
 @pytest.mark.timeout(60)
 def test_auto_finding_a_dead_cluster_is_one_line_and_exit_2(config, capsys, monkeypatch):
-    monkeypatch.setenv("RAY_ADDRESS", f"127.0.0.1:{free_port()}")  # as a stale `ray start` record
+    monkeypatch.setenv("RAY_ADDRESS", f"127.0.0.1:{free_tcp_port()}")  # as a stale `ray start` record
     assert main(_evaluate(config, "--executor", "ray", "--address", "auto")) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--address auto (found " in err[0] and "no Ray head reachable there" in err[0]
