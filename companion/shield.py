@@ -240,7 +240,7 @@ def _commanded_side(course: float, heading: float) -> float:
     held a forward command that brakes a backward slide at 0.
     """
     swing = (course - heading + 180.0) % 360.0 - 180.0
-    return heading + max(-90.0, min(90.0, swing))
+    return course if abs(swing) <= 90.0 else heading + math.copysign(90.0, swing)
 
 
 def _slew(target: float, previous: float, step: float) -> float:
@@ -311,10 +311,9 @@ class SafetyShield:
         speed = math.hypot(v_forward, v_left)
         if speed < MIN_TRAVEL_SPEED:
             return cap
-        course = math.degrees(math.atan2(v_left, v_forward))
-        if not self._can_stop(speed, self._travel_clearance(values, course, 0.0)):
+        along, whole = self._travel_clearances(values, math.degrees(math.atan2(v_left, v_forward)), 0.0)
+        if not self._can_stop(speed, whole):
             return 0.0
-        along = self._travel_clearance(values, _commanded_side(course, 0.0), 0.0)
         return min(cap, self._allowed_speed(along))
 
     def filter(
@@ -410,9 +409,9 @@ class SafetyShield:
             return math.inf, None
         course = math.degrees(math.atan2(v_left, v_forward))
         heading = 0.0 if forward >= 0.0 else 180.0
-        along = self._travel_clearance(values, _commanded_side(course, heading), heading)
+        along, whole = self._travel_clearances(values, course, heading)
         cap = self._clearance_cap(abs(forward), along, "estop_travel")
-        if self._can_stop(speed, self._travel_clearance(values, course, heading)):
+        if self._can_stop(speed, whole):
             return cap, None
         self.interventions["motion_stop"] += 1
         # brake against the motion, no faster than max_reverse_speed nor than the room behind it allows
@@ -434,6 +433,14 @@ class SafetyShield:
         most ``max_range`` (no return in the lane reads as the clearest scan)."""
         ranges = values * self.max_range
         return min(lane_distance(ranges, headings_deg, self.config.lane_half_width), self.max_range)
+
+    def _travel_clearances(self, values: np.ndarray, course: float, heading: float) -> tuple[float, float]:
+        """The clearance along the travel for the command's speed (from ``heading`` round towards
+        ``course``, at most 90°: :func:`_commanded_side`) and for the measured motion's stop (the
+        whole arc), m; one sweep when the course is within 90° of ``heading``, as it mostly is."""
+        whole = self._travel_clearance(values, course, heading)
+        side = _commanded_side(course, heading)
+        return (whole if side == course else self._travel_clearance(values, side, heading)), whole
 
     def _travel_clearance(self, values: np.ndarray, course: float, heading: float) -> float:
         """What limits flight along the motion, m, over the arc from ``course`` round to ``heading``
