@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import random
 import socket
+from collections.abc import Container
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +26,7 @@ def ephemeral_range() -> tuple[int, int]:
     return low, high
 
 
-def free_port(kind: int = socket.SOCK_DGRAM) -> int:
+def free_port(kind: int = socket.SOCK_DGRAM, avoid: Container[int] = ()) -> int:
     """A loopback port nobody uses now, and one the kernel will not give another socket meanwhile.
 
     A port the kernel picked (bind to 0) is ephemeral: between closing the probe and the
@@ -35,14 +36,12 @@ def free_port(kind: int = socket.SOCK_DGRAM) -> int:
     is handed out once per process, so two asked in a row differ.
 
     :param kind: ``socket.SOCK_DGRAM`` (UDP) or ``socket.SOCK_STREAM`` (TCP)
+    :param avoid: ports never to hand out, such as those another program takes for itself later
     """
     low, high = ephemeral_range()
-    ports = range(1024, low) if low > 2048 else range(high + 1, 65536)
-    rng = random.SystemRandom()
-    for _ in range(500):
-        port = rng.choice(ports)
-        if port in _handed_out:
-            continue
+    span = range(1024, low) if low > 2048 else range(high + 1, 65536)
+    ports = [port for port in span if port not in _handed_out and port not in avoid]
+    for port in random.SystemRandom().sample(ports, min(500, len(ports))):
         with socket.socket(socket.AF_INET, kind) as probe:
             try:
                 probe.bind(("127.0.0.1", port))
@@ -50,7 +49,7 @@ def free_port(kind: int = socket.SOCK_DGRAM) -> int:
                 continue
         _handed_out.add(port)
         return port
-    raise RuntimeError(f"no free loopback port in {ports.start}-{ports.stop - 1}")
+    raise RuntimeError(f"no free loopback port in {span.start}-{span.stop - 1}")
 
 
 def free_udp_port() -> int:
@@ -58,9 +57,10 @@ def free_udp_port() -> int:
     return free_port(socket.SOCK_DGRAM)
 
 
-def free_tcp_port() -> int:
-    """A TCP port nobody on loopback uses now, outside the ephemeral range (see :func:`free_port`)."""
-    return free_port(socket.SOCK_STREAM)
+def free_tcp_port(avoid: Container[int] = ()) -> int:
+    """A TCP port nobody on loopback uses now, outside the ephemeral range and ``avoid`` (see
+    :func:`free_port`)."""
+    return free_port(socket.SOCK_STREAM, avoid)
 
 
 def companion_config(

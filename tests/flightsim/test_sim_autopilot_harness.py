@@ -97,6 +97,16 @@ def test_free_ports_are_outside_the_ephemeral_range_and_never_repeat():
             s.bind(("127.0.0.1", port))
 
 
+def test_free_ports_keep_clear_of_the_ports_asked_to_avoid():
+    """A Ray head given its GCS and client ports refuses to start when one lies among the ports it
+    takes for itself (its worker range 10002-19999 sits below the ephemeral range too)."""
+    low, _ = ephemeral_range()
+    allowed = {1500, 1501, 1502, 1503, 1504, 1505}
+    avoid = frozenset(range(1024, low)) - allowed
+    ports = [free_tcp_port(avoid) for _ in range(3)]
+    assert len(set(ports)) == 3 and set(ports) <= allowed, ports
+
+
 @pytest.mark.parametrize("step", [0.2, 1.0])
 def test_cosim_streams_revolutions_the_companion_decodes_into_the_right_scan(step):
     world = load_world("flightsim/worlds/two-pillars.json")

@@ -15,13 +15,17 @@ from pathlib import Path
 
 from flightsim.companion_setup import free_tcp_port
 
+#: the ports `ray start --head` takes for itself by default (GCS 6379, dashboard 8265, Ray Client
+#: 10001, workers 10002-19999); it refuses a chosen port among them ("used by other components")
+RAY_DEFAULT_PORTS = frozenset({6379, 8265, *range(10001, 20000)})
+
 
 @contextmanager
 def ray_head(log: Path, token: str | None = None) -> Iterator[tuple[int, int, dict[str, str]]]:
     """`ray start --head --block` with token authentication (``token``, default a new one), its
     output in ``log``, stopped (all its processes) on leaving: ``(gcs_port, client_port, env)``,
     ``env`` holding the token for the driver as the README says to give it to every machine."""
-    gcs, client = free_tcp_port(), free_tcp_port()
+    gcs, client = free_tcp_port(RAY_DEFAULT_PORTS), free_tcp_port(RAY_DEFAULT_PORTS)
     # Ray's defaults otherwise: its Ray Client server per driver answers within 1-3 s here, well
     # inside the 30 s Ray gives it; when one dies at birth instead (ray-project/ray#63202), the
     # driver's failed attempt lasts about that long, so a longer wait would only slow the retry
