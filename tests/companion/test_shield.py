@@ -29,6 +29,8 @@ MAX_RANGE = 10.0
 CLEAR = np.ones(360, dtype=np.float32)
 #: the nose, travel and estop layers alone (the keep-out push has its own tests at the end)
 BASE = ShieldConfig(keepout_distance=0.0)
+#: the same with the forward and travel caps over the ±30° sectors, not the lane (the default)
+SECTORS = ShieldConfig(keepout_distance=0.0, lane_half_width=0.0)
 
 
 def scan_with(bins: dict[int, float] | None = None) -> np.ndarray:
@@ -93,7 +95,7 @@ def test_speed_and_yaw_rate_limits() -> None:
 
 @pytest.mark.parametrize("distance", [0.8, 1.5, 3.0, 5.0])
 def test_forward_speed_lets_the_vehicle_stop_before_the_return(distance: float) -> None:
-    cfg = ShieldConfig(keepout_distance=0.0, max_speed=10.0)
+    cfg = ShieldConfig(keepout_distance=0.0, max_speed=10.0, lane_half_width=0.0)
     shield = SafetyShield(cfg, MAX_RANGE)
     out = settled(shield, Command(10.0, 0.0), scan_with({10: distance}))
     expected = stopping_speed(distance - cfg.estop_distance, shield.max_decel, shield.reaction_time)
@@ -149,7 +151,7 @@ def test_forward_cap_given_the_motion_is_never_above_the_nose_alone(
 
 
 def test_returns_outside_the_forward_sector_do_not_slow_forward_flight() -> None:
-    shield = SafetyShield(BASE, MAX_RANGE)
+    shield = SafetyShield(SECTORS, MAX_RANGE)
     # 0.5 m at 31°-left and at 31°-right (bins 31 and 328) are outside ±30°
     out = settled(shield, Command(2.0, 0.0), scan_with({31: 0.5, 328: 0.5}))
     assert out.forward == 2.0
@@ -177,10 +179,41 @@ def test_the_lane_distance_is_how_far_the_centre_flies_before_a_return_enters_th
     assert lane_distance(ranges, np.array([0.0]), 0.3) == 0.0
 
 
+def swept_lane_distance(ranges: np.ndarray, headings_deg: np.ndarray, half_width: float) -> float:
+    """:func:`lane_distance` by its definition, every return against every heading."""
+    best = math.inf
+    for heading in headings_deg:
+        for i, r in enumerate(ranges):
+            delta = math.radians(i + 0.5 - heading)
+            side = abs(r * math.sin(delta)) if math.isfinite(r) else math.inf
+            if math.cos(delta) > 0.0 and side < half_width:
+                entry = r * math.cos(delta) - math.sqrt(max(half_width**2 - side**2, 0.0)) + half_width
+                best = min(best, entry)
+    return best
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    ranges=hnp.arrays(np.float64, 360, elements=st.one_of(st.floats(0.0, 10.0), st.just(math.inf))),
+    start=st.floats(-360.0, 360.0),
+    span=st.floats(-200.0, 200.0),
+    half_width=st.sampled_from([0.05, 0.3, 1.0]),
+)
+def test_the_lane_distance_is_the_nearest_entry_over_every_return_and_heading(
+    ranges: np.ndarray, start: float, span: float, half_width: float
+) -> None:
+    """The lane sweeps only the returns near some heading's line (the travel arc has up to 200
+    headings): none that the full sweep would count may be skipped."""
+    headings = np.linspace(start, start + span, math.ceil(abs(span)) + 1)
+    assert lane_distance(ranges, headings, half_width) == pytest.approx(
+        swept_lane_distance(ranges, headings, half_width), abs=1e-9
+    )
+
+
 def test_with_a_lane_only_returns_in_the_vehicles_way_slow_forward_flight() -> None:
     lane = ShieldConfig(keepout_distance=0.0, lane_half_width=0.3, lane_spread_deg=10.0)
     pillars = scan_with({25: 1.2, 335: 1.2})  # 0.5 m either side of the nose's line, 1.1 m ahead
-    assert settled(SafetyShield(BASE, MAX_RANGE), Command(2.0, 0.0), pillars).forward < 1.0
+    assert settled(SafetyShield(SECTORS, MAX_RANGE), Command(2.0, 0.0), pillars).forward < 1.0
     assert settled(SafetyShield(lane, MAX_RANGE), Command(2.0, 0.0), pillars).forward == 2.0
     # within the spread a return in the lane slows it as the sector does
     ahead = scan_with({8: 1.2})
@@ -297,18 +330,27 @@ finite_or_not = st.floats(allow_nan=True, allow_infinity=True, width=32)
 scans = hnp.arrays(np.float32, 360, elements=st.floats(0.0, 1.0, width=32))
 
 
+def front_clearance(cfg: ShieldConfig, scan: np.ndarray) -> float:
+    """What limits forward flight, m: the forward sector's nearest return, or the lane's distance
+    along the nose ±``lane_spread_deg`` (at most the scan's range)."""
+    if cfg.lane_half_width <= 0.0:
+        return float(scan[sector_bins(0.0, cfg.forward_sector_deg)].min()) * MAX_RANGE
+    headings = np.linspace(-cfg.lane_spread_deg, cfg.lane_spread_deg, 2 * math.ceil(cfg.lane_spread_deg) + 1)
+    return min(lane_distance(scan.astype(np.float64) * MAX_RANGE, headings, cfg.lane_half_width), MAX_RANGE)
+
+
 @settings(max_examples=200, deadline=None)
 @given(
     requests=st.lists(st.tuples(finite_or_not, finite_or_not), min_size=1, max_size=8),
     scan=scans,
     dt=st.floats(0.0, 0.5),
+    cfg=st.sampled_from([BASE, SECTORS]),
 )
 def test_output_is_always_finite_within_limits_and_never_faster_than_asked(
-    requests: list[tuple[float, float]], scan: np.ndarray, dt: float
+    requests: list[tuple[float, float]], scan: np.ndarray, dt: float, cfg: ShieldConfig
 ) -> None:
-    cfg = BASE
     shield = SafetyShield(cfg, MAX_RANGE)
-    front = float(scan[sector_bins(0.0, cfg.forward_sector_deg)].min()) * MAX_RANGE
+    front = front_clearance(cfg, scan)
     rear = float(scan[sector_bins(180.0, cfg.rear_sector_deg)].min()) * MAX_RANGE
     previous = Command(0.0, 0.0)
     for forward, yaw in requests:
@@ -380,7 +422,7 @@ def test_motion_that_can_stop_in_time_is_left_alone() -> None:
 
 def test_speed_along_the_course_is_limited_by_the_clearance_there() -> None:
     wall = scan_with({b: 2.0 for b in bins_around(-60.0)})
-    shield = SafetyShield(BASE, MAX_RANGE, "ardupilot")
+    shield = SafetyShield(SECTORS, MAX_RANGE, "ardupilot")
     out = settled(shield, Command(2.0, 0.0), wall)
     assert out.forward == 2.0  # nothing ahead of the nose
     slow_slide = (0.0, -0.3)  # drifting right at 0.3 m/s: can stop, but the speed is capped
