@@ -21,11 +21,13 @@ spreads the 75 packets over the revolution as the sensor does (one every 1.33 ms
 Targets (issue 3): p99 ≤ 2 ms, resident memory ≤ 150 MB. ``--recording compare`` measures the
 flight recorder's cost in the same run: four alternating blocks of ``--revolutions``/4 without and
 with ``[recorder]`` on (as shipped: no point cloud; ``--cloud-decimation N`` adds one), then the
-ratio of the two p99s.
+ratio of the two p99s; ``--shield compare`` the same for the shield's lane (the default) against
+its ±30° sectors (the vehicle hovers here, so the lane sweeps the nose alone, not a travel arc:
+``bench/bench_shield.py`` times both with motion).
 
     /work/venv/bin/python bench/bench_companion.py [--revolutions 1000] [--rate 10]
         [--pacing sensor|burst] [--decoder numpy|velodyne-decoder] [--realtime]
-        [--recording off|on|compare] [--cloud-decimation N]
+        [--recording off|on|compare] [--cloud-decimation N] [--shield lane|sectors|compare]
 """
 
 from __future__ import annotations
@@ -159,24 +161,49 @@ def main() -> int:
     )
     parser.add_argument("--cloud-decimation", type=int, default=0,
                         help="recorder.cloud_decimation when recording (0: no cloud, as shipped)")
+    parser.add_argument(
+        "--shield", default="lane", choices=("lane", "sectors", "compare"),
+        help="the shield's forward cap over its lane ([shield] lane_half_width, the default) or the "
+             "±30° sectors (lane_half_width = 0), or compare: alternate blocks of both in this run",
+    )
     args = parser.parse_args()
-    if args.recording != "compare":
-        result = run_companion(args, args.revolutions, recording=args.recording == "on")
-        print_result(args, result, f", recording {args.recording}")
+    if args.recording == "compare" and args.shield == "compare":
+        parser.error("compare one thing at a time: --recording compare or --shield compare")
+    if args.recording == "compare":
+        variants = {"recording off": Variant(False, args.shield), "recording on": Variant(True, args.shield)}
+    elif args.shield == "compare":
+        on = args.recording == "on"
+        variants = {"shield sectors": Variant(on, "sectors"), "shield lane": Variant(on, "lane")}
+    else:
+        variant = Variant(args.recording == "on", args.shield)
+        print_result(args, run_companion(args, args.revolutions, variant), f", {variant}")
         return 0
     # Alternate blocks, so load that comes and goes on the machine falls on both alike.
     blocks = 4
-    results: dict[bool, list[Result]] = {False: [], True: []}
+    results: dict[str, list[Result]] = {label: [] for label in variants}
     for i in range(blocks):
-        recording = i % 2 == 1
-        results[recording].append(run_companion(args, args.revolutions // blocks, recording))
-    merged = {k: Result.merge(v) for k, v in results.items()}
-    for recording in (False, True):
-        print_result(args, merged[recording], f", recording {'on' if recording else 'off'}")
-    off, on = (np.percentile(merged[k].from_last, 99) for k in (False, True))
-    print(f"recording overhead: p99 last packet -> setpoint {on:.3f} ms with / {off:.3f} ms without "
-          f"= {on / off:.2f}x; records dropped {merged[True].dropped}")
+        label = list(variants)[i % 2]
+        results[label].append(run_companion(args, args.revolutions // blocks, variants[label]))
+    merged = {label: Result.merge(parts) for label, parts in results.items()}
+    for label in variants:
+        print_result(args, merged[label], f", {label}")
+    (base, base_result), (other, other_result) = merged.items()
+    a, b = (float(np.percentile(r.from_last, 99)) for r in (base_result, other_result))
+    print(f"{other} against {base}: p99 last packet -> setpoint {b:.3f} ms / {a:.3f} ms = {b / a:.2f}x; "
+          f"records dropped {other_result.dropped}")
     return 0
+
+
+@dataclass(frozen=True)
+class Variant:
+    """What one companion run is configured with: the flight recorder on or off, and the shield's
+    forward cap (``lane``: the default; ``sectors``: ``[shield] lane_half_width = 0``)."""
+
+    recording: bool
+    shield: str
+
+    def __str__(self) -> str:
+        return f"recording {'on' if self.recording else 'off'}, shield {self.shield}"
 
 
 @dataclass
@@ -199,20 +226,21 @@ class Result:
         )
 
 
-def run_companion(args: argparse.Namespace, revolutions: int, recording: bool = False) -> Result:
+def run_companion(args: argparse.Namespace, revolutions: int, variant: Variant) -> Result:
     """Start the companion, engage it, measure ``revolutions`` revolutions, stop it."""
     tmp = Path(tempfile.mkdtemp(prefix="bench-companion-"))
     lidar_port, mavlink_port = free_udp_port(), free_udp_port()
     model = write_policy(tmp / "steer.onnx", kind="steer")
     config = tmp / "companion.toml"
     recorder = (f'[recorder]\nenabled = true\ndirectory = "{tmp / "flights"}"\n'
-                f"cloud_decimation = {args.cloud_decimation}\n" if recording else "")
+                f"cloud_decimation = {args.cloud_decimation}\n" if variant.recording else "")
+    shield = "[shield]\nlane_half_width = 0.0\n" if variant.shield == "sectors" else ""
     config.write_text(
         f'[lidar.velodyne]\nhost = "127.0.0.1"\nport = {lidar_port}\ndecoder = "{args.decoder}"\n'
         f'[policy]\nmodel = "{model}"\n'
         "[supervisor]\nclimb_settled_time = 0.3\n"
         f'[autopilot]\nconnect = "udpin:127.0.0.1:{mavlink_port}"\n'
-        "[runtime]\nlog_interval = 3600.0\n" + recorder
+        "[runtime]\nlog_interval = 3600.0\n" + recorder + shield
     )
     autopilot = Autopilot(mavlink_port)
     command = [sys.executable, "-m", "companion", "run", "--config", str(config)]
