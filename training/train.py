@@ -25,6 +25,7 @@ newest checkpoint, ``--overwrite`` deletes it first, and anything else is refuse
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import functools
 import json
@@ -34,9 +35,10 @@ import os
 import shutil
 import signal
 import sys
+import threading
 import time
 import zipfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -200,15 +202,44 @@ def checkpoint_steps(path: Path) -> int:
 
 
 def save_atomically(model: Any, path: Path) -> None:
-    """``model.save(path)`` under a temporary name, then renamed: a Ctrl-C or a kill during the
-    save leaves no cut-off zip under a model's name (a checkpoint ``--resume`` would pick as the
-    newest, the ``best_model.zip`` the run chose). Every model the run writes goes through it."""
+    """``model.save(path)`` under a temporary name, then renamed: a kill during the save leaves no
+    cut-off zip under a model's name (a checkpoint ``--resume`` would pick as the newest, the
+    ``best_model.zip`` the run chose). A Ctrl-C waits for the save to end (:func:`sigint_deferred`).
+    Every model the run writes goes through it."""
     partial = path.with_name(f".partial-{path.name}")
     try:
-        model.save(partial)
-        os.replace(partial, path)
+        with sigint_deferred():
+            model.save(partial)
+            os.replace(partial, path)
     finally:
         partial.unlink(missing_ok=True)
+
+
+@contextlib.contextmanager
+def sigint_deferred() -> Iterator[None]:
+    """Hold a Ctrl-C (SIGINT) that arrives inside the block until it ends, then act on it as the
+    handler before would have. A KeyboardInterrupt inside torch's zip writer left it raising
+    ``RuntimeError: unexpected pos`` instead, so the run died with a traceback and exit 1, not
+    ``interrupted.zip`` and 130. Only the main thread receives signals; elsewhere, or where
+    SIGINT is ignored (the simulator workers), the block runs as it is."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.getsignal(signal.SIGINT)
+    if previous is signal.SIG_IGN or previous is None:
+        yield
+        return
+    caught: list[int] = []
+    signal.signal(signal.SIGINT, lambda signum, _frame: caught.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if caught:
+        if callable(previous):
+            previous(signal.SIGINT, None)  # Python's default handler raises KeyboardInterrupt
+        else:
+            signal.raise_signal(signal.SIGINT)  # SIG_DFL: as if it arrived now
 
 
 def latest_checkpoint(run_dir: Path) -> Path:

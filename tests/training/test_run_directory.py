@@ -225,6 +225,27 @@ class _CutOffModel:
         raise KeyboardInterrupt
 
 
+class _InterruptedModel:
+    """A real SIGINT arrives halfway through writing the zip (CI once sent Ctrl-C inside torch's
+    zip writer, which then raised ``RuntimeError: unexpected pos`` and the run exited 1)."""
+
+    def save(self, path):
+        with Path(path).open("wb") as f:
+            f.write(b"first half ")
+            os.kill(os.getpid(), signal.SIGINT)
+            f.write(b"second half")
+
+
+def test_ctrl_c_during_a_save_waits_for_the_save_then_interrupts(tmp_path):
+    from training.train import save_atomically
+
+    target = tmp_path / "checkpoint.zip"
+    with pytest.raises(KeyboardInterrupt):
+        save_atomically(_InterruptedModel(), target)
+    assert target.read_bytes() == b"first half second half"
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler is back
+
+
 def test_a_checkpoint_cut_off_by_ctrl_c_leaves_no_file_under_its_name(tmp_path):
     """A Ctrl-C during a periodic save once left ``ppo_<N>_steps.zip`` cut off; ``--resume`` then
     took it as the newest checkpoint and failed ("not a stable-baselines3 model")."""
