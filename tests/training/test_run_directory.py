@@ -240,10 +240,15 @@ def test_ctrl_c_during_a_save_waits_for_the_save_then_interrupts(tmp_path):
     from training.train import save_atomically
 
     target = tmp_path / "checkpoint.zip"
-    with pytest.raises(KeyboardInterrupt):
-        save_atomically(_InterruptedModel(), target)
+    # Python's own handler, as `avoid-train train` runs (tests before may have left another one)
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            save_atomically(_InterruptedModel(), target)
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler is back
+    finally:
+        signal.signal(signal.SIGINT, before)
     assert target.read_bytes() == b"first half second half"
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler is back
 
 
 def test_a_checkpoint_cut_off_by_ctrl_c_leaves_no_file_under_its_name(tmp_path):
