@@ -1,11 +1,12 @@
 """Figures: what the shield's lane costs per scan against the sectors, in the same run.
 
 The lane (``[shield] lane_half_width`` > 0, the default) sweeps a lane along every heading within
-``lane_spread_deg`` of the nose and of the travel arc, each over all 360 bins, where the sectors
-take one minimum over a slice of the scan. This times :meth:`SafetyShield.filter` on the same
-scans, velocities and commands under both, in alternating blocks (so a machine's drift hits both
-alike), and prints per call the median and 99th percentile in microseconds, the lane's as a ratio
-to the sectors', and the median as a share of the 100 ms scan period.
+``lane_spread_deg`` of the nose and of the travel arc, each over the bins that can lie near one
+(``companion.shield.lane_distance``), where the sectors take one minimum over a slice of the scan.
+This times :meth:`SafetyShield.filter` on the same scans, velocities and commands under both, in
+alternating blocks (so a machine's drift hits both alike), and prints per call the median and
+99th percentile in microseconds, the lane's as a ratio to the sectors', and the median as a share
+of the 100 ms scan period.
 
     python bench/bench_shield.py [--calls 4000] [--blocks 4] [--seed 0]
 """
