@@ -270,17 +270,22 @@ def command(args: Any) -> int:
         response=not args.ideal_response,
     )
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):  # Ctrl-C, or a supervisor's/test's SIGTERM
-        signal.signal(sig, lambda *_: stop.set())
-    server.start()
-    print(
-        f"simulated {args.personality} running on {', '.join(args.link or ['tcpin:127.0.0.1:5760'])}; "
-        "Ctrl-C stops it",
-        flush=True,
-    )
+    # Ctrl-C, or a supervisor's/test's SIGTERM; the caller's handlers come back on return, so a
+    # caller in the same process (a test, a script) is not left with a Ctrl-C that does nothing
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
-        while server.error is None and not stop.wait(0.5):
-            pass
+        server.start()
+        print(
+            f"simulated {args.personality} running on {', '.join(args.link or ['tcpin:127.0.0.1:5760'])}; "
+            "Ctrl-C stops it",
+            flush=True,
+        )
+        try:
+            while server.error is None and not stop.wait(0.5):
+                pass
+        finally:
+            server.stop()
     finally:
-        server.stop()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     return 0 if server.error is None else 1

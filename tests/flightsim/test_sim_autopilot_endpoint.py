@@ -78,3 +78,28 @@ def test_udpout_and_tcp_links_reach_their_peers():
     listener.close()
     assert any(m.get_type() == "HEARTBEAT" and m.autopilot == mavlink.MAV_AUTOPILOT_PX4 for m in udp_msgs)
     assert any(m.get_type() == "HEARTBEAT" for m in tcp_msgs)
+
+
+def test_the_server_command_gives_the_callers_signal_handlers_back():
+    """``avoid-sim autopilot`` stops on SIGINT/SIGTERM; called in a process that goes on (a test, a
+    script), it must not leave that process a Ctrl-C that only sets a dead server's stop event."""
+    import argparse
+    import os
+    import signal
+    import threading
+
+    from flightsim.companion_setup import free_tcp_port
+    from flightsim.sim_autopilot.server import command, configure_parser
+
+    parser = argparse.ArgumentParser()
+    configure_parser(parser)
+    args = parser.parse_args(["--link", f"tcpin:127.0.0.1:{free_tcp_port()}"])
+    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    # os.kill from another thread: the handler still runs on the main thread
+    timer = threading.Timer(1.0, os.kill, (os.getpid(), signal.SIGTERM))
+    timer.start()
+    try:
+        assert command(args) == 0
+    finally:
+        timer.cancel()
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
