@@ -8,14 +8,14 @@ Sockets, framing and real time live in :mod:`flightsim.sim_autopilot.endpoint` a
 :mod:`flightsim.sim_autopilot.server`, so everything here can be unit-tested with a fake clock.
 
 Frames and the vehicle's place on Earth are in :mod:`flightsim.sim_autopilot.frames`; the decoding of
-a position target in :mod:`flightsim.sim_autopilot.position_target`.
+a position target in :mod:`flightsim.sim_autopilot.position_target`; the telemetry each message
+carries in :mod:`flightsim.sim_autopilot.telemetry`.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
-import math
 from dataclasses import dataclass, field
 from enum import Enum
 from typing import Any, ClassVar
@@ -25,9 +25,10 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from flightsim.autopilot_response import CHUNK_S, PRESETS, AutopilotResponse
 from flightsim.control import Setpoint
-from flightsim.sim_autopilot.frames import HOME_ALT_AMSL_M, enu_to_ned, lat_lon, yaw_enu_to_ned
+from flightsim.sim_autopilot.frames import HOME_ALT_AMSL_M, lat_lon
 from flightsim.sim_autopilot.mission import MissionStore, StoredItem
 from flightsim.sim_autopilot.position_target import ExternalTarget
+from flightsim.sim_autopilot.telemetry import telemetry_message
 
 log = logging.getLogger(__name__)
 
@@ -662,97 +663,8 @@ class SimAutopilot:
 
     # ----------------------------------------------------------------- telemetry
     def build(self, name: str) -> Any:
-        """Build one telemetry message from the current state."""
-        s = self.snap
-        t = self.time_boot_ms()
-        if name == "HEARTBEAT":
-            base, custom = self.heartbeat_mode()
-            if self.armed:
-                base |= mavlink.MAV_MODE_FLAG_SAFETY_ARMED
-            status = mavlink.MAV_STATE_ACTIVE if self.armed else mavlink.MAV_STATE_STANDBY
-            return mavlink.MAVLink_heartbeat_message(
-                mavlink.MAV_TYPE_QUADROTOR, self.AUTOPILOT, base, custom, status, 3
-            )
-        if name == "SYS_STATUS":
-            sensors = (
-                mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO
-                | mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL
-                | mavlink.MAV_SYS_STATUS_SENSOR_3D_MAG
-                | mavlink.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE
-                | mavlink.MAV_SYS_STATUS_SENSOR_GPS
-                | mavlink.MAV_SYS_STATUS_AHRS
-            )
-            return mavlink.MAVLink_sys_status_message(
-                sensors, sensors, sensors, 100, 12600, 500, 90, 0, 0, 0, 0, 0, 0
-            )
-        if name == "ATTITUDE":
-            p, q, r = s.angular_rate
-            return mavlink.MAVLink_attitude_message(
-                t, s.roll, -s.pitch, yaw_enu_to_ned(s.yaw), float(p), float(-q), float(-r)
-            )
-        if name == "LOCAL_POSITION_NED":
-            pos = enu_to_ned(s.position - self.home)
-            vel = enu_to_ned(self.reported_velocity())
-            return mavlink.MAVLink_local_position_ned_message(t, *map(float, pos), *map(float, vel))
-        if name == "GLOBAL_POSITION_INT":
-            rel = s.position - self.home
-            lat, lon = lat_lon(rel)
-            vel = enu_to_ned(self.reported_velocity())
-            hdg = round(math.degrees(yaw_enu_to_ned(s.yaw)) % 360.0 * 100) % 36000
-            return mavlink.MAVLink_global_position_int_message(
-                t,
-                lat,
-                lon,
-                round((HOME_ALT_AMSL_M + rel[2]) * 1000),
-                round(rel[2] * 1000),
-                *(round(v * 100) for v in vel),
-                hdg,
-            )
-        if name == "EXTENDED_SYS_STATE":
-            return mavlink.MAVLink_extended_sys_state_message(self.vtol_state(), self.landed_state())
-        if name == "HOME_POSITION":
-            lat, lon = lat_lon(np.zeros(3))
-            return mavlink.MAVLink_home_position_message(
-                lat,
-                lon,
-                int(HOME_ALT_AMSL_M * 1000),
-                0.0,
-                0.0,
-                0.0,
-                [1.0, 0.0, 0.0, 0.0],
-                0.0,
-                0.0,
-                0.0,
-                int((self.now - self.boot_time) * 1e6),
-            )
-        if name == "AUTOPILOT_VERSION":
-            return mavlink.MAVLink_autopilot_version_message(
-                self.CAPABILITIES | getattr(self.params, "protocol_capabilities", 0),
-                self.flight_sw_version(),
-                0,
-                0,
-                0,
-                [0] * 8,
-                [0] * 8,
-                [0] * 8,
-                0,
-                0,
-                0x5349_4D00 + self.system_id,
-            )
-        if name == "MISSION_CURRENT":
-            return self.mission.current_message()
-        if name == "VFR_HUD":
-            speed = float(np.linalg.norm(s.velocity[:2]))
-            hdg = int(math.degrees(yaw_enu_to_ned(s.yaw)) % 360.0)
-            return mavlink.MAVLink_vfr_hud_message(
-                speed,
-                speed,
-                hdg,
-                50 if self.armed else 0,
-                HOME_ALT_AMSL_M + float(s.position[2] - self.home[2]),
-                float(s.velocity[2]),
-            )
-        raise KeyError(name)
+        """Build one telemetry message from the current state (:mod:`flightsim.sim_autopilot.telemetry`)."""
+        return telemetry_message(self, name)
 
     def vtol_state(self) -> int:
         return mavlink.MAV_VTOL_STATE_UNDEFINED
