@@ -274,17 +274,11 @@ def command(args: Any) -> int:
     # caller in the same process (a test, a script) is not left with a Ctrl-C that does nothing
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
-        server.start()
-        print(
-            f"simulated {args.personality} running on {', '.join(args.link or ['tcpin:127.0.0.1:5760'])}; "
-            "Ctrl-C stops it",
-            flush=True,
-        )
-        try:
+        with server:
+            links = ", ".join(args.link or ["tcpin:127.0.0.1:5760"])
+            print(f"simulated {args.personality} running on {links}; Ctrl-C stops it", flush=True)
             while server.error is None and not stop.wait(0.5):
                 pass
-        finally:
-            server.stop()
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)

@@ -1,10 +1,11 @@
 """The telemetry a simulated autopilot streams: each message built from the personality's state.
 
 Split from :mod:`flightsim.sim_autopilot.common`, which decides what the autopilot does; this only
-says it, in MAVLink's frames (NED, yaw from North, centimetres and millidegrees where the message
-wants them). The velocity in LOCAL_POSITION_NED and GLOBAL_POSITION_INT is the one the firmware's
-estimator reports (:meth:`~flightsim.sim_autopilot.common.SimAutopilot.reported_velocity`), not the
-truth, as a real estimator's is.
+says it, in MAVLink's frames and units (NED, yaw from North; millimetres, cm/s, centidegrees and
+degE7 where the message wants them). The velocity in LOCAL_POSITION_NED and GLOBAL_POSITION_INT is
+the one the firmware's estimator reports
+(:meth:`~flightsim.sim_autopilot.common.SimAutopilot.reported_velocity`), not the truth, as a real
+estimator's is.
 """
 
 from __future__ import annotations

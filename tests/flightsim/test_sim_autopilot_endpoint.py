@@ -2,15 +2,20 @@
 
 from __future__ import annotations
 
+import argparse
+import os
+import signal
 import socket
+import threading
 import time
 
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.errors import UserError
+from flightsim.companion_setup import free_tcp_port
 from flightsim.sim_autopilot.endpoint import LinkSpec, MavlinkEndpoint
-from flightsim.sim_autopilot.server import SimAutopilotServer
+from flightsim.sim_autopilot.server import SimAutopilotServer, command, configure_parser
 
 
 def recv_messages(sock: socket.socket, duration: float) -> list:
@@ -83,14 +88,6 @@ def test_udpout_and_tcp_links_reach_their_peers():
 def test_the_server_command_gives_the_callers_signal_handlers_back():
     """``avoid-sim autopilot`` stops on SIGINT/SIGTERM; called in a process that goes on (a test, a
     script), it must not leave that process a Ctrl-C that only sets a dead server's stop event."""
-    import argparse
-    import os
-    import signal
-    import threading
-
-    from flightsim.companion_setup import free_tcp_port
-    from flightsim.sim_autopilot.server import command, configure_parser
-
     parser = argparse.ArgumentParser()
     configure_parser(parser)
     args = parser.parse_args(["--link", f"tcpin:127.0.0.1:{free_tcp_port()}"])
