@@ -51,6 +51,9 @@ class PPOConfig:
     #: (training/scan_features.py: circular 1-D convolutions over the stacked scans, the other
     #: features beside them; the actor and the critic each have their own)
     features_extractor: Literal["flat", "circular_scan"] = "flat"
+    #: "circular_scan"'s convolutions, each (output channels, odd kernel size, stride); empty: its
+    #: default (training/scan_features.py, ``DEFAULT_LAYERS``)
+    scan_layers: list[tuple[int, int, int]] = field(default_factory=list, metadata={"min": 1, "max": 512})
     #: stop an update's epochs once the approximate KL divergence from the policy that collected
     #: the rollout passes this (SB3's ``target_kl``; 0: never), so a fine-tune's first updates,
     #: against a critic that has not yet seen the policy fly, cannot tear up what it learnt
@@ -59,6 +62,11 @@ class PPOConfig:
     #: student. The hyperparameters stay this config's, and the action noise restarts at
     #: ``log_std_init``. "": a fresh network
     init_from: str = ""
+
+    def __post_init__(self) -> None:
+        for i, (_, kernel, _) in enumerate(self.scan_layers):
+            if kernel % 2 != 1:
+                raise ValueError(f"ppo.scan_layers[{i}]: kernel size {kernel} must be odd")
 
 
 @dataclass(frozen=True)

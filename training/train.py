@@ -443,7 +443,8 @@ def policy_kwargs(config: TrainConfig) -> dict[str, Any]:
 
         kwargs |= {
             "features_extractor_class": CircularScanExtractor,
-            "features_extractor_kwargs": {"n_stack": config.n_stack, "n_bins": N_BINS},
+            "features_extractor_kwargs": {"n_stack": config.n_stack, "n_bins": N_BINS}
+            | ({"layers": tuple(p.scan_layers)} if p.scan_layers else {}),
             "share_features_extractor": False,  # the critic's returns would swamp the actor's features
         }
     return kwargs

@@ -14,7 +14,9 @@ import torch
 
 from tests.training.test_nav_pipeline import GOAL, TINY_NAV
 from training.__main__ import main
+from training.config import load_train_config
 from training.scan_features import CircularScanExtractor
+from training.train import policy_kwargs
 
 N_STACK, FRAME = 4, 367
 #: bins the three default convolutions' strides (3, 2, 2) move the output by one
@@ -48,6 +50,19 @@ def test_an_observation_that_is_not_whole_frames_of_a_scan_is_refused():
         CircularScanExtractor(gym.spaces.Box(-1.0, 1.0, (1001,), np.float32), 4)
     with pytest.raises(ValueError, match="kernel_size 4: must be odd"):
         CircularScanExtractor(gym.spaces.Box(-1.0, 1.0, (1460,), np.float32), 4, layers=((8, 4, 2),))
+
+
+def test_the_config_chooses_the_convolutions():
+    layers = "ppo.scan_layers=[[16, 5, 2], [32, 3, 3]]"
+    config = load_train_config(None, ["ppo.features_extractor=circular_scan", layers])
+    kwargs = policy_kwargs(config)
+    space = gym.spaces.Box(-1.0, 1.0, (N_STACK * FRAME,), np.float32)
+    extractor = kwargs["features_extractor_class"](space, **kwargs["features_extractor_kwargs"])
+    convs = [m.conv for m in extractor.convs if hasattr(m, "conv")]
+    assert [(c.out_channels, c.kernel_size[0], c.stride[0]) for c in convs] == [(16, 5, 2), (32, 3, 3)]
+    assert extractor.features_dim == 32 * 60 + N_STACK * 7  # 360 bins, strides 2 and 3
+    default = policy_kwargs(load_train_config(None, ["ppo.features_extractor=circular_scan"]))
+    assert "layers" not in default["features_extractor_kwargs"]  # the extractor's own default
 
 
 def test_a_run_with_the_circular_extractor_trains_and_exports_with_parity(tmp_path):
