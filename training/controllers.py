@@ -28,7 +28,7 @@ GOAL_BASELINES = ("goal_follower", "straight_line")
 #: flown only when named: not a baseline a drone could fly, it reads the simulator's truth (the
 #: DAgger teachers, :mod:`training.path_expert`, :mod:`training.predictive_expert`): what
 #: imitation can reach
-PRIVILEGED_GOAL_CONTROLLERS = ("path_expert", "predictive_expert", "robust_expert")
+PRIVILEGED_GOAL_CONTROLLERS = ("path_expert", "predictive_expert", "robust_expert", "smooth_expert")
 
 
 class Controller(Protocol):

@@ -25,7 +25,7 @@ import numpy as np
 
 from companion.errors import UserError
 from training.path_expert import PathExpert
-from training.predictive_expert import PredictiveExpert, robust_expert
+from training.predictive_expert import PredictiveExpert, robust_expert, smooth_expert
 from training.pretrain import Demonstrations, discounted_returns, fit
 
 log = logging.getLogger(__name__)
@@ -37,6 +37,7 @@ TEACHERS: dict[str, Callable[[Any], Any]] = {
     "path_expert": PathExpert,
     "predictive_expert": PredictiveExpert,
     "robust_expert": robust_expert,
+    "smooth_expert": smooth_expert,
 }
 
 
