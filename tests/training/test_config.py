@@ -124,3 +124,14 @@ def test_target_kl_reaches_the_ppo_model_and_zero_means_none(tmp_path, value, re
     c = load_train_config(None, [f"ppo.target_kl={value}", "ppo.n_steps=64"])
     model = build_model(c, DummyVecEnv([lambda: gym.make("Pendulum-v1")]), tmp_path, None)
     assert model.target_kl == reaches
+
+
+def test_the_config_offers_every_dagger_teacher_and_no_other():
+    """``[pretrain] teacher`` names a :data:`training.dagger.TEACHERS` entry: the config's list is
+    written out (the config must not import the teachers) and kept beside that table by this."""
+    from typing import get_args, get_type_hints
+
+    from training.config import PretrainConfig
+    from training.dagger import TEACHERS
+
+    assert set(get_args(get_type_hints(PretrainConfig)["teacher"])) == set(TEACHERS)
