@@ -123,6 +123,8 @@ class PretrainConfig:
     :param near_weight: DAgger's labels count ``1 + near_weight × (1 − d / near_distance)`` in each
         fit, where the newest scan's nearest return ``d`` is within ``near_distance`` (0: all alike)
     :param near_distance: where that weighting starts, metres
+    :param mirror: each fit mirrors a random half of every batch across the nose
+        (:mod:`training.mirror`: the task is left-right symmetric, so each label is two)
     """
 
     method: Literal["bc", "dagger"] = "bc"
@@ -138,6 +140,7 @@ class PretrainConfig:
     learning_rate_schedule: Literal["constant", "cosine"] = "constant"
     near_weight: float = field(default=0.0, metadata={"min": 0.0, "max": 100.0})
     near_distance: float = field(default=1.5, metadata={"min": 0.1, "max": 100.0})
+    mirror: bool = False
 
 
 @dataclass(frozen=True)

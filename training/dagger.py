@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from companion.errors import UserError
+from training.mirror import Mirror
 from training.path_expert import PathExpert
 from training.predictive_expert import PredictiveExpert, robust_expert, smooth_expert
 from training.pretrain import Demonstrations, discounted_returns, fit
@@ -150,6 +151,7 @@ def run(
     teacher_noise: float = 0.0,
     schedule: str = "constant",
     weigh: Callable[[np.ndarray], np.ndarray] | None = None,
+    mirror: Mirror | None = None,
 ) -> Demonstrations:
     """DAgger: iteration 0 is the teacher's alone (plain behaviour cloning), then the student flies
     a growing share (teacher probability ``beta0 ** k``), and the student is refitted on every
@@ -170,6 +172,7 @@ def run(
     :param schedule: each fit's learning-rate schedule (:func:`training.pretrain.fit`)
     :param weigh: observations → each label's weight in the fit (``training.pretrain.fit``'s
         ``weights``); None: all alike
+    :param mirror: mirror half of each fit's batches across the nose (``training.pretrain.fit``)
     :return: every label gathered (the data of the last fit)
     """
     rows = max(1, steps // venv.num_envs) * venv.num_envs  # what one new iteration gathers
@@ -209,7 +212,7 @@ def run(
             k + 1, iterations, beta, rollouts.successes, rollouts.episodes, student,
         )  # fmt: skip
         weights = None if weigh is None else weigh(data.obs)
-        fit(model.policy, data, epochs, batch_size, learning_rate, seed + k, schedule, weights)
+        fit(model.policy, data, epochs, batch_size, learning_rate, seed + k, schedule, weights, mirror)
         if after_iteration is not None:
             after_iteration(k, collected, rollouts)
     return data

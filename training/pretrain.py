@@ -22,6 +22,8 @@ from typing import Any
 
 import numpy as np
 
+from training.mirror import ACTION_SIGNS, Mirror
+
 log = logging.getLogger(__name__)
 
 
@@ -125,7 +127,7 @@ def proximity_weights(
 
 def fit(
     policy: Any, data: Demonstrations, epochs: int, batch_size: int, learning_rate: float, seed: int,
-    schedule: str = "constant", weights: np.ndarray | None = None,
+    schedule: str = "constant", weights: np.ndarray | None = None, mirror: Mirror | None = None,
 ) -> dict[str, float]:  # fmt: skip
     """Fit ``policy``'s action mean to the demonstrations and its value to their returns.
 
@@ -134,6 +136,8 @@ def fit(
         (Loshchilov & Hutter), so the fit ends in a minimum rather than at the last batches' noise
     :param weights: per demonstration, its weight in the action loss (e.g. :func:`proximity_weights`);
         None: all alike. The reported ``action_mse`` is the weighted one.
+    :param mirror: each batch's demonstrations are mirrored across the nose with probability 0.5
+        (:mod:`training.mirror`: the task's symmetry, twice the worlds); None: as recorded
     :returns: the last epoch's mean losses (``action_mse``, ``value_mse``)
     """
     import torch
@@ -143,6 +147,10 @@ def fit(
     actions = torch.as_tensor(data.actions)
     returns = torch.as_tensor(data.returns)
     weight = torch.as_tensor(np.ones(len(obs), np.float32) if weights is None else weights)
+    flip_index = flip_signs = None
+    if mirror is not None:
+        flip_index, flip_signs = torch.as_tensor(mirror.index), torch.as_tensor(mirror.signs)
+        action_signs = torch.as_tensor(ACTION_SIGNS)
     parameters = [p for name, p in policy.named_parameters() if name != "log_std"]
     optimizer = torch.optim.Adam(parameters, lr=learning_rate)
     annealing = None
@@ -156,11 +164,16 @@ def fit(
         totals = np.zeros(2)
         for start in range(0, len(obs), batch_size):
             index = order[start : start + batch_size]
-            distribution = policy.get_distribution(obs[index])
-            errors = (distribution.distribution.mean - actions[index]).square().mean(dim=-1)
+            batch_obs, batch_actions = obs[index], actions[index]
+            if flip_index is not None:
+                flip = (torch.rand(len(index), generator=generator) < 0.5)[:, None]
+                batch_obs = torch.where(flip, batch_obs[:, flip_index] * flip_signs, batch_obs)
+                batch_actions = torch.where(flip, batch_actions * action_signs, batch_actions)
+            distribution = policy.get_distribution(batch_obs)
+            errors = (distribution.distribution.mean - batch_actions).square().mean(dim=-1)
             action_mse = (weight[index] * errors).sum() / weight[index].sum()
             value_mse = torch.nn.functional.mse_loss(
-                policy.predict_values(obs[index]).squeeze(-1), returns[index]
+                policy.predict_values(batch_obs).squeeze(-1), returns[index]
             )
             optimizer.zero_grad()
             (action_mse + 0.5 * value_mse).backward()

@@ -49,9 +49,10 @@ import numpy as np
 from companion.errors import UserError
 from companion.scan import N_BINS
 from training.config import TrainConfig, config_to_toml, load_train_config
-from training.controllers import ControllerSpec
+from training.controllers import ControllerSpec, observation_layout
 from training.episodes import WorldSpec, goal_worlds, make_tasks
 from training.evaluate import run_tasks
+from training.mirror import Mirror, mirror_for
 from training.report import summarise
 
 log = logging.getLogger(__name__)
@@ -565,7 +566,7 @@ def warm_start(
             venv, model, iterations=p.iterations, steps=p.steps, beta0=p.beta0, epochs=p.epochs,
             batch_size=p.batch_size, learning_rate=p.learning_rate, seed=config.seed,
             previous=previous, after_iteration=after, teacher=p.teacher, teacher_noise=p.teacher_noise,
-            schedule=p.learning_rate_schedule, weigh=label_weights(config),
+            schedule=p.learning_rate_schedule, weigh=label_weights(config), mirror=label_mirror(config),
         )  # fmt: skip
         return
     data = pretrain.collect(
@@ -576,8 +577,9 @@ def warm_start(
         len(data.actions), p.demonstrator, data.episodes, data.successes,
     )  # fmt: skip
     pretrain.fit(
-        model.policy, data, p.epochs, p.batch_size, p.learning_rate, config.seed, p.learning_rate_schedule
-    )
+        model.policy, data, p.epochs, p.batch_size, p.learning_rate, config.seed, p.learning_rate_schedule,
+        mirror=label_mirror(config),
+    )  # fmt: skip
 
 
 def label_weights(config: TrainConfig) -> Callable[[np.ndarray], np.ndarray] | None:
@@ -591,6 +593,13 @@ def label_weights(config: TrainConfig) -> Callable[[np.ndarray], np.ndarray] | N
         proximity_weights, n_stack=config.n_stack, n_bins=N_BINS, max_range=scan.max_range,
         near_weight=p.near_weight, near_distance=p.near_distance,
     )  # fmt: skip
+
+
+def label_mirror(config: TrainConfig) -> Mirror | None:
+    """How the fits mirror their demonstrations (``[pretrain] mirror``), or None when they do not."""
+    if not config.pretrain.mirror:
+        return None
+    return mirror_for(observation_layout(config.env_config()), config.n_stack)
 
 
 class TrainingInterrupted(Exception):

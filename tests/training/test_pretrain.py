@@ -9,7 +9,7 @@ import numpy as np
 
 from training.config import load_train_config
 from training.pretrain import Demonstrations, collect, discounted_returns, fit, proximity_weights
-from training.train import build_model, label_weights, make_vec_env
+from training.train import build_model, label_mirror, label_weights, make_vec_env
 
 NAV = """
 env_id = "flightsim/LidarNav-v0"
@@ -137,3 +137,33 @@ def test_a_weighted_fit_leans_to_the_heavier_labels(tmp_path):
     touching = np.ones((2, size), np.float32)
     touching[1, (config.n_stack - 1) * (size // config.n_stack) :][:4] = 0.0  # newest scan: 0 m
     np.testing.assert_allclose(label_weights(config)(touching), [1.0, 9.0])  # pretrain.near_weight=8
+
+
+def test_a_mirrored_fit_also_answers_the_mirrored_state_it_never_saw(tmp_path):
+    """Fitted on one state labelled (0.5 forward, 0.6 yaw) with ``pretrain.mirror``, the student
+    turns the other way, as fast, in that state's mirror image; fitted as recorded, it does not."""
+    path = tmp_path / "bc.toml"
+    path.write_text(NAV)
+    config = load_train_config(path, [f"run_root={tmp_path}", "pretrain.mirror=true"])
+    venv = make_vec_env(config, 1, config.seed, subprocess=False)
+    try:
+        model = build_model(config, venv, tmp_path, None)
+        obs = np.random.default_rng(0).uniform(0.2, 0.9, (64, venv.observation_space.shape[0]))
+    finally:
+        venv.close()
+    obs = np.repeat(obs[:1], 64, axis=0).astype(np.float32)
+    labels = np.tile([0.5, 0.6], (64, 1)).astype(np.float32)
+    data = Demonstrations(obs, labels, np.zeros(64, np.float32), 0, 0)
+    mirror = label_mirror(config)
+    seen, unseen = obs[:1], mirror.observations(obs[:1])
+
+    def fitted(m):
+        fit(model.policy, data, epochs=200, batch_size=64, learning_rate=3e-3, seed=0, mirror=m)
+        return model.predict(seen, deterministic=True)[0][0], model.predict(unseen, deterministic=True)[0][0]
+
+    here, there = fitted(mirror)
+    np.testing.assert_allclose(here, [0.5, 0.6], atol=0.05)
+    np.testing.assert_allclose(there, [0.5, -0.6], atol=0.05)
+    here, there = fitted(None)  # refitted as recorded: the mirror image is unlearnt
+    np.testing.assert_allclose(here, [0.5, 0.6], atol=0.05)
+    assert there[1] > 0.0
