@@ -147,10 +147,9 @@ def fit(
     actions = torch.as_tensor(data.actions)
     returns = torch.as_tensor(data.returns)
     weight = torch.as_tensor(np.ones(len(obs), np.float32) if weights is None else weights)
-    flip_index = flip_signs = None
-    if mirror is not None:
-        flip_index, flip_signs = torch.as_tensor(mirror.index), torch.as_tensor(mirror.signs)
-        action_signs = torch.as_tensor(ACTION_SIGNS)
+    flips = None
+    if mirror is not None:  # gather index, observation signs, action signs
+        flips = torch.as_tensor(mirror.index), torch.as_tensor(mirror.signs), torch.as_tensor(ACTION_SIGNS)
     parameters = [p for name, p in policy.named_parameters() if name != "log_std"]
     optimizer = torch.optim.Adam(parameters, lr=learning_rate)
     annealing = None
@@ -165,7 +164,8 @@ def fit(
         for start in range(0, len(obs), batch_size):
             index = order[start : start + batch_size]
             batch_obs, batch_actions = obs[index], actions[index]
-            if flip_index is not None:
+            if flips is not None:
+                flip_index, flip_signs, action_signs = flips
                 flip = (torch.rand(len(index), generator=generator) < 0.5)[:, None]
                 batch_obs = torch.where(flip, batch_obs[:, flip_index] * flip_signs, batch_obs)
                 batch_actions = torch.where(flip, batch_actions * action_signs, batch_actions)

@@ -36,6 +36,18 @@ steps = 400
 """
 
 
+def untrained_student(tmp_path, *overrides: str):
+    """The config :data:`NAV` with ``overrides``, a fresh PPO model of it and its observation size."""
+    path = tmp_path / "bc.toml"
+    path.write_text(NAV)
+    config = load_train_config(path, [f"run_root={tmp_path}", *overrides])
+    venv = make_vec_env(config, 1, config.seed, subprocess=False)
+    try:
+        return config, build_model(config, venv, tmp_path, None), venv.observation_space.shape[0]
+    finally:
+        venv.close()
+
+
 def test_returns_are_discounted_within_each_episode_only():
     rewards = np.array([[1.0, 0.0], [1.0, 2.0], [1.0, 4.0]], dtype=np.float32)
     dones = np.array([[False, False], [True, False], [False, False]])
@@ -114,15 +126,7 @@ def test_labels_beside_obstacles_weigh_more_by_the_newest_scan_alone():
 def test_a_weighted_fit_leans_to_the_heavier_labels(tmp_path):
     """The same observation labelled +0.5 with weight 9 and -0.5 with weight 1 fits to their
     weighted mean, 0.4; unweighted, to 0."""
-    path = tmp_path / "bc.toml"
-    path.write_text(NAV)
-    config = load_train_config(path, [f"run_root={tmp_path}", "pretrain.near_weight=8"])
-    venv = make_vec_env(config, 1, config.seed, subprocess=False)
-    try:
-        model = build_model(config, venv, tmp_path, None)
-        size = venv.observation_space.shape[0]
-    finally:
-        venv.close()
+    config, model, size = untrained_student(tmp_path, "pretrain.near_weight=8")
     obs = np.full((128, size), 0.5, dtype=np.float32)  # every observation the same: one action fits
     actions = np.where(np.arange(128)[:, None] % 2 == 0, 0.5, -0.5).repeat(2, axis=1).astype(np.float32)
     data = Demonstrations(obs, actions, np.zeros(128, np.float32), 0, 0)
@@ -142,16 +146,9 @@ def test_a_weighted_fit_leans_to_the_heavier_labels(tmp_path):
 def test_a_mirrored_fit_also_answers_the_mirrored_state_it_never_saw(tmp_path):
     """Fitted on one state labelled (0.5 forward, 0.6 yaw) with ``pretrain.mirror``, the student
     turns the other way, as fast, in that state's mirror image; fitted as recorded, it does not."""
-    path = tmp_path / "bc.toml"
-    path.write_text(NAV)
-    config = load_train_config(path, [f"run_root={tmp_path}", "pretrain.mirror=true"])
-    venv = make_vec_env(config, 1, config.seed, subprocess=False)
-    try:
-        model = build_model(config, venv, tmp_path, None)
-        obs = np.random.default_rng(0).uniform(0.2, 0.9, (64, venv.observation_space.shape[0]))
-    finally:
-        venv.close()
-    obs = np.repeat(obs[:1], 64, axis=0).astype(np.float32)
+    config, model, size = untrained_student(tmp_path, "pretrain.mirror=true")
+    state = np.random.default_rng(0).uniform(0.2, 0.9, (1, size))
+    obs = np.repeat(state, 64, axis=0).astype(np.float32)
     labels = np.tile([0.5, 0.6], (64, 1)).astype(np.float32)
     data = Demonstrations(obs, labels, np.zeros(64, np.float32), 0, 0)
     mirror = label_mirror(config)
