@@ -17,7 +17,7 @@ the rest stays. This module imports numpy only.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -29,23 +29,25 @@ ACTION_SIGNS = np.array([1.0, -1.0], dtype=np.float32)
 
 @dataclass(frozen=True)
 class Mirror:
-    """How to mirror stacked observations: ``mirrored = obs[..., index] * signs``.
+    """How to mirror stacked observations (``obs[..., index] * signs``) and actions (``* action_signs``).
+    Its methods take numpy arrays, or torch tensors when its own fields are torch tensors (the fit's).
 
     :param index: for each element of the mirrored observation, the element it comes from
     :param signs: ``+1`` or ``-1`` per element of the mirrored observation
+    :param action_signs: per action element (:data:`ACTION_SIGNS`)
     """
 
     index: np.ndarray
     signs: np.ndarray
+    action_signs: np.ndarray = field(default_factory=ACTION_SIGNS.copy)
 
     def observations(self, obs: np.ndarray) -> np.ndarray:
         """``obs`` (``(..., n_stack × frame_size)``) mirrored across the nose."""
         return obs[..., self.index] * self.signs
 
-    @staticmethod
-    def actions(actions: np.ndarray) -> np.ndarray:
+    def actions(self, actions: np.ndarray) -> np.ndarray:
         """``actions`` (``(..., 2)``: forward, yaw rate) mirrored across the nose."""
-        return actions * ACTION_SIGNS
+        return actions * self.action_signs
 
 
 def mirror_for(layout: ObservationLayout, n_stack: int) -> Mirror:

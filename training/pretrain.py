@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from training.mirror import ACTION_SIGNS, Mirror
+from training.mirror import Mirror
 
 log = logging.getLogger(__name__)
 
@@ -147,9 +147,11 @@ def fit(
     actions = torch.as_tensor(data.actions)
     returns = torch.as_tensor(data.returns)
     weight = torch.as_tensor(np.ones(len(obs), np.float32) if weights is None else weights)
-    flips = None
-    if mirror is not None:  # gather index, observation signs, action signs
-        flips = torch.as_tensor(mirror.index), torch.as_tensor(mirror.signs), torch.as_tensor(ACTION_SIGNS)
+    # the same mirror over torch tensors, so each batch is mirrored where it lies
+    flipped = None
+    if mirror is not None:
+        parts = (mirror.index, mirror.signs, mirror.action_signs)
+        flipped = Mirror(*(torch.as_tensor(part) for part in parts))
     parameters = [p for name, p in policy.named_parameters() if name != "log_std"]
     optimizer = torch.optim.Adam(parameters, lr=learning_rate)
     annealing = None
@@ -164,11 +166,10 @@ def fit(
         for start in range(0, len(obs), batch_size):
             index = order[start : start + batch_size]
             batch_obs, batch_actions = obs[index], actions[index]
-            if flips is not None:
-                flip_index, flip_signs, action_signs = flips
+            if flipped is not None:
                 flip = (torch.rand(len(index), generator=generator) < 0.5)[:, None]
-                batch_obs = torch.where(flip, batch_obs[:, flip_index] * flip_signs, batch_obs)
-                batch_actions = torch.where(flip, batch_actions * action_signs, batch_actions)
+                batch_obs = torch.where(flip, flipped.observations(batch_obs), batch_obs)
+                batch_actions = torch.where(flip, flipped.actions(batch_actions), batch_actions)
             distribution = policy.get_distribution(batch_obs)
             errors = (distribution.distribution.mean - batch_actions).square().mean(dim=-1)
             action_mse = (weight[index] * errors).sum() / weight[index].sum()

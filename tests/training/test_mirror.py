@@ -8,7 +8,7 @@ import pytest
 from companion.observation import ObservationLayout
 from flightsim.nav_env import LidarNavEnv, NavEnvConfig
 from flightsim.world import Box, World
-from training.mirror import Mirror, mirror_for
+from training.mirror import mirror_for
 
 
 def clutter(side: float) -> World:
@@ -36,8 +36,8 @@ def test_the_mirrored_frames_are_the_frames_of_the_mirrored_world() -> None:
             np.testing.assert_allclose(mirror.observations(obs), mirrored, atol=1e-4)
             action = np.array([rng.uniform(0.2, 1.0), rng.uniform(-1.0, 1.0)], np.float32)
             obs, *_ = envs[0].step(action)
-            mirrored, *_ = envs[1].step(Mirror.actions(action))
-        assert obs[config.layout.slices()["velocity"]].any()  # it flew, and turned
+            mirrored, *_ = envs[1].step(mirror.actions(action))
+        assert obs[config.layout.slices()["velocity"]].any()  # it flew: not 30 frames of a hover
     finally:
         for env in envs:
             env.close()
@@ -55,6 +55,6 @@ def test_every_frame_of_a_stack_is_mirrored_and_mirroring_twice_is_none() -> Non
     np.testing.assert_array_equal(flipped[0, :18], expected)
     np.testing.assert_array_equal(flipped[0, 36:54], np.array(expected) + np.sign(expected) * 200)
     np.testing.assert_array_equal(mirror.observations(flipped), stacked)
-    np.testing.assert_array_equal(Mirror.actions(np.array([[0.5, 0.3]])), [[0.5, -0.3]])
+    np.testing.assert_array_equal(mirror.actions(np.array([[0.5, 0.3]])), [[0.5, -0.3]])
     with pytest.raises(ValueError, match="n_stack"):
         mirror_for(layout, n_stack=0)
