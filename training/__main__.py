@@ -18,6 +18,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "train": ("training.train", "train a PPO policy from a TOML config (checkpoints, evaluation, resume)"),
     "evaluate": ("training.evaluate", "fly a policy and the baselines over worlds; success table, JSON, PNG"),
     "export": ("training.export", "export a checkpoint's deterministic actor to ONNX and check parity"),
+    "symmetrise": ("training.symmetrise", "make an exported policy answer a world and its mirror alike"),
     "trace": ("training.trace", "fly one episode of an evaluation and print every command, step by step"),
 }
 

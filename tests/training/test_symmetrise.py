@@ -1,0 +1,101 @@
+"""A symmetrised policy file answers a world and its mirror image alike (training.symmetrise),
+on real ONNX Runtime, and the companion flies it as any exported policy."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import pytest
+
+from companion.app import policy_spec
+from companion.config import CompanionConfig
+from companion.errors import UserError
+from companion.policy import OnnxPolicy
+from training.__main__ import main
+from training.symmetrise import SYMMETRISED_KEY, mirror_of, symmetrise_onnx
+
+SHIPPED = Path(__file__).resolve().parents[2] / "models" / "policy.onnx"
+
+
+def actions(path: Path, obs: np.ndarray) -> np.ndarray:
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    return session.run(None, {"observation": obs})[0]
+
+
+@pytest.fixture(scope="module")
+def symmetrised(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("sym") / "policy-sym.onnx"
+    assert symmetrise_onnx(SHIPPED, out) <= 1e-5
+    return out
+
+
+def observations(n: int = 64) -> np.ndarray:
+    """Frames like the companion's: scans of 0.1-1, a goal ahead-ish, slow velocities and drift."""
+    meta = {p.key: p.value for p in onnx.load(str(SHIPPED)).metadata_props}
+    size = mirror_of(meta).index.size
+    return np.random.default_rng(3).uniform(0.1, 1.0, (n, size)).astype(np.float32)
+
+
+def test_the_symmetrised_policy_is_exactly_symmetric_and_the_shipped_one_is_not(symmetrised: Path) -> None:
+    meta = {p.key: p.value for p in onnx.load(str(SHIPPED)).metadata_props}
+    mirror = mirror_of(meta)
+    obs = observations()
+    mirrored = mirror.observations(obs).astype(np.float32)
+    original_gap = np.abs(actions(SHIPPED, obs) - mirror.actions(actions(SHIPPED, mirrored))).max()
+    assert original_gap > 1e-2  # the network learnt the symmetry only roughly
+    answer = actions(symmetrised, obs)
+    np.testing.assert_allclose(answer, mirror.actions(actions(symmetrised, mirrored)), atol=1e-6)
+
+
+def test_its_action_is_the_mean_of_the_action_and_the_mirrored_action(symmetrised: Path) -> None:
+    meta = {p.key: p.value for p in onnx.load(str(SHIPPED)).metadata_props}
+    mirror = mirror_of(meta)
+    obs = observations()
+    expected = 0.5 * (actions(SHIPPED, obs) + mirror.actions(actions(SHIPPED, mirror.observations(obs))))
+    np.testing.assert_allclose(actions(symmetrised, obs), expected, atol=1e-6)
+
+
+def test_it_keeps_the_metadata_says_so_and_the_companion_loads_it(symmetrised: Path) -> None:
+    before = {p.key: p.value for p in onnx.load(str(SHIPPED)).metadata_props}
+    after = {p.key: p.value for p in onnx.load(str(symmetrised)).metadata_props}
+    assert SYMMETRISED_KEY not in before
+    assert {k: v for k, v in after.items() if k != SYMMETRISED_KEY} == before
+    assert SYMMETRISED_KEY in after
+    policy = OnnxPolicy(symmetrised, policy_spec(CompanionConfig()))
+    action = policy.act(observations(1)[0])
+    assert action.shape == (2,) and np.all(np.abs(action) <= 1.0)
+
+
+def test_bad_input_is_one_line_and_exit_2(
+    tmp_path: Path, symmetrised: Path, capsys: pytest.CaptureFixture
+) -> None:
+    junk = tmp_path / "junk.onnx"
+    junk.write_bytes(b"not a model")
+    cases = [
+        (["--model", str(tmp_path / "missing.onnx")], "model file not found"),
+        (["--model", str(junk)], "is not an ONNX model"),
+        (["--model", str(symmetrised)], "is symmetrised already"),
+    ]
+    for args, message in cases:
+        assert main(["symmetrise", *args, "--out", str(tmp_path / "out.onnx")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert message in err and len(err.splitlines()) == 1
+    same = tmp_path / "same.onnx"
+    shutil.copy(SHIPPED, same)
+    assert main(["symmetrise", "--model", str(same), "--out", str(same)]) == 2
+    assert "--out must differ" in capsys.readouterr().err
+
+
+def test_a_model_whose_metadata_disagrees_with_its_config_is_refused(tmp_path: Path) -> None:
+    model = onnx.load(str(SHIPPED))
+    for entry in model.metadata_props:
+        if entry.key == "lidar_avoid.obs_layout":
+            entry.value = "scan360"
+    bad = tmp_path / "bad.onnx"
+    onnx.save(model, str(bad))
+    with pytest.raises(UserError, match=r"the model's config feeds .* its metadata names scan360"):
+        symmetrise_onnx(bad, tmp_path / "out.onnx")
