@@ -506,7 +506,10 @@ class Companion:
                 last = self._last_filter
                 dt = min(max(now - last, 1e-3), 0.5) if last is not None else 0.1
                 # the supervisor only commands while the measured velocity is fresh
-                command = self.shield.filter(requested, scan, dt, self._status.velocity_body)
+                # the brake and the keep-out carry the drift estimate (drift layouts: it is tracked)
+                bias = self._drift.bias if self.layout.drift else None
+                drift = None if bias is None else (float(bias[0]), float(bias[1]))
+                command = self.shield.filter(requested, scan, dt, self._status.velocity_body, drift=drift)
                 self._last_filter = now
                 # the climb toward the waypoint's height goes beside the shield, which judges the
                 # horizontal motion the scan slice can see (bounded by goal.max_vertical_speed)

@@ -71,6 +71,8 @@ class ShieldedController:
         the autopilot (the env's :meth:`~flightsim.env.LidarAvoidEnv.measured_body_velocity`)
     :param lateral: where the shield's sideways brake goes (the env's
         :meth:`~flightsim.env.LidarAvoidEnv.command_lateral`), since an action carries none
+    :param drift: the drift estimate now (body forward, left, m/s), as the companion tracks it (the
+        env's :attr:`~flightsim.nav_env.LidarNavEnv.drift_estimate`); None: not tracked
     """
 
     def __init__(
@@ -81,12 +83,14 @@ class ShieldedController:
         max_yaw_rate: float,
         velocity: Callable[[], np.ndarray] | None = None,
         lateral: Callable[[float], None] | None = None,
+        drift: Callable[[], np.ndarray] | None = None,
     ) -> None:
         self._inner = inner
         self.shield = shield
         self._scale = (max_speed, max_yaw_rate)
         self._velocity = velocity
         self._lateral = lateral
+        self._drift = drift
         #: the last (requested, sent) commands, for a trace (``avoid-train trace``)
         self.last: tuple[Command, Command] | None = None
 
@@ -104,8 +108,12 @@ class ShieldedController:
         if self._velocity is not None:
             v = self._velocity()
             measured = (float(v[0]), float(v[1]))
+        drift = None
+        if self._drift is not None:
+            d = self._drift()
+            drift = (float(d[0]), float(d[1]))
         requested = command_from_action(action, max_speed, max_yaw_rate)
-        safe = self.shield.filter(requested, scan, STEP_SECONDS, measured)
+        safe = self.shield.filter(requested, scan, STEP_SECONDS, measured, drift)
         self.last = (requested, safe)
         if self._lateral is not None:
             self._lateral(safe.lateral)
@@ -151,9 +159,11 @@ def build_controller(
     velocity: Callable[[], np.ndarray] | None = None,
     lateral: Callable[[float], None] | None = None,
     env: Any = None,
+    drift: Callable[[], np.ndarray] | None = None,
 ) -> Controller:
     """Build the controller ``spec`` describes, behind the shield if it says so (the shield braking
-    and capping yaw as the env's autopilot response does, watching ``velocity`` as in flight).
+    and capping yaw as the env's autopilot response does, watching ``velocity`` and carrying
+    ``drift`` as in flight).
 
     :param env: the unwrapped env the controller flies, for a privileged one
         (:data:`PRIVILEGED_GOAL_CONTROLLERS`)
@@ -164,8 +174,9 @@ def build_controller(
     limits = spec.shield_config or ShieldConfig()
     shield = SafetyShield(limits, float(env_config.scan.max_range), env_config.autopilot_response)
     return ShieldedController(
-        controller, shield, float(env_config.max_speed), float(env_config.max_yaw_rate), velocity, lateral
-    )
+        controller, shield, float(env_config.max_speed), float(env_config.max_yaw_rate), velocity, lateral,
+        drift,
+    )  # fmt: skip
 
 
 def _teacher_controller(kind: str, env: Any) -> Controller:

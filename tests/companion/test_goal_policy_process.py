@@ -92,6 +92,27 @@ def test_the_drift_the_reported_velocity_hides_reaches_a_drift_model(tmp_path):
         f.close()
 
 
+def _wall_east(azimuth_deg: np.ndarray) -> np.ndarray:
+    """A wall 0.4 m east of a vehicle facing north, inside the keep-out, in a round room of 8 m."""
+    east = np.sin(np.radians(azimuth_deg))
+    return np.where(east > 0.05, np.minimum(0.4 / np.maximum(east, 0.05), 8.0), 8.0)
+
+
+@pytest.mark.parametrize(("compensation", "push_west"), [(0.6, 0.8), (0.0, 0.4)])
+def test_the_keepout_push_carries_the_drift_the_estimate_hides(tmp_path, compensation, push_west):
+    """A hovering model, a wall 0.4 m east, and an autopilot that reports 0.4 m/s west while the
+    scans stand still: it would fly its setpoint 0.4 m/s east of what it is told, so the keep-out's
+    push (0.4 m/s west) carries that too: 0.8 m/s west (``drift_compensation`` 0: 0.4)."""
+    f = Flight.with_model(tmp_path, "stop", f"[shield]\ndrift_compensation = {compensation}\n")
+    f.lidar.scene = _wall_east
+    f.vehicle.velocity_ned = (0.0, -0.4)
+    try:
+        # a body-frame setpoint: vy is to the right, so west (left, facing north) is negative
+        f.settled(lambda m: abs(m.vy + push_west) < 0.05 and abs(m.vx) < 0.05, f"{push_west} m/s west")
+    finally:
+        f.close()
+
+
 def test_a_drift_model_under_a_config_without_drift_is_refused_naming_both_layouts(tmp_path):
     model = write_policy(tmp_path / "drift.onnx", kind="echo_drift")
     path = write_config(tmp_path, model, free_udp_port(), free_udp_port())

@@ -622,3 +622,72 @@ def test_with_keepout_output_stays_finite_bounded_and_within_the_sector_caps(
             assert out.forward <= 0.0
         if rear < cfg.estop_distance + cfg.rear_clear_margin:
             assert out.forward >= 0.0
+
+
+# ---- the drift estimate, carried while the brake or the keep-out acts ---------------------------
+
+#: the default limits, carrying the drift estimate (off by default)
+CARRY = ShieldConfig(drift_compensation=0.6)
+
+
+def filtered(shield: SafetyShield, request: Command, scan: np.ndarray, velocity: tuple[float, float],
+             drift: tuple[float, float] | None, steps: int = 50) -> Command:
+    """:func:`settled`, with the measured velocity and the drift estimate given every step."""
+    out = Command(0.0, 0.0)
+    for _ in range(steps):
+        out = shield.filter(request, scan, 0.1, velocity=velocity, drift=drift)
+    return out
+
+
+def test_the_keepout_push_carries_the_drift_estimate() -> None:
+    """A wall 0.4 m to the left and an estimate that reads 0.3 m/s too far right: the autopilot
+    flies its setpoint on the estimate, so the push asks that much more to the left, and 0.2 m/s
+    more forward for the forward error."""
+    wall = scan_with({b: 0.4 for b in bins_around(90.0, 1.0)})
+    hover = (0.0, 0.0)
+    plain = filtered(SafetyShield(CARRY, MAX_RANGE), Command(1.0, 0.3), wall, hover, None)
+    shield = SafetyShield(CARRY, MAX_RANGE)
+    out = filtered(shield, Command(1.0, 0.3), wall, hover, (0.2, 0.3))
+    assert out.forward == pytest.approx(plain.forward + 0.2)
+    assert out.lateral == pytest.approx(plain.lateral + 0.3)
+    assert out.yaw_rate == plain.yaw_rate
+    assert shield.interventions["drift_compensation"] > 0
+
+
+def test_the_brake_carries_the_drift_estimate_and_the_policy_alone_never_does() -> None:
+    wall = scan_with({b: 0.8 for b in bins_around(-57.0)})
+    cfg = ShieldConfig(keepout_distance=0.0, drift_compensation=0.6)
+    sliding = (0.9, -0.6)
+    plain = SafetyShield(cfg, MAX_RANGE, "ardupilot")
+    settled(plain, Command(1.0, 0.5), wall)
+    brake = plain.filter(Command(1.0, 0.5), wall, 0.1, velocity=sliding)
+    shield = SafetyShield(cfg, MAX_RANGE, "ardupilot")
+    settled(shield, Command(1.0, 0.5), wall)
+    out = shield.filter(Command(1.0, 0.5), wall, 0.1, velocity=sliding, drift=(-0.1, 0.25))
+    assert shield.interventions["motion_stop"] == 1
+    assert (out.forward, out.lateral) == pytest.approx((brake.forward - 0.1, brake.lateral + 0.25))
+    # the policy's own command, in the open: untouched (the policy makes up for the drift itself)
+    clear = SafetyShield(cfg, MAX_RANGE, "ardupilot")
+    assert filtered(clear, Command(1.0, 0.5), CLEAR, (1.0, 0.0), (0.3, 0.3)) == Command(1.0, 0.5)
+    assert clear.interventions["drift_compensation"] == 0
+
+
+@pytest.mark.parametrize(
+    ("cfg", "drift", "velocity", "expected"),
+    [
+        (CARRY, (2.0, -2.0), (0.0, 0.0), (0.6, -0.6)),  # each axis at most the bound
+        (ShieldConfig(), (0.3, 0.3), (0.0, 0.0), (0.0, 0.0)),  # off, the default
+        (CARRY, (math.nan, 0.3), (0.0, 0.0), (0.0, 0.0)),  # a broken estimate: none
+        (CARRY, (0.3, 0.3), (math.nan, 0.0), (0.0, 0.0)),  # no trusted velocity: none
+        (CARRY, (0.3, 0.3), None, (0.0, 0.0)),
+    ],
+)
+def test_the_carried_drift_is_bounded_and_never_from_a_bad_estimate(
+    cfg: ShieldConfig, drift: tuple[float, float], velocity: tuple[float, float] | None,
+    expected: tuple[float, float],
+) -> None:
+    wall = scan_with({b: 0.4 for b in bins_around(90.0, 1.0)})
+    plain = SafetyShield(cfg, MAX_RANGE).filter(Command(0.0, 0.0), wall, 0.1, velocity=velocity)
+    out = SafetyShield(cfg, MAX_RANGE).filter(Command(0.0, 0.0), wall, 0.1, velocity=velocity, drift=drift)
+    assert all(math.isfinite(v) for v in (out.forward, out.lateral, out.yaw_rate))
+    assert (out.forward - plain.forward, out.lateral - plain.lateral) == pytest.approx(expected)
