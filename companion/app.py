@@ -506,7 +506,8 @@ class Companion:
                 last = self._last_filter
                 dt = min(max(now - last, 1e-3), 0.5) if last is not None else 0.1
                 # the supervisor only commands while the measured velocity is fresh
-                # the brake and the keep-out carry the drift estimate (drift layouts: it is tracked)
+                # with shield.drift_compensation the brake and the keep-out carry the drift estimate
+                # (tracked with the drift layouts only)
                 bias = self._drift.bias if self.layout.drift else None
                 drift = None if bias is None else (float(bias[0]), float(bias[1]))
                 command = self.shield.filter(requested, scan, dt, self._status.velocity_body, drift=drift)

@@ -291,7 +291,7 @@ class LidarAvoidEnv(gym.Env):
         if self._shielded:
             safe = self._shield.filter(
                 command_from_action((a0, a1), cfg.max_speed, cfg.max_yaw_rate), seen, 1.0 / CONTROL_HZ,
-                velocity=velocity, drift=self._shield_drift(),
+                velocity=velocity,
             )
             a0, a1 = safe.forward / cfg.max_speed, safe.yaw_rate / cfg.max_yaw_rate
             lateral = safe.lateral
@@ -326,11 +326,6 @@ class LidarAvoidEnv(gym.Env):
         observation = self._previous_scan if cfg.latency_scans else self._scan
         truncated = self._steps >= cfg.max_steps and not self._collided
         return observation.copy(), reward, self._collided, truncated, self._info()
-
-    def _shield_drift(self) -> tuple[float, float] | None:
-        """The drift estimate the shield carries while it brakes or pushes (as the companion's);
-        this env tracks none."""
-        return None
 
     def command_lateral(self, lateral: float) -> None:
         """Fly ``lateral`` (m/s, body left) with the next step's action: the companion shield's

@@ -251,10 +251,6 @@ class LidarNavEnv(LidarAvoidEnv):
             active_waypoint=self._waypoint if self._waypoint < n else None,
         )  # fmt: skip
 
-    def _shield_drift(self) -> tuple[float, float] | None:
-        """The drift estimate of the newest frame, with ``drift`` (None without: not tracked)."""
-        return (float(self._drift.bias[0]), float(self._drift.bias[1])) if self.config.drift else None
-
     @property
     def drift_estimate(self) -> np.ndarray:
         """(2,) the drift estimate of the newest frame (velocity estimate's error, body FLU, m/s):
