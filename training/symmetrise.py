@@ -104,13 +104,12 @@ def _parity(src: Path, out: Path, mirror: Mirror, samples: int = 256) -> float:
     """Largest deviation of ``out``'s actions from the symmetrised mean computed with ``src``."""
     import onnxruntime as ort
 
-    def run(path: Path, obs: np.ndarray) -> np.ndarray:
-        session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-        return session.run(None, {INPUT_NAME: obs})[0]
-
+    source, wrapped = (ort.InferenceSession(str(p), providers=["CPUExecutionProvider"]) for p in (src, out))
     obs = np.random.default_rng(0).uniform(0.0, 1.0, (samples, mirror.index.size)).astype(np.float32)
-    expected = 0.5 * (run(src, obs) + mirror.actions(run(src, mirror.observations(obs).astype(np.float32))))
-    diff = float(np.abs(run(out, obs) - expected).max())
+    mirrored = mirror.observations(obs).astype(np.float32)
+    direct, back = (source.run(None, {INPUT_NAME: o})[0] for o in (obs, mirrored))
+    expected = 0.5 * (direct + mirror.actions(back))
+    diff = float(np.abs(wrapped.run(None, {INPUT_NAME: obs})[0] - expected).max())
     if diff > PARITY_TOLERANCE:
         raise RuntimeError(f"symmetrised parity failed: max abs diff {diff:.3g} > {PARITY_TOLERANCE:g}")
     return diff
