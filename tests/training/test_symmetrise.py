@@ -34,7 +34,8 @@ def symmetrised(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def observations(n: int = 64) -> np.ndarray:
-    """Frames like the companion's: scans of 0.1-1, a goal ahead-ish, slow velocities and drift."""
+    """Every element drawn from 0.1-1 (scans, goal, velocity and drift alike): not a flight, but
+    every input the mirror moves, with no element at the 0 a sign flip leaves alone."""
     meta = {p.key: p.value for p in onnx.load(str(SHIPPED)).metadata_props}
     size = mirror_of(meta).index.size
     return np.random.default_rng(3).uniform(0.1, 1.0, (n, size)).astype(np.float32)
