@@ -67,9 +67,10 @@ def symmetrise_onnx(src: Path, out: Path) -> float:
     if SYMMETRISED_KEY in metadata:
         raise UserError(f"{src} is symmetrised already")
     mirror = mirror_of(metadata)
-    direct, mirrored = compose.add_prefix(model, _FIRST), compose.add_prefix(model, _SECOND)
+    # the direct copy reads the observation itself; the mirrored one reads the Gather and Mul below
+    direct = compose.add_prefix(model, _FIRST, rename_inputs=False)
+    mirrored = compose.add_prefix(model, _SECOND)
     nodes = [
-        helper.make_node("Identity", [INPUT_NAME], [_FIRST + INPUT_NAME]),
         helper.make_node("Gather", [INPUT_NAME, "mirror_index"], ["mirror_gathered"], axis=1),
         helper.make_node("Mul", ["mirror_gathered", "mirror_signs"], [_SECOND + INPUT_NAME]),
         *direct.graph.node,
