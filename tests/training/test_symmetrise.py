@@ -19,6 +19,9 @@ from training.__main__ import main
 from training.symmetrise import SYMMETRISED_KEY, mirror_of, symmetrise_onnx
 
 SHIPPED = Path(__file__).resolve().parents[2] / "models" / "policy.onnx"
+#: the shipped file's metadata, and the mirror of the frames it reads
+METADATA = {p.key: p.value for p in onnx.load(str(SHIPPED)).metadata_props}
+MIRROR = mirror_of(METADATA)
 
 
 def actions(path: Path, obs: np.ndarray) -> np.ndarray:
@@ -36,35 +39,28 @@ def symmetrised(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def observations(n: int = 64) -> np.ndarray:
     """Every element drawn from 0.1-1 (scans, goal, velocity and drift alike): not a flight, but
     every input the mirror moves, with no element at the 0 a sign flip leaves alone."""
-    meta = {p.key: p.value for p in onnx.load(str(SHIPPED)).metadata_props}
-    size = mirror_of(meta).index.size
-    return np.random.default_rng(3).uniform(0.1, 1.0, (n, size)).astype(np.float32)
+    return np.random.default_rng(3).uniform(0.1, 1.0, (n, MIRROR.index.size)).astype(np.float32)
 
 
 def test_the_symmetrised_policy_is_exactly_symmetric_and_the_shipped_one_is_not(symmetrised: Path) -> None:
-    meta = {p.key: p.value for p in onnx.load(str(SHIPPED)).metadata_props}
-    mirror = mirror_of(meta)
     obs = observations()
-    mirrored = mirror.observations(obs).astype(np.float32)
-    original_gap = np.abs(actions(SHIPPED, obs) - mirror.actions(actions(SHIPPED, mirrored))).max()
+    mirrored = MIRROR.observations(obs).astype(np.float32)
+    original_gap = np.abs(actions(SHIPPED, obs) - MIRROR.actions(actions(SHIPPED, mirrored))).max()
     assert original_gap > 1e-2  # the network learnt the symmetry only roughly
     answer = actions(symmetrised, obs)
-    np.testing.assert_allclose(answer, mirror.actions(actions(symmetrised, mirrored)), atol=1e-6)
+    np.testing.assert_allclose(answer, MIRROR.actions(actions(symmetrised, mirrored)), atol=1e-6)
 
 
 def test_its_action_is_the_mean_of_the_action_and_the_mirrored_action(symmetrised: Path) -> None:
-    meta = {p.key: p.value for p in onnx.load(str(SHIPPED)).metadata_props}
-    mirror = mirror_of(meta)
     obs = observations()
-    expected = 0.5 * (actions(SHIPPED, obs) + mirror.actions(actions(SHIPPED, mirror.observations(obs))))
+    expected = 0.5 * (actions(SHIPPED, obs) + MIRROR.actions(actions(SHIPPED, MIRROR.observations(obs))))
     np.testing.assert_allclose(actions(symmetrised, obs), expected, atol=1e-6)
 
 
 def test_it_keeps_the_metadata_says_so_and_the_companion_loads_it(symmetrised: Path) -> None:
-    before = {p.key: p.value for p in onnx.load(str(SHIPPED)).metadata_props}
     after = {p.key: p.value for p in onnx.load(str(symmetrised)).metadata_props}
-    assert SYMMETRISED_KEY not in before
-    assert {k: v for k, v in after.items() if k != SYMMETRISED_KEY} == before
+    assert SYMMETRISED_KEY not in METADATA
+    assert {k: v for k, v in after.items() if k != SYMMETRISED_KEY} == METADATA
     assert SYMMETRISED_KEY in after
     policy = OnnxPolicy(symmetrised, policy_spec(CompanionConfig()))
     action = policy.act(observations(1)[0])
