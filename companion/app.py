@@ -508,8 +508,8 @@ class Companion:
                 # the supervisor only commands while the measured velocity is fresh
                 # with shield.drift_compensation the brake and the keep-out carry the drift estimate
                 # (tracked with the drift layouts only)
-                bias = self._drift.bias if self.layout.drift else None
-                drift = None if bias is None else (float(bias[0]), float(bias[1]))
+                bias = self._drift.bias
+                drift = (float(bias[0]), float(bias[1])) if self.layout.drift else None
                 command = self.shield.filter(requested, scan, dt, self._status.velocity_body, drift=drift)
                 self._last_filter = now
                 # the climb toward the waypoint's height goes beside the shield, which judges the
