@@ -64,6 +64,10 @@ class EnvConfig:
         ``"ideal"`` flies them as given (the vehicle of every result so far), ``"px4"`` and
         ``"ardupilot"`` as those firmwares do (calibrated on recordings of real SITL), ``"random"``
         a response drawn per episode over both firmwares plus a margin (domain randomisation)
+    :param shield_limits: the limits of that shield and of the ``overspeed_penalty``'s cap, as the
+        companion config's ``[shield]`` table gives them to the drone (the ``[env.shield_limits]``
+        table of a training config); ``drift_compensation`` needs a drift estimate, which only
+        ``LidarNav-v0`` with ``drift`` keeps
     """
 
     world_file: str | None = None
@@ -84,6 +88,18 @@ class EnvConfig:
     overspeed_penalty: float = field(default=0.0, metadata={"min": 0.0, "max": 100.0})
     overspeed_travel: bool = False
     autopilot_response: Literal["ideal", "px4", "ardupilot", "random"] = "ideal"
+    shield_limits: ShieldConfig = field(default_factory=ShieldConfig)
+
+    def __post_init__(self) -> None:
+        if self.shield_limits.drift_compensation > 0.0 and not self.keeps_drift_estimate:
+            raise ValueError(
+                "shield_limits.drift_compensation needs a drift estimate: LidarNav-v0 with drift = true"
+            )
+
+    @property
+    def keeps_drift_estimate(self) -> bool:
+        """Whether the env tracks the drift estimate the shield's ``drift_compensation`` carries."""
+        return False
 
 
 @dataclass(frozen=True)
@@ -210,12 +226,10 @@ class LidarAvoidEnv(gym.Env):
         self.action_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
         self._vehicle = Vehicle(VehicleConfig(mass_kg=VEHICLE_MASS_KG, physics_hz=120, control_hz=CONTROL_HZ))
         self._caster = VLP16Raycaster(self.config.lidar)
-        needs_shield = self.config.shield or self.config.overspeed_penalty > 0.0
-        self._shield = (
-            SafetyShield(ShieldConfig(), self.config.scan.max_range, self.config.autopilot_response)
-            if needs_shield
-            else None
-        )
+        cfg = self.config
+        self._shield: SafetyShield | None = None
+        if cfg.shield or cfg.overspeed_penalty > 0.0:
+            self._shield = SafetyShield(cfg.shield_limits, cfg.scan.max_range, cfg.autopilot_response)
         self._fixed_world = load_world(self.config.world_file) if self.config.world_file else None
         self._scan_mount = self.config.scan.rotation()
         self._mount_xyz = np.asarray(self.config.scan.mount_xyz, dtype=np.float64)
@@ -291,7 +305,7 @@ class LidarAvoidEnv(gym.Env):
         if self._shielded:
             safe = self._shield.filter(
                 command_from_action((a0, a1), cfg.max_speed, cfg.max_yaw_rate), seen, 1.0 / CONTROL_HZ,
-                velocity=velocity,
+                velocity=velocity, drift=self._shield_drift(),
             )
             a0, a1 = safe.forward / cfg.max_speed, safe.yaw_rate / cfg.max_yaw_rate
             lateral = safe.lateral
@@ -299,6 +313,11 @@ class LidarAvoidEnv(gym.Env):
             self._update_wind()
         action = np.array([a0, a1], dtype=np.float32)
         return StepCommand(action, a0 * cfg.max_speed, a1 * cfg.max_yaw_rate, lateral, overspeed)
+
+    def _shield_drift(self) -> tuple[float, float] | None:
+        """The drift estimate the shield's ``drift_compensation`` carries (body forward, left,
+        m/s); None: this env keeps none."""
+        return None
 
     def _arrive(self, state: VehicleState) -> None:
         """After the flight: the new pose, the path flown, the clearance and collision."""

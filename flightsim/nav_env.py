@@ -80,12 +80,18 @@ class NavEnvConfig(EnvConfig):
     route_planner: RouteConfig = field(default_factory=RouteConfig)
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         unknown = [f for f in self.families if f not in FAMILIES]
         if unknown or not self.families:
             raise ValueError(f"families: {unknown or 'none'} not among {', '.join(FAMILIES)}")
         low, high = self.difficulty_range
         if not 0.0 <= low <= high <= 1.0:
             raise ValueError(f"difficulty_range {self.difficulty_range} must satisfy 0 <= low <= high <= 1")
+
+    @property
+    def keeps_drift_estimate(self) -> bool:
+        """With ``drift``, the env tracks the drift estimate its frames carry."""
+        return self.drift
 
     @property
     def layout(self) -> ObservationLayout:
@@ -250,6 +256,13 @@ class LidarNavEnv(LidarAvoidEnv):
             vehicle_radius=self.config.vehicle_radius, collided=self._collided, title=title,
             active_waypoint=self._waypoint if self._waypoint < n else None,
         )  # fmt: skip
+
+    def _shield_drift(self) -> tuple[float, float] | None:
+        """The newest frame's drift estimate, as the companion gives the shield its own."""
+        if not self.config.drift:
+            return None
+        forward, left = self._drift.bias.tolist()
+        return forward, left
 
     @property
     def drift_estimate(self) -> np.ndarray:

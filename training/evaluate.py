@@ -211,7 +211,8 @@ def add_flight_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--shield",
         action="store_true",
-        help="fly every controller behind the companion's safety shield (default limits), as in flight",
+        help="fly every controller behind the companion's safety shield, as in flight (the config's "
+        "[env.shield_limits]: the default limits unless it sets some)",
     )
     parser.add_argument(
         "--shield-config",
@@ -319,7 +320,8 @@ def load_flight(args: argparse.Namespace) -> Flight:
     config = load_train_config(args.config, overrides)
     env_config = config.env_config()
     worlds = worlds_from_args(args, env_config)
-    limits = read_shield_table(args.shield_config) if args.shield_config else ShieldConfig()
+    # the limits the config trained behind (the defaults unless it says), unless a flight config is named
+    limits = read_shield_table(args.shield_config) if args.shield_config else env_config.shield_limits
     return Flight(config, env_config, worlds, limits, args.shield or args.shield_config is not None)
 
 

@@ -15,6 +15,7 @@ from gymnasium.utils.env_checker import check_env as gym_check_env
 import flightsim
 from companion.errors import UserError
 from companion.scan import ScanConfig, scan_from_points
+from companion.shield import ShieldConfig
 from companion.tomlconfig import from_dict
 from flightsim.env import TRAIN_SEED_OFFSET, EnvConfig, LidarAvoidEnv, slice_band
 from flightsim.raycast import LidarConfig, VLP16Raycaster, grid_to_points
@@ -225,6 +226,29 @@ def test_env_shield_watches_the_measured_velocity_and_the_responses_limits() -> 
     env.step(np.array([1.0, 0.0], np.float32))
     assert shield.interventions["velocity_nan"] == 1
     env.close()
+
+
+def test_env_shield_flies_the_limits_of_its_config() -> None:
+    """``shield_limits`` is the ``[shield]`` table the drone flies: the env's shield and the
+    overspeed cap use it, not the defaults."""
+
+    def top_speed(limits: ShieldConfig) -> float:
+        env = LidarAvoidEnv(EnvConfig(shield=True, shield_limits=limits))
+        env.reset(seed=0, options={"world": CORRIDOR})
+        forward = np.array([1.0, 0.0], np.float32)
+        speeds = [env.step(forward)[4]["measured_velocity_body"][0] for _ in range(25)]
+        env.close()
+        return max(speeds)
+
+    assert top_speed(ShieldConfig()) > 1.5
+    assert 0.3 < top_speed(ShieldConfig(max_speed=0.5)) < 0.6
+    config = from_dict(EnvConfig, {"shield": True, "shield_limits": {"max_speed": 0.5}})
+    assert config.shield_limits == ShieldConfig(max_speed=0.5)
+    with pytest.raises(UserError, match=r"shield_limits\.max_accel: .*maximum"):
+        from_dict(EnvConfig, {"shield_limits": {"max_accel": 100.0}})
+    # the base env keeps no drift estimate for drift_compensation to carry: refused, not ignored
+    with pytest.raises(UserError, match="drift_compensation needs a drift estimate"):
+        from_dict(EnvConfig, {"shield_limits": {"drift_compensation": 0.6}})
 
 
 def test_unshielded_fraction_flies_some_episodes_without_the_shield() -> None:

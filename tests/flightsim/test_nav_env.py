@@ -11,6 +11,7 @@ from gymnasium.utils.env_checker import check_env as gym_check_env
 
 import flightsim
 from companion.observation import ObservationLayout
+from companion.shield import ShieldConfig
 from companion.tomlconfig import from_dict
 from flightsim import seeds
 from flightsim.families import FAMILIES, generate_family_world
@@ -238,6 +239,32 @@ def test_the_command_features_carry_the_command_flown_after_the_shield() -> None
         obs, *_ = shielded.step(FORWARD)
     assert 0.0 < obs[365] < 0.9  # full speed (1.0) was asked, less was flown
     shielded.close()
+
+
+def test_the_env_shield_is_given_the_drift_estimate_the_frame_carries() -> None:
+    """With ``drift``, the env's shield gets the newest frame's drift estimate, as the companion
+    gives its shield its own, so ``shield_limits.drift_compensation`` acts in training too."""
+    limits = ShieldConfig(drift_compensation=0.6)
+    env = LidarNavEnv(NavEnvConfig(shield=True, drift=True, shield_limits=limits, autopilot_response="px4"))
+    shield = env.unwrapped._shield
+    given: list[tuple[float, float] | None] = []
+    carried: list[np.ndarray] = []
+    filter_ = shield.filter
+
+    def spy(*args, **kwargs):
+        given.append(kwargs.get("drift"))
+        return filter_(*args, **kwargs)
+
+    shield.filter = spy
+    env.reset(seed=3, options={"world": HALL})
+    for _ in range(40):
+        carried.append(env.drift_estimate)
+        env.step(FORWARD)
+    env.close()
+    np.testing.assert_allclose(np.array(given), np.array(carried))
+    assert max(abs(f) + abs(left) for f, left in given) > 0.0  # px4's estimate error: a drift to carry
+    with pytest.raises(ValueError, match="drift_compensation needs a drift estimate"):
+        NavEnvConfig(shield_limits=limits)
 
 
 def test_the_firmware_feature_says_which_structure_the_drawn_response_has() -> None:

@@ -7,6 +7,7 @@ import math
 
 import pytest
 
+from companion.shield import ShieldConfig
 from training.__main__ import main
 from training.controllers import ControllerSpec
 from training.episodes import make_tasks, run_task
@@ -61,6 +62,15 @@ def test_the_trace_is_the_evaluations_episode_and_shows_the_estimate_error_and_t
                 (s.asked_forward, s.asked_yaw_rate, 0.0)
             )
     assert all(0.0 <= s.nearest_m <= 10.0 and 0.0 < s.nearest_deg < 360.0 for s in steps)
+
+
+def test_the_shield_flies_the_configs_limits_unless_a_flight_config_is_named(config, tmp_path):
+    assert _flight(config, "--shield").shield_config == ShieldConfig()
+    config.write_text(CONFIG + "[env.shield_limits]\nmax_speed = 1.0\n")
+    assert _flight(config, "--shield").shield_config == ShieldConfig(max_speed=1.0)
+    flown = tmp_path / "companion.toml"
+    flown.write_text("[shield]\nmax_speed = 1.5\n")
+    assert _flight(config, "--shield-config", str(flown)).shield_config == ShieldConfig(max_speed=1.5)
 
 
 def test_alone_what_is_sent_is_what_was_asked(config):
