@@ -49,8 +49,8 @@ class EnvConfig:
     :param mass_jitter: domain randomisation: take-off mass within ± this fraction of 1.5 kg
     :param wind_gust_max: domain randomisation: horizontal gusts up to this speed, m/s, each
         held 1–3 s
-    :param shield: fly every action through the companion's safety shield (default ``[shield]``
-        limits) against the scan the policy saw, as the drone does; the reward sees what flew
+    :param shield: fly every action through the companion's safety shield (``shield_limits``)
+        against the scan the policy saw, as the drone does; the reward sees what flew
     :param unshielded_fraction: with ``shield``, this fraction of the episodes (drawn per episode)
         flies without it, so a policy trained here cannot lean on the shield to stay clear
     :param overspeed_penalty: reward cost per step of asking for more forward speed than the
