@@ -305,7 +305,7 @@ class LidarAvoidEnv(gym.Env):
         if self._shielded:
             safe = self._shield.filter(
                 command_from_action((a0, a1), cfg.max_speed, cfg.max_yaw_rate), seen, 1.0 / CONTROL_HZ,
-                velocity=velocity, drift=self._shield_drift(),
+                velocity=velocity, drift=self.shield_drift(),
             )
             a0, a1 = safe.forward / cfg.max_speed, safe.yaw_rate / cfg.max_yaw_rate
             lateral = safe.lateral
@@ -314,9 +314,9 @@ class LidarAvoidEnv(gym.Env):
         action = np.array([a0, a1], dtype=np.float32)
         return StepCommand(action, a0 * cfg.max_speed, a1 * cfg.max_yaw_rate, lateral, overspeed)
 
-    def _shield_drift(self) -> tuple[float, float] | None:
-        """The drift estimate the shield's ``drift_compensation`` carries (body forward, left,
-        m/s); None: this env keeps none."""
+    def shield_drift(self) -> tuple[float, float] | None:
+        """The drift estimate a shield's ``drift_compensation`` carries (body forward, left, m/s),
+        for this env's own shield and evaluation's; None: this env keeps none."""
         return None
 
     def _arrive(self, state: VehicleState) -> None:

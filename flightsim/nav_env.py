@@ -257,7 +257,7 @@ class LidarNavEnv(LidarAvoidEnv):
             active_waypoint=self._waypoint if self._waypoint < n else None,
         )  # fmt: skip
 
-    def _shield_drift(self) -> tuple[float, float] | None:
+    def shield_drift(self) -> tuple[float, float] | None:
         """The newest frame's drift estimate, as the companion gives the shield its own."""
         if not self.config.drift:
             return None

@@ -72,7 +72,7 @@ class ShieldedController:
     :param lateral: where the shield's sideways brake goes (the env's
         :meth:`~flightsim.env.LidarAvoidEnv.command_lateral`), since an action carries none
     :param drift: the drift estimate now (body forward, left, m/s), as the companion tracks it (the
-        env's :attr:`~flightsim.nav_env.LidarNavEnv.drift_estimate`); None: not tracked
+        env's :meth:`~flightsim.env.LidarAvoidEnv.shield_drift`), or None where it is not tracked
     """
 
     def __init__(
@@ -83,7 +83,7 @@ class ShieldedController:
         max_yaw_rate: float,
         velocity: Callable[[], np.ndarray] | None = None,
         lateral: Callable[[float], None] | None = None,
-        drift: Callable[[], np.ndarray] | None = None,
+        drift: Callable[[], tuple[float, float] | None] | None = None,
     ) -> None:
         self._inner = inner
         self.shield = shield
@@ -108,10 +108,7 @@ class ShieldedController:
         if self._velocity is not None:
             v = self._velocity()
             measured = (float(v[0]), float(v[1]))
-        drift = None
-        if self._drift is not None:
-            d = self._drift()
-            drift = (float(d[0]), float(d[1]))
+        drift = self._drift() if self._drift is not None else None
         requested = command_from_action(action, max_speed, max_yaw_rate)
         safe = self.shield.filter(requested, scan, STEP_SECONDS, measured, drift)
         self.last = (requested, safe)
@@ -159,7 +156,7 @@ def build_controller(
     velocity: Callable[[], np.ndarray] | None = None,
     lateral: Callable[[float], None] | None = None,
     env: Any = None,
-    drift: Callable[[], np.ndarray] | None = None,
+    drift: Callable[[], tuple[float, float] | None] | None = None,
 ) -> Controller:
     """Build the controller ``spec`` describes, behind the shield if it says so (the shield braking
     and capping yaw as the env's autopilot response does, watching ``velocity`` and carrying

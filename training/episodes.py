@@ -189,12 +189,10 @@ def run_task(task: EpisodeTask, wrap: Callable[[Controller, Any], Controller] | 
     """
     env = _worker_env(task.env, task.env_id)
     unwrapped = env.unwrapped
-    # the drift estimate, where the env tracks it as the companion does (LidarNav-v0 with ``drift``)
-    tracked = getattr(unwrapped.config, "drift", False)
     controller: Controller = build_controller(
         task.controller, unwrapped.config, task.seed,
         velocity=unwrapped.measured_body_velocity, lateral=unwrapped.command_lateral, env=unwrapped,
-        drift=(lambda: unwrapped.drift_estimate) if tracked else None,
+        drift=unwrapped.shield_drift,
     )  # fmt: skip
     if wrap is not None:
         controller = wrap(controller, unwrapped)
