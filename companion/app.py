@@ -44,7 +44,7 @@ import numpy as np
 from companion.autopilot.link import AutopilotLink, VehicleStatus
 from companion.config import CompanionConfig, load_config
 from companion.connection import ensure_port_free
-from companion.drift import DriftConfig, DriftEstimator
+from companion.drift import DriftConfig, DriftEstimator, held_drift
 from companion.errors import UserError
 from companion.framestack import FrameStack
 from companion.goal import GoalOutput
@@ -322,6 +322,7 @@ class Companion:
         self._last_zero = -math.inf
         self._last_setpoint = -math.inf
         self._last_command = Command(0.0, 0.0)  # the last setpoint sent, repeated while a scan is late
+        self._last_held = (0.0, 0.0)  # the drift estimate it carried on top (drift_hold)
         self._last_heartbeat = -math.inf
         self._last_watchdog = -math.inf
         self._last_log = clock()
@@ -506,22 +507,14 @@ class Companion:
                 last = self._last_filter
                 dt = min(max(now - last, 1e-3), 0.5) if last is not None else 0.1
                 # the supervisor only commands while the measured velocity is fresh
-                # with shield.drift_compensation the brake and the keep-out carry the drift estimate
-                # (tracked with the drift layouts only)
-                bias = self._drift.bias
-                drift = (float(bias[0]), float(bias[1])) if self.layout.drift else None
-                command = self.shield.filter(requested, scan, dt, self._status.velocity_body, drift=drift)
+                velocity, drift, held = self._shield_motion()
+                command = self.shield.filter(requested, scan, dt, velocity, drift=drift)
                 self._last_filter = now
-                # the climb toward the waypoint's height goes beside the shield, which judges the
-                # horizontal motion the scan slice can see (bounded by goal.max_vertical_speed)
-                self.link.send_velocity(command.forward, command.yaw_rate, command.lateral,
-                                        self._goal_output.vertical_speed)
-                self._last_setpoint, self._last_command = now, command
+                self._send_policy_setpoint(command, held)
+                self._last_setpoint, self._last_command, self._last_held = now, command, held
                 self.counters["setpoints_policy"] += 1
             elif now - self._last_setpoint > LATE_SCAN_AFTER:
-                command = self._last_command
-                self.link.send_velocity(command.forward, command.yaw_rate, command.lateral,
-                                        self._goal_output.vertical_speed)
+                self._send_policy_setpoint(self._last_command, self._last_held)
                 self._last_setpoint = now
                 self.counters["setpoints_late_scan"] += 1
         else:
@@ -540,6 +533,36 @@ class Companion:
                 self.counters["setpoints_zero"] += 1
         if self.supervisor.state is not SupervisorState.ACTIVE:
             self._reset_stack = True
+
+    def _shield_motion(
+        self,
+    ) -> tuple[tuple[float, float] | None, tuple[float, float] | None, tuple[float, float]]:
+        """What the shield judges the motion by, and what the setpoint carries on top of its command.
+
+        The drift estimate (drift layouts only) is held by the setpoint as far as ``[drift_hold]``
+        says (:func:`companion.drift.held_drift`); the vehicle then truly flies the setpoint less
+        the rest of the error, so the shield is given the measured velocity less the held part and
+        the rest of the estimate (for ``shield.drift_compensation``).
+
+        :returns: the velocity and the drift estimate for the shield (body forward, left, m/s;
+            None where unknown), and the held part (forward, left, m/s)
+        """
+        velocity = self._status.velocity_body
+        if not self.layout.drift:
+            return velocity, None, (0.0, 0.0)
+        bias = self._drift.bias
+        held = held_drift(bias, self.config.drift_hold)
+        drift = (float(bias[0]) - held[0], float(bias[1]) - held[1])
+        if velocity is not None:
+            velocity = (float(velocity[0]) - held[0], float(velocity[1]) - held[1])
+        return velocity, drift, held
+
+    def _send_policy_setpoint(self, command: Command, held: tuple[float, float]) -> None:
+        """Send the shield's ``command`` with the ``held`` drift on top. The climb toward the
+        waypoint's height goes beside the shield, which judges the horizontal motion the scan
+        slice can see (bounded by goal.max_vertical_speed)."""
+        self.link.send_velocity(command.forward + held[0], command.yaw_rate, command.lateral + held[1],
+                                self._goal_output.vertical_speed)
 
     def _announce(self, transition: Transition) -> None:
         self.counters["transitions"] += 1

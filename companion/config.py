@@ -18,6 +18,7 @@ from typing import Literal
 
 from companion.autopilot.signing import load_signing_key
 from companion.connection import Connection, parse_connection
+from companion.drift import DriftHoldConfig
 from companion.errors import UserError
 from companion.observation import ObservationLayout
 from companion.route import RouteConfig
@@ -339,6 +340,7 @@ class CompanionConfig:
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
     recorder: RecorderConfig = field(default_factory=RecorderConfig)
     goal: GoalConfig = field(default_factory=GoalConfig)
+    drift_hold: DriftHoldConfig = field(default_factory=DriftHoldConfig)
 
     def __post_init__(self) -> None:
         if self.goal.source != "none" and self.policy.observation == "scan":

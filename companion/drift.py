@@ -10,12 +10,17 @@ reported velocity, low-pass filtered, is the error.
 One implementation serves three users, so they agree bit for bit on the same inputs: the goal
 environment's observation (``LidarNav-v0`` with ``drift``), the companion's frame in flight,
 and the classical goal baseline. Pure numpy.
+
+The setpoint can carry the estimate as well (:func:`held_drift`): the autopilot flies its
+setpoint on its estimate, so asking for the wanted velocity plus the error makes the vehicle truly
+fly the wanted one. The policy asks no sideways velocity, so a sideways error is what it cannot
+make up for itself (it can only turn the drift into its path); that axis is held by default.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -41,6 +46,39 @@ class DriftConfig:
     bias_max: float = 0.6
     max_gap_s: float = 0.35
     goal_jump: float = 1.0
+
+
+@dataclass(frozen=True)
+class DriftHoldConfig:
+    """How much of the drift estimate the setpoint carries (the companion's ``[drift_hold]`` table,
+    LidarNav-v0's ``drift_hold``).
+
+    :param forward: the forward axis carries at most this much, m/s (0: none). The policy's own
+        forward command already makes up for a forward error (its teacher's labels do), so off
+    :param lateral: the sideways axis carries at most this much, m/s (0: none): the estimator's
+        own bound (:attr:`DriftConfig.bias_max`)
+    :param deadband: this much of the estimate is never carried, m/s: about its own error (0.09-0.22
+        m/s RMS off the truth on traced validation flights with large errors), so a small error is
+        left to the policy, as before
+    """
+
+    forward: float = field(default=0.0, metadata={"min": 0.0, "max": 2.0})
+    lateral: float = field(default=0.6, metadata={"min": 0.0, "max": 2.0})
+    deadband: float = field(default=0.1, metadata={"min": 0.0, "max": 2.0})
+
+
+def held_drift(bias: np.ndarray, config: DriftHoldConfig) -> tuple[float, float]:
+    """What the setpoint carries of the drift estimate ``bias`` (forward, left, m/s): each axis
+    less the ``deadband``, within its bound; (0, 0) when ``bias`` is not finite."""
+    forward, left = float(bias[0]), float(bias[1])
+    if not (math.isfinite(forward) and math.isfinite(left)):
+        return 0.0, 0.0
+    return _shrunk(forward, config.deadband, config.forward), _shrunk(left, config.deadband, config.lateral)
+
+
+def _shrunk(value: float, deadband: float, bound: float) -> float:
+    """``value`` moved ``deadband`` towards zero (not past it), at most ``bound`` in size."""
+    return math.copysign(min(max(abs(value) - deadband, 0.0), bound), value)
 
 
 def _rotation(angle: float) -> np.ndarray:

@@ -484,7 +484,7 @@ class AutopilotResponse:
 
     def predict(
         self, yaw: float, commands: np.ndarray, command_steps: int, total_steps: int, period: float = 0.1,
-        params: ResponseParams | None = None,
+        params: ResponseParams | None = None, held: tuple[float, float] = (0.0, 0.0),
     ) -> np.ndarray:  # fmt: skip
         """Where each of several command sequences would take the vehicle, from the model's state now.
 
@@ -503,6 +503,9 @@ class AutopilotResponse:
         :param period: s between commands, a whole number of the internal 5 ms steps
         :param params: predict with these numbers instead of the model's own, from the model's state
             (they must keep its structure: :func:`hardest_params`); the new commands take their delay
+        :param held: velocity every setpoint carries on top of its command, world East and North
+            m/s (a drift hold: the setpoint plus the estimate error), predicted as that much less
+            estimate error
         :return: (K, total_steps, 3) displacement East, North (m) and heading (rad) at each period's end
         """
         queue = np.array([[due - self._time, *cmd] for due, *cmd in self._pending]).reshape(-1, 4)
@@ -510,8 +513,13 @@ class AutopilotResponse:
         delay = (params or self.params).command_delay_s
         tau = (params or self.params).est_vel_tau_s
         decay = math.exp(-_INNER_DT / tau) if tau > 0.0 else 1.0
+        x = self._x
+        if held != (0.0, 0.0):
+            x = x.copy()
+            x[_S_BX] -= held[0]
+            x[_S_BY] -= held[1]
         return _predict(
-            self._x, p, queue, np.asarray(self._cmd, dtype=np.float64), delay,
+            x, p, queue, np.asarray(self._cmd, dtype=np.float64), delay,
             float(yaw), np.asarray(commands, dtype=np.float64).reshape(-1, 2), int(command_steps),
             int(total_steps), round(period / _INNER_DT), _INNER_DT, decay,
         )  # fmt: skip

@@ -295,7 +295,7 @@ class LidarAvoidEnv(gym.Env):
         # as in flight: the shield also watches the velocity the autopilot measures (read only when used)
         velocity = None
         if self._shielded or (cfg.overspeed_penalty > 0.0 and cfg.overspeed_travel):
-            measured = self.measured_body_velocity()
+            measured = self.shield_velocity()
             velocity = (float(measured[0]), float(measured[1]))
         overspeed = 0.0
         if cfg.overspeed_penalty > 0.0:
@@ -312,12 +312,25 @@ class LidarAvoidEnv(gym.Env):
         if cfg.wind_gust_max > 0.0:
             self._update_wind()
         action = np.array([a0, a1], dtype=np.float32)
-        return StepCommand(action, a0 * cfg.max_speed, a1 * cfg.max_yaw_rate, lateral, overspeed)
+        held_forward, held_left = self.drift_held()
+        forward = a0 * cfg.max_speed + held_forward
+        return StepCommand(action, forward, a1 * cfg.max_yaw_rate, lateral + held_left, overspeed)
 
     def shield_drift(self) -> tuple[float, float] | None:
         """The drift estimate a shield's ``drift_compensation`` carries (body forward, left, m/s),
         for this env's own shield and evaluation's; None: this env keeps none."""
         return None
+
+    def drift_held(self) -> tuple[float, float]:
+        """What the next setpoint carries of the drift estimate on top of its command (body forward,
+        left, m/s), as the companion's ``[drift_hold]`` does; (0, 0): this env holds none."""
+        return 0.0, 0.0
+
+    def shield_velocity(self) -> np.ndarray:
+        """The velocity a shield judges the motion by (body forward, left, m/s), as the companion
+        gives its own: the measured one less what the setpoint holds of the drift
+        (:meth:`drift_held`), since the vehicle truly flies the setpoint less the error."""
+        return self.measured_body_velocity() - np.asarray(self.drift_held())
 
     def _arrive(self, state: VehicleState) -> None:
         """After the flight: the new pose, the path flown, the clearance and collision."""

@@ -9,7 +9,7 @@ from typing import Any, Literal
 import numpy as np
 from gymnasium import spaces
 
-from companion.drift import DriftConfig, DriftEstimator
+from companion.drift import DriftConfig, DriftEstimator, DriftHoldConfig, held_drift
 from companion.observation import (
     ObservationLayout,
     build_frame,
@@ -57,6 +57,11 @@ class NavEnvConfig(EnvConfig):
     :param firmware: each frame also says which firmware's structure the episode's response has
         (1.0 ArduPilot: shaped input; 0.0 PX4, or the ideal response), as the companion's frames
         carry its ``autopilot.type``
+    :param drift_hold: each setpoint also carries the drift estimate, as far as
+        ``drift_hold_limits`` say (the companion's ``[drift_hold]`` table): the autopilot flies the
+        setpoint on its estimate, so the vehicle then truly flies the command less only the rest of
+        the error; needs ``drift`` (the estimate is tracked only then)
+    :param drift_hold_limits: those limits (:class:`companion.drift.DriftHoldConfig`)
     :param route: the goal features point along a route planned on the scans seen so far
         (:class:`companion.route.RoutePlanner`, on the true pose, as the goal features are), not
         straight at the waypoint; the companion's ``goal.route`` does the same in flight
@@ -76,6 +81,8 @@ class NavEnvConfig(EnvConfig):
     drift: bool = False
     command: bool = False
     firmware: bool = False
+    drift_hold: bool = False
+    drift_hold_limits: DriftHoldConfig = field(default_factory=DriftHoldConfig)
     route: bool = False
     route_planner: RouteConfig = field(default_factory=RouteConfig)
 
@@ -84,6 +91,8 @@ class NavEnvConfig(EnvConfig):
         unknown = [f for f in self.families if f not in FAMILIES]
         if unknown or not self.families:
             raise ValueError(f"families: {unknown or 'none'} not among {', '.join(FAMILIES)}")
+        if self.drift_hold and not self.drift:
+            raise ValueError("drift_hold needs the drift estimate: set drift = true")
         low, high = self.difficulty_range
         if not 0.0 <= low <= high <= 1.0:
             raise ValueError(f"difficulty_range {self.difficulty_range} must satisfy 0 <= low <= high <= 1")
@@ -258,11 +267,20 @@ class LidarNavEnv(LidarAvoidEnv):
         )  # fmt: skip
 
     def shield_drift(self) -> tuple[float, float] | None:
-        """The newest frame's drift estimate, as the companion gives the shield its own."""
+        """The newest frame's drift estimate less what the setpoint holds of it, as the companion
+        gives the shield its own."""
         if not self.config.drift:
             return None
         forward, left = self._drift.bias.tolist()
-        return forward, left
+        held_forward, held_left = self.drift_held()
+        return forward - held_forward, left - held_left
+
+    def drift_held(self) -> tuple[float, float]:
+        """With ``drift_hold``: what the setpoint carries of the newest frame's drift estimate
+        (:func:`companion.drift.held_drift`)."""
+        if not self.config.drift_hold:
+            return 0.0, 0.0
+        return held_drift(self._drift.bias, self.config.drift_hold_limits)
 
     @property
     def drift_estimate(self) -> np.ndarray:

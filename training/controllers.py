@@ -67,8 +67,9 @@ class ShieldedController:
     :param shield: the companion's shield (its limits are the flight configuration's)
     :param max_speed: m/s that an action of 1 stands for (the env's action scaling)
     :param max_yaw_rate: rad/s that an action of 1 stands for
-    :param velocity: the measured body velocity (forward, left) now, as the companion reads it from
-        the autopilot (the env's :meth:`~flightsim.env.LidarAvoidEnv.measured_body_velocity`)
+    :param velocity: the measured body velocity (forward, left) now, less what the setpoint holds
+        of the drift, as the companion gives its shield (the env's
+        :meth:`~flightsim.env.LidarAvoidEnv.shield_velocity`)
     :param lateral: where the shield's sideways brake goes (the env's
         :meth:`~flightsim.env.LidarAvoidEnv.command_lateral`), since an action carries none
     :param drift: the drift estimate now (body forward, left, m/s), as the companion tracks it (the

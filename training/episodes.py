@@ -191,7 +191,7 @@ def run_task(task: EpisodeTask, wrap: Callable[[Controller, Any], Controller] | 
     unwrapped = env.unwrapped
     controller: Controller = build_controller(
         task.controller, unwrapped.config, task.seed,
-        velocity=unwrapped.measured_body_velocity, lateral=unwrapped.command_lateral, env=unwrapped,
+        velocity=unwrapped.shield_velocity, lateral=unwrapped.command_lateral, env=unwrapped,
         drift=unwrapped.shield_drift,
     )  # fmt: skip
     if wrap is not None:

@@ -175,11 +175,12 @@ class PathExpert:
         """The velocity estimate's error the command makes up for, world ENU m/s. With the drift
         features it is the drift estimate the student sees in its frame (so the labels follow
         from what the student has: 87 % of 54 validation worlds, against 91 % on the simulator's
-        truth and 48 % without it, aiming along the path); else the truth (privileged)."""
+        truth and 48 % without it, aiming along the path), less what the setpoint already holds of
+        it (``drift_hold``); else the truth (privileged)."""
         env = self.env
         if not env.layout.drift:
             return np.asarray(env.estimate_error, dtype=np.float64)
-        forward, left = env.drift_estimate
+        forward, left = env.drift_estimate - np.asarray(env.drift_held())
         c, s = math.cos(env.true_state.yaw), math.sin(env.true_state.yaw)
         return np.array([c * forward - s * left, s * forward + c * left])
 

@@ -37,6 +37,7 @@ predictive_expert`` measures it.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -169,10 +170,11 @@ class PredictiveExpert:
         command_steps = round(cfg.command_s / PERIOD_S)
         total_steps = command_steps + round(cfg.stop_s / PERIOD_S)
         steps = (command_steps, total_steps, PERIOD_S)
-        paths = response.predict(float(state.yaw), candidates * scale, *steps)
+        held = _world(env.drift_held(), float(state.yaw))  # what each setpoint carries on top
+        paths = response.predict(float(state.yaw), candidates * scale, *steps, held=held)
         excess, cells = self._excess(paths, state.position)
         if self._hardest is not None:
-            slow = response.predict(float(state.yaw), candidates * scale, *steps, self._hardest)
+            slow = response.predict(float(state.yaw), candidates * scale, *steps, self._hardest, held)
             excess = np.minimum(excess, self._excess(slow, state.position)[0])
         end = cells[:, -1]
         flown = env.last_command.astype(np.float64)
@@ -220,6 +222,12 @@ class PredictiveExpert:
         assert grid is not None
         index = np.floor((points - np.asarray(grid.origin)) / grid.resolution).astype(np.int64)
         return np.clip(index, 0, np.array(grid.clearance.shape) - 1)
+
+
+def _world(body: tuple[float, float], yaw: float) -> tuple[float, float]:
+    """A body (forward, left) vector in world East, North for a heading of ``yaw`` (rad CCW from East)."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    return c * body[0] - s * body[1], s * body[0] + c * body[1]
 
 
 def robust_expert(env: LidarNavEnv) -> PredictiveExpert:

@@ -39,7 +39,10 @@ class StepTrace:
     :param nearest_m: the nearest return of the scan the controller saw
     :param nearest_deg: its bearing, counter-clockwise from the nose
     :param asked_forward: what the controller asked, before the shield
-    :param sent_lateral: the shield's sideways brake or push (the controller never asks one)
+    :param sent_forward: what left for the autopilot: after the shield, with the held drift
+        (the env's ``drift_hold``)
+    :param sent_lateral: the shield's sideways brake or push and the held drift (the controller
+        never asks one)
     :param reported_forward: the body velocity the autopilot reports (its estimate)
     :param true_forward: the body velocity it truly has
     :param shield: the shield's limits that acted on this command, with their counts
@@ -94,6 +97,7 @@ class Tracer:
         else:
             asked = sent = command_from_action(action, config.max_speed, config.max_yaw_rate)
             acted = {}
+        held_forward, held_left = self._env.drift_held()
         state = self._env.true_state
         reported, true = self._env.measured_body_velocity(), self._env.true_body_velocity()
         ranges = np.asarray(scan[:N_BINS], dtype=np.float64) * float(config.scan.max_range)
@@ -101,8 +105,9 @@ class Tracer:
         self.steps.append(StepTrace(
             step=len(self.steps), x=float(state.position[0]), y=float(state.position[1]),
             yaw_deg=math.degrees(state.yaw), nearest_m=float(ranges[nearest]), nearest_deg=nearest + 0.5,
-            asked_forward=asked.forward, asked_yaw_rate=asked.yaw_rate, sent_forward=sent.forward,
-            sent_lateral=sent.lateral, sent_yaw_rate=sent.yaw_rate,
+            asked_forward=asked.forward, asked_yaw_rate=asked.yaw_rate,
+            sent_forward=sent.forward + held_forward, sent_lateral=sent.lateral + held_left,
+            sent_yaw_rate=sent.yaw_rate,
             reported_forward=float(reported[0]), reported_left=float(reported[1]),
             true_forward=float(true[0]), true_left=float(true[1]),
             shield=" ".join(f"{k}" if n == 1 else f"{k}x{n}" for k, n in acted.items()),

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from companion.drift import DriftEstimator
+from companion.drift import DriftEstimator, DriftHoldConfig, held_drift
 from tests.companion.test_scan_motion import room_scan
 
 
@@ -51,3 +51,18 @@ def test_reset_forgets_the_error():
     estimator.reset()
     assert np.all(estimator.bias == 0.0)
     assert np.all(estimator.update(room_scan(0.0, 0.0, 0.0), np.zeros(2), 0.0, 5.0, 0.1) == 0.0)
+
+
+def test_the_setpoint_holds_the_sideways_drift_beyond_the_deadband_within_its_bound():
+    hold = DriftHoldConfig()  # the defaults: sideways only, 0.1 m/s deadband, at most 0.6 m/s
+    assert held_drift(np.array([0.5, 0.4]), hold) == pytest.approx((0.0, 0.3))
+    assert held_drift(np.array([0.0, -0.35]), hold) == pytest.approx((0.0, -0.25))
+    assert held_drift(np.array([0.0, 0.08]), hold) == (0.0, 0.0)  # within the estimate's noise
+    assert held_drift(np.array([0.0, -1.5]), hold) == pytest.approx((0.0, -0.6))
+    both = DriftHoldConfig(forward=0.2, lateral=0.6, deadband=0.0)
+    assert held_drift(np.array([-0.5, 0.4]), both) == pytest.approx((-0.2, 0.4))
+
+
+@pytest.mark.parametrize("bias", [(math.nan, 0.4), (0.0, math.inf)])
+def test_a_non_finite_drift_estimate_is_never_held(bias):
+    assert held_drift(np.array(bias), DriftHoldConfig(forward=0.6)) == (0.0, 0.0)

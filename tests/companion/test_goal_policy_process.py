@@ -98,12 +98,34 @@ def _wall_east(azimuth_deg: np.ndarray) -> np.ndarray:
     return np.where(east > 0.05, np.minimum(0.4 / np.maximum(east, 0.05), 8.0), 8.0)
 
 
-@pytest.mark.parametrize(("compensation", "push_west"), [(0.6, 0.8), (0.0, 0.4)])
-def test_the_keepout_push_carries_the_drift_the_estimate_hides(tmp_path, compensation, push_west):
+#: a config table that holds none of the drift estimate
+NO_HOLD = "[drift_hold]\nlateral = 0.0\n"
+
+
+@pytest.mark.parametrize(("extra", "right"), [("", -0.3), (NO_HOLD, 0.0)])
+def test_the_setpoint_holds_the_sideways_drift_the_estimate_hides(tmp_path, extra, right):
+    """A hovering model in a still room, heading north, while the autopilot reports 0.4 m/s west:
+    its estimate is 0.4 m/s to the left of the truth, so it would fly any setpoint 0.4 m/s to the
+    right of what it is told. The setpoint holds the drift estimate less the 0.1 m/s deadband:
+    0.3 m/s to the left (FRD: negative); with ``[drift_hold] lateral = 0``, nothing."""
+    f = Flight.with_model(tmp_path, "stop", extra)
+    f.vehicle.velocity_ned = (0.0, -0.4)
+    try:
+        f.settled(lambda m: abs(m.vy - right) < 0.03 and abs(m.vx) < 0.03, f"{right} m/s to the right")
+    finally:
+        f.close()
+
+
+@pytest.mark.parametrize(
+    ("extra", "push_west"),
+    [("[shield]\ndrift_compensation = 0.6\n", 0.8), ("", 0.7), (NO_HOLD, 0.4)],
+)
+def test_the_keepout_push_carries_the_drift_the_estimate_hides(tmp_path, extra, push_west):
     """A hovering model, a wall 0.4 m east, and an autopilot that reports 0.4 m/s west while the
-    scans stand still: it would fly its setpoint 0.4 m/s east of what it is told, so the keep-out's
-    push (0.4 m/s west) carries that too: 0.8 m/s west (``drift_compensation`` 0: 0.4)."""
-    f = Flight.with_model(tmp_path, "stop", f"[shield]\ndrift_compensation = {compensation}\n")
+    scans stand still: it would fly its setpoint 0.4 m/s east of what it is told. The keep-out
+    pushes 0.4 m/s west and the setpoint holds 0.3 m/s of the drift on top (0.7); the shield's
+    ``drift_compensation`` carries the rest of the estimate, 0.1 (0.8); holding none, 0.4."""
+    f = Flight.with_model(tmp_path, "stop", extra)
     f.lidar.scene = _wall_east
     f.vehicle.velocity_ned = (0.0, -0.4)
     try:

@@ -27,6 +27,8 @@ import pytest
 from companion.errors import UserError
 from companion.tomlconfig import from_dict
 from flightsim.autopilot_response import (
+    _S_BX,
+    _S_BY,
     ARDUPILOT,
     CHUNK_S,
     NAMES,
@@ -372,6 +374,23 @@ def test_predict_lets_the_estimate_error_decay_as_its_expectation_does():
     assert np.linalg.norm(predicted - mean) < 0.25, (predicted, mean)  # the mean of 400: ±0.07 m an axis
     held = -error * 4.0  # the autopilot holds the estimate still: truly, it flies minus the error
     assert np.linalg.norm(held - mean) > 0.5 * np.hypot(*error)
+
+
+def test_a_setpoint_that_carries_the_estimate_error_is_predicted_to_fly_as_without_one():
+    """A drift hold: every setpoint carries the error (``held``), so the vehicle truly flies the
+    command, as predicted from the same state with no error at all; held half of it, half the drift."""
+    model = AutopilotResponse(replace(PX4, est_vel_sigma=0.6), np.random.default_rng(3))
+    error = model.estimate_error
+    commands = np.array([[0.0, 0.0], [1.0, 0.3]])
+    held = model.predict(0.0, commands, 10, 30, held=(float(error[0]), float(error[1])))
+    drifting = model.predict(0.0, commands, 10, 30)
+    clean = AutopilotResponse(replace(PX4, est_vel_sigma=0.6), np.random.default_rng(3))
+    clean._x[:] = model._x
+    clean._x[[_S_BX, _S_BY]] = 0.0
+    np.testing.assert_allclose(held, clean.predict(0.0, commands, 10, 30), atol=1e-9)
+    half = model.predict(0.0, commands, 10, 30, held=(float(error[0]) / 2, float(error[1]) / 2))
+    np.testing.assert_allclose(half[..., :2], (held[..., :2] + drifting[..., :2]) / 2, atol=0.01)
+    assert np.abs(drifting[0, -1, :2]).max() > 0.5  # there was a drift to hold
 
 
 def test_predict_foresees_the_jsbsim_vehicle_through_a_random_response():

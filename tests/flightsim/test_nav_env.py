@@ -10,6 +10,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env as gym_check_env
 
 import flightsim
+from companion.drift import DriftHoldConfig, held_drift
 from companion.observation import ObservationLayout
 from companion.shield import ShieldConfig
 from companion.tomlconfig import from_dict
@@ -265,6 +266,42 @@ def test_the_env_shield_is_given_the_drift_estimate_the_frame_carries() -> None:
     assert max(abs(f) + abs(left) for f, left in given) > 0.0  # px4's estimate error: a drift to carry
     with pytest.raises(ValueError, match="drift_compensation needs a drift estimate"):
         NavEnvConfig(shield_limits=limits)
+
+
+def _sideways_drift(config: NavEnvConfig, steps: int = 150) -> tuple[float, LidarNavEnv]:
+    """RMS of the true sideways velocity of a vehicle told to hover in HALL, m/s (from 3 s on)."""
+    env = LidarNavEnv(config)
+    env.reset(seed=3, options={"world": HALL})  # a draw whose error sideways is 0.34 m/s RMS
+    left = []
+    for step in range(steps):
+        env.step(HOVER)
+        if step >= 30:
+            left.append(env.true_body_velocity()[1])
+    return float(np.sqrt(np.mean(np.square(left)))), env
+
+
+def test_the_held_drift_stops_the_sideways_slide_the_estimate_hides() -> None:
+    """PX4's response (an estimate error of 0.25 m/s, one sigma, per axis): told to
+    hover, the vehicle slides sideways at the error; with ``drift_hold`` the setpoint carries the
+    drift estimate beyond its deadband and the slide shrinks. The shield is given the measured
+    velocity and the drift estimate less the held part, as the companion gives its own."""
+    base = dict(autopilot_response="px4", drift=True, shield=True)
+    unheld, env = _sideways_drift(NavEnvConfig(**base))
+    env.close()
+    held, env = _sideways_drift(NavEnvConfig(**base, drift_hold=True))
+    assert unheld > 0.15  # there was a slide to stop
+    assert held < 0.5 * unheld
+    for _ in range(100):  # on to a step where the estimate is beyond the deadband
+        if abs(env.drift_estimate[1]) > 0.15:
+            break
+        env.step(HOVER)
+    hold = held_drift(env.drift_estimate, DriftHoldConfig())
+    assert env.drift_held() == hold and abs(hold[1]) > 0.04
+    np.testing.assert_allclose(env.shield_velocity(), env.measured_body_velocity() - np.array(hold))
+    np.testing.assert_allclose(env.shield_drift(), env.drift_estimate - np.array(hold))
+    env.close()
+    with pytest.raises(ValueError, match="drift_hold needs the drift estimate: set drift = true"):
+        NavEnvConfig(drift_hold=True)
 
 
 def test_the_firmware_feature_says_which_structure_the_drawn_response_has() -> None:

@@ -79,6 +79,16 @@ def test_alone_what_is_sent_is_what_was_asked(config):
     assert all(s.shield == "" and s.sent_forward == s.asked_forward and s.sent_lateral == 0.0 for s in steps)
 
 
+def test_alone_what_is_sent_is_what_was_asked_and_the_held_drift(config):
+    """With ``drift_hold`` the setpoint also carries the drift estimate sideways: the trace shows
+    what left for the autopilot, so its lateral is the held drift, beyond the 0.1 m/s deadband."""
+    config.write_text(CONFIG + "drift = true\ndrift_hold = true\n")
+    _, steps = trace(_flight(config), "gaps-500000", ControllerSpec("goal_follower"))
+    assert all(s.sent_forward == s.asked_forward for s in steps)
+    lateral = [abs(s.sent_lateral) for s in steps]
+    assert 0.0 < max(lateral) <= 0.6  # at most the hold's bound
+
+
 def test_the_command_prints_the_last_rows_and_writes_every_row_to_csv(config, tmp_path, capsys):
     out = tmp_path / "trace.csv"
     argv = ["trace", "--config", str(config), *WORLD, "--baseline", "goal_follower", "--shield"]
