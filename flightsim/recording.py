@@ -58,7 +58,8 @@ class FlightRecording:
     """
 
     def __init__(self, workdir: Path, world: World, lidar_step_deg: float = 1.0) -> None:
-        self.companion_dir = Path(workdir) / "recording"
+        # absolute: the companion takes a relative recorder directory relative to its config file
+        self.companion_dir = Path(workdir).resolve() / "recording"
         self.truth_dir = Path(workdir) / "truth"
         self.path = Path(workdir) / "flight.mcap"
         self.world = world

@@ -22,6 +22,7 @@ from mcap.reader import make_reader
 
 from companion.recording import schemas as s
 from flightsim.harness import FlightOptions, SitlFlight
+from flightsim.recording import FlightRecording
 from tests.companion.test_recorder import tiny_tmpfs
 from tests.sitl.helpers import OPEN_ROOM, companion_counters, wait_for, write_constant_policy
 
@@ -85,6 +86,20 @@ def test_a_recorded_flight_reads_back_validates_and_replays_bit_for_bit(tmp_path
                             cwd=REPO, capture_output=True, text=True, timeout=300)
     assert report.returncode == 0, report.stderr
     assert "ACTIVE" in report.stdout and picture.stat().st_size > 20_000
+
+
+def test_a_relative_workdir_gives_the_companion_the_directory_the_merge_reads(tmp_path, monkeypatch):
+    """``avoid-sim demo``'s default ``--out`` is relative: the companion resolves a relative recorder
+    directory against its config file (in the workdir), so the directory it is given must be the
+    absolute one the merge reads, or the merged recording holds the ground truth alone."""
+    monkeypatch.chdir(tmp_path)
+    recording = FlightRecording(Path("out/flight"), OPEN_ROOM)
+    try:
+        given = Path(recording.companion_overrides({})["recorder"]["directory"])
+        assert given == tmp_path / "out" / "flight" / "recording"
+        assert recording.companion_dir == given
+    finally:
+        recording.close()
 
 
 def test_a_disk_that_fills_up_mid_flight_stops_recording_not_the_flight(tmp_path):
