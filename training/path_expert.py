@@ -28,6 +28,12 @@ from flightsim.nav_env import LidarNavEnv
 from flightsim.planner import ClearanceGrid, astar_cells, clearance_grid
 
 
+def body_to_world(body: tuple[float, float], yaw: float) -> tuple[float, float]:
+    """A body (forward, left) vector in world East, North for a heading of ``yaw`` (rad CCW from East)."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    return c * body[0] - s * body[1], s * body[0] + c * body[1]
+
+
 @dataclass(frozen=True)
 class PathExpertConfig:
     """The teacher's tuning (chosen by a random search on validation worlds, 6 per family).
@@ -181,8 +187,7 @@ class PathExpert:
         if not env.layout.drift:
             return np.asarray(env.estimate_error, dtype=np.float64)
         forward, left = env.drift_estimate - np.asarray(env.drift_held())
-        c, s = math.cos(env.true_state.yaw), math.sin(env.true_state.yaw)
-        return np.array([c * forward - s * left, s * forward + c * left])
+        return np.array(body_to_world((float(forward), float(left)), float(env.true_state.yaw)))
 
     def _lag(self) -> float:
         """Seconds from a command to the vehicle's answer: the drawn response's delay, tilt lag and

@@ -37,7 +37,6 @@ predictive_expert`` measures it.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,7 +44,7 @@ import numpy as np
 from flightsim.autopilot_response import ResponseParams, hardest_params
 from flightsim.nav_env import LidarNavEnv
 from flightsim.planner import ClearanceGrid, clearance_grid, cost_to_go
-from training.path_expert import PathExpert, PathExpertConfig, _cell_costs
+from training.path_expert import PathExpert, PathExpertConfig, _cell_costs, body_to_world
 
 #: s between commands (the env's control period)
 PERIOD_S = 0.1
@@ -170,7 +169,7 @@ class PredictiveExpert:
         command_steps = round(cfg.command_s / PERIOD_S)
         total_steps = command_steps + round(cfg.stop_s / PERIOD_S)
         steps = (command_steps, total_steps, PERIOD_S)
-        held = _world(env.drift_held(), float(state.yaw))  # what each setpoint carries on top
+        held = body_to_world(env.drift_held(), float(state.yaw))  # what each setpoint carries on top
         paths = response.predict(float(state.yaw), candidates * scale, *steps, held=held)
         excess, cells = self._excess(paths, state.position)
         if self._hardest is not None:
@@ -222,12 +221,6 @@ class PredictiveExpert:
         assert grid is not None
         index = np.floor((points - np.asarray(grid.origin)) / grid.resolution).astype(np.int64)
         return np.clip(index, 0, np.array(grid.clearance.shape) - 1)
-
-
-def _world(body: tuple[float, float], yaw: float) -> tuple[float, float]:
-    """A body (forward, left) vector in world East, North for a heading of ``yaw`` (rad CCW from East)."""
-    c, s = math.cos(yaw), math.sin(yaw)
-    return c * body[0] - s * body[1], s * body[0] + c * body[1]
 
 
 def robust_expert(env: LidarNavEnv) -> PredictiveExpert:
