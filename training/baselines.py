@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from companion.drift import DriftConfig, DriftEstimator
+from companion.drift import DriftConfig, DriftEstimator, DriftHoldConfig, held_drift
 from companion.observation import ObservationLayout
 from companion.scan import N_BINS
 
@@ -154,6 +154,13 @@ def _velocity(obs: np.ndarray, layout: ObservationLayout) -> tuple[float, float]
     o = np.asarray(obs, dtype=np.float64).reshape(layout.frame_size)
     n = layout.n_bins
     return float(o[n + 3]) * layout.velocity_scale, float(o[n + 4]) * layout.velocity_scale
+
+
+def _drift(obs: np.ndarray, layout: ObservationLayout) -> np.ndarray:
+    """(forward, left) drift estimate, m/s, of one drift-layout frame (what the env's estimator,
+    and so its ``drift_hold``, saw)."""
+    o = np.asarray(obs, dtype=np.float64).reshape(layout.frame_size)
+    return o[layout.slices()["drift"]] * layout.velocity_scale
 
 
 def _wrap(angle: float | np.ndarray) -> float | np.ndarray:
@@ -313,12 +320,29 @@ class GoalFollower:
       the forward action is pushed away from it (backward when it is ahead): the one escape that
       needs no turn first, for a capped yaw rate makes turns slow.
 
+    Where the setpoint already carries part of the error (the env's ``drift_hold``, the
+    companion's ``[drift_hold]``), the controller makes up only for the rest: that part, computed
+    from the frame's own drift estimate as the env does, is taken off its command.
+
     Memory: the previous frame, the estimate's error and the few numbers of the escape; no map.
     The policy sees the same (four stacked frames carry the scan-to-scan motion too).
+
+    :param layout: the frame layout (a goal layout)
+    :param config: tuning
+    :param hold: the limits of the drift the setpoint carries on top of every action, or None when
+        it carries none (then a drift layout is not needed)
+    :raises ValueError: ``hold`` with a layout without drift features
     """
 
-    def __init__(self, layout: ObservationLayout, config: GoalFollowerConfig | None = None) -> None:
-        self.layout, self.config = layout, config or GoalFollowerConfig()
+    def __init__(
+        self,
+        layout: ObservationLayout,
+        config: GoalFollowerConfig | None = None,
+        hold: DriftHoldConfig | None = None,
+    ) -> None:
+        if hold is not None and not layout.drift:
+            raise ValueError(f"a drift hold needs the drift estimate in the frame: layout {layout.name}")
+        self.layout, self.config, self.hold = layout, config or GoalFollowerConfig(), hold
 
     def reset(self, obs: np.ndarray) -> np.ndarray:
         self._offset = 0.0  # last chosen heading minus the goal bearing
@@ -332,6 +356,7 @@ class GoalFollower:
         # the scan's max_range is the matcher's too: returns there are saturation, not walls
         self._drift = DriftEstimator(DriftConfig(max_range=self.config.max_range))
         self._bias = np.zeros(2)  # velocity estimate minus true velocity, body frame, m/s
+        self._held = np.zeros(2)  # what the setpoint carries of it on top of the action, m/s
         self._speed_gain = 1.0  # measured / commanded forward speed, steady state
         self._commands: deque[float] = deque(maxlen=self.config.gain_steady)  # forward m/s sent
         return self.act(obs)
@@ -343,6 +368,8 @@ class GoalFollower:
         clear = corridor_clearance(ranges, c.body_radius)
         measured = np.array(_velocity(obs, self.layout))
         velocity = self._true_velocity(ranges, measured, bearing, distance)
+        if self.hold is not None:
+            self._held = np.array(held_drift(_drift(obs, self.layout), self.hold))
         self._learn_speed_gain(float(measured[0]))
         self._track_progress(distance)
         heading = self._heading(ranges, clear, bearing, distance)
@@ -394,12 +421,13 @@ class GoalFollower:
     def _command(self, speed: float, heading: float) -> np.ndarray:
         """The action that makes the vehicle really travel at ``speed`` (action units) along
         ``heading``: the autopilot flies its *estimate* to the command, so the true velocity falls
-        short of it by the estimate's error; command the wanted velocity plus that error instead.
-        Only its along-nose part can be commanded, so the nose leads by the crab angle too."""
+        short of it by the estimate's error; command the wanted velocity plus that error (less
+        what the setpoint already holds of it) instead. Only its along-nose part can be commanded,
+        so the nose leads by the crab angle too."""
         c = self.config
         scale = self.layout.velocity_scale
         want = speed * scale * np.array([math.cos(heading), math.sin(heading)])
-        command = want + self._bias
+        command = want + self._bias - self._held
         steer = heading
         if speed * scale >= c.crab_min_speed:
             crab = float(_wrap(math.atan2(command[1], command[0]) - heading))

@@ -203,7 +203,9 @@ def _bare_controller(
     if spec.kind == "gap_follower":
         return GapFollower(GapFollowerConfig(max_range=float(env_config.scan.max_range)))
     if spec.kind == "goal_follower":
-        return GoalFollower(env_config.layout, GoalFollowerConfig(max_range=float(env_config.scan.max_range)))
+        hold = env_config.drift_hold_limits if env_config.drift_hold else None
+        config = GoalFollowerConfig(max_range=float(env_config.scan.max_range))
+        return GoalFollower(env_config.layout, config, hold=hold)
     if spec.kind == "straight_line":
         return StraightLine(env_config.layout)
     if spec.kind in PRIVILEGED_GOAL_CONTROLLERS:

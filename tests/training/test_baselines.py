@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from companion.observation import ObservationLayout, build_frame, goal_features
+from companion.drift import DriftHoldConfig
+from companion.observation import ObservationLayout, build_frame, drift_features, goal_features
 from training.baselines import (
     GapFollower,
     GapFollowerConfig,
@@ -78,6 +79,7 @@ def test_corridor_clearance_matches_the_brute_force_definition():
 # --- the goal task -------------------------------------------------------------------------------
 
 GOAL_LAYOUT = ObservationLayout(goal=True, goal_range=30.0, velocity_scale=2.0)
+DRIFT_LAYOUT = ObservationLayout(goal=True, goal_range=30.0, velocity_scale=2.0, drift=True)
 
 
 def _frame(bins: dict[int, float], goal_deg: float, goal_m: float) -> np.ndarray:
@@ -124,32 +126,56 @@ def test_goal_follower_escapes_when_the_goal_comes_no_closer_and_resets_on_a_new
 
 
 def _moving_frame(
-    scan_m: np.ndarray, goal_deg: float, goal_m: float, velocity: tuple[float, float]
+    scan_m: np.ndarray,
+    goal_deg: float,
+    goal_m: float,
+    velocity: tuple[float, float],
+    drift: tuple[float, float] | None = None,
 ) -> np.ndarray:
-    """A goal-layout frame from ranges in metres (inf: nothing) and a measured body velocity, m/s."""
+    """A goal-layout frame from ranges in metres (inf: nothing) and a measured body velocity, m/s;
+    with ``drift`` (the env's drift estimate, m/s), a frame of :data:`DRIFT_LAYOUT`."""
+    layout = GOAL_LAYOUT if drift is None else DRIFT_LAYOUT
     a = np.radians(goal_deg)
-    features = goal_features(goal_m * np.cos(a), goal_m * np.sin(a), *velocity, GOAL_LAYOUT)
+    features = goal_features(goal_m * np.cos(a), goal_m * np.sin(a), *velocity, layout)
+    if drift is not None:
+        features = np.concatenate([features, drift_features(np.array(drift), layout)])
     scan = np.where(np.isfinite(scan_m), np.minimum(scan_m / 10.0, 1.0), 1.0).astype(np.float32)
-    return build_frame(scan, features, GOAL_LAYOUT)
+    return build_frame(scan, features, layout)
+
+
+def _yaw_after_drifting(drift: float, controller: GoalFollower, estimate: bool = False) -> float:
+    """The yaw action after 2 s of flying at a goal ahead while the autopilot reports 0.5 m/s
+    straight ahead and the walls show ``drift`` m/s to the left as well (PX4's estimate error: its
+    velocity loop flies the estimate, so the truth drifts by the error); with ``estimate``, the
+    frames carry the env's drift estimate of it (reported minus true: ``-drift`` to the left)."""
+    from tests.companion.test_scan_motion import room_scan
+
+    x, y, action = -3.0, 0.0, None
+    for k in range(20):
+        scan = room_scan(x, y, 0.0, half=(8.0, 3.0), pillar=(-6.0, -2.0))
+        bearing = float(np.degrees(np.arctan2(-y, 5.0 - x)))
+        frame = _moving_frame(scan, bearing, 5.0 - x, (0.5, 0.0), (0.0, -drift) if estimate else None)
+        action = controller.reset(frame) if k == 0 else controller.act(frame)
+        x, y = x + 0.05, y + drift * 0.1
+    return float(action[1])
 
 
 def test_goal_follower_sees_a_drift_the_velocity_estimate_hides_and_crabs_against_it():
-    # the autopilot reports 0.5 m/s straight ahead, the walls show 0.3 m/s to the left as well
-    # (PX4's estimate error: its velocity loop flies the estimate, so the truth drifts by the error)
-    from tests.companion.test_scan_motion import room_scan
+    assert abs(_yaw_after_drifting(0.0, GoalFollower(GOAL_LAYOUT))) < 0.1
+    assert _yaw_after_drifting(0.3, GoalFollower(GOAL_LAYOUT)) < -0.3  # the nose leads right
 
-    def yaw_after(drift: float) -> float:
-        controller = GoalFollower(GOAL_LAYOUT)
-        x, y, action = -3.0, 0.0, None
-        for k in range(20):
-            scan = room_scan(x, y, 0.0, half=(8.0, 3.0), pillar=(-6.0, -2.0))
-            frame = _moving_frame(scan, float(np.degrees(np.arctan2(-y, 5.0 - x))), 5.0 - x, (0.5, 0.0))
-            action = controller.reset(frame) if k == 0 else controller.act(frame)
-            x, y = x + 0.05, y + drift * 0.1
-        return float(action[1])
 
-    assert abs(yaw_after(0.0)) < 0.1
-    assert yaw_after(0.3) < -0.3  # the nose leads to the right of the way to fly
+def test_goal_follower_leaves_to_the_drift_hold_what_the_setpoint_already_carries():
+    # the env's drift_hold puts the whole estimate (no deadband) on the setpoint: crabbing against
+    # it as well would fly the error twice, so the nose stays on the goal (0.57 m right of the
+    # line after 1.9 s of drift: bearing atan2(-0.57, 7.05))
+    hold = DriftHoldConfig(lateral=0.6, deadband=0.0)
+    on_goal = GoalFollowerConfig().turn_gain * np.arctan2(-0.57, 7.05)
+    assert _yaw_after_drifting(0.3, GoalFollower(DRIFT_LAYOUT), estimate=True) < on_goal - 0.3
+    held = _yaw_after_drifting(0.3, GoalFollower(DRIFT_LAYOUT, hold=hold), estimate=True)
+    assert held == pytest.approx(on_goal, abs=0.05)
+    with pytest.raises(ValueError, match="drift"):
+        GoalFollower(GOAL_LAYOUT, hold=hold)
 
 
 def test_goal_follower_backs_off_from_a_return_inside_its_keep_out():
