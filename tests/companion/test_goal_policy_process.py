@@ -19,6 +19,7 @@ import pytest
 from companion.app import policy_spec
 from companion.autopilot.mavlink_adapter import mavlink
 from companion.config import CompanionConfig, PolicyConfig
+from companion.drift import DriftHoldConfig
 from tests.companion.companion_process import (
     WEST_AND_UP,
     Flight,
@@ -100,14 +101,16 @@ def _wall_east(azimuth_deg: np.ndarray) -> np.ndarray:
 
 #: a config table that holds none of the drift estimate
 NO_HOLD = "[drift_hold]\nlateral = 0.0\n"
+#: what the default ``[drift_hold]`` holds of a 0.4 m/s drift estimate: all but its deadband, m/s
+HELD = 0.4 - DriftHoldConfig().deadband
 
 
-@pytest.mark.parametrize(("extra", "right"), [("", -0.3), (NO_HOLD, 0.0)])
+@pytest.mark.parametrize(("extra", "right"), [("", -HELD), (NO_HOLD, 0.0)])
 def test_the_setpoint_holds_the_sideways_drift_the_estimate_hides(tmp_path, extra, right):
     """A hovering model in a still room, heading north, while the autopilot reports 0.4 m/s west:
     its estimate is 0.4 m/s to the left of the truth, so it would fly any setpoint 0.4 m/s to the
-    right of what it is told. The setpoint holds the drift estimate less the 0.1 m/s deadband:
-    0.3 m/s to the left (FRD: negative); with ``[drift_hold] lateral = 0``, nothing."""
+    right of what it is told. The setpoint holds the drift estimate less the deadband (0.15 m/s):
+    0.25 m/s to the left (FRD: negative); with ``[drift_hold] lateral = 0``, nothing."""
     f = Flight.with_model(tmp_path, "stop", extra)
     f.vehicle.velocity_ned = (0.0, -0.4)
     try:
@@ -118,13 +121,13 @@ def test_the_setpoint_holds_the_sideways_drift_the_estimate_hides(tmp_path, extr
 
 @pytest.mark.parametrize(
     ("extra", "push_west"),
-    [("[shield]\ndrift_compensation = 0.6\n", 0.8), ("", 0.7), (NO_HOLD, 0.4)],
+    [("[shield]\ndrift_compensation = 0.6\n", 0.8), ("", 0.4 + HELD), (NO_HOLD, 0.4)],
 )
 def test_the_keepout_push_carries_the_drift_the_estimate_hides(tmp_path, extra, push_west):
     """A hovering model, a wall 0.4 m east, and an autopilot that reports 0.4 m/s west while the
     scans stand still: it would fly its setpoint 0.4 m/s east of what it is told. The keep-out
-    pushes 0.4 m/s west and the setpoint holds 0.3 m/s of the drift on top (0.7); the shield's
-    ``drift_compensation`` carries the rest of the estimate, 0.1 (0.8); holding none, 0.4."""
+    pushes 0.4 m/s west and the setpoint holds 0.25 m/s of the drift on top (0.65); the shield's
+    ``drift_compensation`` carries the rest of the estimate, 0.15 (0.8); holding none, 0.4."""
     f = Flight.with_model(tmp_path, "stop", extra)
     f.lidar.scene = _wall_east
     f.vehicle.velocity_ned = (0.0, -0.4)

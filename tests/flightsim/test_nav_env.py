@@ -291,11 +291,12 @@ def test_the_held_drift_stops_the_sideways_slide_the_estimate_hides() -> None:
     held, env = _sideways_drift(NavEnvConfig(**base, drift_hold=True))
     assert unheld > 0.15  # there was a slide to stop
     assert held < 0.5 * unheld
+    limits = DriftHoldConfig()
     for _ in range(100):  # on to a step where the estimate is beyond the deadband
-        if abs(env.drift_estimate[1]) > 0.15:
+        if abs(env.drift_estimate[1]) > limits.deadband + 0.05:
             break
         env.step(HOVER)
-    hold = held_drift(env.drift_estimate, DriftHoldConfig())
+    hold = held_drift(env.drift_estimate, limits)
     assert env.drift_held() == hold and abs(hold[1]) > 0.04
     np.testing.assert_allclose(env.shield_velocity(), env.measured_body_velocity() - np.array(hold))
     np.testing.assert_allclose(env.shield_drift(), env.drift_estimate - np.array(hold))

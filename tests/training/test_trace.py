@@ -81,7 +81,7 @@ def test_alone_what_is_sent_is_what_was_asked(config):
 
 def test_alone_what_is_sent_is_what_was_asked_and_the_held_drift(config):
     """With ``drift_hold`` the setpoint also carries the drift estimate sideways: the trace shows
-    what left for the autopilot, so its lateral is the held drift, beyond the 0.1 m/s deadband."""
+    what left for the autopilot, so its lateral is the held drift, beyond the deadband."""
     config.write_text(CONFIG + "drift = true\ndrift_hold = true\n")
     _, steps = trace(_flight(config), "gaps-500000", ControllerSpec("goal_follower"))
     assert all(s.sent_forward == s.asked_forward for s in steps)
