@@ -94,7 +94,7 @@ def test_the_drift_the_reported_velocity_hides_reaches_a_drift_model(tmp_path):
 
 
 def _wall_east(azimuth_deg: np.ndarray) -> np.ndarray:
-    """A wall 0.4 m east of a vehicle facing north, inside the keep-out, in a round room of 8 m."""
+    """A wall 0.4 m east of a vehicle facing north, in a round room of 8 m."""
     east = np.sin(np.radians(azimuth_deg))
     return np.where(east > 0.05, np.minimum(0.4 / np.maximum(east, 0.05), 8.0), 8.0)
 
@@ -119,15 +119,20 @@ def test_the_setpoint_holds_the_sideways_drift_the_estimate_hides(tmp_path, extr
         f.close()
 
 
+#: a keep-out reaching 0.6 m: the wall 0.4 m away is 0.2 m inside it, a push of 0.4 m/s (gain 2)
+KEEPOUT = "[shield]\nkeepout_distance = 0.6\n"
+
+
 @pytest.mark.parametrize(
     ("extra", "push_west"),
-    [("[shield]\ndrift_compensation = 0.6\n", 0.8), ("", 0.4 + HELD), (NO_HOLD, 0.4)],
+    [(KEEPOUT + "drift_compensation = 0.6\n", 0.8), (KEEPOUT, 0.4 + HELD), (KEEPOUT + NO_HOLD, 0.4)],
 )
 def test_the_keepout_push_carries_the_drift_the_estimate_hides(tmp_path, extra, push_west):
     """A hovering model, a wall 0.4 m east, and an autopilot that reports 0.4 m/s west while the
     scans stand still: it would fly its setpoint 0.4 m/s east of what it is told. The keep-out
-    pushes 0.4 m/s west and the setpoint holds 0.25 m/s of the drift on top (0.65); the shield's
-    ``drift_compensation`` carries the rest of the estimate, 0.15 (0.8); holding none, 0.4."""
+    (reaching 0.6 m here) pushes 0.4 m/s west and the setpoint holds 0.25 m/s of the drift on top
+    (0.65); the shield's ``drift_compensation`` carries the rest of the estimate, 0.15 (0.8);
+    holding none, 0.4."""
     f = Flight.with_model(tmp_path, "stop", extra)
     f.lidar.scene = _wall_east
     f.vehicle.velocity_ned = (0.0, -0.4)

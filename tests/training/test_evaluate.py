@@ -126,8 +126,11 @@ def test_shield_stops_forward_motion_at_a_wall_but_lets_the_vehicle_turn():
     scan = np.ones(360, np.float32)
     scan[:5] = 0.02  # 0.2 m dead ahead: inside the 0.3 m emergency-stop distance
     controller = shielded()
+    cfg = ShieldConfig()
+    backing = cfg.keepout_gain * (cfg.keepout_distance - 0.2) / 2.0  # the keep-out's push, in action units
+    assert backing > 0.0
     for action in [controller.reset(scan)] + [controller.act(scan) for _ in range(20)]:
-        assert action[0] == pytest.approx(-0.4, abs=1e-3)  # keep-out: backs off at 0.8 m/s
+        assert action[0] == pytest.approx(-backing, abs=1e-3)  # no forward motion: backs off
     assert action[1] == pytest.approx(1.0)  # turning in place stays allowed, up to the full rate
 
 
