@@ -577,6 +577,17 @@ def test_keepout_pushes_away_from_a_close_return_and_drops_what_points_at_it() -
     assert settled(SafetyShield(cfg, MAX_RANGE), Command(1.0, 0.0), CLEAR).lateral == 0.0
 
 
+def test_keepout_leaves_alone_a_return_passed_half_a_metre_off() -> None:
+    """0.5 m from the centre (0.25 m beyond the vehicle's radius) a still wall is passed, not pushed
+    from: the drift the keep-out was for is carried by the drift hold, and at 0.6 m it held the
+    vehicle off the gaps the policy threads (README, "The keep-out narrowed")."""
+    wall = scan_with({b: 0.5 for b in bins_around(90.0, 1.0)})
+    out = settled(SafetyShield(ShieldConfig(), MAX_RANGE), Command(1.0, 0.3), wall)
+    assert out.lateral == 0.0 and out.forward == pytest.approx(1.0, abs=0.02)
+    closer = scan_with({b: 0.4 for b in bins_around(90.0, 1.0)})
+    assert settled(SafetyShield(ShieldConfig(), MAX_RANGE), Command(1.0, 0.3), closer).lateral < 0.0
+
+
 def test_keepout_acts_early_when_the_scan_closes_faster_than_the_vehicle_can_stop() -> None:
     """The estimate may say nothing moves (PX4 closes its loop on a biased estimate); two scans
     0.1 s apart show the wall 0.06 m closer: 0.6 m/s, too fast to stop in the 0.3 m left."""
