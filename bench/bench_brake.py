@@ -2,7 +2,7 @@
 
 The shield stops a motion it cannot otherwise stop in time with a setpoint against it, as fast as
 the motion up to ``[shield] max_reverse_speed`` (0.5 m/s). This flies that brake, a plain zero
-setpoint and a brake of up to 1 m/s (tried, not taken: README, "The goal policy", the shield
+setpoint and a brake of up to 1 m/s (tried, not taken: docs/goal-policy.md, the shield
 variants) on the JSBSim vehicle through the env's randomised autopilot responses
 (``flightsim.autopilot_response.random_params``, the velocity-estimate error left out so the
 brake sees the true motion): the vehicle is settled at about 1 m/s, then braked each 0.1 s with

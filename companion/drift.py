@@ -60,7 +60,7 @@ class DriftHoldConfig:
     :param deadband: this much of the estimate is never carried, m/s: about its own error (0.09-0.22
         m/s RMS off the truth on traced validation flights with large errors), so a small error is
         left to the policy, as before. 0.15 was chosen over 0.1 and 0.2 on the validation worlds
-        (README, "The drift held by the setpoint")
+        (docs/goal-policy.md, "The drift held by the setpoint")
     """
 
     forward: float = field(default=0.0, metadata={"min": 0.0, "max": 2.0})

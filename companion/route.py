@@ -52,7 +52,7 @@ class RouteConfig:
     :param proximity_cost: extra cost of a cell next to a seen obstacle, in free cells (falling
         linearly to 0 at ``preferred_clearance``): how far the route goes round for a wider way.
         8 (2 before): the shipped policy reached more validation worlds behind the shield with 8,
-        though not more test worlds (README, "The goal policy")
+        though not more test worlds (docs/goal-policy.md)
     :param lookahead: the subgoal lies at most this far along the route, metres
     :param replan_every: scans between two plans; in between the subgoal moves along the last route
     :param hit: evidence a return adds to its cell

@@ -124,7 +124,7 @@ class ShieldConfig:
         emergency stop, too, counts only returns in the lane ahead (the keep-out watches every
         direction). 0: the nearest return in each sector, ``forward_sector_deg`` and
         ``travel_sector_deg``. 0.3 (the vehicle's 0.25 m radius and 5 cm) was chosen over the
-        sectors on the validation worlds: as many collisions, fewer timeouts (README)
+        sectors on the validation worlds: as many collisions, fewer timeouts (docs/goal-policy.md)
     :param lane_spread_deg: how far either side of the nose (and beyond either end of the travel
         arc) the lane is also swept, degrees: the turn the course makes before a brake bites
     :param keepout_distance: a return closer than this, in any direction, pushes the vehicle away
@@ -133,7 +133,7 @@ class ShieldConfig:
         estimate that wanders 0.2-0.4 m/s off the truth, so with a zero setpoint the true vehicle
         drifts that fast. 0.45 (0.6 before the drift hold took over most of that drift): on the
         validation worlds as many collisions as 0.6 and 0.35, 6 timeouts fewer than 0.6 and one
-        more than 0.35, which leaves only 0.1 m beyond the vehicle's radius (README)
+        more than 0.35, which leaves only 0.1 m beyond the vehicle's radius (docs/goal-policy.md)
     :param keepout_gain: push speed per metre inside ``keepout_distance``, 1/s; the push adds twice
         the speed at which that return came closer since the previous scan (the scan sees the true
         motion, which the estimate may not)
@@ -144,7 +144,7 @@ class ShieldConfig:
         axis at most this, m/s: the autopilot flies the setpoint on its estimate, so the vehicle
         truly moves at the setpoint minus the error, and a push away from a wall the estimate drifts
         towards would otherwise be eaten by the drift. 0 (the default): never; 0.6 was tried on the
-        validation worlds and is not the default (README)
+        validation worlds and is not the default (docs/goal-policy.md)
     """
 
     max_speed: float = field(default=2.0, metadata={"min": 0.0, "max": 20.0})

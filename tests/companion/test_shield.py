@@ -580,7 +580,7 @@ def test_keepout_pushes_away_from_a_close_return_and_drops_what_points_at_it() -
 def test_keepout_leaves_alone_a_return_passed_half_a_metre_off() -> None:
     """0.5 m from the centre (0.25 m beyond the vehicle's radius) a still wall is passed, not pushed
     from: the drift the keep-out was for is carried by the drift hold, and at 0.6 m it held the
-    vehicle off the gaps the policy threads (README, "The keep-out narrowed")."""
+    vehicle off the gaps the policy threads (docs/goal-policy.md, "The keep-out narrowed")."""
     wall = scan_with({b: 0.5 for b in bins_around(90.0, 1.0)})
     out = settled(SafetyShield(ShieldConfig(), MAX_RANGE), Command(1.0, 0.3), wall)
     assert out.lateral == 0.0 and out.forward == pytest.approx(1.0, abs=0.02)
