@@ -53,6 +53,9 @@ class RouteConfig:
         linearly to 0 at ``preferred_clearance``): how far the route goes round for a wider way.
         8 (2 before): the shipped policy reached more validation worlds behind the shield with 8,
         though not more test worlds (docs/goal-policy.md)
+    :param unseen_cost: cost factor of a cell no scan has reached, against 1 for one seen free: 1
+        (the default) plans through the unknown as if it were free; above 1 the route keeps to what
+        the scans have shown where that is not much longer, and enters the unknown nearer the goal
     :param lookahead: the subgoal lies at most this far along the route, metres
     :param replan_every: scans between two plans; in between the subgoal moves along the last route
     :param hit: evidence a return adds to its cell
@@ -66,6 +69,7 @@ class RouteConfig:
     blocked_clearance: float = field(default=0.4, metadata={"min": 0.05, "max": 5.0})
     preferred_clearance: float = field(default=1.0, metadata={"min": 0.05, "max": 10.0})
     proximity_cost: float = field(default=8.0, metadata={"min": 0.0, "max": 100.0})
+    unseen_cost: float = field(default=1.0, metadata={"min": 1.0, "max": 100.0})
     lookahead: float = field(default=5.0, metadata={"min": 0.5, "max": 50.0})
     replan_every: int = field(default=5, metadata={"min": 1, "max": 100})
     hit: float = field(default=3.0, metadata={"min": 0.1, "max": 100.0})
@@ -107,6 +111,7 @@ class RoutePlanner:
         self.max_range = float(max_range)
         n = math.ceil(config.extent / config.resolution)
         self._evidence = np.zeros((n, n), np.float32)
+        self._seen = np.zeros((n, n), bool)  # cells a ray has reached, free or occupied
         self._origin: np.ndarray | None = None  # world (x, y) of cell (0, 0)'s corner
         self._route: np.ndarray | None = None  # (N, 2) world points, vehicle end first
         self._route_goal: tuple[float, float] | None = None
@@ -117,6 +122,7 @@ class RoutePlanner:
     def reset(self) -> None:
         """Forget the map and the route (a new episode, a new flight)."""
         self._evidence[:] = 0.0
+        self._seen[:] = False
         self._origin = None
         self._route = None
         self._route_goal = None
@@ -162,6 +168,7 @@ class RoutePlanner:
         # only the cells this scan touched can have left the bounds
         touched = (np.concatenate([fi, hi]), np.concatenate([fj, hj]))
         self._evidence[touched] = np.clip(self._evidence[touched], -cfg.evidence_max, cfg.evidence_max)
+        self._seen[touched] = True
 
     def _cells(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         assert self._origin is not None
@@ -200,11 +207,13 @@ class RoutePlanner:
         cfg, res = self.config, self.config.resolution
         occupied = self.occupied
         (si, gi), (sj, gj), inside = self._cells(np.array([start[0], goal[0]]), np.array([start[1], goal[1]]))
-        rows, cols = np.flatnonzero(occupied.any(axis=1)), np.flatnonzero(occupied.any(axis=0))
-        if not inside.all() or rows.size == 0:
+        if not inside.all() or not occupied.any():
             return None
-        # outside the box around every occupied cell, the vehicle and the goal, all is free: the
-        # cheapest route never leaves it by more than the clearance it prefers
+        # outside the box around every occupied cell, the vehicle and the goal (and every seen one,
+        # when the unseen cost more), all costs the same: the cheapest route never leaves it by
+        # more than the clearance it prefers
+        boxed = occupied | self._seen if cfg.unseen_cost != 1.0 else occupied
+        rows, cols = np.flatnonzero(boxed.any(axis=1)), np.flatnonzero(boxed.any(axis=0))
         n = occupied.shape[0]
         margin = math.ceil(cfg.preferred_clearance / res) + 2
         i0, i1 = max(min(rows[0], si, gi) - margin, 0), min(max(rows[-1], si, gi) + margin + 1, n)
@@ -213,6 +222,8 @@ class RoutePlanner:
         clearance = ndimage.distance_transform_edt(~window) * res
         nearness = np.clip((cfg.preferred_clearance - clearance) / cfg.preferred_clearance, 0.0, 1.0)
         cost = 1.0 + cfg.proximity_cost * nearness
+        if cfg.unseen_cost != 1.0:
+            cost[~self._seen[i0:i1, j0:j1]] *= cfg.unseen_cost
         cost[clearance < cfg.blocked_clearance] = BLOCKED_COST
         cost[window] = np.inf
         a, b = (si - i0, sj - j0), (gi - i0, gj - j0)

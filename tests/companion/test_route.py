@@ -139,3 +139,21 @@ def test_a_gap_the_vehicle_barely_fits_is_passed_up_for_a_way_round_a_little_lon
         bearing = math.degrees(math.atan2(sub.left, sub.forward))
         assert (abs(bearing) < 1.0) == through_the_gap, bearing
         assert (sub.distance < 6.01) == through_the_gap, sub.distance
+
+
+def test_an_unseen_cost_takes_the_door_seen_over_a_shorter_way_through_what_no_scan_reached():
+    """A wall across the way with a door 2.2-3.8 m to the left; a short wall near the vehicle hides
+    the wall's stretch to the right of the line, so no scan shows it. Planning through the unknown
+    as if free (the default), the route heads on past the short wall's end, for the hidden
+    stretch, 1.2 m shorter than through the door; with the unknown costing twice the seen, it
+    takes the door."""
+    walls = [((5.0, -8.0), (5.0, 2.2)), ((5.0, 3.8), (5.0, 8.0)), ((1.0, -1.0), (1.0, -0.2))]
+    bearings = {}
+    for unseen_cost in (1.0, 2.0):
+        route = planner(unseen_cost=unseen_cost)
+        route.observe(segment_scan(0.0, 0.0, 0.0, walls), 0.0, 0.0, 0.0)
+        sub = route.subgoal(0.0, 0.0, 0.0, 10.0, 0.0)
+        bearings[unseen_cost] = math.degrees(math.atan2(sub.left, sub.forward))
+    assert bearings[1.0] < 10.0, bearings
+    assert 20.0 < bearings[2.0] < 45.0, bearings  # the door's middle lies 31° to the left
+
