@@ -56,6 +56,7 @@ class RouteConfig:
     :param unseen_cost: cost factor of a cell no scan has reached, against 1 for one seen free: 1
         (the default) plans through the unknown as if it were free; above 1 the route keeps to what
         the scans have shown where that is not much longer, and enters the unknown nearer the goal
+        (2 flew worse on the validation worlds: docs/goal-policy.md)
     :param lookahead: the subgoal lies at most this far along the route, metres
     :param replan_every: scans between two plans; in between the subgoal moves along the last route
     :param hit: evidence a return adds to its cell
