@@ -25,6 +25,10 @@ from training.config import STEP_SECONDS
 
 BASELINES = ("gap_follower", "random")
 GOAL_BASELINES = ("goal_follower", "straight_line")
+#: ``[env]`` keys a controller flies with, whatever the config says: the straight line gauges how
+#: hard a world is by flying at the waypoint itself, blind; with the route its goal features would
+#: point along a route planned round what the scans showed
+ENV_OVERRIDES: dict[str, dict[str, Any]] = {"straight_line": {"route": False}}
 #: flown only when named: not a baseline a drone could fly, it reads the simulator's truth (the
 #: DAgger teachers, :mod:`training.path_expert`, :mod:`training.predictive_expert`): what
 #: imitation can reach

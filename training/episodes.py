@@ -14,7 +14,7 @@ from typing import Any
 
 from companion.tomlconfig import from_dict
 from training.config import NEAR_MISS_DISTANCE, STEP_SECONDS, SUCCESS_MIN_MEAN_SPEED
-from training.controllers import Controller, ControllerSpec, build_controller
+from training.controllers import ENV_OVERRIDES, Controller, ControllerSpec, build_controller
 
 AVOID_ENV_ID = "flightsim/LidarAvoid-v0"
 NAV_ENV_ID = "flightsim/LidarNav-v0"
@@ -209,9 +209,16 @@ def make_tasks(
     env_id: str = AVOID_ENV_ID,
 ) -> list[EpisodeTask]:
     """Every controller × world × episode; every controller flies the same reset seed there
-    (:func:`episode_seed`)."""
+    (:func:`episode_seed`), in ``env`` with its own :data:`~training.controllers.ENV_OVERRIDES`."""
     return [
-        EpisodeTask(controller=c, world=w, episode=k, env=env, seed=episode_seed(w, k, env_id), env_id=env_id)
+        EpisodeTask(
+            controller=c,
+            world=w,
+            episode=k,
+            env={**env, **ENV_OVERRIDES.get(c.kind, {})},
+            seed=episode_seed(w, k, env_id),
+            env_id=env_id,
+        )
         for c in controllers
         for w in worlds
         for k in range(episodes)

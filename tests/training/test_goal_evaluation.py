@@ -170,3 +170,18 @@ def test_each_goal_world_flies_its_own_reset_seed_and_every_controller_the_same(
     first, second = by_controller.values()
     assert first == second  # the same episodes for every controller
     assert len(set(first)) == len(first) == 2 * len(worlds)  # world × episode: all different
+
+
+def test_the_straight_line_flies_blind_at_the_waypoint_even_where_the_others_fly_the_route():
+    """The straight line gauges how hard a world is. Flown with the route (the goal features
+    pointing along a route planned round what the scans showed) it went round this trap and
+    reached the goal; flying at the waypoint itself, it flies into the trap on the line."""
+    from training.controllers import ControllerSpec
+    from training.episodes import NAV_ENV_ID, make_tasks, run_task
+
+    trap = goal_worlds(["traps"], seeds.VALIDATION.start, 4, (0.0, 1.0))[:1]
+    controllers = [ControllerSpec("straight_line"), ControllerSpec("goal_follower")]
+    line, follower = make_tasks(controllers, trap, 1, {"route": True}, NAV_ENV_ID)
+    assert follower.env["route"] is True and line.env["route"] is False
+    result = run_task(line)
+    assert result.collision and not result.success
