@@ -156,4 +156,3 @@ def test_an_unseen_cost_takes_the_door_seen_over_a_shorter_way_through_what_no_s
         bearings[unseen_cost] = math.degrees(math.atan2(sub.left, sub.forward))
     assert bearings[1.0] < 10.0, bearings
     assert 20.0 < bearings[2.0] < 45.0, bearings  # the door's middle lies 31° to the left
-
