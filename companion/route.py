@@ -112,7 +112,7 @@ class RoutePlanner:
         self.max_range = float(max_range)
         n = math.ceil(config.extent / config.resolution)
         self._evidence = np.zeros((n, n), np.float32)
-        self._seen = np.zeros((n, n), bool)  # cells a ray has reached, free or occupied
+        self._seen = np.zeros((n, n), bool)  # cells a ray has reached (with an unseen_cost)
         self._origin: np.ndarray | None = None  # world (x, y) of cell (0, 0)'s corner
         self._route: np.ndarray | None = None  # (N, 2) world points, vehicle end first
         self._route_goal: tuple[float, float] | None = None
@@ -169,7 +169,8 @@ class RoutePlanner:
         # only the cells this scan touched can have left the bounds
         touched = (np.concatenate([fi, hi]), np.concatenate([fj, hj]))
         self._evidence[touched] = np.clip(self._evidence[touched], -cfg.evidence_max, cfg.evidence_max)
-        self._seen[touched] = True
+        if cfg.unseen_cost != 1.0:  # read only then: the default pays nothing for it
+            self._seen[touched] = True
 
     def _cells(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         assert self._origin is not None
