@@ -19,6 +19,9 @@ from flightsim.families._common import (
 from flightsim.world import Box, Obstacle
 
 THIN_WALL = 0.1
+#: No cabinet stands within this of a doorway, either side of its wall, metres: a doorway keeps its
+#: width (1.2-2 m) where the vehicle goes through it, and the way up to it
+DOOR_APPROACH = 1.0
 
 
 def gap_width(d: float, r: float) -> float:
@@ -86,7 +89,8 @@ def staggered(rng: np.random.Generator, seed: int, d: float, r: float) -> Layout
 def office(rng: np.random.Generator, seed: int, d: float, r: float) -> Layout | None:
     """A floor of 2-3 × 3-4 rooms with thin (0.1 m) walls, joined by doorways 1.2-2 m wide: a
     random spanning tree of doors (so every room is reachable) plus extra doors, fewer at higher
-    difficulty; cabinets along the walls from difficulty 0.3. Waypoints lie in other rooms."""
+    difficulty; cabinets along the walls from difficulty 0.3, clear of the doorways (within
+    ``DOOR_APPROACH`` of one, a cabinet would narrow it below its width). Waypoints lie in other rooms."""
     cols, rows = 3 + int(rng.uniform() < d), 2 + int(rng.uniform() < d)
     sx, sy = rnd(cols * rng.uniform(4.5, 5.5)), rnd(rows * rng.uniform(4.2, 5.2))
     hx, hy = sx / 2.0, sy / 2.0
@@ -98,6 +102,7 @@ def office(rng: np.random.Generator, seed: int, d: float, r: float) -> Layout | 
     doors = _spanning_tree(rng, cols * rows, [(a[0] * rows + a[1], b[0] * rows + b[1]) for a, b in edges])
     doors |= {k for k in range(len(edges)) if rng.uniform() < lerp(0.5, 0.1, d)}
     obstacles: list[Obstacle] = []
+    keep_clear: list[tuple[float, float, float, float]] = []  # (x0, y0, x1, y1) before each doorway
     t = THIN_WALL / 2.0
     for k, (a, b) in enumerate(edges):
         vertical = a[1] == b[1]  # cells side by side in x: the wall between runs along y
@@ -109,6 +114,9 @@ def office(rng: np.random.Generator, seed: int, d: float, r: float) -> Layout | 
             width = rng.uniform(narrow, max(lerp(2.0, 1.6, d), narrow))
             s0 = rng.uniform(lo + 0.4, hi - 0.4 - width)
             spans = [(lo, s0), (s0 + width, hi)]
+            across, along = (line - DOOR_APPROACH, line + DOOR_APPROACH), (s0, s0 + width)
+            (x0, x1), (y0, y1) = (across, along) if vertical else (along, across)
+            keep_clear.append((x0, y0, x1, y1))
         for s0, s1 in spans:
             s0, s1 = rnd(s0), rnd(s1)
             obstacles.append(
@@ -145,10 +153,19 @@ def office(rng: np.random.Generator, seed: int, d: float, r: float) -> Layout | 
                 size = (depth, length)
             height = rng.uniform(1.8, 2.2)
             cabinet = Box((rnd(x), rnd(y), rnd(height / 2)), (rnd(size[0]), rnd(size[1]), rnd(height)))
-            if min(math.hypot(x - p[0], y - p[1]) for p in stops) - max(size) / 2 > margin + 0.5:
+            clear_of_stops = min(math.hypot(x - p[0], y - p[1]) for p in stops) - max(size) / 2 > margin + 0.5
+            if clear_of_stops and not _overlaps_any(x, y, size, keep_clear):
                 obstacles.append(cabinet)
     layout.start, layout.waypoints = stops[0], stops[1:]
     return layout
+
+
+def _overlaps_any(
+    x: float, y: float, size: tuple[float, float], boxes: list[tuple[float, float, float, float]]
+) -> bool:
+    """Whether the footprint centred at (x, y) of ``size`` overlaps any (x0, y0, x1, y1) box."""
+    hx, hy = size[0] / 2.0, size[1] / 2.0
+    return any(x + hx > x0 and x - hx < x1 and y + hy > y0 and y - hy < y1 for x0, y0, x1, y1 in boxes)
 
 
 def _spanning_tree(rng: np.random.Generator, n: int, edges: list[tuple[int, int]]) -> set[int]:

@@ -112,22 +112,28 @@ def test_forest_trunks_thin_to_thick_and_denser_with_difficulty() -> None:
     assert min(radii) < 0.08 and max(radii) > 0.35
 
 
-def _openings(walls: list[Box], along: int) -> dict[float, list[float]]:
-    """Widths of the holes between wall pieces lying on one line (``along``: the axis they run on)."""
+def _holes(walls: list[Box], along: int) -> dict[float, list[tuple[float, float]]]:
+    """The holes (from, to) between wall pieces, per line the pieces lie on (``along``: the axis
+    they run on); a line without a hole has an empty list."""
     lines: dict[float, list[tuple[float, float]]] = defaultdict(list)
     for b in walls:
         half = b.size[along] / 2
         lines[round(b.center[1 - along], 3)].append((b.center[along] - half, b.center[along] + half))
-    out: dict[float, list[float]] = {}
+    out: dict[float, list[tuple[float, float]]] = {}
     for line, spans in lines.items():
         spans.sort()
         holes, reach = [], spans[0][1]
         for lo, hi in spans[1:]:
             if lo > reach + 1e-6:
-                holes.append(lo - reach)
+                holes.append((reach, lo))
             reach = max(reach, hi)
         out[line] = holes
     return out
+
+
+def _openings(walls: list[Box], along: int) -> dict[float, list[float]]:
+    """Widths of the holes between wall pieces lying on one line (``along``: the axis they run on)."""
+    return {line: [hi - lo for lo, hi in holes] for line, holes in _holes(walls, along).items()}
 
 
 @pytest.mark.parametrize("radius", [R, 0.4])
@@ -159,6 +165,25 @@ def test_office_doorways_are_1_2_to_2_m_in_thin_walls() -> None:
                 on_axis = [b for b in thin if b.size[along] > b.size[1 - along]]
                 widths += [w for holes in _openings(on_axis, along).values() for w in holes]
     assert widths and min(widths) >= 1.2 - 2e-3 and max(widths) <= 2.0 + 2e-3
+
+
+def test_office_cabinets_leave_every_doorway_its_width() -> None:
+    """Cabinets stand along the walls but never in or before a doorway: at a doorway's centre and
+    half a metre either side of its wall, the nearest surface is its jambs (half its width away)."""
+    checked = 0
+    for seed in range(40):
+        world = generate_family_world("office", seed, 0.9)
+        thin = [o for o in world.obstacles if isinstance(o, Box) and min(o.size[:2]) == pytest.approx(0.1)]
+        for along in (0, 1):
+            on_axis = [b for b in thin if b.size[along] > b.size[1 - along]]
+            for line, holes in _holes(on_axis, along).items():
+                for lo, hi in holes:
+                    for offset in (-0.5, 0.0, 0.5):
+                        point = [0.0, 0.0, FLIGHT_ALTITUDE]
+                        point[along], point[1 - along] = (lo + hi) / 2, line + offset
+                        assert world.clearance(point) >= (hi - lo) / 2 - 2e-3, (world.name, line, lo)
+                    checked += 1
+    assert checked > 100
 
 
 def test_staggered_walls_force_a_zig_zag() -> None:
