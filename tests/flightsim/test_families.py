@@ -153,17 +153,24 @@ def test_narrow_gaps_are_as_narrow_as_specified(radius: float) -> None:
         assert shortest_safe_path(world, vehicle_radius=radius + 0.31) is None
 
 
+def _office_doorways(world: World) -> list[tuple[int, float, float, float]]:
+    """(along, line, from, to) of each hole in an office world's thin (0.1 m) walls: the walls
+    running along axis ``along`` on ``line``, open between ``from`` and ``to``."""
+    thin = [o for o in world.obstacles if isinstance(o, Box) and min(o.size[:2]) == pytest.approx(0.1)]
+    out = []
+    for along in (0, 1):
+        on_axis = [b for b in thin if b.size[along] > b.size[1 - along]]
+        out += [(along, line, lo, hi) for line, holes in _holes(on_axis, along).items() for lo, hi in holes]
+    return out
+
+
 def test_office_doorways_are_1_2_to_2_m_in_thin_walls() -> None:
-    widths = []
-    for seed in SEEDS:
-        for d in (0.0, 1.0):
-            world = generate_family_world("office", seed, d)
-            thin = [
-                o for o in world.obstacles if isinstance(o, Box) and min(o.size[:2]) == pytest.approx(0.1)
-            ]
-            for along in (0, 1):
-                on_axis = [b for b in thin if b.size[along] > b.size[1 - along]]
-                widths += [w for holes in _openings(on_axis, along).values() for w in holes]
+    widths = [
+        hi - lo
+        for seed in SEEDS
+        for d in (0.0, 1.0)
+        for _, _, lo, hi in _office_doorways(generate_family_world("office", seed, d))
+    ]
     assert widths and min(widths) >= 1.2 - 2e-3 and max(widths) <= 2.0 + 2e-3
 
 
@@ -173,16 +180,12 @@ def test_office_cabinets_leave_every_doorway_its_width() -> None:
     checked = 0
     for seed in range(40):
         world = generate_family_world("office", seed, 0.9)
-        thin = [o for o in world.obstacles if isinstance(o, Box) and min(o.size[:2]) == pytest.approx(0.1)]
-        for along in (0, 1):
-            on_axis = [b for b in thin if b.size[along] > b.size[1 - along]]
-            for line, holes in _holes(on_axis, along).items():
-                for lo, hi in holes:
-                    for offset in (-0.5, 0.0, 0.5):
-                        point = [0.0, 0.0, FLIGHT_ALTITUDE]
-                        point[along], point[1 - along] = (lo + hi) / 2, line + offset
-                        assert world.clearance(point) >= (hi - lo) / 2 - 2e-3, (world.name, line, lo)
-                    checked += 1
+        for along, line, lo, hi in _office_doorways(world):
+            for offset in (-0.5, 0.0, 0.5):
+                point = [0.0, 0.0, FLIGHT_ALTITUDE]
+                point[along], point[1 - along] = (lo + hi) / 2, line + offset
+                assert world.clearance(point) >= (hi - lo) / 2 - 2e-3, (world.name, line, lo)
+            checked += 1
     assert checked > 100
 
 
