@@ -82,6 +82,18 @@ def test_feasible_for_other_vehicle_sizes(family: str, radius: float) -> None:
         assert clearances(world, np.asarray([world.start_position, *world.waypoints])).min() >= radius
 
 
+@pytest.mark.parametrize("family", FAMILIES)
+def test_no_family_narrows_a_leg_below_the_narrowest_gap(family: str) -> None:
+    """The narrowest opening any world may have is the gaps family's at difficulty 1 (2 × radius +
+    0.6 m, 0.3 m clear each side): every leg keeps a way that wide. Checked with the planner at 5 cm
+    for a vehicle 0.25 m wider than the radius (half a cell less than the 0.3 m, for the grid)."""
+    assert gap_width(1.0, R) == pytest.approx(2 * R + 0.6)
+    for seed in SEEDS:
+        world = generate_family_world(family, seed, 1.0)
+        path = shortest_safe_path(world, vehicle_radius=R + 0.25, resolution=0.05)
+        assert path is not None, f"{world.name}: a leg narrower than {gap_width(1.0, R):.2f} m"
+
+
 def test_bad_arguments() -> None:
     with pytest.raises(ValueError, match="unknown world family 'cave'"):
         generate_family_world("cave", 0, 0.5)
