@@ -14,6 +14,9 @@ import sys
 
 from companion.errors import UserError
 
+#: every command line's log lines (the demo's flight processes set up the same)
+LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+
 
 def run_cli(
     prog: str, description: str, subcommands: dict[str, tuple[str, str]], argv: list[str] | None
@@ -36,7 +39,7 @@ def run_cli(
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
-        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        format=LOG_FORMAT,
     )
     try:
         return int(args._module.command(args))

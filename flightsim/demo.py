@@ -4,8 +4,11 @@ A few short SITL mission flights (:mod:`flightsim.harness`, as ``avoid-sim fly -
 generated worlds of different families and the example worlds shipped in ``flightsim/worlds/``,
 each with its waypoints uploaded as a mission through the ground-station link; the shipped policy,
 the simulated ArduCopter (or PX4), the real companion process flying the mission. A flight ends
-when the companion announces the mission complete, or at its time limit. Prints one table row per
-flight and where the top-down PNGs are.
+when the companion announces the mission complete, or at the goal task's time limit (the one
+``avoid-train evaluate`` judges success by), so a demo mission succeeds as an evaluation episode
+does. Flights run :data:`LANES` at a time, each in its own process, so that even with every flight
+timed out the demo ends within three minutes. Prints one table row per flight as it ends, then the
+table in the worlds' order and where the top-down PNGs are.
 """
 
 from __future__ import annotations
@@ -13,16 +16,23 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import multiprocessing
+import signal
 import time
+from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from importlib import resources
 from pathlib import Path
+from typing import Any
 
+from companion.cli import LOG_FORMAT
 from companion.errors import UserError
 from flightsim import seeds
+from flightsim.env import CONTROL_HZ
 from flightsim.families import generate_family_world
 from flightsim.flight_report import INTERRUPTED, FlightReport
 from flightsim.fly_cli import default_policy
 from flightsim.harness import FlightOptions, run_flight
+from flightsim.nav_env import NavEnvConfig, time_limit_steps
 from flightsim.planner import shortest_safe_path
 from flightsim.world import DEFAULT_VEHICLE_RADIUS, World, load_world
 
@@ -32,10 +42,9 @@ GENERATED = (
     ("office", seeds.TEST.start + 1, 0.3),
     ("pillars", seeds.TEST.start + 1, 0.3),
 )
-#: a flight's time limit without ``--duration``: this much, plus TIME_PER_M per metre of the
-#: world's shortest safe path (the slowest mission the 3-minute budget allows)
-TIME_SLACK_S = 6.0
-TIME_PER_M = 0.9
+#: flights flown at once, each in its own process: a flight takes about a third of one core (the
+#: simulated autopilot, the lidar packets and the companion), and this machine class has two
+LANES = 2
 
 
 def demo_worlds() -> list[World]:
@@ -50,20 +59,31 @@ def demo_worlds() -> list[World]:
 
 
 def time_limit(world: World) -> float:
-    """Seconds of companion flight a world's mission gets (from its shortest safe path)."""
+    """Seconds of companion flight a world's mission gets: the goal task's time limit
+    (:func:`flightsim.nav_env.time_limit_steps`, from the world's shortest safe path)."""
     length = world.shortest_path_m
     if length is None:
         path = shortest_safe_path(world, vehicle_radius=DEFAULT_VEHICLE_RADIUS)
         length = path.length if path is not None else 0.0
-    return TIME_SLACK_S + TIME_PER_M * float(length)
+    return time_limit_steps(float(length), NavEnvConfig()) / CONTROL_HZ
+
+
+def lane_schedule(durations: list[float], lanes: int = LANES) -> float:
+    """When the last of ``durations`` ends, each started in order on the first lane free (s): how
+    :class:`~concurrent.futures.ProcessPoolExecutor` hands out the flights."""
+    free = [0.0] * lanes
+    for duration in durations:
+        lane = free.index(min(free))
+        free[lane] += duration
+    return max(free, default=0.0)
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--policy", help="ONNX policy (default: the shipped models/policy.onnx)")
     parser.add_argument(
         "--duration", type=float, default=None,
-        help=f"seconds of companion flight per world at most (default: {TIME_SLACK_S:g} s + "
-        f"{TIME_PER_M:g} s per metre of the world's shortest safe path)",
+        help="seconds of companion flight per world at most (default: the goal task's time limit, "
+        "from the world's shortest safe path)",
     )
     parser.add_argument("--out", default="avoid-sim-demo", help="directory for PNGs, logs and summary.json")
     parser.add_argument(
@@ -90,17 +110,15 @@ def command(args: argparse.Namespace) -> int:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise UserError(f"--out {out}: {exc.strerror}") from None
-    if not getattr(args, "verbose", False):  # the table is the demo's output; -v shows every step
+    verbose = bool(getattr(args, "verbose", False))
+    if not verbose:  # the table is the demo's output; -v shows every step
         logging.getLogger("flightsim").setLevel(logging.WARNING)
-    from flightsim.vehicle import Vehicle
-
-    vehicle = Vehicle()  # one JSBSim load for all flights
     worlds = demo_worlds()
-    print(f"avoid-sim demo: {len(worlds)} mission flights, policy {policy}, {args.autopilot}")
+    lanes = f"{len(worlds)} mission flights, {LANES} at a time"
+    print(f"avoid-sim demo: {lanes}, policy {policy}, {args.autopilot}")
     start = time.monotonic()
-    reports: list[FlightReport] = []
-    for world in worlds:
-        options = FlightOptions(
+    flights = [
+        FlightOptions(
             autopilot=args.autopilot,
             world=world,
             policy=policy,
@@ -109,23 +127,92 @@ def command(args: argparse.Namespace) -> int:
             mission=True,
             ideal_response=args.ideal_response,
         )
-        try:
-            report = run_flight(options, plot=out / f"{world.name}.png", vehicle=vehicle)
-        except RuntimeError as exc:  # this flight could not start; try the others
-            report = FlightReport.failed(world.name, args.autopilot, str(exc))
-        reports.append(report)
-        print(_row(report), flush=True)
-        if report.error == INTERRUPTED:  # Ctrl-C: that flight was cleaned up; skip the rest
-            break
+        for world in worlds
+    ]
+    reports = _fly_all(flights, out, verbose)
     wall = time.monotonic() - start
     (out / "summary.json").write_text(
         json.dumps({"wall_time_s": round(wall, 1), "flights": [r.__dict__ for r in reports]}, indent=2)
     )
     print(_table(reports))
     print(f"wall time {wall:.0f} s; plots, companion logs and summary.json in {out.resolve()}")
-    if reports and reports[-1].error == INTERRUPTED:
+    if any(r.error == INTERRUPTED for r in reports):
         return 130
     return 0 if all(not r.error for r in reports) else 1
+
+
+def _fly_all(flights: list[FlightOptions], out: Path, verbose: bool) -> list[FlightReport]:
+    """Fly ``flights`` :data:`LANES` at a time; their reports in the same order. On Ctrl-C the
+    flights in the air end themselves (each process gets the signal and cleans up its flight),
+    those not started are cancelled and reported as interrupted."""
+    reports: dict[int, FlightReport] = {}
+    context = multiprocessing.get_context("spawn")  # no inherited threads; logging set up again
+    stop = context.Event()  # set on Ctrl-C: a flight already handed to a process does not start
+    with ProcessPoolExecutor(LANES, context, initializer=_start_worker, initargs=(verbose, stop)) as pool:
+        futures: dict[Future[FlightReport], int] = {
+            pool.submit(_fly, options, out / f"{options.world.name}.png"): i
+            for i, options in enumerate(flights)
+        }
+        try:
+            for future in as_completed(futures):
+                reports[futures[future]] = report = _result(future, flights[futures[future]])
+                print(_row(report), flush=True)
+        except KeyboardInterrupt:
+            stop.set()
+            for future in futures:
+                future.cancel()
+            for future, i in futures.items():
+                if i not in reports:
+                    reports[i] = _result(future, flights[i])
+    return [reports[i] for i in range(len(flights))]
+
+
+def _result(future: Future[FlightReport], options: FlightOptions) -> FlightReport:
+    """A flight's report; an interrupted one for a flight cancelled or whose process was lost."""
+    try:
+        return future.result()
+    except BaseException:  # cancelled, Ctrl-C outside the flight, or the worker process gone
+        return FlightReport.failed(options.world.name, options.autopilot, INTERRUPTED)
+
+
+_VEHICLE: Any = None  # a worker process's JSBSim vehicle, loaded once for all its flights
+_STOP: Any = None  # the demo's Ctrl-C event, shared by its worker processes
+
+
+def _start_worker(verbose: bool, stop: Any) -> None:
+    """A flight process: the demo's logging, its Ctrl-C event, and Ctrl-C ignored between flights
+    (see :func:`_fly`)."""
+    global _STOP
+    _STOP = stop
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, format=LOG_FORMAT)
+    if not verbose:
+        logging.getLogger("flightsim").setLevel(logging.WARNING)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _fly(options: FlightOptions, plot: Path) -> FlightReport:
+    """One flight in a worker process; Ctrl-C during it ends it as ``avoid-sim fly`` does, and one
+    before it (the pool hands a process its next flight early) keeps it on the ground."""
+    global _VEHICLE
+    interrupted = FlightReport.failed(options.world.name, options.autopilot, INTERRUPTED)
+    if _STOP.is_set():
+        return interrupted
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        if _VEHICLE is None:
+            from flightsim.vehicle import Vehicle
+
+            _VEHICLE = Vehicle()
+        report = run_flight(options, plot=plot, vehicle=_VEHICLE)
+    except RuntimeError as exc:  # this flight could not start; the others go on
+        report = FlightReport.failed(options.world.name, options.autopilot, str(exc))
+    except KeyboardInterrupt:  # before the flight's own handling took over
+        report = interrupted
+    finally:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if report.error == INTERRUPTED:  # before this process takes its next flight, whatever the demo does
+        _STOP.set()
+    return report
 
 
 HEADER = (

@@ -1,14 +1,25 @@
-"""``avoid-sim demo``: which worlds it flies and how it rejects bad command lines."""
+"""``avoid-sim demo``: which worlds it flies, for how long, how it rejects bad command lines, and
+that Ctrl-C ends every flight it has in the air (the real command, SIGINT to its process group)."""
 
 from __future__ import annotations
 
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
 
 from flightsim.__main__ import main
-from flightsim.demo import GENERATED, demo_worlds, time_limit
+from flightsim.demo import GENERATED, LANES, demo_worlds, lane_schedule, time_limit
+from flightsim.env import CONTROL_HZ
 from flightsim.fly_cli import default_policy
+from flightsim.nav_env import LidarNavEnv
+
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_demo_flies_missions_in_generated_worlds_of_different_families_then_every_example_world() -> None:
@@ -22,12 +33,27 @@ def test_demo_flies_missions_in_generated_worlds_of_different_families_then_ever
     assert all(w.waypoints for w in worlds)  # every flight is a mission
 
 
+def test_a_demo_mission_gets_the_time_an_evaluation_episode_of_its_world_gets() -> None:
+    """The demo judges a mission as ``avoid-train evaluate`` judges an episode: the same time limit
+    (the environment's, from the world's shortest safe path)."""
+    env = LidarNavEnv()
+    for world in demo_worlds():
+        env.reset(seed=0, options={"world": world})
+        assert time_limit(world) == pytest.approx(env.time_limit_steps / CONTROL_HZ), world.name
+
+
+def test_lanes_take_the_flights_in_order_each_on_the_first_lane_free() -> None:
+    assert lane_schedule([50.0, 40.0, 30.0, 20.0], lanes=2) == 70.0  # 50 | 40+30, then 50+20
+    assert lane_schedule([10.0, 10.0, 10.0], lanes=1) == 30.0
+    assert lane_schedule([], lanes=2) == 0.0
+
+
 def test_demo_time_limits_leave_room_for_start_up_within_three_minutes() -> None:
     """Every flight timed out, the demo still ends within 3 min: 9 s each for start-up, take-off,
     engaging and the report (measured with every flight timed out, load average 17 on 2 cores)
-    beside the flights' time limits."""
+    beside the flights' time limits, the flights :data:`LANES` at a time."""
     worlds = demo_worlds()
-    assert sum(time_limit(w) for w in worlds) + 9.0 * len(worlds) <= 170.0
+    assert lane_schedule([time_limit(w) + 9.0 for w in worlds], LANES) <= 170.0
 
 
 def test_the_shipped_policy_is_the_demo_default() -> None:
@@ -47,3 +73,53 @@ def test_bad_demo_command_line_is_one_line_and_exit_2(
     assert main([*argv, "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err.strip()
     assert err == f"avoid-sim: error: {message}"
+
+
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)  # background jobs start with SIGINT ignored
+
+
+def test_ctrl_c_ends_the_flights_in_the_air_and_cancels_the_rest(tmp_path: Path) -> None:
+    out = tmp_path / "demo"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "flightsim", "demo", "--out", str(out)],
+        cwd=REPO,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=_default_sigint,
+        start_new_session=True,
+    )  # fmt: skip
+    deadline = time.monotonic() + 120
+    while proc.poll() is None and time.monotonic() < deadline:
+        logs = [log for log in out.glob("*/companion.log") if "companion running" in log.read_text()]
+        if len(logs) == LANES:  # a flight in every lane
+            break
+        time.sleep(0.2)
+    assert proc.poll() is None, proc.communicate()
+    time.sleep(2.0)  # taking off
+    os.killpg(proc.pid, signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 130, stdout + stderr
+    assert "Traceback" not in stdout + stderr
+    flights = json.loads((out / "summary.json").read_text())["flights"]
+    assert [f["world"] for f in flights] == [w.name for w in demo_worlds()]
+    assert all(f["error"] == "interrupted" for f in flights), [f["error"] for f in flights]
+    assert sum(f["engaged"] for f in flights) <= LANES  # no flight started after the Ctrl-C
+    assert _running_in_group(proc.pid) == []  # nothing of the demo is left running
+
+
+def _running_in_group(pgid: int) -> list[str]:
+    """Processes of group ``pgid`` still running (zombies left to an init that does not reap, as in
+    a container, have ended): their command names."""
+    running = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            text = stat.read_text()
+        except OSError:  # ended while listed
+            continue
+        name, rest = text[text.index("(") + 1 : text.rindex(")")], text[text.rindex(")") + 2 :].split()
+        if int(rest[2]) == pgid and rest[0] not in "ZX":
+            running.append(name)
+    return running
