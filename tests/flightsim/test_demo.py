@@ -4,11 +4,6 @@ that Ctrl-C ends every flight it has in the air (the real command, SIGINT to its
 from __future__ import annotations
 
 import json
-import os
-import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -18,8 +13,7 @@ from flightsim.demo import GENERATED, LANES, demo_worlds, lane_schedule, time_li
 from flightsim.env import CONTROL_HZ
 from flightsim.fly_cli import default_policy
 from flightsim.nav_env import LidarNavEnv
-
-REPO = Path(__file__).resolve().parents[2]
+from tests.foreground import ctrl_c_once_flying, running_in_group, start_foreground
 
 
 def test_demo_flies_missions_in_generated_worlds_of_different_families_then_every_example_world() -> None:
@@ -75,51 +69,16 @@ def test_bad_demo_command_line_is_one_line_and_exit_2(
     assert err == f"avoid-sim: error: {message}"
 
 
-def _default_sigint() -> None:
-    signal.signal(signal.SIGINT, signal.SIG_DFL)  # background jobs start with SIGINT ignored
-
 
 def test_ctrl_c_ends_the_flights_in_the_air_and_cancels_the_rest(tmp_path: Path) -> None:
     out = tmp_path / "demo"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "flightsim", "demo", "--out", str(out)],
-        cwd=REPO,
-        env={**os.environ, "PYTHONPATH": str(REPO)},
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        preexec_fn=_default_sigint,
-        start_new_session=True,
-    )  # fmt: skip
-    deadline = time.monotonic() + 120
-    while proc.poll() is None and time.monotonic() < deadline:
-        logs = [log for log in out.glob("*/companion.log") if "companion running" in log.read_text()]
-        if len(logs) == LANES:  # a flight in every lane
-            break
-        time.sleep(0.2)
-    assert proc.poll() is None, proc.communicate()
-    time.sleep(2.0)  # taking off
-    os.killpg(proc.pid, signal.SIGINT)
-    stdout, stderr = proc.communicate(timeout=60)
+    proc = start_foreground("flightsim", "demo", "--out", str(out))
+    stdout, stderr = ctrl_c_once_flying(proc, out, flights=LANES)  # a flight in every lane
     assert proc.returncode == 130, stdout + stderr
     assert "Traceback" not in stdout + stderr
     flights = json.loads((out / "summary.json").read_text())["flights"]
     assert [f["world"] for f in flights] == [w.name for w in demo_worlds()]
     assert all(f["error"] == "interrupted" for f in flights), [f["error"] for f in flights]
     assert sum(f["engaged"] for f in flights) <= LANES  # no flight started after the Ctrl-C
-    assert _running_in_group(proc.pid) == []  # nothing of the demo is left running
+    assert running_in_group(proc.pid) == []  # nothing of the demo is left running
 
-
-def _running_in_group(pgid: int) -> list[str]:
-    """Processes of group ``pgid`` still running (zombies left to an init that does not reap, as in
-    a container, have ended): their command names."""
-    running = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            text = stat.read_text()
-        except OSError:  # ended while listed
-            continue
-        name, rest = text[text.index("(") + 1 : text.rindex(")")], text[text.rindex(")") + 2 :].split()
-        if int(rest[2]) == pgid and rest[0] not in "ZX":
-            running.append(name)
-    return running

@@ -7,17 +7,13 @@ sends SIGINT to the whole process group, as a terminal does.
 from __future__ import annotations
 
 import json
-import os
-import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
 from flightsim.demo import _row
 from flightsim.flight_report import FlightReport, print_report
+from tests.foreground import ctrl_c_once_flying, start_foreground
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -33,32 +29,10 @@ def test_a_flight_that_measured_nothing_says_n_a(capsys):
     assert "n/a" in _row(report) and "-1" not in _row(report)
 
 
-def _default_sigint() -> None:
-    signal.signal(signal.SIGINT, signal.SIG_DFL)  # background jobs start with SIGINT ignored
-
-
 def test_ctrl_c_during_a_flight_exits_130(tmp_path):
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "flightsim", "fly", "--seed", "3", "--duration", "60", "--lidar-step", "1.0",
-         "--workdir", str(tmp_path)],
-        cwd=REPO,
-        env={**os.environ, "PYTHONPATH": str(REPO)},
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        preexec_fn=_default_sigint,
-        start_new_session=True,
-    )  # fmt: skip
-    log = tmp_path / "companion.log"
-    deadline = time.monotonic() + 90
-    while proc.poll() is None and time.monotonic() < deadline:
-        if log.is_file() and "companion running" in log.read_text():
-            break
-        time.sleep(0.2)
-    assert proc.poll() is None, proc.communicate()
-    time.sleep(2.0)  # taking off
-    os.killpg(proc.pid, signal.SIGINT)
-    out, err = proc.communicate(timeout=60)
+    fly = ("fly", "--seed", "3", "--duration", "60", "--lidar-step", "1.0", "--workdir", str(tmp_path))
+    proc = start_foreground("flightsim", *fly)
+    out, err = ctrl_c_once_flying(proc, tmp_path)
     assert proc.returncode == 130, out + err
     assert "Traceback" not in out + err
     assert "error: interrupted" in out

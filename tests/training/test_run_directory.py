@@ -18,6 +18,7 @@ from pathlib import Path
 import pytest
 
 from companion.errors import UserError
+from tests.foreground import start_foreground
 from training.__main__ import main
 from training.train import EVAL_FIELDS, checkpoint_steps, truncate_eval_log, write_eval_log
 
@@ -56,22 +57,8 @@ def _row(steps: int, success: float, difficulty: float = 0.5) -> dict[str, float
     return dict(zip(EVAL_FIELDS, (steps, steps / 10, difficulty, success, 1.0, 0, 4), strict=True))
 
 
-def _child_with_default_sigint() -> None:
-    # a shell's background jobs start with SIGINT ignored, and children inherit it: undo that
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-
-
 def _start_training(config: Path, runs: Path, *extra: str) -> subprocess.Popen:
-    return subprocess.Popen(
-        [sys.executable, "-m", "training", "train", "--config", str(config), f"run_root={runs}", *extra],
-        cwd=REPO,
-        env={**os.environ, "PYTHONPATH": str(REPO)},
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        preexec_fn=_child_with_default_sigint,
-        start_new_session=True,  # its own process group, like a terminal's foreground job
-    )
+    return start_foreground("training", "train", "--config", str(config), f"run_root={runs}", *extra)
 
 
 def test_ctrl_c_saves_interrupted_zip_exits_130_in_one_line_and_resume_continues(tmp_path):
