@@ -19,7 +19,8 @@ import logging
 import multiprocessing
 import signal
 import time
-from concurrent.futures import Future, ProcessPoolExecutor, as_completed
+from concurrent.futures import CancelledError, Future, ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -168,11 +169,14 @@ def _fly_all(flights: list[FlightOptions], out: Path, verbose: bool) -> list[Fli
 
 
 def _result(future: Future[FlightReport], options: FlightOptions) -> FlightReport:
-    """A flight's report; an interrupted one for a flight cancelled or whose process was lost."""
+    """A flight's report, or the report of one cancelled by Ctrl-C or whose process died (any
+    other error in a flight process is raised here, as it would be flying in this one)."""
     try:
         return future.result()
-    except BaseException:  # cancelled, Ctrl-C outside the flight, or the worker process gone
+    except CancelledError:
         return FlightReport.failed(options.world.name, options.autopilot, INTERRUPTED)
+    except BrokenProcessPool as exc:
+        return FlightReport.failed(options.world.name, options.autopilot, f"its process died ({exc})")
 
 
 _VEHICLE: Any = None  # a worker process's JSBSim vehicle, loaded once for all its flights

@@ -4,14 +4,19 @@ that Ctrl-C ends every flight it has in the air (the real command, SIGINT to its
 from __future__ import annotations
 
 import json
+from concurrent.futures import Future
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
 import pytest
 
+from companion.errors import UserError
 from flightsim.__main__ import main
-from flightsim.demo import GENERATED, LANES, demo_worlds, lane_schedule, time_limit
+from flightsim.demo import GENERATED, LANES, _result, demo_worlds, lane_schedule, time_limit
 from flightsim.env import CONTROL_HZ
+from flightsim.flight_report import FlightReport
 from flightsim.fly_cli import default_policy
+from flightsim.harness import FlightOptions
 from flightsim.nav_env import LidarNavEnv
 from tests.foreground import ctrl_c_once_flying, running_in_group, start_foreground
 
@@ -68,6 +73,20 @@ def test_bad_demo_command_line_is_one_line_and_exit_2(
     err = capsys.readouterr().err.strip()
     assert err == f"avoid-sim: error: {message}"
 
+
+
+def test_a_flight_cancelled_is_interrupted_one_whose_process_died_says_so_any_other_error_is_raised() -> None:
+    options = FlightOptions(autopilot="sim-ardupilot", world=demo_worlds()[-1], policy=default_policy())
+    cancelled: Future[FlightReport] = Future()
+    cancelled.cancel()
+    assert _result(cancelled, options).error == "interrupted"
+    died: Future[FlightReport] = Future()
+    died.set_exception(BrokenProcessPool("a process terminated abruptly"))
+    assert _result(died, options).error.startswith("its process died")
+    failed: Future[FlightReport] = Future()
+    failed.set_exception(UserError("policy file not found: x.onnx"))
+    with pytest.raises(UserError, match="policy file not found"):
+        _result(failed, options)
 
 
 def test_ctrl_c_ends_the_flights_in_the_air_and_cancels_the_rest(tmp_path: Path) -> None:
