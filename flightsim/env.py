@@ -120,7 +120,7 @@ class StepCommand:
     overspeed: float
 
 
-def _clip_unit(v: float) -> float:
+def clip_unit(v: float) -> float:
     """Clip to [-1, 1]; NaN becomes 0 (a broken policy output must not become a command)."""
     return 0.0 if v != v else min(1.0, max(-1.0, v))
 
@@ -289,7 +289,7 @@ class LidarAvoidEnv(gym.Env):
         if self.world is None:
             raise RuntimeError("call reset() before step()")
         v0, v1 = np.asarray(action, dtype=np.float32).reshape(2).tolist()
-        a0, a1 = _clip_unit(v0), _clip_unit(v1)
+        a0, a1 = clip_unit(v0), clip_unit(v1)
         cfg = self.config
         seen = self._previous_scan if cfg.latency_scans else self._scan
         # as in flight: the shield also watches the velocity the autopilot measures (read only when used)
