@@ -43,9 +43,10 @@ class Command:
 
     :param forward: body x velocity, m/s (negative = backwards)
     :param yaw_rate: rad/s, FLU: counter-clockwise (to the left) positive
-    :param lateral: body y velocity, m/s, left positive. The policy never asks for one; only the
-        shield's active brake sets it, against a measured sideways slide the autopilot would
-        otherwise let creep on (PX4 SIH: 0.3-0.45 m/s for seconds after a zero setpoint)
+    :param lateral: body y velocity, m/s, left positive. A policy with a sideways action asks for
+        one (the shield then judges the command with its course as the nose); the shield's active
+        brake sets one against a measured sideways slide the autopilot would otherwise let creep
+        on (PX4 SIH: 0.3-0.45 m/s for seconds after a zero setpoint)
     """
 
     forward: float
@@ -267,6 +268,20 @@ def command_from_action(action: np.ndarray, max_speed: float, max_yaw_rate: floa
     return Command(forward=float(a[0]) * max_speed, yaw_rate=float(a[1]) * max_yaw_rate)
 
 
+def _turned(command: Command, angle: float) -> Command:
+    """``command`` with its (forward, lateral) velocity turned by ``angle`` rad counter-clockwise."""
+    forward, lateral = _turned_pair((command.forward, command.lateral), angle)
+    return Command(forward, command.yaw_rate, lateral)
+
+
+def _turned_pair(vector: tuple[float, float] | None, angle: float) -> tuple[float, float] | None:
+    """A (forward, left) vector turned by ``angle`` rad counter-clockwise (None stays None)."""
+    if vector is None:
+        return None
+    c, s = math.cos(angle), math.sin(angle)
+    return c * vector[0] - s * vector[1], s * vector[0] + c * vector[1]
+
+
 def _finite_scan(scan: np.ndarray) -> tuple[np.ndarray, bool]:
     """``scan`` as ``(360,)`` float64 with NaN/−inf as 0 (unknown = blocked) and +inf as 1.0, and
     whether anything had to be replaced.
@@ -382,6 +397,11 @@ class SafetyShield:
     ) -> Command:
         """Return the command that is safe to send.
 
+        A command with a sideways part is judged with its course as the nose: the scan, the
+        velocity, the drift and the previous command are turned (to the whole degree) so that the
+        course is straight ahead, the speed along it is filtered as a forward command would be, and
+        the result is turned back. Every limit then holds along the way the vehicle is asked to go.
+
         :param requested: what the policy asked for
         :param scan: ``(360,)`` normalised ranges, bins counter-clockwise from forward
         :param dt: seconds since the previous command (for the acceleration limits); a
@@ -392,6 +412,30 @@ class SafetyShield:
             forward and left), m/s, carried by the setpoint while the brake or the keep-out acts
             (``drift_compensation``); None or not finite: none
         """
+        forward, left = float(requested.forward), float(requested.lateral)
+        if not math.isfinite(left):
+            left = forward = math.nan  # counted and zeroed as a non-finite forward command is
+        if left == 0.0 or not math.isfinite(forward):
+            return self._filter_along_nose(Command(forward, requested.yaw_rate), scan, dt, velocity, drift)
+        shift = round(math.degrees(math.atan2(left, forward))) % N_BINS
+        course = math.radians(shift)
+        self._previous = _turned(self._previous, -course)
+        along = self._filter_along_nose(
+            Command(math.hypot(forward, left), requested.yaw_rate), np.roll(np.asarray(scan), -shift), dt,
+            _turned_pair(velocity, -course), _turned_pair(drift, -course),
+        )  # fmt: skip
+        self._previous = out = _turned(along, course)
+        return out
+
+    def _filter_along_nose(
+        self,
+        requested: Command,
+        scan: np.ndarray,
+        dt: float,
+        velocity: tuple[float, float] | None,
+        drift: tuple[float, float] | None,
+    ) -> Command:
+        """:meth:`filter` for a command without a sideways part (its ``lateral`` is not read)."""
         cfg = self.config
         count = self.interventions
         forward, yaw_rate = float(requested.forward), float(requested.yaw_rate)
