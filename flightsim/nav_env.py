@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
@@ -69,7 +69,8 @@ class NavEnvConfig(EnvConfig):
     :param sideways: the action has a third component, a sideways speed (left positive) in units
         of ``max_sideways_speed``: a multirotor need not turn its nose to move sideways, and a
         teacher that must corrects every sideways error by turning (docs/goal-policy.md). The
-        shield does not judge a sideways command yet, so not with ``shield``
+        shield judges such a command along its course; ``overspeed_penalty`` charges the forward
+        part only
     :param max_sideways_speed: m/s that a sideways action of 1 stands for
     """
 
@@ -95,8 +96,6 @@ class NavEnvConfig(EnvConfig):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if self.sideways and (self.shield or self.overspeed_penalty > 0.0):
-            raise ValueError("sideways: the shield does not judge a sideways command yet (shield, overspeed)")
         unknown = [f for f in self.families if f not in FAMILIES]
         if unknown or not self.families:
             raise ValueError(f"families: {unknown or 'none'} not among {', '.join(FAMILIES)}")
@@ -255,15 +254,12 @@ class LidarNavEnv(LidarAvoidEnv):
             self._route.reset()
         return self._frame(scan, info["measured_velocity_body"]), self._nav_info(info)
 
-    def _command(self, action: np.ndarray) -> StepCommand:
-        """As the base env's, and with ``sideways`` the action's third component flown as a speed to
-        the left on top of what the base env commands sideways (the drift hold)."""
+    def _split_action(self, action: np.ndarray) -> tuple[float, float, float]:
+        """As the base env's; with ``sideways`` the third component is a speed to the left."""
         if not self.config.sideways:
-            return super()._command(action)
-        values = np.asarray(action, dtype=np.float32).reshape(3)
-        command = super()._command(values[:2])
-        left = clip_unit(float(values[2])) * self.config.max_sideways_speed
-        return replace(command, lateral=command.lateral + left)
+            return super()._split_action(action)
+        v0, v1, v2 = np.asarray(action, dtype=np.float32).reshape(3).tolist()
+        return clip_unit(v0), clip_unit(v1), clip_unit(v2) * self.config.max_sideways_speed
 
     def _conclude(self, command: StepCommand, scan: np.ndarray):
         scan, reward, collided, truncated, info = super()._conclude(command, scan)

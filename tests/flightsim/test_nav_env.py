@@ -396,5 +396,20 @@ def test_a_sideways_action_flies_left_and_passes_both_checkers() -> None:
     sb3_check_env(env, warn=True)
     env.close()
     plain.close()
-    with pytest.raises(ValueError, match="the shield does not judge a sideways command yet"):
-        NavEnvConfig(sideways=True, shield=True)
+
+
+@pytest.mark.parametrize("shield", [False, True])
+def test_a_sideways_action_towards_a_wall_is_stopped_by_the_shield(shield: bool) -> None:
+    """Full speed to the left in HALL (the wall 3 m to the left): alone the vehicle strikes the
+    wall; behind the env's shield, which judges the command along its course, it stops short."""
+    env = LidarNavEnv(NavEnvConfig(autopilot_response="ideal", sideways=True, shield=shield))
+    env.reset(seed=0, options={"world": HALL})
+    terminated = False
+    for _ in range(80):
+        _, _, terminated, _, info = env.step(np.array([0.0, 0.0, 1.0], np.float32))
+        if terminated:
+            break
+    assert terminated == (not shield) and info["collision"] == (not shield)
+    if shield:
+        assert 1.0 < env.true_state.position[1] < 3.0 - env.config.vehicle_radius
+    env.close()
