@@ -255,17 +255,23 @@ def stopping_speed(distance: float, max_decel: float, reaction_time: float) -> f
     return -at + math.sqrt(at * at + 2.0 * max_decel * d)
 
 
-def command_from_action(action: np.ndarray, max_speed: float, max_yaw_rate: float) -> Command:
-    """Scale a policy action ``a ∈ [−1, 1]²`` to a command, as training did.
+def command_from_action(
+    action: np.ndarray, max_speed: float, max_yaw_rate: float, max_sideways_speed: float = 0.0
+) -> Command:
+    """Scale a policy action ``a ∈ [−1, 1]²`` (or ``[−1, 1]³``) to a command, as training did.
 
-    :param action: ``(2,)``: a0 forward speed, a1 yaw rate (counter-clockwise positive)
+    :param action: ``(2,)``: a0 forward speed, a1 yaw rate (counter-clockwise positive); ``(3,)``
+        with ``max_sideways_speed``: a2 speed to the left
     :param max_speed: m/s that a0 = 1 stands for (the model's training value)
     :param max_yaw_rate: rad/s that a1 = 1 stands for (the model's training value)
+    :param max_sideways_speed: m/s that a2 = 1 stands for; 0: the action has no a2
     """
     a = np.asarray(action, dtype=np.float64).reshape(-1)
-    if a.shape[0] != 2:
-        raise ValueError(f"action must have 2 values, got {a.shape[0]}")
-    return Command(forward=float(a[0]) * max_speed, yaw_rate=float(a[1]) * max_yaw_rate)
+    size = 3 if max_sideways_speed > 0.0 else 2
+    if a.shape[0] != size:
+        raise ValueError(f"action must have {size} values, got {a.shape[0]}")
+    lateral = float(a[2]) * max_sideways_speed if size == 3 else 0.0
+    return Command(forward=float(a[0]) * max_speed, yaw_rate=float(a[1]) * max_yaw_rate, lateral=lateral)
 
 
 def _turned(command: Command, angle: float) -> Command:
