@@ -173,3 +173,40 @@ def test_the_smooth_teacher_snakes_less_and_still_gets_through():
         assert smooth_info["success"] and robust_info["success"], response
         robust, smooth = robust + rough, smooth + gentle
     assert smooth < 0.9 * robust, (smooth, robust)
+
+
+@pytest.mark.parametrize("response", ["px4", "ardupilot"])
+def test_with_a_sideways_action_every_command_is_predicted_to_stop_clear_and_it_flies_the_gap(response):
+    """With the env's ``sideways`` the robust teacher's candidates carry a sideways part: each
+    command it flies at the wall keeps the radius and the margin over its predicted stop (the
+    prediction reading the third column), it flies sideways somewhere, and it reaches the goal
+    through the corridor's gap."""
+    config = NavEnvConfig(autopilot_response=response, vehicle_radius=RADIUS, sideways=True)
+    env = LidarNavEnv(config)
+    env.reset(seed=0, options={"world": wall_ahead()})
+    expert = robust_expert(env)
+    scale = np.array([config.max_speed, config.max_yaw_rate, config.max_sideways_speed])
+    action, closest = expert.reset(), np.inf
+    for _ in range(80):
+        assert action.shape == (3,)
+        state = env.true_state
+        path = env.response.predict(float(state.yaw), (action * scale)[None], 10, 35)[0]
+        points = np.column_stack([path[:, :2] + state.position[:2], np.full(len(path), 1.5)])
+        if action[0] > 0.0:
+            assert clearances(env.world, points).min() > RADIUS + expert.config.margin - 0.1
+        _, _, terminated, truncated, info = env.step(action)
+        closest = min(closest, info["min_distance"])
+        if terminated or truncated:
+            break
+        action = expert.act()
+    assert closest > RADIUS
+    env.reset(seed=0, options={"world": corridor(width=1.4)})
+    expert = robust_expert(env)
+    actions = [expert.reset()]
+    while True:
+        _, _, terminated, truncated, info = env.step(actions[-1])
+        if terminated or truncated:
+            break
+        actions.append(expert.act())
+    assert info["success"], info
+    assert np.abs(np.array(actions)[:, 2]).max() > 0.3
