@@ -140,3 +140,18 @@ def test_a_stopped_dagger_run_resumes_after_its_last_iteration_on_its_labels(tmp
     assert capsys.readouterr().err.strip().endswith(
         "dagger_600_steps.zip has 3 DAgger iterations, pretrain.iterations is 3: raise it to go on"
     )
+
+
+def test_with_a_sideways_action_the_student_learns_all_three_parts(tmp_path):
+    """``env.sideways``: the teacher's labels have a sideways part, the student's action space
+    three parts, and the fit brings the student close to all of them."""
+    with dagger_run(tmp_path, "env.sideways=true") as (config, venv, model):
+        assert venv.action_space.shape == (3,) and model.action_space.shape == (3,)
+        data = dagger.run(
+            venv, model, iterations=1, steps=400, beta0=1.0, epochs=30, batch_size=64,
+            learning_rate=1e-3, seed=0,
+        )  # fmt: skip
+        assert data.actions.shape == (400, 3) and np.abs(data.actions[:, 2]).max() > 0.2
+        predicted, _ = model.predict(data.obs, deterministic=True)
+        untrained, _ = build_model(config, venv, tmp_path, None).predict(data.obs, deterministic=True)
+        assert np.mean((predicted - data.actions) ** 2) < 0.25 * np.mean((untrained - data.actions) ** 2)
