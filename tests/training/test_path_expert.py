@@ -48,12 +48,17 @@ def env_for(world: World, response: str = "ideal") -> LidarNavEnv:
 
 
 def fly(env: LidarNavEnv, expert: Any) -> dict:
-    action = expert.reset()
+    return fly_recording(env, expert)[0]
+
+
+def fly_recording(env: LidarNavEnv, expert: Any) -> tuple[dict, np.ndarray]:
+    """Fly ``expert`` to the episode's end: the last step's info and every action it chose."""
+    actions = [expert.reset()]
     while True:
-        _, _, terminated, truncated, info = env.step(action)
+        _, _, terminated, truncated, info = env.step(actions[-1])
         if terminated or truncated:
-            return info
-        action = expert.act()
+            return info, np.array(actions)
+        actions.append(expert.act())
 
 
 def test_the_path_goes_through_the_gap_and_prefers_its_middle():
@@ -179,15 +184,9 @@ def test_with_a_sideways_action_it_flies_the_gap_sooner_and_its_nose_swings_less
     for sideways in (False, True):
         env = LidarNavEnv(NavEnvConfig(autopilot_response=response, vehicle_radius=RADIUS, sideways=sideways))
         env.reset(seed=0, options={"world": corridor(width=1.4)})
-        expert = PathExpert(env)
-        actions = [expert.reset()]
-        while True:
-            _, _, terminated, truncated, info = env.step(actions[-1])
-            if terminated or truncated:
-                break
-            actions.append(expert.act())
+        info, actions = fly_recording(env, PathExpert(env))
         assert info["success"], (sideways, info)
-        flights[sideways] = (info["steps"], np.array(actions))
+        flights[sideways] = (info["steps"], actions)
     (nose_steps, nose), (side_steps, side) = flights[False], flights[True]
     assert side.shape[1] == 3 and np.abs(side[:, 2]).max() > 0.5
     assert side_steps < nose_steps
