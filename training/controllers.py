@@ -262,6 +262,7 @@ def load_policy(
             bin_convention=BIN_CONVENTION,
             max_speed=float(env_config.max_speed),
             max_yaw_rate=float(env_config.max_yaw_rate),
+            max_sideways_speed=sideways_scale(env_config),
             layout=observation_layout(env_config),
         )
         try:
