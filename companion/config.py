@@ -122,6 +122,9 @@ class PolicyConfig:
     :param stack: scans per observation (the training frame stack)
     :param max_speed: forward speed that action 1.0 stands for, m/s (as in training)
     :param max_yaw_rate: yaw rate that action 1.0 stands for, rad/s (as in training)
+    :param max_sideways_speed: speed to the left that a third action value of 1.0 stands for, m/s:
+        a model trained with ``env.sideways = true`` has one; 0 (default): the action is forward and
+        yaw rate only. The metadata says which
     :param observation: the frame the model was trained on: ``goal`` (LidarNav-v0: the scan, the
         goal's bearing and distance, the measured body velocity / ``max_speed``) or ``scan``
         (LidarAvoid-v0: the scan alone); the model's metadata must say the same
@@ -148,6 +151,7 @@ class PolicyConfig:
     stack: int = field(default=4, metadata={"min": 1, "max": 64})
     max_speed: float = field(default=2.0, metadata={"min": 0.01, "max": 20.0})
     max_yaw_rate: float = field(default=1.5, metadata={"min": 0.01, "max": 6.0})
+    max_sideways_speed: float = field(default=0.0, metadata={"min": 0.0, "max": 5.0})
     observation: Literal["goal", "scan"] = "goal"
     goal_range: float = field(default=30.0, metadata={"min": 1.0, "max": 100.0})
     drift: bool = True

@@ -37,11 +37,14 @@ METADATA_KEYS: dict[str, str] = {
     PREFIX + "bin_convention": "bin order, companion.scan.BIN_CONVENTION",
     PREFIX + "max_speed": "m/s that action a0 = 1 stands for",
     PREFIX + "max_yaw_rate": "rad/s that action a1 = 1 stands for (counter-clockwise positive)",
+    PREFIX + "max_sideways_speed": "m/s that action a2 = 1 stands for (to the left); 0: no a2",
     PREFIX + "config": "the training configuration, JSON (informational)",
     PREFIX + "obs_layout": "one frame's layout, companion.observation.ObservationLayout.name",
 }
 #: a model exported before ``obs_layout`` existed was trained on scans only
 LEGACY_LAYOUT = ObservationLayout().name
+#: keys a model exported before them lacks, and what such a model was trained with
+LEGACY_VALUES = {PREFIX + "obs_layout": LEGACY_LAYOUT, PREFIX + "max_sideways_speed": "0.0"}
 
 #: A policy is a small MLP (under 1 MB); a model file larger than this is not one.
 MAX_MODEL_BYTES = 256 << 20
@@ -57,6 +60,7 @@ _CONFIG_KEYS = {
     "bin_convention": "scan bin convention",
     "max_speed": "policy.max_speed",
     "max_yaw_rate": "policy.max_yaw_rate",
+    "max_sideways_speed": "policy.max_sideways_speed",
     "obs_layout": "observation layout",
 }
 
@@ -71,6 +75,8 @@ class PolicySpec:
     :param bin_convention: bin order (:data:`companion.scan.BIN_CONVENTION`)
     :param max_speed: m/s that a0 = 1 stands for
     :param max_yaw_rate: rad/s that a1 = 1 stands for
+    :param max_sideways_speed: m/s that a2 = 1 stands for, a speed to the left (0: the action has
+        no a2, as a model trained without ``env.sideways``)
     :param layout: one frame of the observation (scan only, or scan + goal + velocity)
     """
 
@@ -80,6 +86,7 @@ class PolicySpec:
     bin_convention: str = BIN_CONVENTION
     max_speed: float = 2.0
     max_yaw_rate: float = 1.5
+    max_sideways_speed: float = 0.0
     layout: ObservationLayout = ObservationLayout()
 
     def __post_init__(self) -> None:
@@ -89,6 +96,11 @@ class PolicySpec:
     @property
     def obs_size(self) -> int:
         return self.stack * self.layout.frame_size
+
+    @property
+    def action_size(self) -> int:
+        """Values per action: forward and yaw rate, and a sideways speed when the model has one."""
+        return 3 if self.max_sideways_speed > 0.0 else 2
 
 
 class InferenceFault(Exception):
@@ -111,6 +123,7 @@ def policy_metadata(spec: PolicySpec, config_json: str) -> dict[str, str]:
         PREFIX + "bin_convention": spec.bin_convention,
         PREFIX + "max_speed": repr(float(spec.max_speed)),
         PREFIX + "max_yaw_rate": repr(float(spec.max_yaw_rate)),
+        PREFIX + "max_sideways_speed": repr(float(spec.max_sideways_speed)),
         PREFIX + "config": config_json,
         PREFIX + "obs_layout": spec.layout.name,
     }
@@ -224,8 +237,9 @@ class OnnxPolicy:
         """One action for one stacked observation.
 
         :param obs: ``(stack × frame size,)`` float32, oldest frame first
-        :return: ``(2,)`` float32 in ``[-1, 1]``: a0 forward, a1 yaw rate (counter-clockwise positive)
-        :raises InferenceFault: inference raised, or its output was not 2 finite numbers
+        :return: ``(2,)`` float32 in ``[-1, 1]``: a0 forward, a1 yaw rate (counter-clockwise positive);
+            ``(3,)`` when the spec has a sideways speed: a2 to the left
+        :raises InferenceFault: inference raised, or its output was not ``action_size`` finite numbers
         """
         x = np.asarray(obs, dtype=np.float32).reshape(1, -1)
         if x.shape[1] != self.spec.obs_size:
@@ -235,8 +249,9 @@ class OnnxPolicy:
         except Exception as exc:
             raise InferenceFault(f"inference raised {type(exc).__name__}: {exc}") from exc
         action = np.asarray(out, dtype=np.float32).reshape(-1)
-        if action.shape[0] != 2:
-            raise InferenceFault(f"inference returned {action.shape[0]} values, expected 2")
+        size = self.spec.action_size
+        if action.shape[0] != size:
+            raise InferenceFault(f"inference returned {action.shape[0]} values, expected {size}")
         if not np.isfinite(action).all():
             raise InferenceFault(f"inference returned a non-finite action {action.tolist()}")
         return np.clip(action, -1.0, 1.0)
@@ -254,11 +269,16 @@ class OnnxPolicy:
                 f"model input shape {_shape(inp.shape)} does not match config {want} "
                 f"(stack {self.spec.stack} × {self.spec.layout.frame_size}: {self.spec.layout.name})"
             )
-        out = outputs[0]
-        if out.type != "tensor(float)" or len(out.shape) != 2 or out.shape[-1] != 2:
-            raise UserError(f"model output {_shape(out.shape)} {out.type} is not (1, 2) float32")
-        if not _batch_dim_ok(out.shape[0]):
-            raise UserError(f"model output shape {_shape(out.shape)} is not (1, 2)")
+        out, size = outputs[0], self.spec.action_size
+        want = f"(1, {size}) float32"
+        if out.type != "tensor(float)" or len(out.shape) != 2 or not _batch_dim_ok(out.shape[0]):
+            raise UserError(f"model output {_shape(out.shape)} {out.type} is not {want}")
+        if out.shape[-1] != size:
+            configured = self.spec.max_sideways_speed
+            raise UserError(
+                f"model output {_shape(out.shape)} does not match config {want} (policy.max_sideways_speed "
+                f"{configured:g}{_sideways_hint(self._metadata(), configured)})"
+            )
 
     def _metadata(self) -> dict[str, str]:
         """The model's metadata map (one line, not a traceback, when a file breaks its UTF-8)."""
@@ -271,8 +291,7 @@ class OnnxPolicy:
 
     def _check_layout(self) -> None:
         """Before the shapes: a layout mismatch is named as such, not as an input size."""
-        meta = self._metadata()
-        meta.setdefault(PREFIX + "obs_layout", LEGACY_LAYOUT)
+        meta = {**LEGACY_VALUES, **self._metadata()}
         try:
             self._compare("obs_layout", meta, self.spec.layout.name, _CONFIG_KEYS["obs_layout"])
         except UserError as exc:
@@ -291,8 +310,8 @@ class OnnxPolicy:
             raise
 
     def _check_metadata(self) -> None:
-        meta = self._metadata()
-        missing = [key for key in METADATA_KEYS if key not in meta and key != PREFIX + "obs_layout"]
+        meta = {**LEGACY_VALUES, **self._metadata()}
+        missing = [key for key in METADATA_KEYS if key not in meta]
         if missing:
             raise UserError(
                 f"policy model {self.path} lacks metadata {', '.join(missing)} "
@@ -308,7 +327,8 @@ class OnnxPolicy:
             raise UserError(f"model metadata {PREFIX}config is not valid JSON") from None
         spec = self.spec
         self._compare("obs_size", meta, spec.obs_size, "observation size")
-        for name in ("stack", "n_bins", "max_range", "bin_convention", "max_speed", "max_yaw_rate"):
+        for name in ("stack", "n_bins", "max_range", "bin_convention", "max_speed", "max_yaw_rate",
+                     "max_sideways_speed"):
             self._compare(name, meta, getattr(spec, name), _CONFIG_KEYS[name])
 
     def _compare(self, name: str, meta: dict[str, str], expected: object, config_key: str) -> None:
@@ -323,6 +343,18 @@ class OnnxPolicy:
             same = math.isclose(value, float(expected), rel_tol=1e-6, abs_tol=1e-9)
         if not same:
             raise UserError(f"model {name} {raw} does not match config {config_key} {expected}")
+
+
+def _sideways_hint(meta: dict[str, str], configured: float) -> str:
+    """The setting the model's metadata asks for, when it names one other than ``configured``."""
+    raw = meta.get(PREFIX + "max_sideways_speed", LEGACY_VALUES[PREFIX + "max_sideways_speed"])
+    try:
+        speed = float(raw)
+    except ValueError:
+        return ""
+    if not math.isfinite(speed) or speed < 0.0 or math.isclose(speed, configured):
+        return ""
+    return f"; set policy.max_sideways_speed = {speed:g}, as the model's metadata says"
 
 
 def _batch_dim_ok(dim: object) -> bool:

@@ -166,8 +166,10 @@ def replay(rec: Recording, config: CompanionConfig, policy: OnnxPolicy, *, compa
                     differ(f"{when}: action {msg['seq']}: recorded {recorded_action}, replayed "
                            f"{[float(a) for a in action]}")
             scans[msg["seq"]] = scan
-            requested[msg["seq"]] = (command_from_action(action, cfg.max_speed, cfg.max_yaw_rate)
-                                     if action is not None else Command(0.0, 0.0))
+            requested[msg["seq"]] = (
+                command_from_action(action, cfg.max_speed, cfg.max_yaw_rate, cfg.max_sideways_speed)
+                if action is not None else Command(0.0, 0.0)
+            )
         else:
             seq = msg["scan_seq"]
             if msg["reset_before"]:

@@ -43,9 +43,10 @@ class Command:
 
     :param forward: body x velocity, m/s (negative = backwards)
     :param yaw_rate: rad/s, FLU: counter-clockwise (to the left) positive
-    :param lateral: body y velocity, m/s, left positive. The policy never asks for one; only the
-        shield's active brake sets it, against a measured sideways slide the autopilot would
-        otherwise let creep on (PX4 SIH: 0.3-0.45 m/s for seconds after a zero setpoint)
+    :param lateral: body y velocity, m/s, left positive. A policy with a sideways action asks for
+        one (the shield then judges the command with its course as the nose); the shield's active
+        brake sets one against a measured sideways slide the autopilot would otherwise let creep
+        on (PX4 SIH: 0.3-0.45 m/s for seconds after a zero setpoint)
     """
 
     forward: float
@@ -254,17 +255,37 @@ def stopping_speed(distance: float, max_decel: float, reaction_time: float) -> f
     return -at + math.sqrt(at * at + 2.0 * max_decel * d)
 
 
-def command_from_action(action: np.ndarray, max_speed: float, max_yaw_rate: float) -> Command:
-    """Scale a policy action ``a ∈ [−1, 1]²`` to a command, as training did.
+def command_from_action(
+    action: np.ndarray, max_speed: float, max_yaw_rate: float, max_sideways_speed: float = 0.0
+) -> Command:
+    """Scale a policy action ``a ∈ [−1, 1]²`` (or ``[−1, 1]³``) to a command, as training did.
 
-    :param action: ``(2,)``: a0 forward speed, a1 yaw rate (counter-clockwise positive)
+    :param action: ``(2,)``: a0 forward speed, a1 yaw rate (counter-clockwise positive); ``(3,)``
+        with ``max_sideways_speed``: a2 speed to the left
     :param max_speed: m/s that a0 = 1 stands for (the model's training value)
     :param max_yaw_rate: rad/s that a1 = 1 stands for (the model's training value)
+    :param max_sideways_speed: m/s that a2 = 1 stands for; 0: the action has no a2
     """
     a = np.asarray(action, dtype=np.float64).reshape(-1)
-    if a.shape[0] != 2:
-        raise ValueError(f"action must have 2 values, got {a.shape[0]}")
-    return Command(forward=float(a[0]) * max_speed, yaw_rate=float(a[1]) * max_yaw_rate)
+    size = 3 if max_sideways_speed > 0.0 else 2
+    if a.shape[0] != size:
+        raise ValueError(f"action must have {size} values, got {a.shape[0]}")
+    lateral = float(a[2]) * max_sideways_speed if size == 3 else 0.0
+    return Command(forward=float(a[0]) * max_speed, yaw_rate=float(a[1]) * max_yaw_rate, lateral=lateral)
+
+
+def _turned(command: Command, angle: float) -> Command:
+    """``command`` with its (forward, lateral) velocity turned by ``angle`` rad counter-clockwise."""
+    forward, lateral = _turned_pair((command.forward, command.lateral), angle)
+    return Command(forward, command.yaw_rate, lateral)
+
+
+def _turned_pair(vector: tuple[float, float] | None, angle: float) -> tuple[float, float] | None:
+    """A (forward, left) vector turned by ``angle`` rad counter-clockwise (None stays None)."""
+    if vector is None:
+        return None
+    c, s = math.cos(angle), math.sin(angle)
+    return c * vector[0] - s * vector[1], s * vector[0] + c * vector[1]
 
 
 def _finite_scan(scan: np.ndarray) -> tuple[np.ndarray, bool]:
@@ -382,6 +403,11 @@ class SafetyShield:
     ) -> Command:
         """Return the command that is safe to send.
 
+        A command with a sideways part is judged with its course as the nose: the scan, the
+        velocity, the drift and the previous command are turned (to the whole degree) so that the
+        course is straight ahead, the speed along it is filtered as a forward command would be, and
+        the result is turned back. Every limit then holds along the way the vehicle is asked to go.
+
         :param requested: what the policy asked for
         :param scan: ``(360,)`` normalised ranges, bins counter-clockwise from forward
         :param dt: seconds since the previous command (for the acceleration limits); a
@@ -392,6 +418,30 @@ class SafetyShield:
             forward and left), m/s, carried by the setpoint while the brake or the keep-out acts
             (``drift_compensation``); None or not finite: none
         """
+        forward, left = float(requested.forward), float(requested.lateral)
+        if not math.isfinite(left):
+            left = forward = math.nan  # counted and zeroed as a non-finite forward command is
+        if left == 0.0 or not math.isfinite(forward):
+            return self._filter_along_nose(Command(forward, requested.yaw_rate), scan, dt, velocity, drift)
+        shift = round(math.degrees(math.atan2(left, forward))) % N_BINS
+        course = math.radians(shift)
+        self._previous = _turned(self._previous, -course)
+        along = self._filter_along_nose(
+            Command(math.hypot(forward, left), requested.yaw_rate), np.roll(np.asarray(scan), -shift), dt,
+            _turned_pair(velocity, -course), _turned_pair(drift, -course),
+        )  # fmt: skip
+        self._previous = out = _turned(along, course)
+        return out
+
+    def _filter_along_nose(
+        self,
+        requested: Command,
+        scan: np.ndarray,
+        dt: float,
+        velocity: tuple[float, float] | None,
+        drift: tuple[float, float] | None,
+    ) -> Command:
+        """:meth:`filter` for a command without a sideways part (its ``lateral`` is not read)."""
         cfg = self.config
         count = self.interventions
         forward, yaw_rate = float(requested.forward), float(requested.yaw_rate)

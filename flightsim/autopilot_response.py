@@ -370,8 +370,12 @@ def _predict(
         for k in range(total_steps):
             forward = commands[c, 0] if k < command_steps else 0.0
             rate = commands[c, 1] if k < command_steps else 0.0
+            left = commands[c, 2] if k < command_steps else 0.0
             dues[n] = t + delay
-            values[n, 0], values[n, 1], values[n, 2] = forward * math.cos(yaw), forward * math.sin(yaw), rate
+            cos_yaw, sin_yaw = math.cos(yaw), math.sin(yaw)
+            values[n, 0] = forward * cos_yaw - left * sin_yaw
+            values[n, 1] = forward * sin_yaw + left * cos_yaw
+            values[n, 2] = rate
             n += 1
             for _ in range(per_period):
                 t += h
@@ -386,6 +390,16 @@ def _predict(
                 yaw += x[_S_R] * h
             out[c, k, 0], out[c, k, 1], out[c, k, 2] = px, py, yaw
     return out
+
+
+def _body_commands(commands: np.ndarray) -> np.ndarray:
+    """``(K, 2)`` or ``(K, 3)`` body commands as the ``(K, 3)`` the kernel reads (no sideways part: 0)."""
+    array = np.asarray(commands, dtype=np.float64)
+    if array.ndim != 2 or array.shape[1] not in (2, 3):
+        raise ValueError(f"commands must be (K, 2) or (K, 3), got {array.shape}")
+    if array.shape[1] == 2:
+        array = np.hstack([array, np.zeros((array.shape[0], 1))])
+    return np.ascontiguousarray(array)
 
 
 def _param_vector(params: ResponseParams) -> np.ndarray:
@@ -497,7 +511,8 @@ class AutopilotResponse:
         sideways: near a wall no candidate of the predictive teacher was safe.
 
         :param yaw: the vehicle's heading now, rad CCW from East
-        :param commands: (K, 2) body forward (m/s) and yaw rate (rad/s CCW)
+        :param commands: (K, 2) body forward (m/s) and yaw rate (rad/s CCW), or (K, 3) with a
+            sideways velocity (m/s, left positive) after them
         :param command_steps: periods the command is sent for
         :param total_steps: periods predicted
         :param period: s between commands, a whole number of the internal 5 ms steps
@@ -520,7 +535,7 @@ class AutopilotResponse:
             x[_S_BY] -= held[1]
         return _predict(
             x, p, queue, np.asarray(self._cmd, dtype=np.float64), delay,
-            float(yaw), np.asarray(commands, dtype=np.float64).reshape(-1, 2), int(command_steps),
+            float(yaw), _body_commands(commands), int(command_steps),
             int(total_steps), round(period / _INNER_DT), _INNER_DT, decay,
         )  # fmt: skip
 

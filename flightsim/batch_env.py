@@ -80,7 +80,7 @@ class BatchedEnvs:
     def step(self, actions: np.ndarray) -> StepResult:
         """Step every slot with its action (no auto-reset: that is the vector env's).
 
-        :param actions: ``(N, 2)``
+        :param actions: ``(N, 2)``, or ``(N, 3)`` for goal envs with ``sideways``
         :return: per slot what ``env.step`` returns: observations, rewards, terminated,
             truncated, infos (lists)
         """

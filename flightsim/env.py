@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
@@ -120,7 +120,7 @@ class StepCommand:
     overspeed: float
 
 
-def _clip_unit(v: float) -> float:
+def clip_unit(v: float) -> float:
     """Clip to [-1, 1]; NaN becomes 0 (a broken policy output must not become a command)."""
     return 0.0 if v != v else min(1.0, max(-1.0, v))
 
@@ -288,8 +288,7 @@ class LidarAvoidEnv(gym.Env):
         """Before the flight: clip the action, apply the shield, the overspeed cost, the wind."""
         if self.world is None:
             raise RuntimeError("call reset() before step()")
-        v0, v1 = np.asarray(action, dtype=np.float32).reshape(2).tolist()
-        a0, a1 = _clip_unit(v0), _clip_unit(v1)
+        a0, a1, sideways = self._split_action(action)
         cfg = self.config
         seen = self._previous_scan if cfg.latency_scans else self._scan
         # as in flight: the shield also watches the velocity the autopilot measures (read only when used)
@@ -301,10 +300,11 @@ class LidarAvoidEnv(gym.Env):
         if cfg.overspeed_penalty > 0.0:
             cap = self._shield.forward_cap(seen, velocity if cfg.overspeed_travel else None)
             overspeed = max(0.0, a0 - cap / cfg.max_speed)
-        lateral, self._lateral = self._lateral, 0.0
+        lateral, self._lateral = self._lateral + sideways, 0.0
         if self._shielded:
+            request = command_from_action((a0, a1), cfg.max_speed, cfg.max_yaw_rate)
             safe = self._shield.filter(
-                command_from_action((a0, a1), cfg.max_speed, cfg.max_yaw_rate), seen, 1.0 / CONTROL_HZ,
+                replace(request, lateral=sideways), seen, 1.0 / CONTROL_HZ,
                 velocity=velocity, drift=self.shield_drift(),
             )
             a0, a1 = safe.forward / cfg.max_speed, safe.yaw_rate / cfg.max_yaw_rate
@@ -315,6 +315,11 @@ class LidarAvoidEnv(gym.Env):
         held_forward, held_left = self.drift_held()
         forward = a0 * cfg.max_speed + held_forward
         return StepCommand(action, forward, a1 * cfg.max_yaw_rate, lateral + held_left, overspeed)
+
+    def _split_action(self, action: np.ndarray) -> tuple[float, float, float]:
+        """``(a0, a1)`` clipped, and the sideways speed the action asks for, m/s (none here)."""
+        v0, v1 = np.asarray(action, dtype=np.float32).reshape(2).tolist()
+        return clip_unit(v0), clip_unit(v1), 0.0
 
     def shield_drift(self) -> tuple[float, float] | None:
         """The drift estimate a shield's ``drift_compensation`` carries (body forward, left, m/s),

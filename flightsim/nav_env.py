@@ -21,7 +21,7 @@ from companion.observation import (
 )
 from companion.route import RouteConfig, RoutePlanner
 from flightsim import seeds
-from flightsim.env import CONTROL_HZ, EnvConfig, LidarAvoidEnv, StepCommand
+from flightsim.env import CONTROL_HZ, EnvConfig, LidarAvoidEnv, StepCommand, clip_unit
 from flightsim.families import FAMILIES, generate_family_world
 from flightsim.planner import shortest_safe_path
 from flightsim.render import render_rgb
@@ -66,6 +66,12 @@ class NavEnvConfig(EnvConfig):
         (:class:`companion.route.RoutePlanner`, on the true pose, as the goal features are), not
         straight at the waypoint; the companion's ``goal.route`` does the same in flight
     :param route_planner: that planner's tuning
+    :param sideways: the action has a third component, a sideways speed (left positive) in units
+        of ``max_sideways_speed``: a multirotor need not turn its nose to move sideways, and a
+        teacher that must corrects every sideways error by turning (docs/goal-policy.md). The
+        shield judges such a command along its course; ``overspeed_penalty`` charges the forward
+        part only
+    :param max_sideways_speed: m/s that a sideways action of 1 stands for
     """
 
     reward: Literal["goal"] = "goal"
@@ -85,6 +91,8 @@ class NavEnvConfig(EnvConfig):
     drift_hold_limits: DriftHoldConfig = field(default_factory=DriftHoldConfig)
     route: bool = False
     route_planner: RouteConfig = field(default_factory=RouteConfig)
+    sideways: bool = False
+    max_sideways_speed: float = field(default=1.0, metadata={"min": 0.1, "max": 5.0})
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -131,7 +139,9 @@ class LidarNavEnv(LidarAvoidEnv):
 
     ## Action Space
     As LidarAvoid-v0: ``Box(-1, 1, (2,), float32)``, ``a0`` forward speed × ``max_speed`` (2 m/s),
-    ``a1`` yaw rate × ``max_yaw_rate`` (1.5 rad/s), counter-clockwise positive.
+    ``a1`` yaw rate × ``max_yaw_rate`` (1.5 rad/s), counter-clockwise positive. With ``sideways``
+    (off by default): ``Box(-1, 1, (3,), float32)``, ``a2`` speed to the left × ``max_sideways_speed``
+    (1 m/s).
 
     ## Observation Space
     ``Box(low, high, (365,), float32)``, one frame of :class:`companion.observation.ObservationLayout`
@@ -218,6 +228,8 @@ class LidarNavEnv(LidarAvoidEnv):
         self.layout = config.layout
         low, high = self.layout.bounds()
         self.observation_space = spaces.Box(low, high, (self.layout.frame_size,), np.float32)
+        if config.sideways:
+            self.action_space = spaces.Box(-1.0, 1.0, (3,), np.float32)
         self.family = ""
         self.shortest_path_m = 0.0
         self.time_limit_steps = 0
@@ -241,6 +253,13 @@ class LidarNavEnv(LidarAvoidEnv):
         if self._route is not None:
             self._route.reset()
         return self._frame(scan, info["measured_velocity_body"]), self._nav_info(info)
+
+    def _split_action(self, action: np.ndarray) -> tuple[float, float, float]:
+        """As the base env's; with ``sideways`` the third component is a speed to the left."""
+        if not self.config.sideways:
+            return super()._split_action(action)
+        v0, v1, v2 = np.asarray(action, dtype=np.float32).reshape(3).tolist()
+        return clip_unit(v0), clip_unit(v1), clip_unit(v2) * self.config.max_sideways_speed
 
     def _conclude(self, command: StepCommand, scan: np.ndarray):
         scan, reward, collided, truncated, info = super()._conclude(command, scan)

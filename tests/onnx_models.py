@@ -5,6 +5,7 @@ Each model is ``Gemm(obs, W, b)`` (optionally followed by ``Clip`` to [-1, 1]) b
 
 - ``forward``: a = (1, 0)                 - ``stop``: a = (0, 0)
 - ``turn_left``: a = (0, 1) (CCW)         - ``turn_right``: a = (0, -1)
+- ``slide_left``: a = (0, 0, 1), a sideways model's full speed to the left
 - ``steer``: a0 = 2·mean(newest scan, forward ±15°) − 1, a1 = 2·(mean left 30–90° − mean right
   30–90°): slows for what is ahead and turns towards the more open side (a usable toy pilot)
 - ``echo``: a = (newest scan bin 0, newest scan bin 90), to prove which values reach the model
@@ -38,8 +39,8 @@ COMPANION_SPEC = policy_spec(CompanionConfig())
 #: A scan-only model's spec (LidarAvoid-v0), for tests of scan-only behaviour
 SCAN_SPEC = PolicySpec()
 
-KINDS = ("forward", "stop", "turn_left", "turn_right", "steer", "echo", "echo_goal", "echo_velocity",
-         "echo_drift", "echo_command", "echo_firmware", "big", "nan", "inf", "error")
+KINDS = ("forward", "stop", "turn_left", "turn_right", "slide_left", "steer", "echo", "echo_goal",
+         "echo_velocity", "echo_drift", "echo_command", "echo_firmware", "big", "nan", "inf", "error")
 OPSET = 17
 IR_VERSION = 8  # accepted by every onnxruntime the project supports
 
@@ -69,6 +70,10 @@ def _weights(kind: str, spec: PolicySpec, input_size: int, output_size: int) -> 
     }
     if kind in constant:
         b[:2] = constant[kind]
+    elif kind == "slide_left":
+        if output_size != 3:
+            raise ValueError(f"{kind} needs a sideways action (3 values), not {output_size}")
+        b[2] = 1.0
     elif kind == "steer":
         ahead = [*range(0, 15), *range(345, 360)]
         w[[newest + i for i in ahead], 0] = 2.0 / len(ahead)
@@ -106,7 +111,7 @@ def write_policy(
     spec: PolicySpec = COMPANION_SPEC,
     metadata_overrides: dict[str, str | None] | None = None,
     input_size: int | None = None,
-    output_size: int = 2,
+    output_size: int | None = None,
 ) -> Path:
     """Write a small ONNX policy and return its path.
 
@@ -116,10 +121,11 @@ def write_policy(
         default companion config feeds (the goal layout)
     :param metadata_overrides: full metadata keys to change; ``None`` as a value removes the key
     :param input_size: observation length (default ``spec.obs_size``)
-    :param output_size: action length (2 for a valid policy)
+    :param output_size: action length (default ``spec.action_size``)
     """
     path = Path(path)
     n_in = spec.obs_size if input_size is None else input_size
+    output_size = spec.action_size if output_size is None else output_size
     w, b = _weights(kind, spec, n_in, output_size)
     clipped = kind not in ("big", "inf")
     nodes = [helper.make_node("Gemm", ["obs", "W", "B"], ["raw" if clipped else "action"])]

@@ -78,6 +78,9 @@ class ShieldedController:
         :meth:`~flightsim.env.LidarAvoidEnv.command_lateral`), since an action carries none
     :param drift: the drift estimate now (body forward, left, m/s), as the companion tracks it (the
         env's :meth:`~flightsim.env.LidarAvoidEnv.shield_drift`), or None where it is not tracked
+    :param max_sideways_speed: m/s that a third action component stands for (a goal env with
+        ``sideways``); 0: actions have two. The sideways part the shield sends goes to ``lateral``
+        with its brake, and the action returned asks none
     """
 
     def __init__(
@@ -89,10 +92,12 @@ class ShieldedController:
         velocity: Callable[[], np.ndarray] | None = None,
         lateral: Callable[[float], None] | None = None,
         drift: Callable[[], tuple[float, float] | None] | None = None,
+        max_sideways_speed: float = 0.0,
     ) -> None:
         self._inner = inner
         self.shield = shield
         self._scale = (max_speed, max_yaw_rate)
+        self._sideways = max_sideways_speed
         self._velocity = velocity
         self._lateral = lateral
         self._drift = drift
@@ -114,12 +119,13 @@ class ShieldedController:
             v = self._velocity()
             measured = (float(v[0]), float(v[1]))
         drift = self._drift() if self._drift is not None else None
-        requested = command_from_action(action, max_speed, max_yaw_rate)
+        requested = command_from_action(action, max_speed, max_yaw_rate, self._sideways)
         safe = self.shield.filter(requested, scan, STEP_SECONDS, measured, drift)
         self.last = (requested, safe)
         if self._lateral is not None:
             self._lateral(safe.lateral)
-        return np.array([safe.forward / max_speed, safe.yaw_rate / max_yaw_rate], dtype=np.float32)
+        sent = [safe.forward / max_speed, safe.yaw_rate / max_yaw_rate] + ([0.0] if self._sideways else [])
+        return np.array(sent, dtype=np.float32)
 
 
 def sb3_controller(model: Any, n_stack: int, frame_size: int = N_BINS) -> StackedPolicyController:
@@ -177,8 +183,13 @@ def build_controller(
     shield = SafetyShield(limits, float(env_config.scan.max_range), env_config.autopilot_response)
     return ShieldedController(
         controller, shield, float(env_config.max_speed), float(env_config.max_yaw_rate), velocity, lateral,
-        drift,
+        drift, sideways_scale(env_config),
     )  # fmt: skip
+
+
+def sideways_scale(env_config: Any) -> float:
+    """m/s that a third action component stands for in an env of ``env_config`` (0: none)."""
+    return float(env_config.max_sideways_speed) if getattr(env_config, "sideways", False) else 0.0
 
 
 def _teacher_controller(kind: str, env: Any) -> Controller:
@@ -251,6 +262,7 @@ def load_policy(
             bin_convention=BIN_CONVENTION,
             max_speed=float(env_config.max_speed),
             max_yaw_rate=float(env_config.max_yaw_rate),
+            max_sideways_speed=sideways_scale(env_config),
             layout=observation_layout(env_config),
         )
         try:

@@ -106,7 +106,8 @@ def collect(
     teacher_flies = rng.uniform(size=n_envs) < beta
     rows = max(1, n_steps // n_envs)
     all_obs = np.empty((rows, *obs.shape), dtype=np.float32)
-    all_actions = np.empty((rows, n_envs, 2), dtype=np.float32)
+    width = venv.action_space.shape[0]  # 2, or 3 with a sideways action
+    all_actions = np.empty((rows, n_envs, width), dtype=np.float32)
     rewards = np.empty((rows, n_envs), dtype=np.float32)
     dones = np.empty((rows, n_envs), dtype=bool)
     counts = np.zeros(4, dtype=int)  # episodes, successes, student episodes, student successes
@@ -130,8 +131,9 @@ def collect(
         )
     returns = discounted_returns(rewards, dones, gamma)
     return Rollouts(
-        all_obs.reshape(-1, obs.shape[1]), all_actions.reshape(-1, 2), returns.reshape(-1), *counts.tolist()
-    )
+        all_obs.reshape(-1, obs.shape[1]), all_actions.reshape(-1, width), returns.reshape(-1),
+        *counts.tolist(),
+    )  # fmt: skip
 
 
 def run(
@@ -179,7 +181,7 @@ def run(
     # the saved iterations keep their own size (a resumed run may collect a different number)
     size = sum(len(r.actions) for r in previous) + max(iterations - len(previous), 0) * rows
     obs = np.empty((size, venv.observation_space.shape[0]), dtype=np.float32)
-    actions = np.empty((size, 2), dtype=np.float32)
+    actions = np.empty((size, venv.action_space.shape[0]), dtype=np.float32)
     returns = np.empty(size, dtype=np.float32)
     collected = episodes = successes = 0
     data = Demonstrations(obs[:0], actions[:0], returns[:0], 0, 0)

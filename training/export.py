@@ -125,9 +125,8 @@ def export_onnx(models: Sequence[PPO], out: Path, metadata: dict[str, str]) -> N
         entry.key, entry.value = key, value
     layout = metadata.get("lidar_avoid.obs_layout", "scan360")
     actors = "actor" if len(models) == 1 else f"actors' mean ({len(models)} members)"
-    proto.doc_string = (
-        f"lidar-avoid deterministic PPO {actors} (stacked {layout} frames -> [forward, yaw rate])"
-    )
+    action = "forward, yaw rate" + (", sideways" if models[0].action_space.shape == (3,) else "")
+    proto.doc_string = f"lidar-avoid deterministic PPO {actors} (stacked {layout} frames -> [{action}])"
     onnx.checker.check_model(proto, full_check=True)
     onnx.save(proto, str(out))
     log.info("wrote %s (%d bytes)", out, out.stat().st_size)
@@ -138,6 +137,7 @@ def policy_spec_for(config: TrainConfig):
     from companion.observation import ObservationLayout
     from companion.policy import PolicySpec
     from companion.scan import BIN_CONVENTION, N_BINS
+    from training.controllers import sideways_scale
 
     env_config = config.env_config()
     # the goal task's frame layout (scan + goal + velocity); the avoidance task's is the scan alone
@@ -149,6 +149,7 @@ def policy_spec_for(config: TrainConfig):
         bin_convention=BIN_CONVENTION,
         max_speed=float(env_config.max_speed),
         max_yaw_rate=float(env_config.max_yaw_rate),
+        max_sideways_speed=sideways_scale(env_config),
         layout=layout,
     )
 

@@ -25,6 +25,8 @@ from companion.observation import ObservationLayout
 
 #: a mirrored action: forward speed kept, yaw rate reversed
 ACTION_SIGNS = np.array([1.0, -1.0], dtype=np.float32)
+#: the same with a sideways speed (LidarNav-v0's ``sideways``), reversed too
+SIDEWAYS_ACTION_SIGNS = np.array([1.0, -1.0, -1.0], dtype=np.float32)
 
 
 @dataclass(frozen=True)
@@ -46,12 +48,14 @@ class Mirror:
         return obs[..., self.index] * self.signs
 
     def actions(self, actions: np.ndarray) -> np.ndarray:
-        """``actions`` (``(..., 2)``: forward, yaw rate) mirrored across the nose."""
+        """``actions`` (``(..., 2)``: forward, yaw rate; ``(..., 3)``: and sideways speed) mirrored
+        across the nose."""
         return actions * self.action_signs
 
 
-def mirror_for(layout: ObservationLayout, n_stack: int) -> Mirror:
-    """The mirror of ``n_stack`` stacked frames of ``layout``.
+def mirror_for(layout: ObservationLayout, n_stack: int, sideways: bool = False) -> Mirror:
+    """The mirror of ``n_stack`` stacked frames of ``layout``, and of actions with a sideways part
+    when ``sideways``.
 
     :raises ValueError: ``n_stack`` < 1
     """
@@ -69,4 +73,5 @@ def mirror_for(layout: ObservationLayout, n_stack: int) -> Mirror:
     return Mirror(
         index=(frame_index[None, :] + offsets).ravel(),
         signs=np.tile(frame_signs, n_stack),
+        action_signs=(SIDEWAYS_ACTION_SIGNS if sideways else ACTION_SIGNS).copy(),
     )

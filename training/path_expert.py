@@ -71,6 +71,9 @@ class PathExpertConfig:
     :param turn_in_place: beyond this heading error, rad, only turn (and hold)
     :param yaw_gain: yaw rate per radian of heading error, 1/s
     :param yaw_lead_s: the heading is predicted this far ahead along the true yaw rate, s
+    :param sideways_yaw_gain: with a sideways action (the env's ``sideways``) the whole command is
+        flown in the body frame, forward and sideways, and the nose turns towards the path at
+        this rate per radian, 1/s (half ``yaw_gain``: the nose no longer steers the vehicle)
     """
 
     resolution: float = 0.1
@@ -93,6 +96,7 @@ class PathExpertConfig:
     turn_in_place: float = 0.8
     yaw_gain: float = 3.0
     yaw_lead_s: float = 0.25
+    sideways_yaw_gain: float = 1.5
 
 
 class PathExpert:
@@ -125,7 +129,8 @@ class PathExpert:
         return self.act()
 
     def act(self) -> np.ndarray:
-        """The action for the env's current true state, ``(a0, a1)`` in ``[-1, 1]``."""
+        """The action for the env's current true state, ``(a0, a1)`` in ``[-1, 1]`` (with the env's
+        ``sideways``, ``(a0, a1, a2)``)."""
         env, cfg = self.env, self.config
         state = env.true_state
         true_velocity = np.asarray(state.velocity[:2], dtype=np.float64)
@@ -163,6 +168,8 @@ class PathExpert:
         yaw = float(state.yaw) + cfg.yaw_lead_s * float(state.angular_rate[2])
         error = math.remainder(heading - yaw, math.tau)
         nose = np.array([math.cos(yaw), math.sin(yaw)])
+        if env.config.sideways:
+            return self._sideways_action(command, direction, nose, yaw)
         # the forward command is what the nose can carry: the hold's share always (it cancels the
         # drift along the nose), the move's share once the nose points roughly its way
         gate = max(0.0, math.cos(error)) ** cfg.alignment_power if abs(error) < cfg.turn_in_place else 0.0
@@ -177,6 +184,20 @@ class PathExpert:
         )  # fmt: skip
 
     # ------------------------------------------------------------------ internals
+    def _sideways_action(
+        self, command: np.ndarray, direction: np.ndarray, nose: np.ndarray, yaw: float
+    ) -> np.ndarray:
+        """With a sideways action: ``command`` (world m/s) flown whole in the body frame, the forward
+        part ramped up as the nose-only command is, the nose turned towards the path's ``direction``."""
+        env, cfg = self.env, self.config
+        forward = min(float(command @ nose), self._forward + cfg.speed_ramp)
+        self._forward = forward
+        left = float(command @ np.array([-nose[1], nose[0]]))
+        heading_error = math.remainder(math.atan2(direction[1], direction[0]) - yaw, math.tau)
+        scales = (env.config.max_speed, env.config.max_yaw_rate, env.config.max_sideways_speed)
+        wanted = (forward, cfg.sideways_yaw_gain * heading_error, left)
+        return np.clip(np.array(wanted) / np.array(scales), -1.0, 1.0).astype(np.float32)
+
     def _estimate_error(self) -> np.ndarray:
         """The velocity estimate's error the command makes up for, world ENU m/s. With the drift
         features it is the drift estimate the student sees in its frame (so the labels follow

@@ -78,6 +78,9 @@ class PredictiveExpertConfig:
         response (:func:`flightsim.autopilot_response.hardest_params`): the student cannot see the
         draw, so a label that brakes for a slow draw only and flies on for a quick one is, to the
         student, the same state with two answers, which regression averages into too fast for both
+    :param sideways_options: with a sideways action (the env's ``sideways``), each candidate
+        also with each of these sideways commands, fractions of the top sideways speed; the path
+        expert's command is a candidate with and without its sideways part too
     """
 
     forward_options: tuple[float, ...] = (-0.25, 0.0, 0.15, 0.3, 0.5, 0.7, 0.85, 1.0)
@@ -98,6 +101,7 @@ class PredictiveExpertConfig:
     clearance_cost: float = 8.0
     recovery_tolerance: float = 0.05
     hardest_response: bool = False
+    sideways_options: tuple[float, ...] = (-0.5, 0.0, 0.5)
 
 
 def pick(spare: np.ndarray, near: np.ndarray, score: np.ndarray, recovery_tolerance: float) -> int:
@@ -130,6 +134,8 @@ class PredictiveExpert:
         self.config = config or PredictiveExpertConfig()
         cfg = self.config
         self._candidates = np.array([(f, r) for f in cfg.forward_options for r in cfg.yaw_options])
+        if env.config.sideways:
+            self._candidates = np.array([(*c, s) for c in self._candidates for s in cfg.sideways_options])
         self._path_expert = PathExpert(env, path_config)
         self._grid: ClearanceGrid | None = None
         self._costs = np.zeros((0, 0))
@@ -150,7 +156,8 @@ class PredictiveExpert:
         return self._choose(self._path_expert.reset())
 
     def act(self) -> np.ndarray:
-        """The action for the env's current true state, ``(a0, a1)`` in ``[-1, 1]``."""
+        """The action for the env's current true state, ``(a0, a1)`` in ``[-1, 1]`` (with the env's
+        ``sideways``, ``(a0, a1, a2)``)."""
         return self._choose(self._path_expert.act())  # every step: it keeps its own state
 
     def _choose(self, planned: np.ndarray) -> np.ndarray:
@@ -162,10 +169,14 @@ class PredictiveExpert:
         if self._goal_index != env.waypoint_index:
             self._to_goal = self._cost_to_waypoint(env.waypoint_index)
             self._goal_index = env.waypoint_index
-        slowed = [planned * (s, 1.0) for s in cfg.slowdowns]
+        if env.config.sideways:
+            scale = np.array([env.config.max_speed, env.config.max_yaw_rate, env.config.max_sideways_speed])
+            slowed = [planned * (s, 1.0, s) for s in cfg.slowdowns] + [planned * (1.0, 1.0, 0.0)]
+        else:
+            scale = np.array([env.config.max_speed, env.config.max_yaw_rate])
+            slowed = [planned * (s, 1.0) for s in cfg.slowdowns]
         candidates = np.vstack([self._candidates, *slowed, planned[None].astype(np.float64)])
         state = env.true_state
-        scale = np.array([env.config.max_speed, env.config.max_yaw_rate])
         command_steps = round(cfg.command_s / PERIOD_S)
         total_steps = command_steps + round(cfg.stop_s / PERIOD_S)
         steps = (command_steps, total_steps, PERIOD_S)

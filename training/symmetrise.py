@@ -47,7 +47,7 @@ def mirror_of(metadata: dict[str, str]) -> Mirror:
     spec = policy_spec_for(config)
     if spec.layout.name != named:
         raise UserError(f"the model's config feeds {spec.layout.name}, its metadata names {named}")
-    return mirror_for(spec.layout, spec.stack)
+    return mirror_for(spec.layout, spec.stack, getattr(config.env_config(), "sideways", False))
 
 
 def symmetrise_onnx(src: Path, out: Path) -> float:

@@ -26,7 +26,7 @@ import numpy as np
 from companion.errors import UserError
 from companion.scan import N_BINS
 from companion.shield import command_from_action
-from training.controllers import Controller, ControllerSpec, ShieldedController, load_policy
+from training.controllers import Controller, ControllerSpec, ShieldedController, load_policy, sideways_scale
 from training.episodes import EpisodeResult, make_tasks, run_task
 from training.evaluate import Flight, add_flight_arguments, load_flight, parse_baselines
 
@@ -95,7 +95,8 @@ class Tracer:
             counts = shielded.shield.interventions
             acted = {k: n - before.get(k, 0) for k, n in sorted(counts.items()) if n > before.get(k, 0)}
         else:
-            asked = sent = command_from_action(action, config.max_speed, config.max_yaw_rate)
+            scales = (config.max_speed, config.max_yaw_rate, sideways_scale(config))
+            asked = sent = command_from_action(action, *scales)
             acted = {}
         held_forward, held_left = self._env.drift_held()
         state = self._env.true_state

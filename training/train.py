@@ -599,7 +599,8 @@ def label_mirror(config: TrainConfig) -> Mirror | None:
     """How the fits mirror their demonstrations (``[pretrain] mirror``), or None when they do not."""
     if not config.pretrain.mirror:
         return None
-    return mirror_for(observation_layout(config.env_config()), config.n_stack)
+    env_config = config.env_config()
+    return mirror_for(observation_layout(env_config), config.n_stack, getattr(env_config, "sideways", False))
 
 
 class TrainingInterrupted(Exception):

@@ -285,7 +285,7 @@ class ArduPilotLink:
 
         :param forward: body x velocity, m/s
         :param yaw_rate: rad/s, FLU (counter-clockwise positive); sent negated, as FRD
-        :param lateral: body y velocity, m/s, left positive (the shield's brake); sent negated, as FRD
+        :param lateral: body y velocity, m/s, left positive; sent negated, as FRD
         :param vertical: climb rate, m/s, up positive; sent negated as vz (BODY_OFFSET_NED is
             down-positive)
         """

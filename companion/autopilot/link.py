@@ -80,8 +80,8 @@ class AutopilotLink(Protocol):
 
         :param forward: body x velocity, m/s
         :param yaw_rate: rad/s, FLU convention (counter-clockwise positive); the link converts to FRD
-        :param lateral: body y velocity, m/s, left positive (only the shield's brake sets it); the
-            link sends it as FRD (right positive)
+        :param lateral: body y velocity, m/s, left positive (a sideways model's command, the shield's
+            brake and push, the drift hold); the link sends it as FRD (right positive)
         :param vertical: climb rate, m/s, up positive (toward a waypoint's height; zero holds the
             altitude); the link sends it down-positive
         """

@@ -307,7 +307,7 @@ class Px4Link:
 
         :param forward: body x velocity, m/s
         :param yaw_rate: rad/s, FLU (counter-clockwise positive); sent as FRD yaw speed in deg/s
-        :param lateral: body y velocity, m/s, left positive (the shield's brake); sent as right_m_s
+        :param lateral: body y velocity, m/s, left positive; sent as right_m_s
         :param vertical: climb rate, m/s, up positive; sent as down_m_s (negated)
         """
         if self._system is None:

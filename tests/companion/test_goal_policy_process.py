@@ -99,6 +99,42 @@ def _wall_east(azimuth_deg: np.ndarray) -> np.ndarray:
     return np.where(east > 0.05, np.minimum(0.4 / np.maximum(east, 0.05), 8.0), 8.0)
 
 
+def _close_wall_west(azimuth_deg: np.ndarray) -> np.ndarray:
+    """A wall 0.4 m west of a vehicle facing north (on its left), in a round room of 8 m."""
+    return _wall_east(-azimuth_deg)
+
+
+def test_a_sideways_model_flies_its_third_value_to_the_left_and_the_shield_stops_it_at_a_wall(tmp_path):
+    """A model trained with ``env.sideways`` (a = (0, 0, 1): 1 m/s to the left) under a config that
+    says so: the setpoint carries it as body vy (FRD: right positive, so -1); with a wall 0.4 m to
+    the left, the shield judges the move along its course and lets none of it through."""
+    config = CompanionConfig(policy=PolicyConfig(max_sideways_speed=1.0))
+    model = write_policy(tmp_path / "side.onnx", kind="slide_left", spec=policy_spec(config))
+    lidar_port, mavlink_port = free_udp_port(), free_udp_port()
+    path = write_config(tmp_path, model, lidar_port, mavlink_port)
+    path.write_text(path.read_text().replace("[policy]\n", "[policy]\nmax_sideways_speed = 1.0\n"))
+    f = Flight(path, lidar_port, mavlink_port)
+    try:
+        f.settled(lambda m: abs(m.vy + 1.0) < 0.05 and abs(m.vx) < 0.05 and abs(m.yaw_rate) < 0.05,
+                  "1 m/s to the left")
+        f.lidar.scene = _close_wall_west
+        f.settled(lambda m: m.vy > -0.05, "no move towards the wall on the left")
+    finally:
+        f.close()
+
+
+def test_a_sideways_model_under_a_config_without_it_is_refused_naming_the_fix(tmp_path):
+    config = CompanionConfig(policy=PolicyConfig(max_sideways_speed=1.0))
+    model = write_policy(tmp_path / "side.onnx", kind="slide_left", spec=policy_spec(config))
+    path = write_config(tmp_path, model, free_udp_port(), free_udp_port())
+    result = run_to_exit(["run", "--config", str(path)])
+    assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1
+    assert result.stderr.strip().endswith(
+        "model output (N, 3) does not match config (1, 2) float32 "
+        "(policy.max_sideways_speed 0; set policy.max_sideways_speed = 1, as the model's metadata says)"
+    )
+
+
 #: a config table that holds none of the drift estimate
 NO_HOLD = "[drift_hold]\nlateral = 0.0\n"
 #: what the default ``[drift_hold]`` holds of a 0.4 m/s drift estimate: all but its deadband, m/s

@@ -15,6 +15,7 @@ from onnx import TensorProto, helper, numpy_helper
 from companion.errors import UserError
 from companion.observation import ObservationLayout
 from companion.policy import (
+    LEGACY_VALUES,
     METADATA_KEYS,
     InferenceFault,
     OnnxPolicy,
@@ -46,6 +47,7 @@ def test_metadata_helper_writes_exactly_the_checked_keys() -> None:
         "lidar_avoid.bin_convention": BIN_CONVENTION,
         "lidar_avoid.max_speed": "2.0",
         "lidar_avoid.max_yaw_rate": "1.5",
+        "lidar_avoid.max_sideways_speed": "0.0",
         "lidar_avoid.config": '{"lr": 0.0003}',
         "lidar_avoid.obs_layout": "scan360",
     }
@@ -138,8 +140,48 @@ def test_input_size_mismatch_names_both(tmp_path: Path) -> None:
 
 
 def test_output_size_mismatch(tmp_path: Path) -> None:
-    with pytest.raises(UserError, match=r"model output \(N, 3\) tensor\(float\) is not \(1, 2\) float32"):
-        OnnxPolicy(write_policy(tmp_path / "p.onnx", spec=SPEC, output_size=3), SPEC)
+    with pytest.raises(UserError, match=r"model output \(N, 4\) does not match config \(1, 2\) float32 "
+                                        r"\(policy.max_sideways_speed 0\)$"):
+        OnnxPolicy(write_policy(tmp_path / "p.onnx", spec=SPEC, output_size=4), SPEC)
+
+
+SIDEWAYS_SPEC = dataclasses.replace(SPEC, max_sideways_speed=1.0)
+AS_THE_MODEL_SAYS = ", as the model's metadata says"
+
+
+def test_a_sideways_model_loads_under_a_sideways_config_and_acts_with_three_values(tmp_path: Path) -> None:
+    path = write_policy(tmp_path / "side.onnx", kind="slide_left", spec=SIDEWAYS_SPEC)
+    policy = OnnxPolicy(path, SIDEWAYS_SPEC)
+    assert policy.act(np.zeros(SPEC.obs_size, np.float32)).tolist() == [0.0, 0.0, 1.0]
+
+
+@pytest.mark.parametrize(
+    ("model_spec", "config_spec", "message"),
+    [
+        (SIDEWAYS_SPEC, SPEC, "model output (N, 3) does not match config (1, 2) float32 (policy.max_sideways_"
+                              f"speed 0; set policy.max_sideways_speed = 1{AS_THE_MODEL_SAYS})"),
+        (SPEC, SIDEWAYS_SPEC, "model output (N, 2) does not match config (1, 3) float32 (policy.max_sideways_"
+                              f"speed 1; set policy.max_sideways_speed = 0{AS_THE_MODEL_SAYS})"),
+        (dataclasses.replace(SPEC, max_sideways_speed=0.5), SIDEWAYS_SPEC,
+         "model max_sideways_speed 0.5 does not match config policy.max_sideways_speed 1.0"),
+    ],
+)
+def test_a_model_of_another_action_is_refused_naming_the_fix(
+    tmp_path: Path, model_spec: PolicySpec, config_spec: PolicySpec, message: str
+) -> None:
+    path = write_policy(tmp_path / "p.onnx", spec=model_spec)
+    with pytest.raises(UserError) as err:
+        OnnxPolicy(path, config_spec)
+    assert str(err.value) == message
+
+
+def test_a_model_without_a_sideways_key_has_two_action_values(tmp_path: Path) -> None:
+    """Models exported before the key existed (the shipped one) fly forward and yaw rate only."""
+    key = "lidar_avoid.max_sideways_speed"
+    path = write_policy(tmp_path / "old.onnx", spec=SPEC, metadata_overrides={key: None})
+    OnnxPolicy(path, SPEC)
+    with pytest.raises(UserError, match=r"^model output \(N, 2\) does not match config \(1, 3\)"):
+        OnnxPolicy(path, SIDEWAYS_SPEC)
 
 
 def test_input_type_mismatch(tmp_path: Path) -> None:
@@ -207,7 +249,7 @@ def test_metadata_equal_within_float_tolerance_is_accepted(tmp_path: Path) -> No
     OnnxPolicy(path, SPEC)
 
 
-@pytest.mark.parametrize("key", sorted(set(METADATA_KEYS) - {"lidar_avoid.obs_layout"}))
+@pytest.mark.parametrize("key", sorted(set(METADATA_KEYS) - set(LEGACY_VALUES)))
 def test_missing_metadata_is_named(tmp_path: Path, key: str) -> None:
     path = write_policy(tmp_path / "p.onnx", spec=SPEC, metadata_overrides={key: None})
     with pytest.raises(UserError, match=f"lacks metadata {key} "):

@@ -702,3 +702,30 @@ def test_the_carried_drift_is_bounded_and_never_from_a_bad_estimate(
     out = SafetyShield(cfg, MAX_RANGE).filter(Command(0.0, 0.0), wall, 0.1, velocity=velocity, drift=drift)
     assert all(math.isfinite(v) for v in (out.forward, out.lateral, out.yaw_rate))
     assert (out.forward - plain.forward, out.lateral - plain.lateral) == pytest.approx(expected)
+
+
+def test_a_sideways_command_is_judged_along_its_course() -> None:
+    """A return 1.5 m to the left caps a command to the left as a return 1.5 m ahead caps one
+    forward; a return 1.5 m to the right leaves it alone; a non-finite sideways part stops all."""
+    cfg = ShieldConfig(keepout_distance=0.0, max_speed=10.0, lane_half_width=0.0)
+    ahead = settled(SafetyShield(cfg, MAX_RANGE), Command(10.0, 0.0), scan_with({0: 1.5}))
+    left = settled(SafetyShield(cfg, MAX_RANGE), Command(0.0, 0.0, 10.0), scan_with({90: 1.5}))
+    assert 0.0 < ahead.forward < 1.5
+    assert left.lateral == pytest.approx(ahead.forward) and abs(left.forward) < 1e-9
+    right = settled(SafetyShield(cfg, MAX_RANGE), Command(0.0, 0.0, 3.0), scan_with({270: 1.5}))
+    assert right.lateral == pytest.approx(3.0) and abs(right.forward) < 1e-9
+    diagonal = settled(SafetyShield(cfg, MAX_RANGE), Command(3.0, 0.5, 3.0), scan_with({45: 1.5}))
+    assert math.hypot(diagonal.forward, diagonal.lateral) == pytest.approx(ahead.forward)
+    assert diagonal.yaw_rate == pytest.approx(0.5)
+    shield = SafetyShield(cfg, MAX_RANGE)
+    assert shield.filter(Command(1.0, 0.5, math.nan), CLEAR, 0.1) == Command(0.0, 0.0, 0.0)
+    assert shield.interventions["nan"] == 1
+
+
+def test_a_sideways_command_is_stopped_by_the_estop_in_its_way() -> None:
+    """A return inside the estop distance to the left: no motion to the left, but to the right."""
+    shield = SafetyShield(BASE, MAX_RANGE)
+    blocked = settled(shield, Command(0.0, 0.0, 1.0), scan_with({88: 0.3, 90: 0.3, 92: 0.3}))
+    assert blocked.lateral <= 0.0
+    away = settled(SafetyShield(BASE, MAX_RANGE), Command(0.0, 0.0, -1.0), scan_with({90: 0.3}))
+    assert away.lateral < -0.5

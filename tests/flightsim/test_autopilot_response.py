@@ -317,12 +317,13 @@ def test_every_random_draw_flies_a_random_command_sequence_stably():
             assert math.hypot(sp.vx, sp.vy) < 2.6 and abs(sp.yaw_rate) < 2.0
 
 
-def _fly_point_mass(model: AutopilotResponse, commands: list[tuple[float, float]]) -> np.ndarray:
-    """Fly body commands (one per 0.1 s) through ``model`` on a vehicle that flies its setpoints
-    exactly; (len, 3) displacement and heading at each command's end."""
+def _fly_point_mass(model: AutopilotResponse, commands: list[tuple[float, ...]]) -> np.ndarray:
+    """Fly body commands (one per 0.1 s: forward, yaw rate and optionally left) through ``model``
+    on a vehicle that flies its setpoints exactly; (len, 3) displacement and heading at each
+    command's end."""
     state, position, out = _State(), np.zeros(2), []
-    for forward, rate in commands:
-        model.command(forward, 0.0, rate, state.yaw)
+    for forward, rate, *left in commands:
+        model.command(forward, left[0] if left else 0.0, rate, state.yaw)
         for _ in range(4):
             sp = model.setpoint(state)
             position += (sp.vx * CHUNK_S, sp.vy * CHUNK_S)
@@ -353,6 +354,24 @@ def test_predict_matches_the_model_flown_including_the_command_in_flight(params)
     moved = _sent_just_now(params).predict(0.0, np.zeros((1, 2)), 10, 25)[0, -1, 0]
     assert moved > 0.001
     assert AutopilotResponse(params).predict(0.0, np.zeros((1, 2)), 10, 25)[0, -1, 0] == 0.0
+
+
+@pytest.mark.parametrize("params", [ARDUPILOT, PX4])
+def test_predict_flies_a_sideways_command_as_the_model_does(params):
+    """A third column is a sideways velocity (left positive): predicted as flown, turning or not,
+    and a zero third column predicts what the two-column command does."""
+    candidates = np.array([[0.0, 0.0, 1.0], [0.8, 0.6, -0.5], [1.5, -0.4, 0.7]])
+    model = _sent_just_now(params)
+    predicted = model.predict(0.0, candidates, command_steps=10, total_steps=25)
+    for candidate, path in zip(candidates, predicted, strict=True):
+        flown = _fly_point_mass(_sent_just_now(params), [tuple(candidate)] * 10 + [(0.0, 0.0)] * 15)
+        np.testing.assert_allclose(path, flown, atol=0.02)
+    assert predicted[0, -1, 1] > 0.5  # straight left, not forward
+    two = model.predict(0.0, candidates[:, :2], 10, 25)
+    three = model.predict(0.0, np.hstack([candidates[:, :2], np.zeros((3, 1))]), 10, 25)
+    np.testing.assert_array_equal(two, three)
+    with pytest.raises(ValueError, match=r"\(K, 2\) or \(K, 3\)"):
+        model.predict(0.0, np.zeros((2, 4)), 10, 25)
 
 
 def test_predict_lets_the_estimate_error_decay_as_its_expectation_does():

@@ -369,3 +369,47 @@ def test_the_route_sends_the_goal_features_through_the_gap_and_passes_both_check
     finally:
         routed.close()
         straight.close()
+
+
+def test_a_sideways_action_flies_left_and_passes_both_checkers() -> None:
+    """With ``sideways`` the action's third component is a speed to the left: from a hover in HALL
+    (facing +x, the ideal response) one of 0.5 for 2 s carries the vehicle about 1 m to the left
+    (+y) and hardly forward; (a0, a1, 0) flies what the two-component env flies for (a0, a1)."""
+    config = NavEnvConfig(autopilot_response="ideal", sideways=True)
+    env = LidarNavEnv(config)
+    assert env.action_space.shape == (3,)
+    env.reset(seed=0, options={"world": HALL})
+    for _ in range(20):
+        env.step(np.array([0.0, 0.0, 0.5], np.float32))
+    moved = env.true_state.position[:2] - np.array(HALL.start_position[:2])
+    assert 0.6 < moved[1] < 1.1 and abs(moved[0]) < 0.1, moved
+    plain = LidarNavEnv(NavEnvConfig(autopilot_response="ideal"))
+    observations = []
+    pairs = ((env, np.array([0.6, 0.3, 0.0], np.float32)), (plain, np.array([0.6, 0.3], np.float32)))
+    for e, action in pairs:
+        e.reset(seed=1, options={"world": HALL})
+        observations.append([e.step(action)[0] for _ in range(10)])
+    np.testing.assert_array_equal(observations[0], observations[1])
+    gym_check_env(env)
+    from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+    sb3_check_env(env, warn=True)
+    env.close()
+    plain.close()
+
+
+@pytest.mark.parametrize("shield", [False, True])
+def test_a_sideways_action_towards_a_wall_is_stopped_by_the_shield(shield: bool) -> None:
+    """Full speed to the left in HALL (the wall 3 m to the left): alone the vehicle strikes the
+    wall; behind the env's shield, which judges the command along its course, it stops short."""
+    env = LidarNavEnv(NavEnvConfig(autopilot_response="ideal", sideways=True, shield=shield))
+    env.reset(seed=0, options={"world": HALL})
+    terminated = False
+    for _ in range(80):
+        _, _, terminated, _, info = env.step(np.array([0.0, 0.0, 1.0], np.float32))
+        if terminated:
+            break
+    assert terminated == (not shield) and info["collision"] == (not shield)
+    if shield:
+        assert 1.0 < env.true_state.position[1] < 3.0 - env.config.vehicle_radius
+    env.close()

@@ -33,6 +33,17 @@ def dagger_run(tmp_path, *overrides: str):
 
 
 @pytest.fixture
+def one_torch_thread():
+    """Torch on one thread, as ``avoid-train train`` runs it; the count before restored after."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture
 def setup(tmp_path):
     with dagger_run(tmp_path) as run:
         yield run
@@ -140,3 +151,20 @@ def test_a_stopped_dagger_run_resumes_after_its_last_iteration_on_its_labels(tmp
     assert capsys.readouterr().err.strip().endswith(
         "dagger_600_steps.zip has 3 DAgger iterations, pretrain.iterations is 3: raise it to go on"
     )
+
+
+def test_with_a_sideways_action_the_student_learns_all_three_parts(tmp_path, one_torch_thread):
+    """``env.sideways``: the teacher's labels have a sideways part, the student's action space
+    three parts, and the fit brings the student close to each of them (on one thread, as training
+    fits: the result of a fit this small depends on the thread count)."""
+    with dagger_run(tmp_path, "env.sideways=true") as (config, venv, model):
+        assert venv.action_space.shape == (3,) and model.action_space.shape == (3,)
+        data = dagger.run(
+            venv, model, iterations=1, steps=400, beta0=1.0, epochs=60, batch_size=64,
+            learning_rate=1e-3, seed=0,
+        )  # fmt: skip
+        assert data.actions.shape == (400, 3) and np.abs(data.actions[:, 2]).max() > 0.2
+        predicted, _ = model.predict(data.obs, deterministic=True)
+        untrained, _ = build_model(config, venv, tmp_path, None).predict(data.obs, deterministic=True)
+        errors = np.mean((predicted - data.actions) ** 2, axis=0)
+        assert np.all(errors < 0.25 * np.mean((untrained - data.actions) ** 2, axis=0)), errors

@@ -188,3 +188,35 @@ def test_every_controller_has_its_own_colour_and_the_legend_names_them_all():
     assert sorted(t.get_text() for t in legend.get_texts()) == sorted([*shielded, "collision"])
     drawn = {line.get_color() for ax in fig.axes for line in ax.get_lines() if len(line.get_xdata()) == 2}
     assert drawn == {colours[n] for n in shielded}
+
+
+class FullLeft:
+    """Asks for full speed to the left (a third action component) and nothing else."""
+
+    def reset(self, scan):
+        return np.array([0.0, 0.0, 1.0], np.float32)
+
+    def act(self, scan):
+        return np.array([0.0, 0.0, 1.0], np.float32)
+
+
+@pytest.mark.parametrize("wall_bin", [90, 270])
+def test_the_shield_judges_a_sideways_action_and_sends_it_sideways(wall_bin: int):
+    """A sideways action goes through the shield along its course: a wall 0.2 m to the left stops
+    the move to the left, one to the right does not; what it lets through goes to the sideways
+    setpoint, and the action handed on asks none."""
+    scan = np.ones(360, np.float32)
+    scan[wall_bin - 3 : wall_bin + 4] = 0.02
+    sent: list[float] = []
+    controller = ShieldedController(
+        FullLeft(), SafetyShield(ShieldConfig(), max_range=10.0), 2.0, 1.5, lateral=sent.append,
+        max_sideways_speed=1.0,
+    )  # fmt: skip
+    controller.reset(scan)
+    for _ in range(20):
+        action = controller.act(scan)
+    assert action.shape == (3,) and action[2] == 0.0
+    assert (sent[-1] <= 0.0) if wall_bin == 90 else (sent[-1] > 0.5)
+    with pytest.raises(ValueError, match="action must have 2 values, got 3"):
+        shielded_two = ShieldedController(FullLeft(), SafetyShield(ShieldConfig(), max_range=10.0), 2.0, 1.5)
+        shielded_two.reset(scan)

@@ -22,12 +22,14 @@ def clutter(side: float) -> World:
     )  # fmt: skip
 
 
-def test_the_mirrored_frames_are_the_frames_of_the_mirrored_world() -> None:
+@pytest.mark.parametrize("sideways", [False, True])
+def test_the_mirrored_frames_are_the_frames_of_the_mirrored_world(sideways: bool) -> None:
     """Flown through a cluttered hall and through its reflection with mirrored commands, the two
-    envs' stacked frames (scan, route-bent goal, velocity, drift) are each other's mirror."""
-    config = NavEnvConfig(autopilot_response="ideal", drift=True, route=True, max_steps=60)
+    envs' stacked frames (scan, route-bent goal, velocity, drift) are each other's mirror; with a
+    sideways action too, whose sideways part the mirror reverses."""
+    config = NavEnvConfig(autopilot_response="ideal", drift=True, route=True, max_steps=60, sideways=sideways)
     envs = LidarNavEnv(config), LidarNavEnv(config)
-    mirror = mirror_for(config.layout, n_stack=1)
+    mirror = mirror_for(config.layout, n_stack=1, sideways=sideways)
     rng = np.random.default_rng(0)
     try:
         obs, _ = envs[0].reset(seed=0, options={"world": clutter(1.0)})
@@ -35,6 +37,8 @@ def test_the_mirrored_frames_are_the_frames_of_the_mirrored_world() -> None:
         for _ in range(30):
             np.testing.assert_allclose(mirror.observations(obs), mirrored, atol=1e-4)
             action = np.array([rng.uniform(0.2, 1.0), rng.uniform(-1.0, 1.0)], np.float32)
+            if sideways:
+                action = np.append(action, np.float32(rng.uniform(-1.0, 1.0)))
             obs, *_ = envs[0].step(action)
             mirrored, *_ = envs[1].step(mirror.actions(action))
         assert obs[config.layout.slices()["velocity"]].any()  # it flew: not 30 frames of a hover

@@ -178,3 +178,37 @@ def test_a_missing_fine_tune_start_is_refused_in_one_line_before_the_run_directo
     assert len(err.splitlines()) == 1
     assert err.endswith(f"ppo.init_from: model file not found: {tmp_path / 'nowhere.zip'}")
     assert not (tmp_path / "runs" / "tiny-ft-s2").exists()  # nothing to --overwrite after the fix
+
+
+@pytest.fixture(scope="module")
+def side_run(tmp_path_factory):
+    """The tiny run with ``env.sideways``: a three-part action, exported."""
+    tmp = tmp_path_factory.mktemp("side")
+    config = tmp / "tiny-side.toml"
+    config.write_text(TINY_NAV.replace("[env]\n", "[env]\nsideways = true\n"))
+    assert main(["train", "--config", str(config), f"run_root={tmp / 'runs'}"]) == 0
+    onnx_path = tmp / "side.onnx"
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert main(["export", "--model", str(tmp / "runs" / "tiny-nav-s2" / "final_model.zip"),
+                     "--out", str(onnx_path), "--parity-samples", "50"]) == 0  # fmt: skip
+    return {"config": config, "onnx": onnx_path}
+
+
+def test_a_sideways_export_says_so_and_the_companion_takes_it_only_when_told(side_run):
+    proto = onnx.load(str(side_run["onnx"]))
+    meta = {p.key: p.value for p in proto.metadata_props}
+    assert meta["lidar_avoid.max_sideways_speed"] == "1.0"
+    assert "[forward, yaw rate, sideways]" in proto.doc_string
+    policy = OnnxPolicy(side_run["onnx"], PolicySpec(layout=GOAL, max_sideways_speed=1.0))
+    action = policy.act(np.zeros(4 * GOAL.frame_size, np.float32))
+    assert action.shape == (3,) and np.all(np.abs(action) <= 1.0)
+    with pytest.raises(UserError, match=r"set policy.max_sideways_speed = 1, as the model's metadata says"):
+        OnnxPolicy(side_run["onnx"], PolicySpec(layout=GOAL))
+
+
+def test_evaluate_flies_the_exported_sideways_policy(side_run, tmp_path):
+    out = tmp_path / "eval.json"
+    argv = ["evaluate", "--config", str(side_run["config"]), "--policy", str(side_run["onnx"]),
+            "--seeds", "1", "--workers", "1", "--baselines", "", "--json", str(out)]  # fmt: skip
+    assert main(argv) == 0
+    assert json.loads(out.read_text())["controllers"]["policy"]["per_family"]["gaps"]["episodes"] == 1

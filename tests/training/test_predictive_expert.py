@@ -9,7 +9,14 @@ import pytest
 
 from flightsim.nav_env import LidarNavEnv, NavEnvConfig
 from flightsim.world import Box, World, clearances
-from tests.training.test_path_expert import RADIUS, corridor, env_for, fly, validation_successes
+from tests.training.test_path_expert import (
+    RADIUS,
+    corridor,
+    env_for,
+    fly,
+    fly_recording,
+    validation_successes,
+)
 from training.path_expert import PathExpert
 from training.predictive_expert import (
     PredictiveExpert,
@@ -90,17 +97,24 @@ def test_every_command_it_flies_is_predicted_to_stop_clear(response):
     """Flying at the wall at full speed, each action it picks keeps the radius and the margin over
     its whole predicted stop, and the flight itself never comes closer than the radius."""
     env = env_for(wall_ahead(), response=response)
-    expert = PredictiveExpert(env, PredictiveExpertConfig())
-    cfg = expert.config
+    assert_every_command_stops_clear(env, PredictiveExpert(env, PredictiveExpertConfig()))
+
+
+def assert_every_command_stops_clear(env: LidarNavEnv, expert: PredictiveExpert) -> None:
+    """Fly ``expert`` up to 80 steps: every forward command it picks keeps the radius and the margin
+    over its whole predicted stop, and the flight never comes closer than the radius."""
+    config = env.config
+    sideways = [config.max_sideways_speed] if config.sideways else []
+    scale = np.array([config.max_speed, config.max_yaw_rate, *sideways])
     action = expert.reset()
     closest = np.inf
     for _ in range(80):
+        assert action.shape == scale.shape
         state = env.true_state
-        scale = np.array([env.config.max_speed, env.config.max_yaw_rate])
         path = env.response.predict(float(state.yaw), (action * scale)[None], 10, 35)[0]
         points = np.column_stack([path[:, :2] + state.position[:2], np.full(len(path), 1.5)])
         if action[0] > 0.0:  # a forward command must be safe (a hold may start inside the margin)
-            assert clearances(env.world, points).min() > RADIUS + cfg.margin - 0.1
+            assert clearances(env.world, points).min() > RADIUS + expert.config.margin - 0.1
         _, _, terminated, truncated, info = env.step(action)
         closest = min(closest, info["min_distance"])
         if terminated or truncated:
@@ -173,3 +187,18 @@ def test_the_smooth_teacher_snakes_less_and_still_gets_through():
         assert smooth_info["success"] and robust_info["success"], response
         robust, smooth = robust + rough, smooth + gentle
     assert smooth < 0.9 * robust, (smooth, robust)
+
+
+@pytest.mark.parametrize("response", ["px4", "ardupilot"])
+def test_with_a_sideways_action_every_command_is_predicted_to_stop_clear_and_it_flies_the_gap(response):
+    """With the env's ``sideways`` the robust teacher's candidates carry a sideways part: each
+    command it flies at the wall keeps the radius and the margin over its predicted stop (the
+    prediction reading the third column), it flies sideways somewhere, and it reaches the goal
+    through the corridor's gap."""
+    env = LidarNavEnv(NavEnvConfig(autopilot_response=response, vehicle_radius=RADIUS, sideways=True))
+    env.reset(seed=0, options={"world": wall_ahead()})
+    assert_every_command_stops_clear(env, robust_expert(env))
+    env.reset(seed=0, options={"world": corridor(width=1.4)})
+    info, actions = fly_recording(env, robust_expert(env))
+    assert info["success"], info
+    assert np.abs(actions[:, 2]).max() > 0.3
