@@ -149,6 +149,14 @@ SIDEWAYS_SPEC = dataclasses.replace(SPEC, max_sideways_speed=1.0)
 AS_THE_MODEL_SAYS = ", as the model's metadata says"
 
 
+def _refusal(tmp_path: Path, model_spec: PolicySpec, config_spec: PolicySpec) -> str:
+    """The companion's message refusing a model exported for ``model_spec`` under ``config_spec``."""
+    path = write_policy(tmp_path / "p.onnx", spec=model_spec)
+    with pytest.raises(UserError) as err:
+        OnnxPolicy(path, config_spec)
+    return str(err.value)
+
+
 def test_a_sideways_model_loads_under_a_sideways_config_and_acts_with_three_values(tmp_path: Path) -> None:
     path = write_policy(tmp_path / "side.onnx", kind="slide_left", spec=SIDEWAYS_SPEC)
     policy = OnnxPolicy(path, SIDEWAYS_SPEC)
@@ -169,10 +177,7 @@ def test_a_sideways_model_loads_under_a_sideways_config_and_acts_with_three_valu
 def test_a_model_of_another_action_is_refused_naming_the_fix(
     tmp_path: Path, model_spec: PolicySpec, config_spec: PolicySpec, message: str
 ) -> None:
-    path = write_policy(tmp_path / "p.onnx", spec=model_spec)
-    with pytest.raises(UserError) as err:
-        OnnxPolicy(path, config_spec)
-    assert str(err.value) == message
+    assert _refusal(tmp_path, model_spec, config_spec) == message
 
 
 def test_a_model_without_a_sideways_key_has_two_action_values(tmp_path: Path) -> None:
@@ -284,10 +289,7 @@ def test_a_goal_model_loads_with_a_goal_config_and_takes_its_frames(tmp_path: Pa
 def test_a_model_of_another_observation_layout_is_refused_naming_both(
     tmp_path: Path, model_spec: PolicySpec, config_spec: PolicySpec, message: str
 ) -> None:
-    path = write_policy(tmp_path / "p.onnx", spec=model_spec)
-    with pytest.raises(UserError) as err:
-        OnnxPolicy(path, config_spec)
-    assert message in str(err.value)
+    assert message in _refusal(tmp_path, model_spec, config_spec)
 
 
 def test_a_model_without_a_layout_key_is_a_scan_only_model(tmp_path: Path) -> None:
