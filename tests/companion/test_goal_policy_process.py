@@ -104,14 +104,18 @@ def _close_wall_west(azimuth_deg: np.ndarray) -> np.ndarray:
     return _wall_east(-azimuth_deg)
 
 
+def _sideways_model(tmp_path: Path) -> Path:
+    """A model trained with ``env.sideways`` asking a = (0, 0, 1): 1 m/s to the left."""
+    config = CompanionConfig(policy=PolicyConfig(max_sideways_speed=1.0))
+    return write_policy(tmp_path / "side.onnx", kind="slide_left", spec=policy_spec(config))
+
+
 def test_a_sideways_model_flies_its_third_value_to_the_left_and_the_shield_stops_it_at_a_wall(tmp_path):
     """A model trained with ``env.sideways`` (a = (0, 0, 1): 1 m/s to the left) under a config that
     says so: the setpoint carries it as body vy (FRD: right positive, so -1); with a wall 0.4 m to
     the left, the shield judges the move along its course and lets none of it through."""
-    config = CompanionConfig(policy=PolicyConfig(max_sideways_speed=1.0))
-    model = write_policy(tmp_path / "side.onnx", kind="slide_left", spec=policy_spec(config))
     lidar_port, mavlink_port = free_udp_port(), free_udp_port()
-    path = write_config(tmp_path, model, lidar_port, mavlink_port)
+    path = write_config(tmp_path, _sideways_model(tmp_path), lidar_port, mavlink_port)
     path.write_text(path.read_text().replace("[policy]\n", "[policy]\nmax_sideways_speed = 1.0\n"))
     f = Flight(path, lidar_port, mavlink_port)
     try:
@@ -124,9 +128,7 @@ def test_a_sideways_model_flies_its_third_value_to_the_left_and_the_shield_stops
 
 
 def test_a_sideways_model_under_a_config_without_it_is_refused_naming_the_fix(tmp_path):
-    config = CompanionConfig(policy=PolicyConfig(max_sideways_speed=1.0))
-    model = write_policy(tmp_path / "side.onnx", kind="slide_left", spec=policy_spec(config))
-    path = write_config(tmp_path, model, free_udp_port(), free_udp_port())
+    path = write_config(tmp_path, _sideways_model(tmp_path), free_udp_port(), free_udp_port())
     result = run_to_exit(["run", "--config", str(path)])
     assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1
     assert result.stderr.strip().endswith(
