@@ -8,18 +8,21 @@ move the absolute times several-fold, the ratios much less. The load average is 
 
     python bench/bench_policy.py [--model models/policy.onnx] [--reference OLD.onnx] [--calls 2000]
 
-Both models must take the observation the companion's default configuration builds.
+Both models must take the observation the companion's default configuration builds; the
+reference may have the two-part action of the models before the sideways one (its metadata says).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+import onnxruntime as ort
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
@@ -27,12 +30,23 @@ sys.path.insert(0, str(ROOT))
 from companion.app import policy_spec  # noqa: E402
 from companion.config import CompanionConfig  # noqa: E402
 from companion.errors import UserError  # noqa: E402
-from companion.policy import OnnxPolicy  # noqa: E402
+from companion.policy import LEGACY_VALUES, PREFIX, OnnxPolicy, PolicySpec  # noqa: E402
 
 #: s between scans: the companion acts once per scan at 10 Hz
 CONTROL_PERIOD_S = 0.1
 #: what the companion feeds the policy under its default configuration
 SPEC = policy_spec(CompanionConfig())
+
+
+def reference_spec(path: Path) -> PolicySpec:
+    """:data:`SPEC` with the action width ``path``'s metadata gives (absent: two parts)."""
+    key = PREFIX + "max_sideways_speed"
+    try:
+        meta = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).get_modelmeta()
+        sideways = float(meta.custom_metadata_map.get(key, LEGACY_VALUES[key]))
+    except Exception as exc:  # ONNX Runtime raises its own classes for an unreadable model
+        raise UserError(f"{path}: not a readable ONNX model ({exc})") from None
+    return dataclasses.replace(SPEC, max_sideways_speed=sideways)
 
 
 def time_calls(policy: OnnxPolicy, observations: np.ndarray) -> np.ndarray:
@@ -56,7 +70,8 @@ def main() -> int:
     try:
         policies = {"model": OnnxPolicy(args.model, SPEC, providers=["CPUExecutionProvider"])}
         if args.reference:
-            policies["reference"] = OnnxPolicy(args.reference, SPEC, providers=["CPUExecutionProvider"])
+            policies["reference"] = OnnxPolicy(args.reference, reference_spec(args.reference),
+                                               providers=["CPUExecutionProvider"])
     except UserError as exc:
         print(f"bench_policy: error: {exc}", file=sys.stderr)
         return 2

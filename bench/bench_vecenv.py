@@ -79,11 +79,11 @@ def env_rate(config: TrainConfig, n: int, seconds: float) -> tuple[float, float]
         venv.reset()
         rng = np.random.default_rng(0)
         for _ in range(max(3, 30 // n)):  # warm-up: compiled kernels loaded, workers running
-            venv.step(rng.uniform(-1.0, 1.0, (n, 2)).astype(np.float32))
+            venv.step(rng.uniform(-1.0, 1.0, (n, *venv.action_space.shape)).astype(np.float32))
         steps, start, cpu = 0, time.perf_counter(), cpu_seconds(pids)
         while time.perf_counter() - start < seconds:
             for _ in range(10):
-                venv.step(rng.uniform(-1.0, 1.0, (n, 2)).astype(np.float32))
+                venv.step(rng.uniform(-1.0, 1.0, (n, *venv.action_space.shape)).astype(np.float32))
             steps += 10 * n
         wall, cpu = time.perf_counter() - start, cpu_seconds(pids) - cpu
         return steps / wall, cpu / steps * 1e6

@@ -129,7 +129,7 @@ def policy_spec(config: CompanionConfig) -> PolicySpec:
         bin_convention=BIN_CONVENTION,
         max_speed=config.policy.max_speed,
         max_yaw_rate=config.policy.max_yaw_rate,
-        max_sideways_speed=config.policy.max_sideways_speed,
+        max_sideways_speed=config.policy.sideways_speed,
         layout=config.policy.layout,
     )
 
@@ -438,7 +438,7 @@ class Companion:
         self.supervisor.on_scan(True)
         cfg = self.config.policy
         self._latest = (scan, command_from_action(action, cfg.max_speed, cfg.max_yaw_rate,
-                                                            cfg.max_sideways_speed))
+                                                            cfg.sideways_speed))
 
     def _frame(self, scan: np.ndarray) -> np.ndarray | str:
         """The policy's frame for ``scan`` (LidarNav-v0's, built by the same functions), or why

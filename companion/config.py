@@ -113,6 +113,21 @@ class LidarConfig:
 
 
 @dataclass(frozen=True)
+class CompanionShieldConfig(ShieldConfig):
+    """The drone's ``[shield]``: :class:`~companion.shield.ShieldConfig` carrying the drift estimate.
+
+    The shipped policy flies sideways, and behind the shield three of its validation episodes
+    struck where the velocity estimate was wrong; carrying the estimate (0.6 m/s a side, while the
+    brake or the keep-out acts) left none (docs/goal-policy.md). The estimate comes from the goal
+    frame's drift features (``policy.drift``); without them the shield carries nothing. Only the
+    default differs from the class's: the env's ``shield_limits`` keeps 0, as LidarAvoid-v0
+    tracks no estimate.
+    """
+
+    drift_compensation: float = field(default=0.6, metadata={"min": 0.0, "max": 2.0})
+
+
+@dataclass(frozen=True)
 class PolicyConfig:
     """The ONNX policy and what it was trained with (checked against the model's metadata).
 
@@ -123,8 +138,9 @@ class PolicyConfig:
     :param max_speed: forward speed that action 1.0 stands for, m/s (as in training)
     :param max_yaw_rate: yaw rate that action 1.0 stands for, rad/s (as in training)
     :param max_sideways_speed: speed to the left that a third action value of 1.0 stands for, m/s:
-        a model trained with ``env.sideways = true`` has one; 0 (default): the action is forward and
-        yaw rate only. The metadata says which
+        a model trained with ``env.sideways = true`` has one (1.0, the default: the shipped one
+        does); 0: the action is forward and yaw rate only, as models before it. The metadata says
+        which
     :param observation: the frame the model was trained on: ``goal`` (LidarNav-v0: the scan, the
         goal's bearing and distance, the measured body velocity / ``max_speed``) or ``scan``
         (LidarAvoid-v0: the scan alone); the model's metadata must say the same
@@ -151,7 +167,7 @@ class PolicyConfig:
     stack: int = field(default=4, metadata={"min": 1, "max": 64})
     max_speed: float = field(default=2.0, metadata={"min": 0.01, "max": 20.0})
     max_yaw_rate: float = field(default=1.5, metadata={"min": 0.01, "max": 6.0})
-    max_sideways_speed: float = field(default=0.0, metadata={"min": 0.0, "max": 5.0})
+    max_sideways_speed: float = field(default=1.0, metadata={"min": 0.0, "max": 5.0})
     observation: Literal["goal", "scan"] = "goal"
     goal_range: float = field(default=30.0, metadata={"min": 1.0, "max": 100.0})
     drift: bool = True
@@ -167,6 +183,12 @@ class PolicyConfig:
                                  velocity_scale=self.max_speed, drift=self.drift and goal,
                                  command=self.command and goal, yaw_rate_scale=self.max_yaw_rate,
                                  firmware=self.firmware and goal)
+
+    @property
+    def sideways_speed(self) -> float:
+        """m/s that the action's third value stands for: ``max_sideways_speed`` for a goal model, 0
+        (two values) for a scan-only one, which LidarAvoid-v0 never gives a third."""
+        return self.max_sideways_speed if self.observation == "goal" else 0.0
 
     def __post_init__(self) -> None:
         if self.sha256 and not re.fullmatch(r"[0-9a-fA-F]{64}", self.sha256):
@@ -337,7 +359,7 @@ class CompanionConfig:
     lidar: LidarConfig = field(default_factory=LidarConfig)
     scan: ScanConfig = field(default_factory=ScanConfig)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
-    shield: ShieldConfig = field(default_factory=ShieldConfig)
+    shield: CompanionShieldConfig = field(default_factory=CompanionShieldConfig)
     supervisor: SupervisorConfig = field(default_factory=SupervisorConfig)
     autopilot: AutopilotConfig = field(default_factory=AutopilotConfig)
     params_check: ParamsCheckConfig = field(default_factory=ParamsCheckConfig)

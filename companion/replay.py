@@ -167,7 +167,7 @@ def replay(rec: Recording, config: CompanionConfig, policy: OnnxPolicy, *, compa
                            f"{[float(a) for a in action]}")
             scans[msg["seq"]] = scan
             requested[msg["seq"]] = (
-                command_from_action(action, cfg.max_speed, cfg.max_yaw_rate, cfg.max_sideways_speed)
+                command_from_action(action, cfg.max_speed, cfg.max_yaw_rate, cfg.sideways_speed)
                 if action is not None else Command(0.0, 0.0)
             )
         else:

@@ -144,8 +144,8 @@ class ShieldConfig:
         drift estimate given to :meth:`SafetyShield.filter` (the velocity estimate's error), each
         axis at most this, m/s: the autopilot flies the setpoint on its estimate, so the vehicle
         truly moves at the setpoint minus the error, and a push away from a wall the estimate drifts
-        towards would otherwise be eaten by the drift. 0 (the default): never; 0.6 was tried on the
-        validation worlds and is not the default (docs/goal-policy.md)
+        towards would otherwise be eaten by the drift. 0 (the default here): never; the
+        companion's ``[shield]`` carries 0.6 (:class:`companion.config.CompanionShieldConfig`)
     """
 
     max_speed: float = field(default=2.0, metadata={"min": 0.0, "max": 20.0})

@@ -128,6 +128,24 @@ class ShieldedController:
         return np.array(sent, dtype=np.float32)
 
 
+class NoSidewaysController:
+    """A two-part controller (the baselines) in an env whose action has a sideways part: it asks
+    none (a2 = 0), which flies exactly what its two parts fly in the two-part env."""
+
+    def __init__(self, inner: Controller) -> None:
+        self._inner = inner
+
+    def reset(self, scan: np.ndarray) -> np.ndarray:
+        return self._widen(self._inner.reset(scan))
+
+    def act(self, scan: np.ndarray) -> np.ndarray:
+        return self._widen(self._inner.act(scan))
+
+    @staticmethod
+    def _widen(action: np.ndarray) -> np.ndarray:
+        return np.append(np.asarray(action, dtype=np.float32), np.float32(0.0))
+
+
 def sb3_controller(model: Any, n_stack: int, frame_size: int = N_BINS) -> StackedPolicyController:
     """An SB3 model acting deterministically (what ``model.predict(..., deterministic=True)`` gives)."""
 
@@ -204,6 +222,26 @@ def _bare_controller(
     spec: ControllerSpec, env_config: Any, seed: int, n_stack: int, env: Any = None
 ) -> Controller:
     """The controller itself (policies are loaded once per process)."""
+    baseline = _baseline(spec, env_config, seed)
+    if baseline is not None:
+        return NoSidewaysController(baseline) if sideways_scale(env_config) else baseline
+    if spec.kind in PRIVILEGED_GOAL_CONTROLLERS:
+        if env is None:
+            raise ValueError(f"{spec.kind} reads the env it flies: pass env")
+        return _teacher_controller(spec.kind, env)
+    if spec.kind != "policy":
+        raise ValueError(f"unknown controller kind {spec.kind!r}")
+    # keyed by modification time too: training re-saves its evaluation model under one name
+    key = ("policy", spec.path, os.stat(spec.path).st_mtime_ns, env_config.scan.max_range)
+    if key not in _POLICIES:
+        _POLICIES.clear()
+        _POLICIES[key] = load_policy(Path(spec.path), env_config, n_stack)
+    act, stack = _POLICIES[key]
+    return StackedPolicyController(act, stack, observation_layout(env_config).frame_size)
+
+
+def _baseline(spec: ControllerSpec, env_config: Any, seed: int) -> Controller | None:
+    """The classical controller ``spec`` names (two action parts), or None for any other kind."""
     from training.baselines import (
         GapFollower,
         GapFollowerConfig,
@@ -223,19 +261,7 @@ def _bare_controller(
         return GoalFollower(env_config.layout, config, hold=hold)
     if spec.kind == "straight_line":
         return StraightLine(env_config.layout)
-    if spec.kind in PRIVILEGED_GOAL_CONTROLLERS:
-        if env is None:
-            raise ValueError(f"{spec.kind} reads the env it flies: pass env")
-        return _teacher_controller(spec.kind, env)
-    if spec.kind != "policy":
-        raise ValueError(f"unknown controller kind {spec.kind!r}")
-    # keyed by modification time too: training re-saves its evaluation model under one name
-    key = ("policy", spec.path, os.stat(spec.path).st_mtime_ns, env_config.scan.max_range)
-    if key not in _POLICIES:
-        _POLICIES.clear()
-        _POLICIES[key] = load_policy(Path(spec.path), env_config, n_stack)
-    act, stack = _POLICIES[key]
-    return StackedPolicyController(act, stack, observation_layout(env_config).frame_size)
+    return None
 
 
 def observation_layout(env_config: Any) -> Any:

@@ -42,6 +42,7 @@ from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
+from companion.config import CompanionShieldConfig
 from companion.errors import UserError
 from companion.shield import ShieldConfig
 from companion.tomlconfig import from_dict, load_toml
@@ -286,7 +287,7 @@ def read_shield_table(path: Path) -> ShieldConfig:
     table = load_toml(path).get("shield")
     if not isinstance(table, dict):
         raise UserError(f"--shield-config {path}: no [shield] table")
-    return from_dict(ShieldConfig, table, "shield.")
+    return from_dict(CompanionShieldConfig, table, "shield.")
 
 
 @dataclass(frozen=True)

@@ -104,20 +104,11 @@ def _close_wall_west(azimuth_deg: np.ndarray) -> np.ndarray:
     return _wall_east(-azimuth_deg)
 
 
-def _sideways_model(tmp_path: Path) -> Path:
-    """A model trained with ``env.sideways`` asking a = (0, 0, 1): 1 m/s to the left."""
-    config = CompanionConfig(policy=PolicyConfig(max_sideways_speed=1.0))
-    return write_policy(tmp_path / "side.onnx", kind="slide_left", spec=policy_spec(config))
-
-
 def test_a_sideways_model_flies_its_third_value_to_the_left_and_the_shield_stops_it_at_a_wall(tmp_path):
-    """A model trained with ``env.sideways`` (a = (0, 0, 1): 1 m/s to the left) under a config that
-    says so: the setpoint carries it as body vy (FRD: right positive, so -1); with a wall 0.4 m to
+    """A model trained with ``env.sideways`` (a = (0, 0, 1): 1 m/s to the left), as the default config
+    expects: the setpoint carries it as body vy (FRD: right positive, so -1); with a wall 0.4 m to
     the left, the shield judges the move along its course and lets none of it through."""
-    lidar_port, mavlink_port = free_udp_port(), free_udp_port()
-    path = write_config(tmp_path, _sideways_model(tmp_path), lidar_port, mavlink_port)
-    path.write_text(path.read_text().replace("[policy]\n", "[policy]\nmax_sideways_speed = 1.0\n"))
-    f = Flight(path, lidar_port, mavlink_port)
+    f = Flight.with_model(tmp_path, "slide_left")
     try:
         f.settled(lambda m: abs(m.vy + 1.0) < 0.05 and abs(m.vx) < 0.05 and abs(m.yaw_rate) < 0.05,
                   "1 m/s to the left")
@@ -127,13 +118,18 @@ def test_a_sideways_model_flies_its_third_value_to_the_left_and_the_shield_stops
         f.close()
 
 
-def test_a_sideways_model_under_a_config_without_it_is_refused_naming_the_fix(tmp_path):
-    path = write_config(tmp_path, _sideways_model(tmp_path), free_udp_port(), free_udp_port())
+def test_a_two_part_model_under_the_default_config_is_refused_naming_the_fix(tmp_path):
+    """A model trained before ``env.sideways`` (two action values, no ``max_sideways_speed`` key) needs
+    ``policy.max_sideways_speed = 0``: the default config expects the shipped model's three."""
+    spec = policy_spec(CompanionConfig(policy=PolicyConfig(max_sideways_speed=0.0)))
+    model = write_policy(tmp_path / "two.onnx", spec=spec,
+                         metadata_overrides={"lidar_avoid.max_sideways_speed": None})
+    path = write_config(tmp_path, model, free_udp_port(), free_udp_port())
     result = run_to_exit(["run", "--config", str(path)])
     assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1
     assert result.stderr.strip().endswith(
-        "model output (N, 3) does not match config (1, 2) float32 "
-        "(policy.max_sideways_speed 0; set policy.max_sideways_speed = 1, as the model's metadata says)"
+        "model output (N, 2) does not match config (1, 3) float32 "
+        "(policy.max_sideways_speed 1; set policy.max_sideways_speed = 0, as the model's metadata says)"
     )
 
 
@@ -159,18 +155,20 @@ def test_the_setpoint_holds_the_sideways_drift_the_estimate_hides(tmp_path, extr
 
 #: a keep-out reaching 0.6 m: the wall 0.4 m away is 0.2 m inside it, a push of 0.4 m/s (gain 2)
 KEEPOUT = "[shield]\nkeepout_distance = 0.6\n"
+#: the rest of the ``[shield]`` table above: a shield that carries none of the drift estimate
+NO_CARRY = "drift_compensation = 0.0\n"
 
 
 @pytest.mark.parametrize(
     ("extra", "push_west"),
-    [(KEEPOUT + "drift_compensation = 0.6\n", 0.8), (KEEPOUT, 0.4 + HELD), (KEEPOUT + NO_HOLD, 0.4)],
+    [(KEEPOUT, 0.8), (KEEPOUT + NO_CARRY, 0.4 + HELD), (KEEPOUT + NO_CARRY + NO_HOLD, 0.4)],
 )
 def test_the_keepout_push_carries_the_drift_the_estimate_hides(tmp_path, extra, push_west):
     """A hovering model, a wall 0.4 m east, and an autopilot that reports 0.4 m/s west while the
     scans stand still: it would fly its setpoint 0.4 m/s east of what it is told. The keep-out
     (reaching 0.6 m here) pushes 0.4 m/s west and the setpoint holds 0.25 m/s of the drift on top
-    (0.65); the shield's ``drift_compensation`` carries the rest of the estimate, 0.15 (0.8);
-    holding none, 0.4."""
+    (0.65); the shield's ``drift_compensation`` (0.6 by default) carries the rest of the estimate,
+    0.15 (0.8); carrying none, 0.65; holding none either, 0.4."""
     f = Flight.with_model(tmp_path, "stop", extra)
     f.lidar.scene = _wall_east
     f.vehicle.velocity_ned = (0.0, -0.4)

@@ -28,13 +28,14 @@ def _assert_same_info(single: dict, batched: dict, where: str) -> None:
         assert np.array_equal(np.asarray(value), np.asarray(batched[key])), f"{where}: info[{key!r}]"
 
 
-def _goal_seeker(observations: list[np.ndarray], rng: np.random.Generator) -> np.ndarray:
-    """Turn toward the goal and fly at it, noisily: reaches waypoints and hits things."""
+def _goal_seeker(observations: list[np.ndarray], rng: np.random.Generator, width: int) -> np.ndarray:
+    """Turn toward the goal and fly at it, noisily: reaches waypoints and hits things (``width`` 3:
+    an env with ``sideways``, whose third part is noise alone)."""
     actions = []
     for obs in observations:
         cos, sin = (obs[360], obs[361]) if obs.size > 360 else (1.0, 0.0)
-        actions.append([1.0 if cos > 0.8 else 0.3 * cos, 3.0 * sin])
-    return (np.array(actions) + rng.normal(0.0, 0.4, (len(observations), 2))).astype(np.float32)
+        actions.append([1.0 if cos > 0.8 else 0.3 * cos, 3.0 * sin, 0.0][:width])
+    return (np.array(actions) + rng.normal(0.0, 0.4, (len(observations), width))).astype(np.float32)
 
 
 def _run_side_by_side(make: list[Callable[[], gym.Env]], steps: int) -> dict[str, int]:
@@ -52,9 +53,9 @@ def _run_side_by_side(make: list[Callable[[], gym.Env]], steps: int) -> dict[str
     rng = np.random.default_rng(7)
     waypoint = [0] * len(make)
     for t in range(steps):
-        actions = _goal_seeker(observations, rng)
+        actions = _goal_seeker(observations, rng, singles[0].action_space.shape[0])
         if t % 50 == 49:
-            actions[0] = [np.nan, 5.0]  # broken and out-of-range actions too
+            actions[0, :2] = [np.nan, 5.0]  # broken and out-of-range actions too
         b_obs, b_rew, b_term, b_trunc, b_info = batch.step(actions)
         for i, env in enumerate(singles):
             where = f"step {t}, env {i}"
@@ -112,7 +113,7 @@ def test_lidar_nav_waypoint_switching_is_the_same(nav_config) -> None:
     switches = 0
     waypoint = [0, 0, 0]
     for t in range(300):
-        actions = _goal_seeker(observations, rng)
+        actions = _goal_seeker(observations, rng, singles[0].action_space.shape[0])
         b_obs, b_rew, b_term, b_trunc, b_info = batch.step(actions)
         for i, env in enumerate(singles):
             obs, reward, terminated, truncated, info = env.step(actions[i])

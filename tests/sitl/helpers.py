@@ -85,7 +85,8 @@ OPEN_ROOM = World(
 
 
 def write_constant_policy(path: Path, forward: float, turn: float) -> Path:
-    """A real ONNX policy that always answers ``(forward, turn)`` (a0, a1 in [-1, 1]).
+    """A real ONNX policy that always answers ``(forward, turn)`` (a0, a1 in [-1, 1]; no sideways
+    part, a2 = 0, in the default config's three-part action).
 
     (0.5, 0.4) flies a circle of about 1.7 m radius at 1 m/s: the vehicle keeps moving without
     ever meeting a wall of :data:`OPEN_ROOM`, so stopping it is always the system's doing.
@@ -97,13 +98,14 @@ def write_constant_policy(path: Path, forward: float, turn: float) -> Path:
     from tests.onnx_models import COMPANION_SPEC
 
     spec = COMPANION_SPEC  # what the default companion config feeds (the answer ignores it)
-    w = np.zeros((spec.obs_size, 2), dtype=np.float32)
-    b = np.array([forward, turn], dtype=np.float32)
+    w = np.zeros((spec.obs_size, spec.action_size), dtype=np.float32)
+    b = np.zeros(spec.action_size, dtype=np.float32)
+    b[:2] = forward, turn
     graph = helper.make_graph(
         [helper.make_node("Gemm", ["obs", "W", "B"], ["action"])],
         "constant-policy",
         [helper.make_tensor_value_info("obs", TensorProto.FLOAT, ["N", spec.obs_size])],
-        [helper.make_tensor_value_info("action", TensorProto.FLOAT, ["N", 2])],
+        [helper.make_tensor_value_info("action", TensorProto.FLOAT, ["N", spec.action_size])],
         initializer=[numpy_helper.from_array(w, "W"), numpy_helper.from_array(b, "B")],
     )
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], producer_name="tests")

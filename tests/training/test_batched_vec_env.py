@@ -44,7 +44,7 @@ def test_batched_vec_env_steps_as_sb3s_dummy_vec_env(config_file: str, overrides
         rng = np.random.default_rng(2)
         dones_seen = truncations = 0
         for t in range(80):
-            actions = rng.uniform(-1.0, 1.0, (n, 2)).astype(np.float32)
+            actions = rng.uniform(-1.0, 1.0, (n, *batched.action_space.shape)).astype(np.float32)
             b_obs, b_rew, b_done, b_info = batched.step(actions)
             d_obs, d_rew, d_done, d_info = dummy.step(actions)
             np.testing.assert_array_equal(b_obs, d_obs, err_msg=f"step {t}")

@@ -185,3 +185,16 @@ def test_the_straight_line_flies_blind_at_the_waypoint_even_where_the_others_fly
     assert follower.env["route"] is True and line.env["route"] is False
     result = run_task(line)
     assert result.collision and not result.success
+
+
+@pytest.mark.parametrize("shield", [False, True])
+def test_a_baseline_flies_an_env_with_a_sideways_action_exactly_as_the_two_part_one(shield):
+    """``nav.toml`` flies ``env.sideways``: the baselines, two-part controllers, ask no sideways speed
+    there (a2 = 0), alone and behind the shield, and fly the very episode they fly without it."""
+    from training.controllers import ControllerSpec
+    from training.episodes import NAV_ENV_ID, make_tasks, run_task
+
+    world = goal_worlds(["pillars"], seeds.VALIDATION.start, 1, (0.5, 0.5))
+    spec = ControllerSpec("goal_follower", shield=shield)
+    flown = [run_task(make_tasks([spec], world, 1, {"sideways": s}, NAV_ENV_ID)[0]) for s in (False, True)]
+    assert flown[0].steps > 20 and flown[0] == flown[1]

@@ -7,6 +7,7 @@ import math
 
 import pytest
 
+from companion.config import CompanionShieldConfig
 from companion.shield import ShieldConfig
 from training.__main__ import main
 from training.controllers import ControllerSpec
@@ -70,7 +71,9 @@ def test_the_shield_flies_the_configs_limits_unless_a_flight_config_is_named(con
     assert _flight(config, "--shield").shield_config == ShieldConfig(max_speed=1.0)
     flown = tmp_path / "companion.toml"
     flown.write_text("[shield]\nmax_speed = 1.5\n")
-    assert _flight(config, "--shield-config", str(flown)).shield_config == ShieldConfig(max_speed=1.5)
+    # the drone's [shield], with the companion's defaults for what it does not set (the drift carried)
+    flown_limits = _flight(config, "--shield-config", str(flown)).shield_config
+    assert flown_limits == CompanionShieldConfig(max_speed=1.5) and flown_limits.drift_compensation == 0.6
 
 
 def test_alone_what_is_sent_is_what_was_asked(config):
