@@ -116,9 +116,10 @@ class LidarConfig:
 class CompanionShieldConfig(ShieldConfig):
     """The drone's ``[shield]``: :class:`~companion.shield.ShieldConfig` carrying the drift estimate.
 
-    The shipped policy flies sideways, and behind the shield three of its validation episodes
-    struck where the velocity estimate was wrong; carrying the estimate (0.6 m/s a side, while the
-    brake or the keep-out acts) left none (docs/goal-policy.md). The estimate comes from the goal
+    A student that flies sideways (one of the shipped pair) struck in three validation episodes
+    behind the shield where the velocity estimate was wrong; carrying the estimate (0.6 m/s a side,
+    while the brake or the keep-out acts) left none, and the shipped pair strikes in none behind
+    it (docs/goal-policy.md). The estimate comes from the goal
     frame's drift features (``policy.drift``); without them the shield carries nothing. Only the
     default differs from the class's: the env's ``shield_limits`` keeps 0, as LidarAvoid-v0
     tracks no estimate.

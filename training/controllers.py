@@ -36,7 +36,8 @@ PRIVILEGED_GOAL_CONTROLLERS = ("path_expert", "predictive_expert", "robust_exper
 
 
 class Controller(Protocol):
-    """Anything that turns one scan per step into an action in ``[-1, 1]²``."""
+    """Anything that turns one scan per step into an action in ``[-1, 1]²`` (``[-1, 1]³`` in an env
+    with a sideways part)."""
 
     def reset(self, scan: np.ndarray) -> np.ndarray: ...
 
