@@ -190,7 +190,8 @@ def _spanning_tree(rng: np.random.Generator, n: int, edges: list[tuple[int, int]
 def warehouse(rng: np.random.Generator, seed: int, d: float, r: float) -> Layout | None:
     """Racks (1.0-1.2 m deep, 2.4-3 m tall) in rows along x, aisles 3 m down to 1.6 m between
     them, cross aisles at both ends (and through the middle when easy); pallets stacked against
-    the racks narrow some aisles, never below 2 × radius + 0.6 m. Start and waypoints lie in
+    the racks narrow some aisles, never below 2 × radius + 0.6 m, also between two pallets facing
+    each other across an aisle. Start and waypoints lie in
     different aisles, so flights go down one aisle, across, and up another."""
     aisle = lerp(3.0, max(1.6, 2 * r + 1.1), d) * rng.uniform(1.0, 1.1)
     depth = rng.uniform(1.0, 1.2)
@@ -213,6 +214,9 @@ def warehouse(rng: np.random.Generator, seed: int, d: float, r: float) -> Layout
             obstacles.append(wall(rnd(a), rnd(y - depth / 2), rnd(b), rnd(y + depth / 2), height=rnd(height)))
     aisle_ys = [-hy + aisle / 2 + k * (aisle + depth) for k in range(n_racks + 1)]
     narrow_to = 2 * r + 0.6 + 0.05
+    # pallet footprints (x0, y0, x1, y1) per (aisle, rack face): one facing another across an
+    # aisle must leave narrow_to between them, or the two would make a chicane narrower than that
+    faces: dict[tuple[int, float], list[tuple[float, float, float, float]]] = {}
     for _ in range(round(lerp(0, 6, d))):
         k = int(rng.integers(n_racks))
         pallet_depth = min(rng.uniform(0.5, 0.9), aisle - narrow_to)
@@ -223,12 +227,15 @@ def warehouse(rng: np.random.Generator, seed: int, d: float, r: float) -> Layout
         x = rng.uniform(x0 + 0.6, x1 - 0.6)
         y = y_face + side * pallet_depth / 2
         height = rng.uniform(1.8, 2.4)
-        obstacles.append(
-            Box(
-                (rnd(x), rnd(y), rnd(height / 2)),
-                (rnd(rng.uniform(0.8, 1.2)), rnd(pallet_depth), rnd(height)),
-            )
+        size = (rnd(rng.uniform(0.8, 1.2)), rnd(pallet_depth))
+        aisle_index = k + 1 if side > 0 else k  # aisle k lies below rack k
+        footprint = (size[0] + 2 * narrow_to, size[1] + 2 * narrow_to)
+        if _overlaps_any(rnd(x), rnd(y), footprint, faces.get((aisle_index, -side), [])):
+            continue
+        faces.setdefault((aisle_index, side), []).append(
+            (rnd(x) - size[0] / 2, rnd(y) - size[1] / 2, rnd(x) + size[0] / 2, rnd(y) + size[1] / 2)
         )
+        obstacles.append(Box((rnd(x), rnd(y), rnd(height / 2)), (*size, rnd(height))))
     layout = Layout((sx, sy), obstacles)
     world = layout.world()
     margin = min(r + POINT_MARGIN, aisle / 2 - 0.05)
