@@ -228,14 +228,14 @@ def warehouse(rng: np.random.Generator, seed: int, d: float, r: float) -> Layout
         y = y_face + side * pallet_depth / 2
         height = rng.uniform(1.8, 2.4)
         size = (rnd(rng.uniform(0.8, 1.2)), rnd(pallet_depth))
+        px, py = rnd(x), rnd(y)
         aisle_index = k + 1 if side > 0 else k  # aisle k lies below rack k
         footprint = (size[0] + 2 * narrow_to, size[1] + 2 * narrow_to)
-        if _overlaps_any(rnd(x), rnd(y), footprint, faces.get((aisle_index, -side), [])):
+        if _overlaps_any(px, py, footprint, faces.get((aisle_index, -side), [])):
             continue
-        faces.setdefault((aisle_index, side), []).append(
-            (rnd(x) - size[0] / 2, rnd(y) - size[1] / 2, rnd(x) + size[0] / 2, rnd(y) + size[1] / 2)
-        )
-        obstacles.append(Box((rnd(x), rnd(y), rnd(height / 2)), (*size, rnd(height))))
+        half_x, half_y = size[0] / 2, size[1] / 2
+        faces.setdefault((aisle_index, side), []).append((px - half_x, py - half_y, px + half_x, py + half_y))
+        obstacles.append(Box((px, py, rnd(height / 2)), (*size, rnd(height))))
     layout = Layout((sx, sy), obstacles)
     world = layout.world()
     margin = min(r + POINT_MARGIN, aisle / 2 - 0.05)
