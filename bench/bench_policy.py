@@ -30,7 +30,7 @@ sys.path.insert(0, str(ROOT))
 from companion.app import policy_spec  # noqa: E402
 from companion.config import CompanionConfig  # noqa: E402
 from companion.errors import UserError  # noqa: E402
-from companion.policy import LEGACY_VALUES, PREFIX, OnnxPolicy, PolicySpec  # noqa: E402
+from companion.policy import PREFIX, OnnxPolicy, PolicySpec, declared_sideways_speed  # noqa: E402
 
 #: s between scans: the companion acts once per scan at 10 Hz
 CONTROL_PERIOD_S = 0.1
@@ -40,12 +40,13 @@ SPEC = policy_spec(CompanionConfig())
 
 def reference_spec(path: Path) -> PolicySpec:
     """:data:`SPEC` with the action width ``path``'s metadata gives (absent: two parts)."""
-    key = PREFIX + "max_sideways_speed"
     try:
         meta = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).get_modelmeta()
-        sideways = float(meta.custom_metadata_map.get(key, LEGACY_VALUES[key]))
     except Exception as exc:  # ONNX Runtime raises its own classes for an unreadable model
         raise UserError(f"{path}: not a readable ONNX model ({exc})") from None
+    sideways = declared_sideways_speed(meta.custom_metadata_map)
+    if sideways is None:
+        raise UserError(f"{path}: metadata {PREFIX}max_sideways_speed is not a speed")
     return dataclasses.replace(SPEC, max_sideways_speed=sideways)
 
 

@@ -12,7 +12,7 @@ import hashlib
 import json
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -345,14 +345,24 @@ class OnnxPolicy:
             raise UserError(f"model {name} {raw} does not match config {config_key} {expected}")
 
 
+def declared_sideways_speed(meta: Mapping[str, str]) -> float | None:
+    """The sideways speed a model's metadata declares, m/s (absent, as in older models: 0, no a2),
+    or None when the value is not a finite, non-negative number.
+
+    :param meta: the model's custom metadata
+    """
+    key = PREFIX + "max_sideways_speed"
+    try:
+        speed = float(meta.get(key, LEGACY_VALUES[key]))
+    except ValueError:
+        return None
+    return speed if math.isfinite(speed) and speed >= 0.0 else None
+
+
 def _sideways_hint(meta: dict[str, str], configured: float) -> str:
     """The setting the model's metadata asks for, when it names one other than ``configured``."""
-    raw = meta.get(PREFIX + "max_sideways_speed", LEGACY_VALUES[PREFIX + "max_sideways_speed"])
-    try:
-        speed = float(raw)
-    except ValueError:
-        return ""
-    if not math.isfinite(speed) or speed < 0.0 or math.isclose(speed, configured):
+    speed = declared_sideways_speed(meta)
+    if speed is None or math.isclose(speed, configured):
         return ""
     return f"; set policy.max_sideways_speed = {speed:g}, as the model's metadata says"
 

@@ -20,6 +20,7 @@ from companion.policy import (
     InferenceFault,
     OnnxPolicy,
     PolicySpec,
+    declared_sideways_speed,
     policy_metadata,
     provider_options,
     select_providers,
@@ -187,6 +188,18 @@ def test_a_model_without_a_sideways_key_has_two_action_values(tmp_path: Path) ->
     OnnxPolicy(path, SPEC)
     with pytest.raises(UserError, match=r"^model output \(N, 2\) does not match config \(1, 3\)"):
         OnnxPolicy(path, SIDEWAYS_SPEC)
+
+
+@pytest.mark.parametrize(
+    ("value", "declared"),
+    [(None, 0.0), ("1.0", 1.0), ("0.0", 0.0), ("nan", None), ("-1.0", None), ("inf", None), ("fast", None)],
+)
+def test_the_declared_sideways_speed_is_a_finite_speed_or_none(
+    value: str | None, declared: float | None
+) -> None:
+    """What the refusal's hint and the inference bench read: an absent key is a two-part model."""
+    meta = {} if value is None else {"lidar_avoid.max_sideways_speed": value}
+    assert declared_sideways_speed(meta) == declared
 
 
 def test_input_type_mismatch(tmp_path: Path) -> None:
