@@ -183,9 +183,6 @@ class PredictiveExpert:
         held = body_to_world(env.drift_held(), float(state.yaw))  # what each setpoint carries on top
         paths = response.predict(float(state.yaw), candidates * scale, *steps, held=held)
         excess, cells = self._excess(paths, state.position)
-        if self._hardest is not None:
-            slow = response.predict(float(state.yaw), candidates * scale, *steps, self._hardest, held)
-            excess = np.minimum(excess, self._excess(slow, state.position)[0])
         end = cells[:, -1]
         flown = env.last_command.astype(np.float64)
         score = (
@@ -197,8 +194,58 @@ class PredictiveExpert:
         )
         score[-1] -= cfg.path_expert_bonus
         spare, near = excess.min(axis=1), excess[:, :command_steps].min(axis=1)
-        best = pick(spare, near, score, cfg.recovery_tolerance)
+        if self._hardest is None:
+            best = pick(spare, near, score, cfg.recovery_tolerance)
+        else:
+            best = self._pick_through_hardest(candidates * scale, steps, held, spare, near, score)
         return candidates[best].astype(np.float32)
+
+    def _pick_through_hardest(
+        self, commands: np.ndarray, steps: tuple[int, int, float], held: tuple[float, float],
+        spare: np.ndarray, near: np.ndarray, score: np.ndarray,
+    ) -> int:  # fmt: skip
+        """:func:`pick` over the least of the drawn response's clearance and the hardest
+        response's, predicting the hardest for as few candidates as that needs.
+
+        The hardest prediction costs as much as the drawn one, and a candidate the drawn response
+        already brings inside its margin (``spare <= 0``) is unsafe whatever the hardest says. So
+        the others are predicted through the hardest in order of ``score`` (ties in the candidates'
+        order, as :func:`pick` breaks them), in chunks that double: the first that stays safe is
+        the one :func:`pick` takes (in most steps the first: one candidate predicted). Only when none
+        does (recovery) are the rest predicted, and only while the command is sent: ``near`` is all
+        the recovery reads. Each candidate's prediction starts from the same state, so its rows are
+        the ones a prediction of all of them gives, and the pick is the same.
+
+        :param commands: ``(K, 3)`` or ``(K, 2)`` body commands, m/s and rad/s
+        :param steps: periods the command is sent for, periods predicted, and the period (s)
+        :param held: velocity every setpoint carries on top, world m/s (:meth:`AutopilotResponse.predict`)
+        :param spare: each candidate's least clearance to spare through the drawn response, metres
+        :param near: the same while the command is sent
+        :param score: each candidate's cost
+        :return: the candidate's index
+        """
+        response, state = self.env.response, self.env.true_state
+        assert response is not None
+        command_steps, _, period = steps
+        hard_spare, hard_near = np.full(len(score), np.inf), np.full(len(score), np.inf)
+        hopeful = np.flatnonzero(spare > 0.0)
+        order = hopeful[np.argsort(score[hopeful], kind="stable")]
+        start, size = 0, 1
+        while start < len(order):
+            chunk = order[start : start + size]
+            slow = response.predict(float(state.yaw), commands[chunk], *steps, self._hardest, held)
+            excess = self._excess(slow, state.position)[0]
+            hard_spare[chunk], hard_near[chunk] = excess.min(axis=1), excess[:, :command_steps].min(axis=1)
+            safe = np.flatnonzero(hard_spare[chunk] > 0.0)
+            if len(safe):
+                return int(chunk[safe[0]])
+            start, size = start + size, 2 * size
+        rest = np.flatnonzero(~(spare > 0.0))
+        slow = response.predict(float(state.yaw), commands[rest], command_steps, command_steps, period,
+                                self._hardest, held)  # fmt: skip
+        hard_near[rest] = self._excess(slow, state.position)[0].min(axis=1)
+        spare, near = np.minimum(spare, hard_spare), np.minimum(near, hard_near)  # no candidate has any spare
+        return pick(spare, near, score, self.config.recovery_tolerance)
 
     def _excess(self, paths: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Each predicted point's clearance beyond what it must keep (the radius, the margin and
