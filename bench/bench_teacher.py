@@ -31,7 +31,7 @@ sys.path.insert(0, str(ROOT))
 from flightsim.nav_env import LidarNavEnv  # noqa: E402
 from flightsim.seeds import TRAIN  # noqa: E402
 from training.config import load_train_config  # noqa: E402
-from training.predictive_expert import PredictiveExpert, PredictiveExpertConfig, pick  # noqa: E402
+from training.predictive_expert import PredictiveExpert, PredictiveExpertConfig, pick, robust_expert  # noqa: E402
 
 
 class FullExpert(PredictiveExpert):
@@ -59,7 +59,7 @@ def fly_episode(env: LidarNavEnv, noise: float, rng: np.random.Generator, labels
     """One episode (``env`` just reset) flown on the teacher's label plus noise, up to ``labels``
     labels: each label's wall time per teacher, s (``"new"``, ``"full"``), and whether the two
     differed and whether the step was in recovery (``"mismatch"``, ``"recovery"``)."""
-    new, full = PredictiveExpert(env, PredictiveExpertConfig(hardest_response=True)), FullExpert(env)
+    new, full = robust_expert(env), FullExpert(env)
     label, _ = new.reset(), full.reset()
     out: dict[str, list] = {"new": [], "full": [], "mismatch": [], "recovery": []}
     while len(out["new"]) < labels:

@@ -181,7 +181,8 @@ class PredictiveExpert:
         total_steps = command_steps + round(cfg.stop_s / PERIOD_S)
         steps = (command_steps, total_steps, PERIOD_S)
         held = body_to_world(env.drift_held(), float(state.yaw))  # what each setpoint carries on top
-        paths = response.predict(float(state.yaw), candidates * scale, *steps, held=held)
+        commands = candidates * scale
+        paths = response.predict(float(state.yaw), commands, *steps, held=held)
         excess, cells = self._excess(paths, state.position)
         end = cells[:, -1]
         flown = env.last_command.astype(np.float64)
@@ -197,7 +198,7 @@ class PredictiveExpert:
         if self._hardest is None:
             best = pick(spare, near, score, cfg.recovery_tolerance)
         else:
-            best = self._pick_through_hardest(candidates * scale, steps, held, spare, near, score)
+            best = self._pick_through_hardest(commands, steps, held, spare, near, score)
         return candidates[best].astype(np.float32)
 
     def _pick_through_hardest(
