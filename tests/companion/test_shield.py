@@ -330,6 +330,10 @@ finite_or_not = st.floats(allow_nan=True, allow_infinity=True, width=32)
 scans = hnp.arrays(np.float32, 360, elements=st.floats(0.0, 1.0, width=32))
 
 
+#: scans with no return inside the default ``estop_distance`` (0.3 m): 0.3125 m and beyond
+outside_estop = hnp.arrays(np.float32, 360, elements=st.floats(0.03125, 1.0, width=32))
+
+
 def front_clearance(cfg: ShieldConfig, scan: np.ndarray) -> float:
     """What limits forward flight, m: the forward sector's nearest return, or the lane's distance
     along the nose ±``lane_spread_deg`` (at most the scan's range)."""
@@ -608,6 +612,56 @@ def test_keepout_never_pushes_into_what_is_behind_the_push() -> None:
     squeezed = scan_with({**{b: 0.2 for b in left}, **{b: 0.25 for b in right}})
     out = settled(SafetyShield(cfg, MAX_RANGE), Command(0.0, 0.0), squeezed)
     assert out.lateral == 0.0  # pushed off the nearest (left), but the right is inside estop_distance
+
+
+def room_speed(shield: SafetyShield, scan: np.ndarray, out: Command) -> float:
+    """The fastest speed that stops before the lane along ``out``'s own direction (± the lane's spread)."""
+    direction = math.degrees(math.atan2(out.lateral, out.forward))
+    spread = shield.config.lane_spread_deg
+    headings = np.linspace(direction - spread, direction + spread, 2 * math.ceil(spread) + 1)
+    ranges = np.asarray(scan, np.float64) * MAX_RANGE
+    clearance = min(lane_distance(ranges, headings, shield.config.lane_half_width), MAX_RANGE)
+    if clearance < shield.config.estop_distance:
+        return 0.0
+    return stopping_speed(clearance - shield.config.estop_distance, shield.max_decel, shield.reaction_time)
+
+
+def test_a_push_added_to_a_sideways_command_is_no_faster_than_the_room_along_their_sum() -> None:
+    """The demo's office collision in miniature: the policy asks forward and right, a wall on the
+    left closes in (0.5 m, then 0.4 m) and the push goes right, towards a wall 1 m off. The command
+    alone was capped along its course and the push by the room behind it; their sum points between
+    them, and it too must stop before what lies that way (it asked 1.12 m/s where 0.81 stops)."""
+    left = bins_around(90.0, 1.0)
+    # a straight wall 1 m to the right: each bin reads 1 m over the cosine of its angle off abeam
+    right = {b: 1.0 / math.cos(math.radians((b + 270.0) % 360.0 - 180.0)) for b in bins_around(-90.0, 40.0)}
+    shield = SafetyShield(ShieldConfig(), MAX_RANGE, "ardupilot")
+    request = Command(0.7, 0.0, lateral=-0.7)
+    shield.filter(request, scan_with({**right, **{b: 0.5 for b in left}}), 0.1)
+    closer = scan_with({**right, **{b: 0.4 for b in left}})
+    out = shield.filter(request, closer, 0.1)
+    assert shield.interventions["keepout"] == 1 and out.lateral < -0.5  # pushed right, as before
+    speed = math.hypot(out.forward, out.lateral)
+    assert speed <= room_speed(shield, closer, out) + 1e-9
+    assert shield.interventions["keepout_room"] == 1
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    requests=st.lists(st.tuples(st.floats(-1.0, 2.0), st.floats(-1.0, 1.0)), min_size=1, max_size=8),
+    scan=outside_estop,
+    autopilot=st.sampled_from(sorted(AUTOPILOT_LIMITS)),
+)
+def test_whatever_leaves_the_shield_stops_before_what_lies_along_it(
+    requests: list[tuple[float, float]], scan: np.ndarray, autopilot: str
+) -> None:
+    """Any command, sideways part and keep-out push included, is no faster than the speed that
+    stops before the lane along its own direction (no measured motion: no brake). Returns start
+    at the e-stop distance: one nearer lies in the lane of every heading within 90° of it."""
+    shield = SafetyShield(ShieldConfig(), MAX_RANGE, autopilot)
+    for forward, lateral in requests:
+        out = shield.filter(Command(forward, 0.0, lateral=lateral), scan, 0.1)
+        # within 1 mm/s: the shield judges in the course's frame, turned to whole degrees
+        assert math.hypot(out.forward, out.lateral) <= room_speed(shield, scan, out) + 1e-3
 
 
 @settings(max_examples=200, deadline=None)
