@@ -31,14 +31,14 @@ sys.path.insert(0, str(ROOT))
 from flightsim.nav_env import LidarNavEnv  # noqa: E402
 from flightsim.seeds import TRAIN  # noqa: E402
 from training.config import load_train_config  # noqa: E402
-from training.predictive_expert import PredictiveExpert, PredictiveExpertConfig, pick, robust_expert  # noqa: E402
+from training.predictive_expert import ROBUST, PredictiveExpert, pick, robust_expert  # noqa: E402
 
 
 class FullExpert(PredictiveExpert):
     """The robust teacher before: the hardest response predicted for every candidate."""
 
     def __init__(self, env: LidarNavEnv) -> None:
-        super().__init__(env, PredictiveExpertConfig(hardest_response=True))
+        super().__init__(env, ROBUST)
         self.recoveries = 0
 
     def _pick_through_hardest(

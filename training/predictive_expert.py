@@ -282,10 +282,15 @@ class PredictiveExpert:
         return np.clip(index, 0, np.array(grid.clearance.shape) - 1)
 
 
+#: the robust teacher's filter: every command also stops clear through the drawn firmware's
+#: hardest response (one definition for the teachers and ``bench/bench_teacher.py``)
+ROBUST = PredictiveExpertConfig(hardest_response=True)
+
+
 def robust_expert(env: LidarNavEnv) -> PredictiveExpert:
     """The predictive teacher whose every command also stops clear through the hardest response
     of the drawn firmware (``[pretrain] teacher = "robust_expert"``)."""
-    return PredictiveExpert(env, PredictiveExpertConfig(hardest_response=True))
+    return PredictiveExpert(env, ROBUST)
 
 
 #: the path expert's yaw loop for :func:`smooth_expert`: at its default gain (3/s) and lead
@@ -299,4 +304,4 @@ SMOOTH_YAW = PathExpertConfig(yaw_gain=2.0, yaw_lead_s=0.1)
 def smooth_expert(env: LidarNavEnv) -> PredictiveExpert:
     """The robust teacher filtering a path expert with a gentler yaw loop (:data:`SMOOTH_YAW`,
     ``[pretrain] teacher = "smooth_expert"``)."""
-    return PredictiveExpert(env, PredictiveExpertConfig(hardest_response=True), SMOOTH_YAW)
+    return PredictiveExpert(env, ROBUST, SMOOTH_YAW)
