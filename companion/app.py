@@ -134,6 +134,13 @@ def policy_spec(config: CompanionConfig) -> PolicySpec:
     )
 
 
+def companion_shield(config: CompanionConfig, autopilot_yaw_rate: float | None) -> SafetyShield:
+    """The loop's shield: the braking and yaw limits of this autopilot (measured), its yaw cap as read
+    from it when known (None: the firmware default). ``avoid-companion replay`` builds its shield
+    here too, from the recording, so a replay runs the very limits the flight ran."""
+    return SafetyShield(config.shield, config.scan.max_range, config.autopilot.type, autopilot_yaw_rate)
+
+
 def open_lidar(config: CompanionConfig, clock: Callable[[], float]) -> LidarSource:
     """The configured lidar source, opened (a bad port or bus is a :class:`UserError`)."""
     lidar = config.lidar
@@ -301,10 +308,7 @@ class Companion:
             self.lidar.close()
             raise
         self.supervisor = Supervisor(config.supervisor, clock)
-        # braking and yaw limits of this autopilot (measured), the yaw cap as read from it if known
-        self.shield = SafetyShield(
-            config.shield, config.scan.max_range, config.autopilot.type, autopilot_yaw_rate
-        )
+        self.shield = companion_shield(config, autopilot_yaw_rate)
         self.layout = config.policy.layout
         self.stack = FrameStack(config.policy.stack, self.layout.frame_size)
         # the velocity estimate's error, from consecutive scans (drift layouts); kept across holds
@@ -335,11 +339,12 @@ class Companion:
         route = config.goal.route and self.goal is not None and self.layout.goal
         self._route = RoutePlanner(config.goal.route_planner, config.scan.max_range) if route else None
         self._completion_requested = False
-        self.recorder = self._start_recorder()
+        self.recorder = self._start_recorder(autopilot_yaw_rate)
 
-    def _start_recorder(self) -> FlightRecorder | None:
-        """The flight recorder (``[recorder]``): its taps wrap the parts, so the loop stays as it is."""
-        recorder = open_recorder(self.config, to_dict(self.config), self._clock)
+    def _start_recorder(self, autopilot_yaw_rate: float | None) -> FlightRecorder | None:
+        """The flight recorder (``[recorder]``): its taps wrap the parts, so the loop stays as it is.
+        The yaw cap read from the autopilot goes into its metadata: replay builds the same shield."""
+        recorder = open_recorder(self.config, to_dict(self.config), self._clock, autopilot_yaw_rate)
         if recorder is not None:
             recorder.watch_counters(companion=self.counters, supervisor=self.supervisor.counters,
                                     shield=self.shield.interventions, link=self.link.counters)

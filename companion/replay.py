@@ -3,7 +3,9 @@
 The recorded inputs go through the companion's own code, with the recorded configuration: the
 clouds (when recorded whole, ``recorder.cloud_decimation = 1``) through :func:`scan_from_points`,
 otherwise the recorded scans; then the frame stack, the policy and the shield, with the recorded
-time steps and resets.
+time steps and resets. The shield is built as the companion built it: the recorded autopilot type's
+limits and the yaw cap the companion read from the autopilot (in the metadata; recordings made before
+it was recorded: the firmware default, as when nothing was read).
 
 - Same model (the file's sha256 matches the recording's): every scan, observation, action,
   requested command and shield output must match the recording bit for bit; the first one that
@@ -18,12 +20,13 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from companion.app import companion_shield, policy_spec
 from companion.config import CompanionConfig
 from companion.errors import UserError
 from companion.framestack import FrameStack
@@ -33,7 +36,7 @@ from companion.recording.messages import unpack_f32
 from companion.recording.reader import Recording, read_recording
 from companion.recording.recorder import file_digest
 from companion.scan import N_BINS, scan_from_points
-from companion.shield import Command, SafetyShield, command_from_action, sector_bins
+from companion.shield import Command, command_from_action, sector_bins
 from companion.tomlconfig import from_dict
 
 log = logging.getLogger(__name__)
@@ -41,11 +44,12 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class Step:
-    """One shielded setpoint, as recorded and as replayed."""
+    """One shielded setpoint, as recorded and as replayed: (forward, yaw rate, lateral); a recorded
+    lateral is NaN in recordings made before /shield had it."""
 
     t: float
-    recorded: tuple[float, float]
-    replayed: tuple[float, float]
+    recorded: tuple[float, float, float]
+    replayed: tuple[float, float, float]
     front_clearance: float
     recorded_limits: list[str]
     replayed_limits: list[str]
@@ -88,6 +92,22 @@ def recorded_config(rec: Recording) -> tuple[CompanionConfig, dict[str, str]]:
         raise UserError(f"{rec.path}: recorded config unreadable: {exc}") from None
 
 
+def recorded_autopilot_yaw_rate(rec: Recording) -> float | None:
+    """The yaw cap the companion read from the autopilot, rad/s; None when it read none, or the
+    recording was made before it was recorded (the companion then assumed the firmware default)."""
+    text = rec.metadata[schemas.METADATA_NAME].get("autopilot_yaw_rate", "")
+    try:
+        return float(text) if text else None
+    except ValueError:
+        raise UserError(f"{rec.path}: recorded autopilot_yaw_rate {text!r} is not a number") from None
+
+
+def _matches(command: Command, recorded: dict[str, Any]) -> bool:
+    """``command`` is what was recorded of it, bit for bit (recordings made before /shield had
+    ``lateral``: forward and yaw rate alone)."""
+    return all(getattr(command, name) == value for name, value in recorded.items())
+
+
 def replay(rec: Recording, config: CompanionConfig, policy: OnnxPolicy, *, compare: bool) -> ReplayResult:
     """Run ``rec``'s inputs through scan, frame stack, ``policy`` and shield.
 
@@ -104,7 +124,7 @@ def replay(rec: Recording, config: CompanionConfig, policy: OnnxPolicy, *, compa
     layout = config.policy.layout  # a frame: the scan, then (goal layout) the recorded goal/velocity
     size = layout.frame_size
     stack = FrameStack(config.policy.stack, size)
-    shield = SafetyShield(config.shield, config.scan.max_range)
+    shield = companion_shield(config, recorded_autopilot_yaw_rate(rec))
     forward_bins = sector_bins(0.0, config.shield.forward_sector_deg)
     scans: dict[int, np.ndarray] = {}
     requested: dict[int, Command] = {}
@@ -181,19 +201,19 @@ def replay(rec: Recording, config: CompanionConfig, policy: OnnxPolicy, *, compa
             result.shield_steps += 1
             command = requested[seq]
             rec_req = msg["requested"]
-            if compare and (command.forward, command.yaw_rate) != (rec_req["forward"], rec_req["yaw_rate"]):
-                differ(f"{when}: requested command recorded {rec_req}, replayed {command}")
+            if compare and not _matches(command, rec_req):
+                differ(f"{when}: requested command recorded {rec_req}, replayed {asdict(command)}")
             before = dict(shield.interventions)
             out = shield.filter(command, scans[seq], msg["dt"], *_extra_args(msg.get("extra")),
                                 **_extra_kwargs(msg.get("extra")))
             limits = [k for k, v in shield.interventions.items() if v != before.get(k, 0)]
             rec_out = msg["output"]
-            if compare and (out.forward, out.yaw_rate) != (rec_out["forward"], rec_out["yaw_rate"]):
-                differ(f"{when}: shield output recorded {rec_out}, replayed "
-                       f"{{'forward': {out.forward!r}, 'yaw_rate': {out.yaw_rate!r}}}")
+            if compare and not _matches(out, rec_out):
+                differ(f"{when}: shield output recorded {rec_out}, replayed {asdict(out)}")
             front = float(np.min(scans[seq][forward_bins])) * config.scan.max_range
-            result.steps.append(Step(t - t0, (rec_out["forward"], rec_out["yaw_rate"]),
-                                     (out.forward, out.yaw_rate), front, msg["limits"], limits))
+            recorded = (rec_out["forward"], rec_out["yaw_rate"], rec_out.get("lateral", np.nan))
+            result.steps.append(Step(t - t0, recorded, (out.forward, out.yaw_rate, out.lateral), front,
+                                     msg["limits"], limits))
     return result
 
 
@@ -215,9 +235,10 @@ def what_if_table(result: ReplayResult, top: int = 10) -> str:
     steps = result.steps
     if not steps:
         return "no shielded setpoints in the recording: nothing to compare"
-    rec = np.array([s.recorded for s in steps])
-    alt = np.array([s.replayed for s in steps])
+    rec = np.array([s.recorded for s in steps], dtype=np.float64)
+    alt = np.array([s.replayed for s in steps], dtype=np.float64)
     d = np.abs(alt - rec)
+    lateral_recorded = not np.isnan(rec[:, 2]).all()
 
     def count(limits: list[list[str]]) -> str:
         c: dict[str, int] = {}
@@ -226,51 +247,59 @@ def what_if_table(result: ReplayResult, top: int = 10) -> str:
                 c[n] = c.get(n, 0) + 1
         return ", ".join(f"{k} {v}" for k, v in sorted(c.items())) or "-"
 
+    def number(value: float, width: int = 9) -> str:
+        return f"{'-':>{width}}" if np.isnan(value) else f"{value:{width}.3f}"
+
+    recorded_lateral = np.abs(rec[:, 2]).mean() if lateral_recorded else np.nan
     lines = [
         f"{len(steps)} shielded setpoints compared ({result.source}; open loop: the recorded path)",
         f"{'':34}{'recorded':>14}{'other model':>14}",
         f"{'mean forward speed, m/s':34}{rec[:, 0].mean():14.3f}{alt[:, 0].mean():14.3f}",
         f"{'mean |yaw rate|, rad/s':34}{np.abs(rec[:, 1]).mean():14.3f}{np.abs(alt[:, 1]).mean():14.3f}",
+        f"{'mean |lateral|, m/s':34}{number(recorded_lateral, 14)}{np.abs(alt[:, 2]).mean():14.3f}",
         f"{'setpoints with a shield limit':34}{sum(bool(s.recorded_limits) for s in steps):14d}"
         f"{sum(bool(s.replayed_limits) for s in steps):14d}",
         f"shield limits, recorded: {count([s.recorded_limits for s in steps])}",
         f"shield limits, other:    {count([s.replayed_limits for s in steps])}",
         f"|Δ forward| mean {d[:, 0].mean():.3f} max {d[:, 0].max():.3f} m/s; "
-        f"|Δ yaw rate| mean {d[:, 1].mean():.3f} max {d[:, 1].max():.3f} rad/s",
+        f"|Δ yaw rate| mean {d[:, 1].mean():.3f} max {d[:, 1].max():.3f} rad/s; "
+        + (f"|Δ lateral| mean {d[:, 2].mean():.3f} max {d[:, 2].max():.3f} m/s" if lateral_recorded
+           else "lateral not recorded"),
         "",
         f"largest differences{'':4}{'t s':>8}{'front m':>9}{'fwd rec':>9}{'fwd oth':>9}"
-        f"{'yaw rec':>9}{'yaw oth':>9}",
+        f"{'yaw rec':>9}{'yaw oth':>9}{'lat rec':>9}{'lat oth':>9}",
     ]
-    order = np.argsort(-(d[:, 0] + d[:, 1]))[:top]
+    order = np.argsort(-np.nansum(d, axis=1))[:top]
     for i in sorted(order, key=lambda i: steps[i].t):
         s = steps[i]
-        lines.append(f"{'':23}{s.t:8.2f}{s.front_clearance:9.2f}{s.recorded[0]:9.3f}{s.replayed[0]:9.3f}"
-                     f"{s.recorded[1]:9.3f}{s.replayed[1]:9.3f}")
+        lines.append(f"{'':23}{s.t:8.2f}{s.front_clearance:9.2f}"
+                     + "".join(number(rec[i, k]) + number(alt[i, k]) for k in range(3)))
     return "\n".join(lines)
 
 
 def what_if_plot(result: ReplayResult, path: Path, title: str) -> None:
-    """Forward speed, yaw rate and forward clearance over time: recorded vs the other model."""
+    """Forward speed, yaw rate, lateral speed and forward clearance over time: recorded vs the other
+    model (a recording without the lateral speed draws only the other model's)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
     steps = result.steps
     t = np.array([s.t for s in steps])
-    rec = np.array([s.recorded for s in steps]).reshape(-1, 2)
-    alt = np.array([s.replayed for s in steps]).reshape(-1, 2)
-    fig = Figure(figsize=(9, 7))
+    rec = np.array([s.recorded for s in steps], dtype=np.float64).reshape(-1, 3)
+    alt = np.array([s.replayed for s in steps], dtype=np.float64).reshape(-1, 3)
+    fig = Figure(figsize=(9, 9))
     FigureCanvasAgg(fig)
-    axes = fig.subplots(3, 1, sharex=True)
-    for ax, col, label in ((axes[0], 0, "forward speed, m/s"), (axes[1], 1, "yaw rate, rad/s")):
-        ax.plot(t, rec[:, col], label="recorded", color="tab:blue")
-        ax.plot(t, alt[:, col], label="other model", color="tab:orange", alpha=0.85)
-        ax.set_ylabel(label)
-        ax.grid(alpha=0.3)
+    axes = fig.subplots(4, 1, sharex=True)
+    for col, label in enumerate(("forward speed, m/s", "yaw rate, rad/s", "lateral speed, m/s")):
+        axes[col].plot(t, rec[:, col], label="recorded", color="tab:blue")
+        axes[col].plot(t, alt[:, col], label="other model", color="tab:orange", alpha=0.85)
+        axes[col].set_ylabel(label)
+        axes[col].grid(alpha=0.3)
     axes[0].legend(loc="upper right")
-    axes[2].plot(t, [s.front_clearance for s in steps], color="tab:gray")
-    axes[2].set_ylabel("front clearance, m")
-    axes[2].set_xlabel("time since the first scan, s")
-    axes[2].grid(alpha=0.3)
+    axes[3].plot(t, [s.front_clearance for s in steps], color="tab:gray")
+    axes[3].set_ylabel("front clearance, m")
+    axes[3].set_xlabel("time since the first scan, s")
+    axes[3].grid(alpha=0.3)
     axes[0].set_title(title, fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
@@ -289,8 +318,6 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def command(args: argparse.Namespace) -> int:
-    from companion.app import policy_spec
-
     path = Path(args.recording)
     rec = read_recording(path)
     config, meta = recorded_config(rec)

@@ -5,6 +5,8 @@ Each model is ``Gemm(obs, W, b)`` (optionally followed by ``Clip`` to [-1, 1]) b
 
 - ``forward``: a = (1, 0)                 - ``stop``: a = (0, 0)
 - ``turn_left``: a = (0, 1) (CCW)         - ``turn_right``: a = (0, -1)
+- ``forward_left``: a = (1, 1), full speed ahead while turning left at full rate (above both
+  firmwares' default yaw caps)
 - ``slide_left``: a = (0, 0, 1), a sideways model's full speed to the left
 - ``steer``: a0 = 2·mean(newest scan, forward ±15°) − 1, a1 = 2·(mean left 30–90° − mean right
   30–90°): slows for what is ahead and turns towards the more open side (a usable toy pilot)
@@ -39,8 +41,9 @@ COMPANION_SPEC = policy_spec(CompanionConfig())
 #: A scan-only model's spec (LidarAvoid-v0), for tests of scan-only behaviour
 SCAN_SPEC = PolicySpec()
 
-KINDS = ("forward", "stop", "turn_left", "turn_right", "slide_left", "steer", "echo", "echo_goal",
-         "echo_velocity", "echo_drift", "echo_command", "echo_firmware", "big", "nan", "inf", "error")
+KINDS = ("forward", "stop", "turn_left", "turn_right", "forward_left", "slide_left", "steer", "echo",
+         "echo_goal", "echo_velocity", "echo_drift", "echo_command", "echo_firmware", "big", "nan", "inf",
+         "error")
 OPSET = 17
 IR_VERSION = 8  # accepted by every onnxruntime the project supports
 
@@ -63,6 +66,7 @@ def _weights(kind: str, spec: PolicySpec, input_size: int, output_size: int) -> 
         "stop": (0.0, 0.0),
         "turn_left": (0.0, 1.0),
         "turn_right": (0.0, -1.0),
+        "forward_left": (1.0, 1.0),
         "big": (5.0, -5.0),
         "nan": (np.nan, np.nan),
         "inf": (np.inf, -np.inf),

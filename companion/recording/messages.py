@@ -129,8 +129,10 @@ def point_cloud(t: float, points: np.ndarray, mount_pose: dict[str, Any]) -> dic
     }
 
 
-def command(forward: float, yaw_rate: float) -> dict[str, float | None]:
-    return {"forward": finite_or_none(forward), "yaw_rate": finite_or_none(yaw_rate)}
+def command(forward: float, yaw_rate: float, lateral: float) -> dict[str, float | None]:
+    """``lidar_avoid.Command``: a body-frame command, sideways part included."""
+    return {"forward": finite_or_none(forward), "yaw_rate": finite_or_none(yaw_rate),
+            "lateral": finite_or_none(lateral)}
 
 
 def log(t: float, level: int, text: str, name: str = "companion") -> dict[str, Any]:

@@ -231,13 +231,13 @@ def _policy_step(t: float, seq: int, cloud_seq: int | None, reset: bool, obs: np
 def _shield_step(t: float, scan_seq: int | None, dt: float, reset: bool, requested: Any, output: Any,
                  limits: list[str], extra: dict[str, Any] | None) -> dict[str, Any]:
     return {"timestamp": m.stamp(t), "scan_seq": scan_seq, "dt": dt, "reset_before": reset,
-            "requested": m.command(requested.forward, requested.yaw_rate),
-            "output": m.command(output.forward, output.yaw_rate), "limits": limits,
+            "requested": m.command(requested.forward, requested.yaw_rate, requested.lateral),
+            "output": m.command(output.forward, output.yaw_rate, output.lateral), "limits": limits,
             "extra": None if not extra else m.plain(extra)}
 
 
 def _setpoint(t: float, forward: float, yaw_rate: float, lateral: float, vertical: float) -> dict[str, Any]:
-    return {"timestamp": m.stamp(t), **m.command(forward, yaw_rate), "lateral": lateral, "vertical": vertical}
+    return {"timestamp": m.stamp(t), **m.command(forward, yaw_rate, lateral), "vertical": vertical}
 
 
 def _log(t: float, text: str, severity: int) -> dict[str, Any]:
@@ -271,12 +271,16 @@ def file_digest(path: str | Path) -> str:
 
 
 def open_recorder(
-    config: Any, config_dict: dict[str, Any], clock: Callable[[], float]
+    config: Any, config_dict: dict[str, Any], clock: Callable[[], float],
+    autopilot_yaw_rate: float | None = None,
 ) -> FlightRecorder | None:
     """The recorder for ``config`` (a :class:`companion.config.CompanionConfig`), or None when off.
 
     A directory that cannot be written does not stop the companion: the recorder comes back
     inactive, with a notice for the pilot.
+
+    :param autopilot_yaw_rate: the yaw cap the start-up check read from the autopilot, rad/s (None:
+        not read); the config does not hold it, and the replay's shield needs it
     """
     rc = config.recorder
     if not rc.enabled:
@@ -289,6 +293,8 @@ def open_recorder(
         "config": json.dumps(config_dict),
         "model_sha256": file_digest(config.policy.model),
         "cloud_decimation": str(rc.cloud_decimation),
+        # exact (repr); "": not read, the shield assumed the firmware default
+        "autopilot_yaw_rate": "" if autopilot_yaw_rate is None else repr(float(autopilot_yaw_rate)),
         "clock": "time.monotonic",
         "clock_at_start": repr(clock()),
         "wall_time_at_start": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),

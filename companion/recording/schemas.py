@@ -94,7 +94,9 @@ FOXGLOVE_SCHEMAS: dict[str, dict[str, Any]] = {
     ),
 }
 
-COMMAND = _obj("lidar_avoid.Command", forward=_num(), yaw_rate=_num())
+#: A command, body frame FLU: m/s, rad/s, m/s to the left. Recordings made before ``lateral`` have
+#: none in /shield (replay then compares forward and yaw rate alone).
+COMMAND = _obj("lidar_avoid.Command", forward=_num(), yaw_rate=_num(), lateral=_num())
 _COUNTS = {"type": "object", "additionalProperties": _int()}
 
 OWN_SCHEMAS: dict[str, dict[str, Any]] = {

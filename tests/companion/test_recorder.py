@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import subprocess
 import sys
@@ -182,18 +183,26 @@ def test_the_companion_flies_on_when_its_recording_directory_cannot_be_made(tmp_
 
 
 def _record_companion(tmp_path: Path, setpoints: int = 25, recorder: str = "", parts: int = 1,
-                      extra: str = "") -> list[Path]:
-    """A short recording of the real companion process (constant lidar, the 'steer' policy, config
+                      extra: str = "", kind: str = "steer", room_m: float | None = None,
+                      params: dict[str, float] | None = None) -> list[Path]:
+    """A short recording of the real companion process (constant lidar, the ``kind`` policy, config
     ``extra``), ended once the autopilot has had ``setpoints`` setpoints and the recorder has begun
     ``parts`` files (how fast a part fills depends on how well the cloud compresses); its files,
-    oldest first."""
+    oldest first.
+
+    :param room_m: the lidar's round room's radius (default: the sender's 8 m)
+    :param params: the autopilot's parameters (for a ``[params_check]`` in ``extra``)
+    """
     lidar_port, mavlink_port = free_udp_port(), free_udp_port()
-    model = write_policy(tmp_path / "steer.onnx", kind="steer")
+    model = write_policy(tmp_path / f"{kind}.onnx", kind=kind)
     recording = f'[recorder]\nenabled = true\ndirectory = "{tmp_path}/rec"\n{recorder}\n'
     config = write_config(tmp_path, model, lidar_port, mavlink_port, extra=recording + extra)
     vehicle = SimulatedAutopilot(f"udpout:127.0.0.1:{mavlink_port}")
+    vehicle.params = dict(params or {})
     proc = start_companion(config)
     lidar = LidarSender(lidar_port)
+    if room_m is not None:
+        lidar.scene = lambda azimuth: np.full(azimuth.shape, room_m)
     try:
         lidar.on = True
         deadline = time.monotonic() + 40
@@ -242,15 +251,59 @@ def _as_before_the_vertical_speed(src: Path, dst: Path) -> None:
     _copy_recording(src, dst, strip, old_schema)
 
 
-def _copy_recording(src: Path, dst: Path, message, schema=lambda _name, data: data) -> None:
+def _with_one_lateral_changed(src: Path, dst: Path, index: int) -> None:
+    """Copy a recording, the ``index``-th shield output's sideways part moved by one float64 ulp."""
+    def change(topic: str, data: bytes, n: int) -> bytes:
+        if topic != s.SHIELD.topic or n != index:
+            return data
+        step = json.loads(data)
+        step["output"]["lateral"] = float(np.nextafter(step["output"]["lateral"], 2.0))
+        return json.dumps(step).encode()
+
+    _copy_recording(src, dst, change)
+
+
+def _as_before_the_lateral(src: Path, dst: Path) -> None:
+    """Copy a recording as the recorder wrote it before /shield had ``lateral``: the requested and
+    output commands without it, under the schema of then."""
+    def old_schema(name: str, data: bytes) -> bytes:
+        if name != "lidar_avoid.ShieldStep":
+            return data
+        schema = json.loads(data)
+        for part in ("requested", "output"):
+            del schema["properties"][part]["properties"]["lateral"]
+            schema["properties"][part]["required"].remove("lateral")
+        return json.dumps(schema).encode()
+
+    def strip(topic: str, data: bytes, _n: int) -> bytes:
+        if topic != s.SHIELD.topic:
+            return data
+        msg = json.loads(data)
+        for part in ("requested", "output"):
+            del msg[part]["lateral"]
+        return json.dumps(msg).encode()
+
+    _copy_recording(src, dst, strip, old_schema)
+
+
+def _as_before_the_yaw_cap(src: Path, dst: Path) -> None:
+    """Copy a recording as the recorder wrote it before the metadata had the yaw cap read."""
+    def old_metadata(name: str, metadata: dict[str, str]) -> dict[str, str]:
+        return {k: v for k, v in metadata.items() if name != s.METADATA_NAME or k != "autopilot_yaw_rate"}
+
+    _copy_recording(src, dst, lambda _topic, data, _n: data, metadata=old_metadata)
+
+
+def _copy_recording(src: Path, dst: Path, message, schema=lambda _name, data: data,
+                    metadata=lambda _name, md: md) -> None:
     """Copy an MCAP file record by record: ``message(topic, data, n)`` (n: the topic's n-th message,
-    from 1) and ``schema(name, data)`` give the bytes written."""
+    from 1), ``schema(name, data)`` and ``metadata(name, map)`` give what is written."""
     with open(src, "rb") as f, open(dst, "wb") as out:
         reader = make_reader(f)
         writer = Writer(out)
         writer.start()
         for md in reader.iter_metadata():
-            writer.add_metadata(md.name, dict(md.metadata))
+            writer.add_metadata(md.name, metadata(md.name, dict(md.metadata)))
         ids: dict[str, int] = {}
         counts: dict[str, int] = {}
         for mcap_schema, channel, msg in reader.iter_messages():
@@ -289,6 +342,72 @@ def test_replay_matches_bit_for_bit_and_finds_a_one_ulp_difference(tmp_path):
     assert what_if.returncode == 0, what_if.stdout + what_if.stderr
     assert "what-if: forward.onnx" in what_if.stdout and "largest differences" in what_if.stdout
     assert plot.stat().st_size > 10_000
+
+
+def _replay(path: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "companion", "replay", str(path), *args], cwd=REPO,
+                          capture_output=True, text=True, timeout=120)
+
+
+def test_replay_builds_the_shield_for_the_recorded_autopilot_and_the_yaw_cap_read_from_it(tmp_path):
+    """ArduPilot, whose ATC_RATE_WPY_MAX the start-up check reads as 45 deg/s (neither the firmware
+    default 60 nor the policy's 86), and a policy asking full speed and full yaw rate in a 2 m room:
+    the read yaw cap and ArduPilot's stopping distance both bind, and the replay, building its shield
+    from the recording, matches bit for bit. Without the recorded cap (a recording made before it
+    was recorded) the replay assumes the firmware default, as the companion does when it reads none."""
+    (tmp_path / "copter.parm").write_text("ATC_RATE_WPY_MAX 86\n")
+    check = '[params_check]\nmode = "warn"\nfile = "copter.parm"\ntimeout = 5.0\n'
+    (path,) = _record_companion(tmp_path, setpoints=30, extra=check, kind="forward_left", room_m=2.0,
+                                params={"ATC_RATE_WPY_MAX": 45.0})
+    rec = read_recording(path)
+    assert json.loads(rec.metadata[s.METADATA_NAME]["config"])["autopilot"]["type"] == "ardupilot"
+    assert float(rec.metadata[s.METADATA_NAME]["autopilot_yaw_rate"]) == math.radians(45.0)
+    steps = [msg for _, msg in rec.topic(s.SHIELD.topic)]
+    assert len(steps) >= 20 and steps[-1]["requested"]["yaw_rate"] == 1.5
+    assert steps[-1]["output"]["yaw_rate"] == math.radians(45.0)
+    assert "stopping_distance" in steps[-1]["limits"]
+    held = {step["output"]["forward"] for step in steps[-5:]}  # the speed the stopping distance allows
+    assert len(held) == 1 and 1.0 < held.pop() < steps[-1]["requested"]["forward"]
+
+    same = _replay(path)
+    assert same.returncode == 0 and "matches bit for bit" in same.stdout, same.stdout + same.stderr
+
+    before = tmp_path / "before-yaw-cap.mcap"
+    _as_before_the_yaw_cap(path, before)
+    default = _replay(before)
+    assert default.returncode == 1, default.stdout + default.stderr
+    assert "first difference" in default.stdout and "shield output recorded" in default.stdout
+
+
+def test_the_shield_record_carries_the_sideways_part_and_older_recordings_replay_as_before(tmp_path):
+    """A sideways policy: /shield records the lateral speed asked and let through, the replay checks
+    it (one ulp off is found), and the same recording as the recorder wrote it before ``lateral``
+    existed still replays bit for bit, comparing what it holds."""
+    (path,) = _record_companion(tmp_path, kind="slide_left")
+    rec = read_recording(path)
+    schema = json.loads(rec.schema_data[s.SHIELD.topic])
+    assert all("lateral" in schema["properties"][part]["required"] for part in ("requested", "output"))
+    steps = [msg for _, msg in rec.topic(s.SHIELD.topic)]
+    assert len(steps) >= 10 and all(step["requested"]["lateral"] == 1.0 for step in steps)
+    lateral = [step["output"]["lateral"] for step in steps]
+    assert 0.0 < lateral[0] < lateral[3] < lateral[-1] == 1.0  # ramped up at max_accel
+    same = _replay(path)
+    assert same.returncode == 0 and "matches bit for bit" in same.stdout, same.stdout + same.stderr
+
+    tampered = tmp_path / "tampered.mcap"
+    _with_one_lateral_changed(path, tampered, index=3)
+    diff = _replay(tampered)
+    assert diff.returncode == 1, diff.stdout + diff.stderr
+    assert "shield output recorded" in diff.stdout and repr(lateral[2]) in diff.stdout
+
+    before = tmp_path / "before-lateral.mcap"
+    _as_before_the_lateral(path, before)
+    old = _replay(before)
+    assert old.returncode == 0 and "matches bit for bit" in old.stdout, old.stdout + old.stderr
+    other = write_policy(tmp_path / "forward.onnx", kind="forward")
+    what_if = _replay(before, "--policy", str(other), "--plot", str(tmp_path / "whatif.png"))
+    assert what_if.returncode == 0, what_if.stdout + what_if.stderr
+    assert "lateral not recorded" in what_if.stdout
 
 
 def test_setpoints_record_the_vertical_speed_and_older_recordings_read_as_before(tmp_path):
@@ -393,3 +512,20 @@ def test_a_recording_from_before_the_goal_layout_replays_as_scan_only(tmp_path):
 
     assert recorded_config(recording({}))[0].policy.observation == "scan"
     assert recorded_config(recording({"observation": "goal"}))[0].policy.observation == "goal"
+
+
+def test_the_recorded_yaw_cap_reads_back_exactly_and_is_none_when_not_read_or_not_recorded(tmp_path):
+    from types import SimpleNamespace
+
+    from companion.errors import UserError
+    from companion.replay import recorded_autopilot_yaw_rate
+
+    def recording(**meta: str) -> SimpleNamespace:
+        return SimpleNamespace(path=tmp_path / "f.mcap", metadata={s.METADATA_NAME: meta})
+
+    cap = math.radians(75.0)
+    assert recorded_autopilot_yaw_rate(recording(autopilot_yaw_rate=repr(cap))) == cap
+    assert recorded_autopilot_yaw_rate(recording(autopilot_yaw_rate="")) is None  # nothing was read
+    assert recorded_autopilot_yaw_rate(recording()) is None  # recorded before the key existed
+    with pytest.raises(UserError, match=r"f\.mcap: recorded autopilot_yaw_rate 'fast'"):
+        recorded_autopilot_yaw_rate(recording(autopilot_yaw_rate="fast"))

@@ -3,7 +3,8 @@ loopback, the lidar as real VLP-16 packets.
 
 1. A recorded flight reads back with the ``mcap`` reader, every message validates against the JSON
    Schema its channel carries, ground truth and the companion share one clock, the replay matches
-   bit for bit, and ``avoid-sim report`` draws it.
+   bit for bit (the autopilot's yaw cap binding: the replay's shield is ArduPilot's, as the
+   companion's was), and ``avoid-sim report`` draws it.
 2. The disk fills up in the middle of the flight (a real tmpfs, filled by this test while the
    companion is ACTIVE): a STATUSTEXT says recording stopped, and the setpoints keep flowing.
 """
@@ -11,6 +12,7 @@ loopback, the lidar as real VLP-16 packets.
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 import time
@@ -21,6 +23,7 @@ import pytest
 from mcap.reader import make_reader
 
 from companion.recording import schemas as s
+from companion.recording.reader import read_recording
 from flightsim.harness import FlightOptions, SitlFlight
 from flightsim.recording import FlightRecording
 from tests.companion.test_recorder import tiny_tmpfs
@@ -33,12 +36,12 @@ COMPANION_TOPICS = {s.SCAN.topic, s.CLOUD.topic, s.POLICY.topic, s.SHIELD.topic,
 TRUTH_TOPICS = {s.TRUTH_POSE.topic, s.TRUTH_TF.topic, "/truth/state"}
 
 
-def _options(workdir: Path, **overrides) -> FlightOptions:
+def _options(workdir: Path, turn: float = 0.4, **overrides) -> FlightOptions:
     workdir.mkdir(parents=True, exist_ok=True)
     return FlightOptions(
         autopilot="sim-ardupilot",
         world=OPEN_ROOM,
-        policy=write_constant_policy(workdir / "circle.onnx", 0.5, 0.4),
+        policy=write_constant_policy(workdir / "circle.onnx", 0.5, turn),
         workdir=workdir,
         lidar_step_deg=1.0,
         companion_overrides={"runtime": {"log_interval": 1.0}, **overrides},
@@ -46,7 +49,8 @@ def _options(workdir: Path, **overrides) -> FlightOptions:
 
 
 def test_a_recorded_flight_reads_back_validates_and_replays_bit_for_bit(tmp_path):
-    with SitlFlight(_options(tmp_path)) as flight:
+    # 0.8 asks 1.2 rad/s, above ArduPilot's default ATC_RATE_WPY_MAX (60 deg/s): the shield caps it
+    with SitlFlight(_options(tmp_path, turn=0.8)) as flight:
         flight.take_off()
         assert flight.wait_engaged(25.0), flight.companion_log()
         t = time.monotonic()
@@ -75,6 +79,8 @@ def test_a_recorded_flight_reads_back_validates_and_replays_bit_for_bit(tmp_path
     # ground truth and the companion are on one clock: the truth covers the companion's flight
     assert times["/truth/state"][0] < times[s.SETPOINT.topic][0] < times[s.SETPOINT.topic][-1] \
         < times["/truth/state"][-1]
+    yaw_rates = [msg["output"]["yaw_rate"] for _, msg in read_recording(path).topic(s.SHIELD.topic)]
+    assert max(yaw_rates) == pytest.approx(math.radians(60.0))
 
     replay = subprocess.run([sys.executable, "-m", "companion", "replay", str(path)], cwd=REPO,
                             capture_output=True, text=True, timeout=300)
