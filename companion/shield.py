@@ -320,6 +320,14 @@ def _commanded_side(course: float, heading: float) -> float:
     return course if abs(swing) <= 90.0 else heading + math.copysign(90.0, swing)
 
 
+def _course(velocity: tuple[float, float] | None) -> float | None:
+    """The direction of the measured motion (degrees counter-clockwise from the nose), or None when
+    it is not known or too slow to say (:data:`MIN_TRAVEL_SPEED`)."""
+    if not _finite_pair(velocity) or math.hypot(float(velocity[0]), float(velocity[1])) < MIN_TRAVEL_SPEED:
+        return None
+    return math.degrees(math.atan2(float(velocity[1]), float(velocity[0])))
+
+
 def _slew(target: float, previous: float, step: float) -> float:
     """Limit how fast ``target`` moves away from zero; moving towards zero is never limited."""
     lo = min(previous, 0.0) - step
@@ -490,15 +498,16 @@ class SafetyShield:
             lowest = -min(rear_cap, cfg.max_reverse_speed)
             forward = min(max(brake[0], lowest), max(min(front_cap, cfg.max_speed), 0.0))
             lateral = brake[1]
-        forward, lateral, pushed = self._keep_out(values, forward, lateral, step)
-        if (brake is not None or pushed) and _finite_pair(velocity):  # the estimate is drift's base
+        forward, lateral, push = self._keep_out(values, forward, lateral, step)
+        if (brake is not None or push) and _finite_pair(velocity):  # the estimate is drift's base
             forward, lateral = self._compensate(forward, lateral, drift)
         # The sector caps hold for all. The travel cap bounds the policy's command alone: the brake
         # and the push point away from what they answer, each bounded by the room on its far side,
         # and the travel's arc can hold the very return they move away from.
         forward = min(max(forward, -rear_cap), max(front_cap, 0.0))
-        if pushed:
-            forward, lateral = self._within_room(values, forward, lateral)
+        if push:
+            course = _course(velocity) if push == "closing" else None
+            forward, lateral = self._within_room(values, forward, lateral, course)
         out = Command(forward=forward, yaw_rate=slewed_yaw, lateral=lateral)
         self._previous = out
         return out
@@ -576,9 +585,10 @@ class SafetyShield:
 
     def _keep_out(
         self, values: np.ndarray, forward: float, lateral: float, dt: float
-    ) -> tuple[float, float, bool]:
+    ) -> tuple[float, float, str]:
         """Near the nearest return: drop what the setpoint asks towards it and push away from it,
-        no faster than the room on the far side allows; and whether it acted.
+        no faster than the room on the far side allows; and why it acted: ``"near"`` (inside
+        ``keepout_distance``), ``"closing"`` (farther out) or ``""`` (it did not).
 
         It acts inside ``keepout_distance``, and farther out too when the scan shows the vehicle
         closing on that return faster than it could stop: the nearest distance of two scans is the
@@ -586,7 +596,7 @@ class SafetyShield:
         """
         cfg = self.config
         if cfg.keepout_distance <= 0.0:
-            return forward, lateral, False
+            return forward, lateral, ""
         previous, self._previous_nearest = self._previous_nearest, float(values.min()) * self.max_range
         nearest = int(np.argmin(values))
         distance = self._previous_nearest
@@ -596,7 +606,7 @@ class SafetyShield:
         stopping = stopping_distance(closing, self.max_decel, self.reaction_time)
         too_fast = stopping >= distance - cfg.estop_distance
         if distance >= cfg.keepout_distance and not (closing > 0.0 and too_fast):
-            return forward, lateral, False
+            return forward, lateral, ""
         self.interventions["keepout"] += 1
         towards = math.radians(nearest + 0.5)
         ux, uy = math.cos(towards), math.sin(towards)
@@ -611,20 +621,30 @@ class SafetyShield:
         )
         forward, lateral = forward - push * ux, lateral - push * uy
         limit = max(cfg.max_reverse_speed, cfg.keepout_max_speed)
-        return min(max(forward, -limit), cfg.max_speed), min(max(lateral, -limit), limit), True
+        reason = "near" if distance < cfg.keepout_distance else "closing"
+        return min(max(forward, -limit), cfg.max_speed), min(max(lateral, -limit), limit), reason
 
-    def _within_room(self, values: np.ndarray, forward: float, lateral: float) -> tuple[float, float]:
+    def _within_room(
+        self, values: np.ndarray, forward: float, lateral: float, course: float | None
+    ) -> tuple[float, float]:
         """The setpoint (``forward``, ``lateral``) slowed, its direction kept, to what stops before
-        the clearance along that direction (:meth:`_travel_clearance` there).
+        the clearance along that direction, or with ``course`` (degrees) along the way the velocity
+        swings there from it (:meth:`_travel_clearances`, as the policy's command is judged).
 
         The push is bounded by the room behind it and the command by the room along its course, but
         their sum points elsewhere, where neither bound holds: a policy's sideways command plus a push
-        from a wall on the other side asked 1.7 m/s where 0.96 stopped in time (a demo collision)."""
+        from a wall on the other side asked 1.7 m/s where 0.96 stopped in time (a demo collision).
+        A push that answers a return closing in from beyond ``keepout_distance`` is given the course:
+        nothing is near yet, and it must not make a hazard on its way (a 1 m/s push to the left,
+        the vehicle flying straight on at 1.6 m/s, slid it into a corridor's other wall in SITL);
+        judging a push from a return already near that way held it back in warehouse aisles (3
+        validation collisions, docs/goal-policy.md)."""
         speed = math.hypot(forward, lateral)
         if speed == 0.0:
             return forward, lateral
         direction = math.degrees(math.atan2(lateral, forward))
-        room = self._allowed_speed(self._travel_clearance(values, direction, direction))
+        room = self._allowed_speed(self._travel_clearances(values, direction if course is None else course,
+                                                           direction)[0])
         if speed <= room:
             return forward, lateral
         self.interventions["keepout_room"] += 1

@@ -645,6 +645,28 @@ def test_a_push_added_to_a_sideways_command_is_no_faster_than_the_room_along_the
     assert shield.interventions["keepout_room"] == 1
 
 
+def test_a_push_against_a_closing_return_stops_before_what_lies_on_the_way_from_the_motion() -> None:
+    """Flying forward at 1.5 m/s, a wall on the right closes in from 0.75 m to 0.6 m, faster than
+    the vehicle could stop, and the push goes left, where the lane is clear; but the velocity swings
+    there from straight ahead, past a return 1 m off at 45°: the setpoint is no faster than stops
+    before it (a SITL collision: the vehicle slid into the other wall of an office corridor). A
+    push from a wall already inside the keep-out is judged along its own direction alone."""
+    right, ahead_left = bins_around(-90.0, 1.0), bins_around(45.0)
+    for before, now, judged_on_the_way in ((0.75, 0.6, True), (0.5, 0.4, False)):
+        shield = SafetyShield(ShieldConfig(), MAX_RANGE, "ardupilot")
+        room = stopping_speed(1.0 - shield.config.estop_distance, shield.max_decel, shield.reaction_time)
+        forward = (1.5, 0.0)
+        for metres in (before, now):
+            scan = scan_with({**{b: metres for b in right}, **{b: 1.0 for b in ahead_left}})
+            out = shield.filter(Command(0.0, 0.0), scan, 0.1, velocity=forward)
+        assert shield.interventions["keepout"] == 1 and out.lateral > 0.3  # pushed left
+        speed = math.hypot(out.forward, out.lateral)
+        if judged_on_the_way:
+            assert speed <= room + 1e-3  # the lane's headings are sampled
+        else:
+            assert speed > room + 0.1
+
+
 @settings(max_examples=300, deadline=None)
 @given(
     requests=st.lists(st.tuples(st.floats(-1.0, 2.0), st.floats(-1.0, 1.0)), min_size=1, max_size=8),
