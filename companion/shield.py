@@ -629,7 +629,7 @@ class SafetyShield:
     ) -> tuple[float, float]:
         """The setpoint (``forward``, ``lateral``) slowed, its direction kept, to what stops before
         the clearance along that direction, or with ``course`` (degrees) along the way the velocity
-        swings there from it (:meth:`_travel_clearances`, as the policy's command is judged).
+        swings there from it (:func:`_commanded_side`, as the policy's command is judged).
 
         The push is bounded by the room behind it and the command by the room along its course, but
         their sum points elsewhere, where neither bound holds: a policy's sideways command plus a push
@@ -643,8 +643,8 @@ class SafetyShield:
         if speed == 0.0:
             return forward, lateral
         direction = math.degrees(math.atan2(lateral, forward))
-        room = self._allowed_speed(self._travel_clearances(values, direction if course is None else course,
-                                                           direction)[0])
+        side = direction if course is None else _commanded_side(course, direction)
+        room = self._allowed_speed(self._travel_clearance(values, side, direction))
         if speed <= room:
             return forward, lateral
         self.interventions["keepout_room"] += 1

@@ -317,36 +317,33 @@ def _copy_recording(src: Path, dst: Path, message, schema=lambda _name, data: da
         writer.finish()
 
 
+def _replay(path: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "companion", "replay", str(path), *args], cwd=REPO,
+                          capture_output=True, text=True, timeout=120)
+
+
 def test_replay_matches_bit_for_bit_and_finds_a_one_ulp_difference(tmp_path):
     (path,) = _record_companion(tmp_path)
     rec = read_recording(path)
     assert not rec.truncated
     assert len(rec.topic(s.POLICY.topic)) >= 20 and len(rec.topic(s.SHIELD.topic)) >= 10
     # the scans the replay starts from (no cloud recorded) are the recorded observations' newest
-    same = subprocess.run([sys.executable, "-m", "companion", "replay", str(path)], cwd=REPO,
-                          capture_output=True, text=True, timeout=120)
+    same = _replay(path)
     assert same.returncode == 0, same.stdout + same.stderr
     assert "matches bit for bit" in same.stdout and "from the recorded scans" in same.stdout
 
     tampered = tmp_path / "tampered.mcap"
     _with_one_action_changed(path, tampered, index=7)
-    diff = subprocess.run([sys.executable, "-m", "companion", "replay", str(tampered)], cwd=REPO,
-                          capture_output=True, text=True, timeout=120)
+    diff = _replay(tampered)
     assert diff.returncode == 1, diff.stdout + diff.stderr
     assert "first difference" in diff.stdout and "action 7:" in diff.stdout
 
     other = write_policy(tmp_path / "forward.onnx", kind="forward")
     plot = tmp_path / "whatif.png"
-    what_if = subprocess.run([sys.executable, "-m", "companion", "replay", str(path), "--policy", str(other),
-                              "--plot", str(plot)], cwd=REPO, capture_output=True, text=True, timeout=120)
+    what_if = _replay(path, "--policy", str(other), "--plot", str(plot))
     assert what_if.returncode == 0, what_if.stdout + what_if.stderr
     assert "what-if: forward.onnx" in what_if.stdout and "largest differences" in what_if.stdout
     assert plot.stat().st_size > 10_000
-
-
-def _replay(path: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "companion", "replay", str(path), *args], cwd=REPO,
-                          capture_output=True, text=True, timeout=120)
 
 
 def test_replay_builds_the_shield_for_the_recorded_autopilot_and_the_yaw_cap_read_from_it(tmp_path):
@@ -432,8 +429,7 @@ def test_setpoints_record_the_vertical_speed_and_older_recordings_read_as_before
     assert len(setpoints(old)) == len(sent) and np.isnan(setpoints(old)[:, 4]).all()
     np.testing.assert_array_equal(setpoints(old)[:, :4], sent[:, :4])
     assert "vertical setpoint: not recorded" in "\n".join(summary(flight_series(old)))
-    replay = subprocess.run([sys.executable, "-m", "companion", "replay", str(before)], cwd=REPO,
-                            capture_output=True, text=True, timeout=120)
+    replay = _replay(before)
     assert replay.returncode == 0 and "matches bit for bit" in replay.stdout, replay.stdout + replay.stderr
 
 
@@ -493,8 +489,7 @@ def test_a_later_part_of_a_rotated_recording_replays_on_its_own(tmp_path):
     # a whole 0.2° cloud fills a 1 MB part in a few revolutions: the first parts may hold the start's resets
     middle = next((p for p in parts[1:-1] if starts_mid_flight(p)), None)
     assert middle is not None, "no finished part starts mid-flight"
-    done = subprocess.run([sys.executable, "-m", "companion", "replay", str(middle)], cwd=REPO,
-                          capture_output=True, text=True, timeout=120)
+    done = _replay(middle)
     assert done.returncode == 0, done.stdout + done.stderr
     assert "from the recorded clouds" in done.stdout and "matches bit for bit" in done.stdout
     assert "not checked" in done.stdout
