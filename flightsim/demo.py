@@ -9,6 +9,9 @@ when the companion announces the mission complete, or at the goal task's time li
 does. Flights run :data:`LANES` at a time, each in its own process, so that even with every flight
 timed out the demo ends within three minutes. Prints one table row per flight as it ends, then the
 table in the worlds' order and where the top-down PNGs are.
+
+``--worlds validation`` flies instead every world family twice, at validation seeds (difficulties
+0.35 and 0.75): the SITL check of a policy or shield change before the test worlds are flown.
 """
 
 from __future__ import annotations
@@ -29,7 +32,7 @@ from companion.cli import LOG_FORMAT
 from companion.errors import UserError
 from flightsim import seeds
 from flightsim.env import CONTROL_HZ
-from flightsim.families import generate_family_world
+from flightsim.families import FAMILIES, generate_family_world
 from flightsim.flight_report import INTERRUPTED, FlightReport
 from flightsim.fly_cli import default_policy
 from flightsim.harness import FlightOptions, run_flight
@@ -43,6 +46,8 @@ GENERATED = (
     ("office", seeds.TEST.start + 1, 0.3),
     ("pillars", seeds.TEST.start + 1, 0.3),
 )
+#: the difficulties ``--worlds validation`` flies each family at, one seed each
+VALIDATION_DIFFICULTIES = (0.35, 0.75)
 #: flights flown at once, each in its own process: a flight takes about a third of one core (the
 #: simulated autopilot, the lidar packets and the companion), and this machine class has two
 LANES = 2
@@ -57,6 +62,18 @@ def demo_worlds() -> list[World]:
             with resources.as_file(entry) as path:
                 worlds.append(load_world(path))
     return worlds
+
+
+def validation_worlds() -> list[World]:
+    """Every family at each of :data:`VALIDATION_DIFFICULTIES`, each at its own validation seed (the
+    family's index modulo 5 from the first, 5 on for the second difficulty): 18 worlds that no
+    training run and no test figure flies."""
+    first = seeds.VALIDATION.start
+    return [
+        generate_family_world(family, first + i % 5 + 5 * j, difficulty)
+        for j, difficulty in enumerate(VALIDATION_DIFFICULTIES)
+        for i, family in enumerate(FAMILIES)
+    ]
 
 
 def time_limit(world: World) -> float:
@@ -86,6 +103,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         help="seconds of companion flight per world at most (default: the goal task's time limit, "
         "from the world's shortest safe path)",
     )
+    parser.add_argument(
+        "--worlds", choices=("demo", "validation"), default="demo",
+        help="demo: the generated and example worlds (under 3 minutes); validation: every family at "
+        "two validation seeds and difficulties (18 flights, about 8 minutes)",
+    )
     parser.add_argument("--out", default="avoid-sim-demo", help="directory for PNGs, logs and summary.json")
     parser.add_argument(
         "--autopilot",
@@ -114,7 +136,7 @@ def command(args: argparse.Namespace) -> int:
     verbose = bool(getattr(args, "verbose", False))
     if not verbose:  # the table is the demo's output; -v shows every step
         logging.getLogger("flightsim").setLevel(logging.WARNING)
-    worlds = demo_worlds()
+    worlds = validation_worlds() if args.worlds == "validation" else demo_worlds()
     lanes = f"{len(worlds)} mission flights, {LANES} at a time"
     print(f"avoid-sim demo: {lanes}, policy {policy}, {args.autopilot}")
     start = time.monotonic()

@@ -11,9 +11,19 @@ from pathlib import Path
 import pytest
 
 from companion.errors import UserError
+from flightsim import seeds
 from flightsim.__main__ import main
-from flightsim.demo import GENERATED, LANES, _result, demo_worlds, lane_schedule, time_limit
+from flightsim.demo import (
+    GENERATED,
+    LANES,
+    _result,
+    demo_worlds,
+    lane_schedule,
+    time_limit,
+    validation_worlds,
+)
 from flightsim.env import CONTROL_HZ
+from flightsim.families import FAMILIES
 from flightsim.flight_report import FlightReport
 from flightsim.fly_cli import default_policy
 from flightsim.harness import FlightOptions
@@ -30,6 +40,19 @@ def test_demo_flies_missions_in_generated_worlds_of_different_families_then_ever
     families = [family for family, _, _ in GENERATED]
     assert len(set(families)) == len(families) >= 3
     assert all(w.waypoints for w in worlds)  # every flight is a mission
+
+
+def test_the_validation_sweep_flies_every_family_twice_on_validation_seeds_only() -> None:
+    """``--worlds validation``: each family at two difficulties, each world its own seed, every seed a
+    validation one (never a test seed, as the demo's generated worlds are)."""
+    worlds = validation_worlds()
+    names = [w.name for w in worlds]
+    assert len(set(names)) == len(names) == 2 * len(FAMILIES)
+    assert sorted(n.split("-")[0] for n in names) == sorted(list(FAMILIES) * 2)
+    used = {int(n.split("-")[1]) for n in names}
+    assert used <= set(seeds.VALIDATION) and not used & {seed for _, seed, _ in GENERATED}
+    assert {n.rsplit("-d", 1)[1] for n in names} == {"0.35", "0.75"}
+    assert all(w.waypoints for w in worlds)
 
 
 def test_a_demo_mission_gets_the_time_an_evaluation_episode_of_its_world_gets() -> None:
