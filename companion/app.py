@@ -548,8 +548,11 @@ class Companion:
 
         The drift estimate (drift layouts only) is held by the setpoint as far as ``[drift_hold]``
         says (:func:`companion.drift.held_drift`); the vehicle then truly flies the setpoint less
-        the rest of the error, so the shield is given the measured velocity less the held part and
-        the rest of the estimate (for ``shield.drift_compensation``).
+        the rest of the error, so the shield is given the rest of the estimate (for
+        ``shield.drift_compensation``). It judges the motion by the measured velocity less the
+        whole estimate, the true motion as the scans show it: on the estimate alone it braked for
+        a motion the scans did not show, and missed one the estimate hid (PX4's drifts 0.2-0.4 m/s
+        off the truth; docs/goal-policy.md, "The shield judges the true motion").
 
         :returns: the velocity and the drift estimate for the shield (body forward, left, m/s;
             None where unknown), and the held part (forward, left, m/s)
@@ -560,8 +563,8 @@ class Companion:
         bias = self._drift.bias
         held = held_drift(bias, self.config.drift_hold)
         drift = (float(bias[0]) - held[0], float(bias[1]) - held[1])
-        if velocity is not None:
-            velocity = (float(velocity[0]) - held[0], float(velocity[1]) - held[1])
+        if velocity is not None and math.isfinite(drift[0]) and math.isfinite(drift[1]):
+            velocity = (float(velocity[0]) - float(bias[0]), float(velocity[1]) - float(bias[1]))
         return velocity, drift, held
 
     def _send_policy_setpoint(self, command: Command, held: tuple[float, float]) -> None:

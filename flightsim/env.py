@@ -333,9 +333,11 @@ class LidarAvoidEnv(gym.Env):
 
     def shield_velocity(self) -> np.ndarray:
         """The velocity a shield judges the motion by (body forward, left, m/s), as the companion
-        gives its own: the measured one less what the setpoint holds of the drift
-        (:meth:`drift_held`), since the vehicle truly flies the setpoint less the error."""
-        return self.measured_body_velocity() - np.asarray(self.drift_held())
+        gives its own: the measured one less the whole drift estimate (what the setpoint holds,
+        :meth:`drift_held`, and the rest, :meth:`shield_drift`), the true motion as the scans show it."""
+        measured = self.measured_body_velocity() - np.asarray(self.drift_held())
+        drift = self.shield_drift()
+        return measured if drift is None else measured - np.asarray(drift)
 
     def _arrive(self, state: VehicleState) -> None:
         """After the flight: the new pose, the path flown, the clearance and collision."""

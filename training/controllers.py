@@ -72,8 +72,8 @@ class ShieldedController:
     :param shield: the companion's shield (its limits are the flight configuration's)
     :param max_speed: m/s that an action of 1 stands for (the env's action scaling)
     :param max_yaw_rate: rad/s that an action of 1 stands for
-    :param velocity: the measured body velocity (forward, left) now, less what the setpoint holds
-        of the drift, as the companion gives its shield (the env's
+    :param velocity: the measured body velocity (forward, left) now, less the drift estimate (the
+        true motion as the scans show it), as the companion gives its shield (the env's
         :meth:`~flightsim.env.LidarAvoidEnv.shield_velocity`)
     :param lateral: where the shield's sideways brake goes (the env's
         :meth:`~flightsim.env.LidarAvoidEnv.command_lateral`), since an action carries none

@@ -179,6 +179,27 @@ def test_the_keepout_push_carries_the_drift_the_estimate_hides(tmp_path, extra, 
         f.close()
 
 
+def _wall_ahead(azimuth_deg: np.ndarray) -> np.ndarray:
+    """A wall 0.7 m north of a vehicle facing north, in a round room of 8 m."""
+    north = np.cos(np.radians(azimuth_deg))
+    return np.where(north > 0.05, np.minimum(0.7 / np.maximum(north, 0.05), 8.0), 8.0)
+
+
+def test_the_shield_judges_the_motion_the_scans_show_not_the_estimate(tmp_path):
+    """A model asking full speed ahead, a wall 0.7 m ahead, and an autopilot that reports 0.6 m/s
+    north while the scans stand still: the drift estimate takes up the 0.6, so the shield judges a
+    hovering vehicle and lets through the speed that stops before the wall (0.5 m/s for ArduPilot's
+    braking). Judged by the estimate alone, that 0.6 m/s could not stop in 0.4 m: the shield braked
+    against a motion the scans did not show (0.1 m/s once the brake carried the drift)."""
+    f = Flight.with_model(tmp_path, "forward")
+    f.lidar.scene = _wall_ahead
+    f.vehicle.velocity_ned = (0.6, 0.0)
+    try:
+        f.settled(lambda m: abs(m.vx - 0.5) < 0.1 and abs(m.vy) < 0.05, "0.5 m/s ahead")
+    finally:
+        f.close()
+
+
 def test_a_drift_model_under_a_config_without_drift_is_refused_naming_both_layouts(tmp_path):
     model = write_policy(tmp_path / "drift.onnx", kind="echo_drift")
     path = write_config(tmp_path, model, free_udp_port(), free_udp_port())

@@ -283,8 +283,8 @@ def _sideways_drift(config: NavEnvConfig, steps: int = 150) -> tuple[float, Lida
 def test_the_held_drift_stops_the_sideways_slide_the_estimate_hides() -> None:
     """PX4's response (an estimate error of 0.25 m/s, one sigma, per axis): told to
     hover, the vehicle slides sideways at the error; with ``drift_hold`` the setpoint carries the
-    drift estimate beyond its deadband and the slide shrinks. The shield is given the measured
-    velocity and the drift estimate less the held part, as the companion gives its own."""
+    drift estimate beyond its deadband and the slide shrinks. The shield judges the measured velocity
+    less the whole drift estimate and carries the estimate less the held part, as the companion's."""
     base = dict(autopilot_response="px4", drift=True, shield=True)
     unheld, env = _sideways_drift(NavEnvConfig(**base))
     env.close()
@@ -298,7 +298,7 @@ def test_the_held_drift_stops_the_sideways_slide_the_estimate_hides() -> None:
         env.step(HOVER)
     hold = held_drift(env.drift_estimate, limits)
     assert env.drift_held() == hold and abs(hold[1]) > 0.04
-    np.testing.assert_allclose(env.shield_velocity(), env.measured_body_velocity() - np.array(hold))
+    np.testing.assert_allclose(env.shield_velocity(), env.measured_body_velocity() - env.drift_estimate)
     np.testing.assert_allclose(env.shield_drift(), env.drift_estimate - np.array(hold))
     env.close()
     with pytest.raises(ValueError, match="drift_hold needs the drift estimate: set drift = true"):
