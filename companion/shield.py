@@ -320,12 +320,20 @@ def _commanded_side(course: float, heading: float) -> float:
     return course if abs(swing) <= 90.0 else heading + math.copysign(90.0, swing)
 
 
+def _motion(velocity: tuple[float, float]) -> tuple[float, float]:
+    """The speed (m/s) and the course (degrees counter-clockwise from the nose) of a finite
+    measured velocity (body forward, left)."""
+    v_forward, v_left = float(velocity[0]), float(velocity[1])
+    return math.hypot(v_forward, v_left), math.degrees(math.atan2(v_left, v_forward))
+
+
 def _course(velocity: tuple[float, float] | None) -> float | None:
     """The direction of the measured motion (degrees counter-clockwise from the nose), or None when
     it is not known or too slow to say (:data:`MIN_TRAVEL_SPEED`)."""
-    if not _finite_pair(velocity) or math.hypot(float(velocity[0]), float(velocity[1])) < MIN_TRAVEL_SPEED:
+    if not _finite_pair(velocity):
         return None
-    return math.degrees(math.atan2(float(velocity[1]), float(velocity[0])))
+    speed, course = _motion(velocity)
+    return course if speed >= MIN_TRAVEL_SPEED else None
 
 
 def _slew(target: float, previous: float, step: float) -> float:
@@ -390,13 +398,12 @@ class SafetyShield:
         cap = self._allowed_speed(self._front_clearance(values))
         if velocity is None:
             return cap
-        v_forward, v_left = float(velocity[0]), float(velocity[1])
-        if not (math.isfinite(v_forward) and math.isfinite(v_left)):
+        if not _finite_pair(velocity):
             return 0.0
-        speed = math.hypot(v_forward, v_left)
+        speed, course = _motion(velocity)
         if speed < MIN_TRAVEL_SPEED:
             return cap
-        along, whole = self._travel_clearances(values, math.degrees(math.atan2(v_left, v_forward)), 0.0)
+        along, whole = self._travel_clearances(values, course, 0.0)
         if not self._can_stop(speed, whole):
             return 0.0
         return min(cap, self._allowed_speed(along))
@@ -523,14 +530,12 @@ class SafetyShield:
         """
         if velocity is None:
             return math.inf, None
-        v_forward, v_left = float(velocity[0]), float(velocity[1])
-        if not (math.isfinite(v_forward) and math.isfinite(v_left)):
+        if not _finite_pair(velocity):
             self.interventions["velocity_nan"] += 1
             return 0.0, (0.0, 0.0)
-        speed = math.hypot(v_forward, v_left)
+        speed, course = _motion(velocity)
         if speed < MIN_TRAVEL_SPEED:
             return math.inf, None
-        course = math.degrees(math.atan2(v_left, v_forward))
         heading = 0.0 if forward >= 0.0 else 180.0
         along, whole = self._travel_clearances(values, course, heading)
         cap = self._clearance_cap(abs(forward), along, "estop_travel")
@@ -541,7 +546,7 @@ class SafetyShield:
         width = self.config.travel_sector_deg
         behind = float(values[sector_bins((course + 180.0) % 360.0, width)].min()) * self.max_range
         magnitude = min(speed, self.config.max_reverse_speed, self._allowed_speed(behind))
-        return cap, (-v_forward / speed * magnitude, -v_left / speed * magnitude)
+        return cap, (-float(velocity[0]) / speed * magnitude, -float(velocity[1]) / speed * magnitude)
 
     def _front_clearance(self, values: np.ndarray) -> float:
         """What limits forward flight, m: the lane's distance along the nose ±``lane_spread_deg``,
