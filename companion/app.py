@@ -563,7 +563,7 @@ class Companion:
         bias = self._drift.bias
         held = held_drift(bias, self.config.drift_hold)
         drift = (float(bias[0]) - held[0], float(bias[1]) - held[1])
-        if velocity is not None and math.isfinite(drift[0]) and math.isfinite(drift[1]):
+        if velocity is not None and np.isfinite(bias).all():
             velocity = (float(velocity[0]) - float(bias[0]), float(velocity[1]) - float(bias[1]))
         return velocity, drift, held
 

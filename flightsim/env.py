@@ -333,11 +333,8 @@ class LidarAvoidEnv(gym.Env):
 
     def shield_velocity(self) -> np.ndarray:
         """The velocity a shield judges the motion by (body forward, left, m/s), as the companion
-        gives its own: the measured one less the whole drift estimate (what the setpoint holds,
-        :meth:`drift_held`, and the rest, :meth:`shield_drift`), the true motion as the scans show it."""
-        measured = self.measured_body_velocity() - np.asarray(self.drift_held())
-        drift = self.shield_drift()
-        return measured if drift is None else measured - np.asarray(drift)
+        gives its own: the measured one (this env keeps no drift estimate to take off it)."""
+        return self.measured_body_velocity()
 
     def _arrive(self, state: VehicleState) -> None:
         """After the flight: the new pose, the path flown, the clearance and collision."""

@@ -294,6 +294,12 @@ class LidarNavEnv(LidarAvoidEnv):
         held_forward, held_left = self.drift_held()
         return forward - held_forward, left - held_left
 
+    def shield_velocity(self) -> np.ndarray:
+        """With ``drift``: the measured velocity less the newest frame's drift estimate, the true
+        motion as the scans show it, as the companion's shield judges it (``_shield_motion``)."""
+        measured = self.measured_body_velocity()
+        return measured - self._drift.bias if self.config.drift else measured
+
     def drift_held(self) -> tuple[float, float]:
         """With ``drift_hold``: what the setpoint carries of the newest frame's drift estimate
         (:func:`companion.drift.held_drift`)."""
