@@ -98,6 +98,14 @@ def test_bad_demo_command_line_is_one_line_and_exit_2(
 
 
 
+def test_an_unknown_world_set_is_named_in_the_error_and_exit_2(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exited:
+        main(["demo", "--worlds", "nope"])
+    assert exited.value.code == 2
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last.startswith("avoid-sim demo: error: argument --worlds: invalid choice: 'nope'")
+
+
 def test_a_flight_cancelled_is_interrupted_one_whose_process_died_says_so_any_other_error_is_raised() -> None:
     options = FlightOptions(autopilot="sim-ardupilot", world=demo_worlds()[-1], policy=default_policy())
     cancelled: Future[FlightReport] = Future()
