@@ -119,10 +119,10 @@ class CompanionShieldConfig(ShieldConfig):
     A student that flies sideways (one of the shipped pair) struck in three validation episodes
     behind the shield where the velocity estimate was wrong; carrying the estimate (0.6 m/s a side,
     while the brake or the keep-out acts) left none, and the shipped pair strikes in none behind
-    it (docs/goal-policy.md). The estimate comes from the goal
-    frame's drift features (``policy.drift``); without them the shield carries nothing. Only the
-    default differs from the class's: the env's ``shield_limits`` keeps 0, as LidarAvoid-v0
-    tracks no estimate.
+    it (docs/goal-policy.md). The clearance caps hold the true motion by the same estimate. The
+    estimate comes from the goal frame's drift features (``policy.drift``); without them the
+    shield carries nothing. Only the default differs from the class's: the env's
+    ``shield_limits`` keeps 0, as LidarAvoid-v0 tracks no estimate.
     """
 
     drift_compensation: float = field(default=0.6, metadata={"min": 0.0, "max": 2.0})

@@ -144,8 +144,12 @@ class ShieldConfig:
         drift estimate given to :meth:`SafetyShield.filter` (the velocity estimate's error), each
         axis at most this, m/s: the autopilot flies the setpoint on its estimate, so the vehicle
         truly moves at the setpoint minus the error, and a push away from a wall the estimate drifts
-        towards would otherwise be eaten by the drift. 0 (the default here): never; the
-        companion's ``[shield]`` carries 0.6 (:class:`companion.config.CompanionShieldConfig`)
+        towards would otherwise be eaten by the drift. The clearance caps (stopping distance, the
+        emergency stop, backing up) then hold the true motion too: the setpoint they let through is
+        the cap plus the estimate along the course, within this (a cap on the setpoint held a
+        vehicle whose estimate read 0.65 m/s fast still before a gap). 0 (the default here):
+        never; the companion's ``[shield]`` carries 0.6
+        (:class:`companion.config.CompanionShieldConfig`)
     """
 
     max_speed: float = field(default=2.0, metadata={"min": 0.0, "max": 20.0})
@@ -383,7 +387,12 @@ class SafetyShield:
         self._previous = Command(0.0, 0.0)
         self._previous_nearest = None
 
-    def forward_cap(self, scan: np.ndarray, velocity: tuple[float, float] | None = None) -> float:
+    def forward_cap(
+        self,
+        scan: np.ndarray,
+        velocity: tuple[float, float] | None = None,
+        drift: tuple[float, float] | None = None,
+    ) -> float:
         """The fastest forward speed the shield lets through against ``scan`` (0 inside
         ``estop_distance``), m/s: what a policy that needs no shield asks for at most. Counts no
         intervention and changes no state.
@@ -393,6 +402,9 @@ class SafetyShield:
             holds along the travel as in :meth:`filter` (the clearance from the course round to
             the nose, at most 90° off it), and is 0 where the shield would brake against the
             motion or where the velocity is not finite; None: the nose sector alone
+        :param drift: the drift estimate, as :meth:`filter` takes it: with a finite velocity and
+            ``drift_compensation``, the cap holds the true motion and is raised by the estimate
+            along the nose (lowered where the estimate reads slow), never below 0
         """
         values, _ = _finite_scan(scan)
         cap = self._allowed_speed(self._front_clearance(values))
@@ -401,12 +413,12 @@ class SafetyShield:
         if not _finite_pair(velocity):
             return 0.0
         speed, course = _motion(velocity)
-        if speed < MIN_TRAVEL_SPEED:
-            return cap
-        along, whole = self._travel_clearances(values, course, 0.0)
-        if not self._can_stop(speed, whole):
-            return 0.0
-        return min(cap, self._allowed_speed(along))
+        if speed >= MIN_TRAVEL_SPEED:
+            along, whole = self._travel_clearances(values, course, 0.0)
+            if not self._can_stop(speed, whole):
+                return 0.0
+            cap = min(cap, self._allowed_speed(along))
+        return max(cap + self._drift_along(velocity, drift), 0.0)
 
     def filter(
         self,
@@ -480,11 +492,15 @@ class SafetyShield:
             count["yaw_limit"] += 1
             yaw_rate = math.copysign(self.max_yaw_rate, yaw_rate)
 
-        front_cap = self._clearance_cap(forward, front, "estop")
-        rear_cap = self._clearance_cap(-forward, rear - cfg.rear_clear_margin, "reverse_blocked")
-        travel_cap, brake = self._travel_limit(values, velocity, forward)
+        # The caps bound the true motion. The autopilot flies the setpoint on its estimate, so the
+        # setpoint that truly moves at a cap is that cap plus the drift estimate along the nose.
+        drift_along = self._drift_along(velocity, drift)
+        true_forward = forward - drift_along
+        front_cap = self._clearance_cap(true_forward, front, "estop")
+        rear_cap = self._clearance_cap(-true_forward, rear - cfg.rear_clear_margin, "reverse_blocked")
+        travel_cap, brake = self._travel_limit(values, velocity, true_forward)
         forward_cap, reverse_cap = front_cap, rear_cap
-        if forward >= 0.0:
+        if true_forward >= 0.0:
             forward_cap = min(front_cap, travel_cap)
         else:
             reverse_cap = min(rear_cap, travel_cap)
@@ -497,7 +513,7 @@ class SafetyShield:
         if slewed_yaw != yaw_rate:
             count["yaw_accel_limit"] += 1
         # The clearance caps bound the slewed value too: a slew never holds speed towards an obstacle.
-        forward = min(max(slewed, -reverse_cap), forward_cap)
+        forward = min(max(slewed, drift_along - reverse_cap), forward_cap + drift_along)
         lateral = 0.0
         if brake is not None:
             # The measured motion cannot stop before what lies along it: stop, braking against the
@@ -511,7 +527,7 @@ class SafetyShield:
         # The sector caps hold for all. The travel cap bounds the policy's command alone: the brake
         # and the push point away from what they answer, each bounded by the room on its far side,
         # and the travel's arc can hold the very return they move away from.
-        forward = min(max(forward, -rear_cap), max(front_cap, 0.0))
+        forward = min(max(forward, drift_along - rear_cap), front_cap + drift_along)
         if push:
             course = _course(velocity) if push == "closing" else None
             forward, lateral = self._within_room(values, forward, lateral, course)
@@ -669,6 +685,14 @@ class SafetyShield:
         d_forward, d_left = float(drift[0]), float(drift[1])
         self.interventions["drift_compensation"] += 1
         return forward + min(max(d_forward, -bound), bound), lateral + min(max(d_left, -bound), bound)
+
+    def _drift_along(self, velocity: tuple[float, float] | None, drift: tuple[float, float] | None) -> float:
+        """The drift estimate along the nose within ``drift_compensation``, m/s; 0 without a finite
+        velocity (the estimate's base) or a finite estimate."""
+        bound = self.config.drift_compensation
+        if bound <= 0.0 or drift is None or not _finite_pair(velocity) or not _finite_pair(drift):
+            return 0.0
+        return min(max(float(drift[0]), -bound), bound)
 
     def _allowed_speed(self, clearance: float) -> float:
         """Largest speed towards a sector with ``clearance`` metres: 0 inside ``estop_distance``,

@@ -298,7 +298,9 @@ class LidarAvoidEnv(gym.Env):
             velocity = (float(measured[0]), float(measured[1]))
         overspeed = 0.0
         if cfg.overspeed_penalty > 0.0:
-            cap = self._shield.forward_cap(seen, velocity if cfg.overspeed_travel else None)
+            travel = cfg.overspeed_travel
+            drift = self.shield_drift() if travel else None
+            cap = self._shield.forward_cap(seen, velocity if travel else None, drift)
             overspeed = max(0.0, a0 - cap / cfg.max_speed)
         lateral, self._lateral = self._lateral + sideways, 0.0
         if self._shielded:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -778,6 +779,72 @@ def test_the_carried_drift_is_bounded_and_never_from_a_bad_estimate(
     out = SafetyShield(cfg, MAX_RANGE).filter(Command(0.0, 0.0), wall, 0.1, velocity=velocity, drift=drift)
     assert all(math.isfinite(v) for v in (out.forward, out.lateral, out.yaw_rate))
     assert (out.forward - plain.forward, out.lateral - plain.lateral) == pytest.approx(expected)
+
+
+@pytest.mark.parametrize(
+    ("cfg", "drift", "velocity", "shift"),
+    [
+        (CARRY, (0.3, -0.4), (0.0, 0.0), 0.3),  # the estimate reads 0.3 m/s fast: 0.3 more
+        (CARRY, (-0.2, 0.0), (0.0, 0.0), -0.2),  # it reads slow: the vehicle truly goes faster
+        (CARRY, (2.0, 0.0), (0.0, 0.0), 0.6),  # at most the bound
+        (ShieldConfig(keepout_distance=0.0), (0.3, 0.0), (0.0, 0.0), 0.0),  # off, the default
+        (CARRY, (math.nan, 0.0), (0.0, 0.0), 0.0),  # a broken estimate: none
+        (CARRY, (0.3, 0.0), (math.inf, 0.0), None),  # no trusted velocity: stop, as without drift
+    ],
+)
+def test_the_caps_bound_the_true_motion_so_the_setpoint_carries_the_drift_along_them(
+    cfg: ShieldConfig, drift: tuple[float, float], velocity: tuple[float, float], shift: float | None
+) -> None:
+    """The autopilot flies the setpoint on its estimate, so the vehicle truly moves at the setpoint
+    less the estimate's error: a stopping cap holds the true motion, and the setpoint it lets
+    through is the cap plus the drift estimate along the nose. With an estimate reading 0.65 m/s
+    fast an ArduPilot-like draw stood still before a gap under a 0.5 m/s cap (docs/goal-policy.md)."""
+    cfg = replace(cfg, keepout_distance=0.0)
+    wall = scan_with({0: 1.5})
+    plain = filtered(SafetyShield(cfg, MAX_RANGE), Command(2.0, 0.0), wall, velocity, None)
+    out = filtered(SafetyShield(cfg, MAX_RANGE), Command(2.0, 0.0), wall, velocity, drift)
+    assert SafetyShield(cfg, MAX_RANGE).forward_cap(wall, velocity, drift) == pytest.approx(out.forward)
+    if shift is None:
+        assert out.forward == plain.forward == 0.0
+        return
+    assert 0.0 < plain.forward < 2.0 - 0.6
+    assert out.forward == pytest.approx(plain.forward + shift)
+    assert out.lateral == 0.0 and out.yaw_rate == 0.0
+    # inside estop_distance the true motion is held at 0: a setpoint of the drift, back where the
+    # estimate reads slow (the rear is clear), so the vehicle comes no closer
+    blocked = scan_with({0: 0.2})
+    assert filtered(SafetyShield(cfg, MAX_RANGE), Command(2.0, 0.0), blocked, velocity, drift).forward == (
+        pytest.approx(shift)
+    )
+
+
+#: finite (forward, left) velocities and drift estimates, m/s
+motions = st.tuples(st.floats(-2.0, 2.0), st.floats(-2.0, 2.0))
+
+
+@given(
+    requests=st.lists(st.tuples(st.floats(-3.0, 3.0), st.floats(-2.0, 2.0), motions), min_size=1, max_size=6),
+    drift=motions,
+    scan=scans,
+)
+@settings(max_examples=200, deadline=None)
+def test_with_a_drift_estimate_the_true_motion_stays_out_of_the_blocked_sectors(
+    requests: list[tuple[float, float, tuple[float, float]]], drift: tuple[float, float], scan: np.ndarray
+) -> None:
+    """Never truly forward inside the e-stop distance nor truly backwards into the rear margin: the
+    setpoint less the drift estimate along the nose (the keep-out off: its push moves away)."""
+    cfg = replace(CARRY, keepout_distance=0.0)
+    shield = SafetyShield(cfg, MAX_RANGE)
+    front = float(scan[sector_bins(0.0, cfg.forward_sector_deg)].min()) * MAX_RANGE
+    rear = float(scan[sector_bins(180.0, cfg.rear_sector_deg)].min()) * MAX_RANGE
+    along = min(max(drift[0], -cfg.drift_compensation), cfg.drift_compensation)
+    for forward, yaw, velocity in requests:
+        out = shield.filter(Command(forward, yaw), scan, 0.1, velocity=velocity, drift=drift)
+        true_forward = out.forward - along
+        if front < cfg.estop_distance:
+            assert true_forward <= 1e-9
+        if rear < cfg.estop_distance + cfg.rear_clear_margin:
+            assert true_forward >= -1e-9
 
 
 def test_a_sideways_command_is_judged_along_its_course() -> None:
