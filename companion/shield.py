@@ -676,23 +676,27 @@ class SafetyShield:
     ) -> tuple[float, float]:
         """The setpoint whose true motion is (``forward``, ``lateral``): plus the drift estimate,
         each axis within ``drift_compensation``."""
-        bound = self.config.drift_compensation
-        if drift is None or bound <= 0.0:
+        carried = self._carried_drift(drift)
+        if carried is None:
+            if drift is not None and self.config.drift_compensation > 0.0:
+                self.interventions["drift_nan"] += 1
             return forward, lateral
-        if not _finite_pair(drift):
-            self.interventions["drift_nan"] += 1
-            return forward, lateral
-        d_forward, d_left = float(drift[0]), float(drift[1])
         self.interventions["drift_compensation"] += 1
-        return forward + min(max(d_forward, -bound), bound), lateral + min(max(d_left, -bound), bound)
+        return forward + carried[0], lateral + carried[1]
 
     def _drift_along(self, velocity: tuple[float, float] | None, drift: tuple[float, float] | None) -> float:
-        """The drift estimate along the nose within ``drift_compensation``, m/s; 0 without a finite
-        velocity (the estimate's base) or a finite estimate."""
+        """The drift estimate along the nose that the setpoint carries, m/s; 0 without a finite
+        velocity (the estimate's base)."""
+        carried = self._carried_drift(drift)
+        return carried[0] if carried is not None and _finite_pair(velocity) else 0.0
+
+    def _carried_drift(self, drift: tuple[float, float] | None) -> tuple[float, float] | None:
+        """The drift estimate, each axis within ``drift_compensation``, m/s; None when none is
+        carried: off, no estimate, or one that is not finite."""
         bound = self.config.drift_compensation
-        if bound <= 0.0 or drift is None or not _finite_pair(velocity) or not _finite_pair(drift):
-            return 0.0
-        return min(max(float(drift[0]), -bound), bound)
+        if bound <= 0.0 or drift is None or not _finite_pair(drift):
+            return None
+        return min(max(float(drift[0]), -bound), bound), min(max(float(drift[1]), -bound), bound)
 
     def _allowed_speed(self, clearance: float) -> float:
         """Largest speed towards a sector with ``clearance`` metres: 0 inside ``estop_distance``,
