@@ -309,7 +309,16 @@ def test_reset_forgets_the_previous_command() -> None:
     shield = SafetyShield(BASE, MAX_RANGE)
     settled(shield, Command(2.0, 0.0), CLEAR)
     shield.reset()
-    assert shield.filter(Command(2.0, 0.0), CLEAR, 0.1).forward == pytest.approx(0.2)
+    assert shield.filter(Command(2.0, 0.0), CLEAR, 0.1).forward == pytest.approx(BASE.max_accel * 0.1)
+
+
+def test_the_default_ramp_reaches_a_cruise_command_in_three_control_periods() -> None:
+    """The autopilot ramps its own acceleration (PX4 MPC_ACC_HOR 3 m/s²); the shield's ramp only
+    keeps a jump from reaching it whole, so 1 m/s is sent whole by the third 10 Hz step, not the
+    fifth (2 m/s² stacked a second lag on every recovery from a cap: one validation timeout more)."""
+    shield = SafetyShield(BASE, MAX_RANGE)
+    sent = [shield.filter(Command(1.0, 0.0), CLEAR, 0.1).forward for _ in range(3)]
+    assert sent[0] < sent[1] < sent[2] == pytest.approx(1.0)
 
 
 def test_command_from_action_scales() -> None:

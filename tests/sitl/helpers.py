@@ -225,7 +225,7 @@ def engagement_ramp(
     first setpoint that is the command.
 
     Engaging (or leaving HOLD) starts the shield from standstill (``SafetyShield.reset``), and the
-    command then grows no faster than ``max_accel`` / ``max_yaw_accel``: 0.35-0.4 s of setpoints
+    command then grows no faster than ``max_accel`` / ``max_yaw_accel``: 0.2-0.3 s of setpoints
     that are not yet the command. The ramp is what came after the last full-zero setpoint (the
     pre-OFFBOARD stream or a HOLD) before the first command setpoint.
 

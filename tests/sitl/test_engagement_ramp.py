@@ -15,7 +15,7 @@ from companion.shield import ShieldConfig
 from tests.sitl.helpers import engagement_ramp, is_command, ramp_problem
 
 COMMAND = (1.0, -0.6)  # the constant test policy's 0.5, 0.4: m/s forward, rad/s FRD
-SHIELD = ShieldConfig()
+SHIELD = ShieldConfig(max_accel=2.0)  # the shield that recording ran (4 m/s² since 2026-12-05)
 ZEROS = [(-0.5305, 0.0, -0.0), (-0.4809, 0.0, -0.0), (-0.4302, 0.0, -0.0), (-0.3801, 0.0, -0.0)]
 RAMP = [
     (-0.3788, 0.2000, -0.4), (-0.3296, 0.2000, -0.4), (-0.2812, 0.3976, -0.6), (-0.2303, 0.3976, -0.6),

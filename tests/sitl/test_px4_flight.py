@@ -48,7 +48,7 @@ def test_companion_flies_px4_in_offboard(flight):
     wait_for(lambda: speed(f) > 0.4, 10.0, "the vehicle to fly")  # PX4's calibrated circle: 0.4-0.7 m/s
     # The speed alone does not say the ramp is over: hovering on zero setpoints, PX4's true velocity
     # wanders with its estimate's bias (0.1-0.42 m/s seen here), so 0.4 m/s can come before the
-    # shield's ramp from standstill (0 -> 1 m/s at max_accel, ~0.4 s) has reached the command.
+    # shield's ramp from standstill (0 -> 1 m/s at max_accel, ~0.25 s) has reached the command.
     # The window starts once both hold; before it, only that ramp is allowed.
     command = (1.0, -0.6)  # the policy's 0.5, 0.4 as sent: m/s forward, rad/s FRD (a CCW turn is negative)
     t_speed = time.monotonic()

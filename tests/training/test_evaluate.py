@@ -138,9 +138,9 @@ def test_shield_ramps_forward_speed_at_its_acceleration_limit_in_action_units():
     clear = np.ones(360, np.float32)
     controller = shielded()
     first = controller.reset(clear)
-    # 2 m/s² for one 0.1 s step = 0.2 m/s = 0.1 of the 2 m/s action scale; 4 rad/s² -> 0.4 of 1.5 rad/s
-    assert first == pytest.approx([0.1, 0.4 / 1.5])
-    assert controller.act(clear)[0] == pytest.approx(0.2)
+    # 4 m/s² for one 0.1 s step = 0.4 m/s = 0.2 of the 2 m/s action scale; 4 rad/s² -> 0.4 of 1.5 rad/s
+    assert first == pytest.approx([0.2, 0.4 / 1.5])
+    assert controller.act(clear)[0] == pytest.approx(0.4)
     assert controller.shield.interventions["accel_limit"] == 2
 
 
