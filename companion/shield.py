@@ -534,7 +534,8 @@ class SafetyShield:
         forward = min(max(forward, drift_along - rear_cap), front_cap + drift_along)
         if push:
             course = _course(velocity) if push == "closing" else None
-            forward, lateral = self._within_room(values, forward, lateral, course)
+            carried = self._carried_drift(drift) if _finite_pair(velocity) else None
+            forward, lateral = self._within_room(values, forward, lateral, course, carried)
         out = Command(forward=forward, yaw_rate=slewed_yaw, lateral=lateral)
         self._previous = out
         return out
@@ -650,11 +651,18 @@ class SafetyShield:
         return min(max(forward, -limit), cfg.max_speed), min(max(lateral, -limit), limit), reason
 
     def _within_room(
-        self, values: np.ndarray, forward: float, lateral: float, course: float | None
+        self,
+        values: np.ndarray,
+        forward: float,
+        lateral: float,
+        course: float | None,
+        carried: tuple[float, float] | None = None,
     ) -> tuple[float, float]:
-        """The setpoint (``forward``, ``lateral``) slowed, its direction kept, to what stops before
-        the clearance along that direction, or with ``course`` (degrees) along the way the velocity
-        swings there from it (:func:`_commanded_side`, as the policy's command is judged).
+        """The setpoint (``forward``, ``lateral``) whose true motion (less the ``carried`` drift
+        estimate) is slowed, its direction kept, to what stops before the clearance along that
+        direction, or with ``course`` (degrees) along the way the velocity swings there from it
+        (:func:`_commanded_side`, as the policy's command is judged). Scaling the setpoint itself
+        would scale the drift it carries too, and could turn the true motion round.
 
         The push is bounded by the room behind it and the command by the room along its course, but
         their sum points elsewhere, where neither bound holds: a policy's sideways command plus a push
@@ -664,16 +672,18 @@ class SafetyShield:
         the vehicle flying straight on at 1.6 m/s, slid it into a corridor's other wall in SITL);
         judging a push from a return already near that way held it back in warehouse aisles (3
         validation collisions, docs/goal-policy.md)."""
-        speed = math.hypot(forward, lateral)
+        shift_forward, shift_left = carried if carried is not None else (0.0, 0.0)
+        true_forward, true_left = forward - shift_forward, lateral - shift_left
+        speed = math.hypot(true_forward, true_left)
         if speed == 0.0:
             return forward, lateral
-        direction = math.degrees(math.atan2(lateral, forward))
+        direction = math.degrees(math.atan2(true_left, true_forward))
         side = direction if course is None else _commanded_side(course, direction)
         room = self._allowed_speed(self._travel_clearance(values, side, direction))
         if speed <= room:
             return forward, lateral
         self.interventions["keepout_room"] += 1
-        return forward * room / speed, lateral * room / speed
+        return true_forward * room / speed + shift_forward, true_left * room / speed + shift_left
 
     def _compensate(
         self, forward: float, lateral: float, drift: tuple[float, float] | None
