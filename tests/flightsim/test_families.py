@@ -226,6 +226,28 @@ def test_warehouse_pallets_facing_each_other_leave_the_narrowest_gap() -> None:
     assert facing > 20
 
 
+def test_warehouse_pallets_stand_against_a_rack_clear_of_the_middle_cross_aisle() -> None:
+    """Every pallet stands against a rack along its whole length, and the racks' ends at the middle
+    cross aisle keep 2 × radius + 0.6 m clear of pallets: before, a pallet could stand in the aisle's
+    mouth, against no rack, and leave a 0.6 m slit that the shortest safe path (and so the time
+    limit) threaded (validation world warehouse-500067)."""
+    pallets_seen = 0
+    for seed in range(60):
+        for difficulty in (0.3, 0.45, 0.6):
+            world = generate_family_world("warehouse", seed, difficulty)
+            racks = [_footprint(o) for o in world.obstacles if o.size[1] >= 0.95]
+            outer = min(r[0] for r in racks), max(r[2] for r in racks)
+            for pallet in (_footprint(o) for o in world.obstacles if o.size[1] < 0.95):
+                pallets_seen += 1
+                backs = [r for r in racks if min(abs(r[1] - pallet[3]), abs(r[3] - pallet[1])) < 0.01]
+                rack = next((r for r in backs if r[0] - 1e-3 <= pallet[0] and pallet[2] <= r[2] + 1e-3), None)
+                assert rack is not None, (world.name, pallet)
+                for end, gap in ((rack[0], pallet[0] - rack[0]), (rack[2], rack[2] - pallet[2])):
+                    if min(abs(end - x) for x in outer) > 1e-3:  # an end at the middle cross aisle
+                        assert gap >= gap_width(1.0, R) - 2e-3, (world.name, pallet, rack)
+    assert pallets_seen > 100
+
+
 def test_staggered_walls_force_a_zig_zag() -> None:
     for seed in SEEDS:
         world = generate_family_world("staggered", seed, 1.0)
