@@ -168,11 +168,6 @@ def _overlaps_any(
     return any(x + hx > x0 and x - hx < x1 and y + hy > y0 and y - hy < y1 for x0, y0, x1, y1 in boxes)
 
 
-def _comes_near(a0: float, a1: float, span: tuple[float, float], margin: float) -> bool:
-    """Whether the interval ``[a0, a1]`` comes closer than ``margin`` to ``span``."""
-    return a1 > span[0] - margin and a0 < span[1] + margin
-
-
 def _spanning_tree(rng: np.random.Generator, n: int, edges: list[tuple[int, int]]) -> set[int]:
     """Indices of ``edges`` forming a random spanning tree of ``n`` nodes (Kruskal on a shuffle)."""
     parent = list(range(n))
@@ -210,14 +205,14 @@ def warehouse(rng: np.random.Generator, seed: int, d: float, r: float) -> Layout
     middle = rng.uniform() < 1.0 - d
     rack_ys = [-hy + aisle * (k + 1) + depth * (k + 0.5) for k in range(n_racks)]
     obstacles: list[Obstacle] = []
-    mouths: dict[int, tuple[float, float]] = {}  # per rack, the middle cross aisle's x-range
+    mouths: dict[int, tuple[float, float, float, float]] = {}  # per rack, the gap in its row (x0, y0, x1, y1)
     for k, y in enumerate(rack_ys):
         height = rng.uniform(2.4, 3.0)
         runs = [(x0, x1)]
         if middle:
             mid = rng.uniform(-2.0, 2.0)
             runs = [(x0, mid - 1.0), (mid + 1.0, x1)]
-            mouths[k] = (mid - 1.0, mid + 1.0)
+            mouths[k] = (mid - 1.0, y - depth / 2, mid + 1.0, y + depth / 2)
         for a, b in runs:
             obstacles.append(wall(rnd(a), rnd(y - depth / 2), rnd(b), rnd(y + depth / 2), height=rnd(height)))
     aisle_ys = [-hy + aisle / 2 + k * (aisle + depth) for k in range(n_racks + 1)]
@@ -242,7 +237,7 @@ def warehouse(rng: np.random.Generator, seed: int, d: float, r: float) -> Layout
         if _overlaps_any(px, py, footprint, faces.get((aisle_index, -side), [])):
             continue
         half_x, half_y = size[0] / 2, size[1] / 2
-        if k in mouths and _comes_near(px - half_x, px + half_x, mouths[k], narrow_to):
+        if k in mouths and _overlaps_any(px, py, footprint, [mouths[k]]):
             continue  # no rack to stand against there, and beside it a pallet would narrow the mouth
         faces.setdefault((aisle_index, side), []).append((px - half_x, py - half_y, px + half_x, py + half_y))
         obstacles.append(Box((px, py, rnd(height / 2)), (*size, rnd(height))))
