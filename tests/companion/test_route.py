@@ -156,3 +156,33 @@ def test_an_unseen_cost_takes_the_door_seen_over_a_shorter_way_through_what_no_s
         bearings[unseen_cost] = math.degrees(math.atan2(sub.left, sub.forward))
     assert bearings[1.0] < 10.0, bearings
     assert 20.0 < bearings[2.0] < 45.0, bearings  # the door's middle lies 31° to the left
+
+
+def _side(sub):
+    """+1 when the subgoal lies to the left (round the wall's upper end), -1 to the right."""
+    return 1 if math.atan2(sub.left, sub.forward) > 0.0 else -1
+
+
+def test_a_replan_keeps_the_way_flown_unless_another_is_cheaper_by_the_margin():
+    """A wall across the way, its upper end 0.1 m nearer the line to the goal. From y = 0.5 the
+    route goes round the upper end; from y = -0.5 the lower way is 4 % shorter. Always the cheapest
+    (margin 0), the route swaps ends; with a margin it keeps the end it took. Once a wall shows the
+    upper way closed, it goes round the lower end, margin or not."""
+    wall = [((3.0, -4.1), (3.0, 4.0))]
+    closed = [*wall, ((3.0, 4.0), (3.0, 9.5)), ((-6.0, 9.5), (9.0, 9.5))]
+    for margin, sides in ((0.0, [1, -1, -1]), (0.3, [1, 1, -1])):
+        route = planner(switch_margin=margin, replan_every=1)
+        seen = []
+        for y, walls in ((0.5, wall), (-0.5, wall), (-0.5, closed)):
+            route.observe(segment_scan(0.0, y, 0.0, walls), 0.0, y, 0.0)
+            seen.append(_side(route.subgoal(0.0, y, 0.0, 6.0, 0.0)))
+        assert seen == sides, (margin, seen)
+
+
+def test_a_new_goal_is_planned_afresh_whatever_the_margin():
+    """The margin favours the way flown to the same goal only: a route to a new goal is the cheapest."""
+    wall = [((3.0, -4.4), (3.0, 4.0))]
+    route = planner(switch_margin=10.0, replan_every=1)
+    route.observe(segment_scan(0.0, 0.5, 0.0, wall), 0.0, 0.5, 0.0)
+    assert _side(route.subgoal(0.0, 0.5, 0.0, 6.0, 0.0)) == 1
+    assert _side(route.subgoal(0.0, 0.5, 0.0, 6.0, -2.0)) == -1
