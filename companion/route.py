@@ -272,8 +272,8 @@ class RoutePlanner:
         on = (i >= 0) & (j >= 0) & (i < shape[0]) & (j < shape[1])
         along = np.ones(shape, bool)
         along[i[on], j[on]] = False
-        if along.all():
-            return ~along
+        if along.all():  # the route lies outside the window
+            return np.zeros(shape, bool)
         return ndimage.distance_transform_edt(along) * res <= self.config.preferred_clearance
 
     def _pull_taut(self, points: np.ndarray) -> np.ndarray:
