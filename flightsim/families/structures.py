@@ -236,9 +236,9 @@ def warehouse(rng: np.random.Generator, seed: int, d: float, r: float) -> Layout
         footprint = (size[0] + 2 * narrow_to, size[1] + 2 * narrow_to)
         if _overlaps_any(px, py, footprint, faces.get((aisle_index, -side), [])):
             continue
-        half_x, half_y = size[0] / 2, size[1] / 2
         if k in mouths and _overlaps_any(px, py, footprint, [mouths[k]]):
             continue  # no rack to stand against there, and beside it a pallet would narrow the mouth
+        half_x, half_y = size[0] / 2, size[1] / 2
         faces.setdefault((aisle_index, side), []).append((px - half_x, py - half_y, px + half_x, py + half_y))
         obstacles.append(Box((px, py, rnd(height / 2)), (*size, rnd(height))))
     layout = Layout((sx, sy), obstacles)
