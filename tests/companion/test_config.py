@@ -98,6 +98,8 @@ def test_defaults_and_overrides(tmp_path):
          r"goal\.route_planner\.replan_every: 0 is below the minimum 1"),
         ("[goal.route_planner]\nunseen_cost = 0.5\n",
          r"goal\.route_planner\.unseen_cost: 0\.5 is below the minimum 1"),
+        ("[goal.route_planner]\nswitch_margin = -0.5\n",
+         r"goal\.route_planner\.switch_margin: -0\.5 is below the minimum 0"),
     ],
 )
 def test_mistakes_name_the_key(tmp_path, text, message):
