@@ -4,7 +4,7 @@ The shield stops a motion it cannot otherwise stop in time with a setpoint again
 the motion up to ``[shield] max_reverse_speed`` (0.5 m/s). This flies that brake, a plain zero
 setpoint and a brake of up to 1 m/s (tried, not taken: docs/goal-policy.md, the shield
 variants) on the JSBSim vehicle through the env's randomised autopilot responses
-(``flightsim.autopilot_response.random_params``, the velocity-estimate error left out so the
+(``flightsim.vehicle.autopilot_response.random_params``, the velocity-estimate error left out so the
 brake sees the true motion): the vehicle is settled at about 1 m/s, then braked each 0.1 s with
 ``-min(brake, speed)`` until it is slower than 0.1 m/s. Printed per firmware structure (PX4-like:
 the command reaches the velocity PID unshaped; ArduPilot-like: input shaping limits the
@@ -22,9 +22,9 @@ import argparse
 
 import numpy as np
 
-from companion.shield import AUTOPILOT_LIMITS, ShieldConfig, stopping_distance
-from flightsim.autopilot_response import AutopilotResponse, ResponseParams, fly, random_params
-from flightsim.vehicle import Vehicle
+from companion.safety.shield import AUTOPILOT_LIMITS, ShieldConfig, stopping_distance
+from flightsim.vehicle.autopilot_response import AutopilotResponse, ResponseParams, fly, random_params
+from flightsim.vehicle.quadrotor import Vehicle
 
 ALTITUDE = 1.5
 SHIELD_BRAKE = ShieldConfig().max_reverse_speed

@@ -35,10 +35,10 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from companion.scan import scan_from_points  # noqa: E402
-from flightsim.control import Setpoint  # noqa: E402
-from flightsim.env import CONTROL_HZ, EnvConfig, LidarAvoidEnv  # noqa: E402
-from flightsim.raycast import LidarConfig, grid_to_points  # noqa: E402
+from companion.perception.scan import scan_from_points  # noqa: E402
+from flightsim.envs.env import CONTROL_HZ, EnvConfig, LidarAvoidEnv  # noqa: E402
+from flightsim.envs.raycast import LidarConfig, grid_to_points  # noqa: E402
+from flightsim.vehicle.control import Setpoint  # noqa: E402
 
 TARGET_PER_CORE = 5000.0
 
@@ -160,7 +160,7 @@ def nav_vs_avoid(n: int, rounds: int = 3) -> None:
     changes hit both alike; the CPU-time rates are the comparable ones. LidarNav-v0 flies the random
     autopilot response by default, LidarAvoid-v0 the ideal one: a third row shows the nav env with
     the ideal response, so the goal task's own cost and the response model's are apart."""
-    from flightsim.nav_env import LidarNavEnv, NavEnvConfig
+    from flightsim.envs.nav_env import LidarNavEnv, NavEnvConfig
 
     envs = (
         ("LidarAvoid-v0", EnvConfig(), LidarAvoidEnv),

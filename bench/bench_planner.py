@@ -21,10 +21,10 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from flightsim.env import EnvConfig, LidarAvoidEnv  # noqa: E402
-from flightsim.families import FAMILIES, generate_family_world  # noqa: E402
-from flightsim.planner import shortest_safe_path  # noqa: E402
-from flightsim.world import DEFAULT_VEHICLE_RADIUS  # noqa: E402
+from flightsim.envs.env import EnvConfig, LidarAvoidEnv  # noqa: E402
+from flightsim.worlds.families import FAMILIES, generate_family_world  # noqa: E402
+from flightsim.worlds.planner import shortest_safe_path  # noqa: E402
+from flightsim.worlds.world import DEFAULT_VEHICLE_RADIUS  # noqa: E402
 
 
 def env_step_seconds(steps: int = 400) -> float:

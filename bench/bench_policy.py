@@ -28,9 +28,9 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from companion.app import policy_spec  # noqa: E402
+from companion.common.errors import UserError  # noqa: E402
 from companion.config import CompanionConfig  # noqa: E402
-from companion.errors import UserError  # noqa: E402
-from companion.policy import PREFIX, OnnxPolicy, PolicySpec, declared_sideways_speed  # noqa: E402
+from companion.guidance.policy import PREFIX, OnnxPolicy, PolicySpec, declared_sideways_speed  # noqa: E402
 
 #: s between scans: the companion acts once per scan at 10 Hz
 CONTROL_PERIOD_S = 0.1

@@ -3,7 +3,7 @@
 Every recorded command sequence of a real PX4 SIH SITL and a real ArduCopter SITL
 (tests/fixtures/autopilot-response/) is replayed on the JSBSim vehicle twice: through the ideal
 autopilot (the env's vehicle before the response model: "before") and through the calibrated
-firmware response (flightsim.autopilot_response: "after"). Printed per sequence: the RMS error of
+firmware response (flightsim.vehicle.autopilot_response: "after"). Printed per sequence: the RMS error of
 ground speed (m/s), yaw rate (rad/s) and sideslip (deg, where both move faster than 0.5 m/s)
 against the recording's ground truth, beside the run-to-run spread of two real recordings of the
 same sequence (the floor no model can beat).
@@ -25,9 +25,10 @@ import time
 
 import numpy as np
 
-from flightsim.autopilot_response import PRESETS, AutopilotResponse
-from flightsim.env import EnvConfig, LidarAvoidEnv
-from flightsim.response_replay import (
+from flightsim.envs.env import EnvConfig, LidarAvoidEnv
+from flightsim.vehicle.autopilot_response import PRESETS, AutopilotResponse
+from flightsim.vehicle.quadrotor import Vehicle
+from flightsim.vehicle.response_replay import (
     FIRMWARES,
     SEQUENCES,
     compare,
@@ -36,7 +37,6 @@ from flightsim.response_replay import (
     recording_path,
     replay,
 )
-from flightsim.vehicle import Vehicle
 
 
 class _Hover:

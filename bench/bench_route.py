@@ -2,7 +2,7 @@
 
 Scans and poses are recorded from LidarNav-v0 episodes (the goal follower flying office, warehouse
 and forest worlds at difficulty 0.8, so the maps fill as in flight), then replayed into a fresh
-:class:`companion.route.RoutePlanner` and timed: the map update and the subgoal per scan, and the
+:class:`companion.guidance.route.RoutePlanner` and timed: the map update and the subgoal per scan, and the
 scans that replan. Figures are ratios to the scan period (100 ms at 10 Hz), absolute times beside,
 and the time with ``switch_margin`` on (each plan also marks the cells near the way flown) against
 the default's, on the same scans.
@@ -24,8 +24,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from companion.route import RouteConfig, RoutePlanner  # noqa: E402
-from flightsim.nav_env import LidarNavEnv, NavEnvConfig  # noqa: E402
+from companion.guidance.route import RouteConfig, RoutePlanner  # noqa: E402
+from flightsim.envs.nav_env import LidarNavEnv, NavEnvConfig  # noqa: E402
 from training.baselines import GoalFollower  # noqa: E402
 
 SCAN_PERIOD_S = 0.1

@@ -23,7 +23,7 @@ import time
 
 import numpy as np
 
-from companion.scan import N_BINS, ScanConfig, scan_from_points
+from companion.perception.scan import N_BINS, ScanConfig, scan_from_points
 
 
 def revolution(rng: np.random.Generator) -> np.ndarray:

@@ -2,7 +2,7 @@
 
 The lane (``[shield] lane_half_width`` > 0, the default) sweeps a lane along every heading within
 ``lane_spread_deg`` of the nose and of the travel arc, each over the bins that can lie near one
-(``companion.shield.lane_distance``), where the sectors take one minimum over a slice of the scan.
+(``companion.safety.shield.lane_distance``), where the sectors take one minimum over a slice of the scan.
 This times :meth:`SafetyShield.filter` on the same scans, velocities and commands under both, in
 alternating blocks (so a machine's drift hits both alike), and prints per call the median and
 99th percentile in microseconds, the lane's as a ratio to the sectors', and the median as a share
@@ -18,7 +18,7 @@ import time
 
 import numpy as np
 
-from companion.shield import Command, SafetyShield, ShieldConfig
+from companion.safety.shield import Command, SafetyShield, ShieldConfig
 
 MAX_RANGE = 10.0
 SCAN_PERIOD_S = 0.1

@@ -25,8 +25,8 @@ ROOT = Path(__file__).resolve().parents[1]
 REVOLUTION_MS = 100.0  # the VLP-16 at 10 Hz: one scan, one setpoint, per 100 ms
 sys.path.insert(0, str(ROOT))
 
-from flightsim.harness import FlightOptions, run_flight  # noqa: E402
-from flightsim.world import load_world  # noqa: E402
+from flightsim.sitl.harness import FlightOptions, run_flight  # noqa: E402
+from flightsim.worlds.world import load_world  # noqa: E402
 
 
 def pick_policy(arg: str | None, workdir: Path) -> Path:

@@ -28,8 +28,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from flightsim.nav_env import LidarNavEnv  # noqa: E402
-from flightsim.seeds import TRAIN  # noqa: E402
+from flightsim.envs.nav_env import LidarNavEnv  # noqa: E402
+from flightsim.envs.seeds import TRAIN  # noqa: E402
 from training.config import load_train_config  # noqa: E402
 from training.predictive_expert import ROBUST, PredictiveExpert, pick, robust_expert  # noqa: E402
 

@@ -24,7 +24,8 @@ import time
 from pathlib import Path
 
 from training.config import load_train_config
-from training.train import build_model, make_vec_env, read_eval_log
+from training.train import build_model, read_eval_log
+from training.vec_env import make_vec_env
 
 TUTORIAL_STEPS_PER_S = 1_000_000 / (28 * 3600)
 TARGET_S = 30 * 60

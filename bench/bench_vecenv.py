@@ -48,7 +48,8 @@ CODE = Path(os.environ.get("BENCH_CODE_ROOT", REPO))
 sys.path.insert(0, str(CODE))
 
 from training.config import TrainConfig, load_train_config  # noqa: E402
-from training.train import build_model, make_vec_env  # noqa: E402
+from training.train import build_model  # noqa: E402
+from training.vec_env import make_vec_env  # noqa: E402
 
 ENVS = {  # config files relative to the tree measured
     "nav": ("LidarNav-v0 (nav.toml env)", "training/configs/nav.toml"),

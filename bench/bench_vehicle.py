@@ -24,8 +24,8 @@ import time
 import jsbsim
 import numpy as np
 
-from flightsim.control import Setpoint
-from flightsim.vehicle import MODEL_NAME, MODEL_ROOT, Vehicle, VehicleConfig
+from flightsim.vehicle.control import Setpoint
+from flightsim.vehicle.quadrotor import MODEL_NAME, MODEL_ROOT, Vehicle, VehicleConfig
 
 
 def best_rate(fn, calls: int, repeats: int) -> float:

@@ -9,7 +9,7 @@ from companion.cli import run_cli
 # subcommand name -> (module providing configure_parser/command, one-line help)
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "run": ("companion.app", "run the companion: lidar -> policy -> safety shield -> autopilot setpoints"),
-    "params": ("companion.params", "check or apply the autopilot parameters the companion relies on"),
+    "params": ("companion.params.check", "check or apply the autopilot parameters the companion relies on"),
     "replay": ("companion.replay", "run a flight recording through scan, stack, policy and shield again"),
 }
 

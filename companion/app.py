@@ -41,37 +41,37 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from companion.autopilot.connection import ensure_port_free
 from companion.autopilot.link import AutopilotLink, VehicleStatus
+from companion.autopilot.obstacle_distance import obstacle_distance_allowed, obstacle_distance_from_scan
+from companion.common.errors import UserError
+from companion.common.tomlconfig import to_dict
 from companion.config import CompanionConfig, load_config
-from companion.connection import ensure_port_free
-from companion.drift import DriftConfig, DriftEstimator, held_drift
-from companion.errors import UserError
-from companion.framestack import FrameStack
-from companion.goal import GoalOutput
-from companion.goal_source import (
+from companion.guidance.goal import GoalOutput
+from companion.guidance.goal_source import (
     GOAL_STREAMS,
     GoalSource,
     completion_mode_command,
     reached_message,
     request_message,
 )
+from companion.guidance.policy import InferenceFault, OnnxPolicy, PolicySpec
+from companion.guidance.route import RoutePlanner, enu_pose
 from companion.notify import SystemdNotifier
-from companion.observation import (
+from companion.perception.drift import DriftConfig, DriftEstimator, held_drift
+from companion.perception.framestack import FrameStack
+from companion.perception.observation import (
     build_frame,
     command_features,
     drift_features,
     firmware_features,
     goal_features,
 )
-from companion.obstacle_distance import obstacle_distance_allowed, obstacle_distance_from_scan
-from companion.policy import InferenceFault, OnnxPolicy, PolicySpec
+from companion.perception.scan import BIN_CONVENTION, N_BINS, scan_from_points
 from companion.recording.recorder import FlightRecorder, open_recorder
 from companion.recording.taps import tap_parts
-from companion.route import RoutePlanner, enu_pose
-from companion.scan import BIN_CONVENTION, N_BINS, scan_from_points
-from companion.shield import Command, SafetyShield, command_from_action
-from companion.supervisor import CommandKind, Supervisor, SupervisorState, Transition
-from companion.tomlconfig import to_dict
+from companion.safety.shield import Command, SafetyShield, command_from_action
+from companion.safety.supervisor import CommandKind, Supervisor, SupervisorState, Transition
 
 log = logging.getLogger(__name__)
 
@@ -222,9 +222,9 @@ def check_parameters(config: CompanionConfig) -> tuple[list[str], float | None]:
     pc = config.params_check
     if pc.mode == "off":
         return [], None
-    from companion import params
-    from companion.param_client import open_connection
-    from companion.param_files import load_param_file
+    from companion.params import check as params
+    from companion.params.client import open_connection
+    from companion.params.files import load_param_file
 
     wanted = load_param_file(pc.file, config.autopilot.type)
     link = config.autopilot.link
@@ -547,7 +547,7 @@ class Companion:
         """What the shield judges the motion by, and what the setpoint carries on top of its command.
 
         The drift estimate (drift layouts only) is held by the setpoint as far as ``[drift_hold]``
-        says (:func:`companion.drift.held_drift`); the vehicle then truly flies the setpoint less
+        says (:func:`companion.perception.drift.held_drift`); the vehicle then truly flies the setpoint less
         the rest of the error, so the shield is given the rest of the estimate (for
         ``shield.drift_compensation``). It judges the motion by the measured velocity less the
         whole estimate, the true motion as the scans show it: on the estimate alone it braked for

@@ -12,7 +12,7 @@ import importlib
 import logging
 import sys
 
-from companion.errors import UserError
+from companion.common.errors import UserError
 
 #: every command line's log lines (the demo's flight processes set up the same)
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"

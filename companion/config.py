@@ -1,7 +1,7 @@
 """The companion's one configuration object, loaded from TOML (``avoid-companion run --config``).
 
 Each table of the file is one dataclass below (``[scan]``, ``[shield]`` and ``[supervisor]`` are
-the pure modules' own config classes). Loading is strict (:mod:`companion.tomlconfig`): an unknown
+the pure modules' own config classes). Loading is strict (:mod:`companion.common.tomlconfig`): an unknown
 key, a wrong type or a value out of range stops start-up with a message naming the dotted key.
 Relative file paths (the model, the parameter file) are taken relative to the config file, so a
 deployment directory can be moved as a whole. ``config/companion.example.toml`` documents every key.
@@ -16,16 +16,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+from companion.autopilot.connection import Connection, parse_connection
 from companion.autopilot.signing import load_signing_key
-from companion.connection import Connection, parse_connection
-from companion.drift import DriftHoldConfig
-from companion.errors import UserError
-from companion.observation import ObservationLayout
-from companion.route import RouteConfig
-from companion.scan import N_BINS, ScanConfig
-from companion.shield import ShieldConfig
-from companion.supervisor import SupervisorConfig
-from companion.tomlconfig import apply_overrides, from_dict, load_toml
+from companion.common.errors import UserError
+from companion.common.tomlconfig import apply_overrides, from_dict, load_toml
+from companion.guidance.route import RouteConfig
+from companion.lidar.can_ring import CanConfig
+from companion.perception.drift import DriftHoldConfig
+from companion.perception.observation import ObservationLayout
+from companion.perception.scan import N_BINS, ScanConfig
+from companion.safety.shield import ShieldConfig
+from companion.safety.supervisor import SupervisorConfig
 
 #: Default connection per autopilot: pymavlink strings for ArduPilot, MAVSDK URLs for PX4.
 DEFAULT_CONNECT = {"ardupilot": "udpin:0.0.0.0:14550", "px4": "udpin://0.0.0.0:14540"}
@@ -58,45 +59,6 @@ class VelodyneConfig:
 
 
 @dataclass(frozen=True)
-class CanSensorConfig:
-    """One rangefinder of the CAN ring.
-
-    :param can_id: arbitration id its distance frames arrive with
-    :param yaw_deg: direction it points, degrees counter-clockwise from forward (body FLU)
-    """
-
-    can_id: int = field(default=0, metadata={"min": 0, "max": 0x1FFFFFFF})
-    yaw_deg: float = field(default=0.0, metadata={"min": -360.0, "max": 360.0})
-
-
-@dataclass(frozen=True)
-class CanConfig:
-    """A ring of CAN rangefinders read through python-can.
-
-    :param interface: python-can interface (``socketcan`` on the Jetson, ``virtual`` for tests)
-    :param channel: python-can channel (``can0``)
-    :param bitrate: bus bit rate (Benewake's default 250 kbit/s; ignored by interfaces that do not set
-        it, e.g. socketcan)
-    :param max_range: readings beyond this are "no return", metres
-    :param stale_after: a reading older than this is not used, s (a silent sensor stops the clouds)
-    :param sensors: one entry per rangefinder
-    """
-
-    interface: str = "socketcan"
-    channel: str = "can0"
-    bitrate: int = field(default=250_000, metadata={"min": 10_000, "max": 8_000_000})
-    max_range: float = field(default=12.0, metadata={"min": 0.5, "max": 200.0})
-    stale_after: float = field(default=0.3, metadata={"min": 0.01, "max": 10.0})
-    sensors: tuple[CanSensorConfig, ...] = ()
-
-    def __post_init__(self) -> None:
-        ids = [s.can_id for s in self.sensors]
-        duplicates = sorted({i for i in ids if ids.count(i) > 1})
-        if duplicates:
-            raise ValueError(f"sensors: CAN id {duplicates[0]:#x} is used more than once")
-
-
-@dataclass(frozen=True)
 class LidarConfig:
     """Where the point clouds come from.
 
@@ -114,7 +76,7 @@ class LidarConfig:
 
 @dataclass(frozen=True)
 class CompanionShieldConfig(ShieldConfig):
-    """The drone's ``[shield]``: :class:`~companion.shield.ShieldConfig` carrying the drift estimate.
+    """The drone's ``[shield]``: :class:`~companion.safety.shield.ShieldConfig` carrying the drift estimate.
 
     A student that flies sideways (one of the shipped pair) struck in three validation episodes
     behind the shield where the velocity estimate was wrong; carrying the estimate (0.6 m/s a side,
@@ -146,7 +108,8 @@ class PolicyConfig:
         goal's bearing and distance, the measured body velocity / ``max_speed``) or ``scan``
         (LidarAvoid-v0: the scan alone); the model's metadata must say the same
     :param goal_range: metres a goal-distance feature of 1.0 stands for (``observation = "goal"``)
-    :param drift: the frame also carries the drift estimate (:class:`companion.drift.DriftEstimator`,
+    :param drift: the frame also carries the drift estimate
+        (:class:`companion.perception.drift.DriftEstimator`,
         from consecutive scans): a model trained with ``env.drift = true``, as the shipped one is;
         the metadata says which. Goal frames only: a scan frame has none, whatever this says
     :param command: the frame also carries the last setpoint sent (forward / ``max_speed``, yaw rate
@@ -203,7 +166,7 @@ class AutopilotConfig:
     :param type: ``ardupilot`` (pymavlink, GUIDED) or ``px4`` (MAVSDK, OFFBOARD)
     :param connect: a pymavlink string (``udpin:0.0.0.0:14550``, ``tcp:127.0.0.1:5760``, ``/dev/ttyTHS1``)
         or a MAVSDK URL (``udpin://0.0.0.0:14540``, ``serial:///dev/ttyTHS1:921600``), for either
-        autopilot (:mod:`companion.connection`); empty = the type's default
+        autopilot (:mod:`companion.autopilot.connection`); empty = the type's default
     :param baud: serial baud rate of a device path written without one
     :param source_system: MAVLink system id the companion sends as (the vehicle's own, normally 1)
     :param source_component: MAVLink component id (191 = MAV_COMP_ID_ONBOARD_COMPUTER)
@@ -333,7 +296,7 @@ class GoalConfig:
     :param download_timeout: wait for each mission-protocol reply, s
     :param download_retries: repeats of an unanswered mission request before the download fails
     :param route: the policy's goal features point along a route planned on a map of the scans
-        (:class:`companion.route.RoutePlanner`), not straight at the waypoint: the evaluation's
+        (:class:`companion.guidance.route.RoutePlanner`), not straight at the waypoint: the evaluation's
         ``env.route``. Needs a goal source (the map lives in the autopilot's local frame)
     :param route_planner: that planner's tuning (``[goal.route_planner]``)
     """

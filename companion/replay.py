@@ -27,17 +27,17 @@ from typing import Any
 import numpy as np
 
 from companion.app import companion_shield, policy_spec
+from companion.common.errors import UserError
+from companion.common.tomlconfig import from_dict
 from companion.config import CompanionConfig
-from companion.errors import UserError
-from companion.framestack import FrameStack
-from companion.policy import InferenceFault, OnnxPolicy
+from companion.guidance.policy import InferenceFault, OnnxPolicy
+from companion.perception.framestack import FrameStack
+from companion.perception.scan import N_BINS, scan_from_points
 from companion.recording import schemas
 from companion.recording.messages import unpack_f32
 from companion.recording.reader import Recording, read_recording
 from companion.recording.recorder import file_digest
-from companion.scan import N_BINS, scan_from_points
-from companion.shield import Command, command_from_action, sector_bins
-from companion.tomlconfig import from_dict
+from companion.safety.shield import Command, command_from_action, sector_bins
 
 log = logging.getLogger(__name__)
 

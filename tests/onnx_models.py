@@ -34,7 +34,7 @@ from onnx import TensorProto, helper, numpy_helper
 
 from companion.app import policy_spec
 from companion.config import CompanionConfig
-from companion.policy import PolicySpec, policy_metadata
+from companion.guidance.policy import PolicySpec, policy_metadata
 
 #: What the default companion config feeds a model (the goal layout): the default of :func:`write_policy`
 COMPANION_SPEC = policy_spec(CompanionConfig())

@@ -47,7 +47,7 @@ def test_documents_speak_of_nothing_outside_the_repository(doc):
 
 
 def test_the_world_schema_example_loads(tmp_path):
-    from flightsim.world import load_world
+    from flightsim.worlds.world import load_world
 
     text = (REPO / "docs" / "worlds.md").read_text()
     example = json.loads(re.search(r"```json\n(.*?)```", text, re.S).group(1))

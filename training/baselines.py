@@ -9,7 +9,7 @@ Avoidance task (LidarAvoid-v0, a 360-bin scan):
   ahead, and slows down as the clearance ahead shrinks. No learning, no memory.
 
 Goal task (LidarNav-v0, the scan + goal bearing/distance + measured velocity frame of
-:class:`companion.observation.ObservationLayout`):
+:class:`companion.perception.observation.ObservationLayout`):
 
 * :class:`StraightLine` — turn to the goal and fly at it, no avoidance: how hard a world is.
 * :class:`GoalFollower` — the classical goal-directed controller (see its docstring).
@@ -28,9 +28,9 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from companion.drift import DriftConfig, DriftEstimator, DriftHoldConfig, held_drift
-from companion.observation import ObservationLayout
-from companion.scan import N_BINS
+from companion.perception.drift import DriftConfig, DriftEstimator, DriftHoldConfig, held_drift
+from companion.perception.observation import ObservationLayout
+from companion.perception.scan import N_BINS
 
 _ANGLES = np.deg2rad(np.arange(N_BINS) + 0.5)  # bin centres, counter-clockwise from straight ahead
 _SIGNED = np.where(np.pi < _ANGLES, _ANGLES - 2 * np.pi, _ANGLES)  # in (-pi, pi]
@@ -226,7 +226,7 @@ class GoalFollowerConfig:
     :param wall_lookahead: clearance a heading needs to count as free while following a boundary
     :param boundary_range: a boundary is followed only while a return on its side lies this close
 
-    What the autopilot really does (:mod:`flightsim.autopilot_response`: lag, overshoot, a capped
+    What the autopilot really does (:mod:`flightsim.vehicle.autopilot_response`: lag, overshoot, a capped
     yaw rate, and a velocity loop closed on an estimate that may be 0.2–0.4 m/s off):
 
     :param keep_out: returns closer than this (vehicle centre, m) are left first: only headings
@@ -302,13 +302,13 @@ class GoalFollower:
     goal's bearing is admissible again from closer than where it got stuck, or ``escape_steps``
     pass, or nothing is left beside to follow.
 
-    A real autopilot does not fly the command as given (:mod:`flightsim.autopilot_response`), and
+    A real autopilot does not fly the command as given (:mod:`flightsim.vehicle.autopilot_response`), and
     geometry alone crashed in 43 % of the test worlds through the randomised response. So:
 
     * **Drift the estimate hides.** PX4 closes its velocity loop on an estimate up to 0.2–0.4 m/s
       off, so a vehicle told to hover drifts at that error while reporting zero. The controller
       measures its true motion from the previous and the current scan
-      (:class:`companion.drift.DriftEstimator`), keeps the difference to the reported velocity
+      (:class:`companion.perception.drift.DriftEstimator`), keeps the difference to the reported velocity
       (the estimate's error, low-pass filtered) and commands the wanted velocity *plus*
       that error: the along-nose part directly, the sideways part by leading with the nose
       (a crab angle up to ``crab_max``).
@@ -457,7 +457,7 @@ class GoalFollower:
         self, ranges: np.ndarray, measured: np.ndarray, bearing: float, distance: float
     ) -> np.ndarray:
         """The vehicle's true body velocity (m/s): the measured one less the estimate's error
-        (:class:`companion.drift.DriftEstimator`)."""
+        (:class:`companion.perception.drift.DriftEstimator`)."""
         self._bias = self._drift.update(ranges, measured, bearing, distance, self.config.step_s)
         return measured - self._bias
 

@@ -1,4 +1,5 @@
-"""stable-baselines3's ``VecEnv`` over :class:`flightsim.batch_env.BatchedEnvs`: N simulators in this process.
+"""stable-baselines3's ``VecEnv`` over :class:`flightsim.envs.batch_env.BatchedEnvs`: N simulators
+in this process.
 
 The semantics are SB3's own vector envs' (``DummyVecEnv`` / ``SubprocVecEnv``): ``seed`` and
 ``set_options`` apply at the next reset, a finished episode resets at once and its last
@@ -19,7 +20,7 @@ import numpy as np
 from stable_baselines3.common import env_util
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvStepReturn
 
-from flightsim.batch_env import BatchedEnvs
+from flightsim.envs.batch_env import BatchedEnvs
 
 
 class BatchedVecEnv(VecEnv):

@@ -1,8 +1,8 @@
 """The one training config: a strict TOML file (``training/configs/*.toml``) plus ``key=value`` overrides.
 
 Everything a run depends on lives here, so a run directory's saved ``config.toml`` reproduces it.
-The ``[env]`` table is the simulator's own :class:`flightsim.env.EnvConfig` — or, with ``env_id =
-"flightsim/LidarNav-v0"``, :class:`flightsim.nav_env.NavEnvConfig` — (checked by its strict loader,
+The ``[env]`` table is the simulator's own :class:`flightsim.envs.env.EnvConfig` — or, with ``env_id =
+"flightsim/LidarNav-v0"``, :class:`flightsim.envs.nav_env.NavEnvConfig` — (checked by its strict loader,
 keys named ``env.<key>``), which is also where the domain-randomisation switches live.
 """
 
@@ -13,8 +13,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from companion.errors import UserError
-from companion.tomlconfig import apply_overrides, from_dict, load_toml, to_dict, toml_dumps
+from companion.common.errors import UserError
+from companion.common.tomlconfig import apply_overrides, from_dict, load_toml, to_dict, toml_dumps
 
 #: success needs at least this mean speed over a full episode: 40 m in the default 100 s
 SUCCESS_MIN_MEAN_SPEED = 0.4
@@ -74,7 +74,7 @@ class EvalConfig:
     """Evaluation during training on held-out generated worlds (seeds below the training range).
 
     The goal task flies ``n_worlds`` per family from ``first_seed`` (which must lie in
-    :data:`flightsim.seeds.VALIDATION`) over ``env.difficulty_range``; ``difficulty`` is unused.
+    :data:`flightsim.envs.seeds.VALIDATION`) over ``env.difficulty_range``; ``difficulty`` is unused.
     """
 
     every_steps: int = field(default=50_000, metadata={"min": 1})
@@ -228,16 +228,17 @@ class TrainConfig:
         return self.env_id == ENV_IDS[1]
 
     def env_config(self, **changes: Any):
-        """The simulator's :class:`~flightsim.env.EnvConfig` (:class:`~flightsim.nav_env.NavEnvConfig`
+        """The simulator's :class:`~flightsim.envs.env.EnvConfig`
+        (:class:`~flightsim.envs.nav_env.NavEnvConfig`
         for the goal task) from the ``[env]`` table (+ ``changes``).
 
         :raises UserError: on an unknown or ill-typed key, named ``env.<key>``
         """
         if self.is_goal_task:
-            from flightsim.nav_env import NavEnvConfig
+            from flightsim.envs.nav_env import NavEnvConfig
 
             return from_dict(NavEnvConfig, {**self.env, **changes}, prefix="env.")
-        from flightsim.env import EnvConfig  # the simulator is only needed once a run starts
+        from flightsim.envs.env import EnvConfig  # the simulator is only needed once a run starts
 
         return from_dict(EnvConfig, {**self.env, **changes}, prefix="env.")
 
@@ -247,7 +248,7 @@ def config_from_dict(data: dict[str, Any]) -> TrainConfig:
     config = from_dict(TrainConfig, data)
     config.env_config()
     if config.is_goal_task:
-        from flightsim import seeds
+        from flightsim.envs import seeds
 
         if config.curriculum.enabled:
             raise UserError(
@@ -281,3 +282,16 @@ def load_train_config(path: str | Path | None, overrides: list[str] | None = Non
 def config_to_toml(config: TrainConfig) -> str:
     """The config as TOML text (saved into the run directory and the ONNX metadata)."""
     return toml_dumps(to_dict(config))
+
+
+def sideways_scale(env_config: Any) -> float:
+    """m/s that a third action component stands for in an env of ``env_config`` (0: none)."""
+    return float(env_config.max_sideways_speed) if getattr(env_config, "sideways", False) else 0.0
+
+
+def observation_layout(env_config: Any) -> Any:
+    """The observation layout an env config produces (goal configs carry theirs)."""
+    from companion.perception.observation import ObservationLayout
+    from companion.perception.scan import N_BINS
+
+    return getattr(env_config, "layout", None) or ObservationLayout(n_bins=N_BINS)

@@ -1,7 +1,7 @@
 """What the evaluation flies: the learned policy (ONNX through the companion's own
-:class:`~companion.policy.OnnxPolicy`, or an SB3 checkpoint), the baselines and the privileged
+:class:`~companion.guidance.policy.OnnxPolicy`, or an SB3 checkpoint), the baselines and the privileged
 teachers, each turning one scan per step into an action, optionally behind the companion's
-:class:`~companion.shield.SafetyShield` as in flight.
+:class:`~companion.safety.shield.SafetyShield` as in flight.
 
 :class:`ControllerSpec` describes one picklably (tasks cross process boundaries);
 :func:`build_controller` builds it in the worker that flies it.
@@ -17,11 +17,13 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from companion.errors import UserError
-from companion.framestack import FrameStack
-from companion.scan import N_BINS
-from companion.shield import Command, SafetyShield, ShieldConfig, command_from_action
-from training.config import STEP_SECONDS
+from companion.common.errors import UserError
+from companion.perception.framestack import FrameStack
+from companion.perception.scan import N_BINS
+from companion.safety.shield import Command, SafetyShield, ShieldConfig, command_from_action
+from training.config import STEP_SECONDS, observation_layout, sideways_scale
+from training.path_expert import ExpertController, PathExpert
+from training.predictive_expert import PredictiveExpert, robust_expert, smooth_expert
 
 BASELINES = ("gap_follower", "random")
 GOAL_BASELINES = ("goal_follower", "straight_line")
@@ -33,6 +35,13 @@ ENV_OVERRIDES: dict[str, dict[str, Any]] = {"straight_line": {"route": False}}
 #: DAgger teachers, :mod:`training.path_expert`, :mod:`training.predictive_expert`): what
 #: imitation can reach
 PRIVILEGED_GOAL_CONTROLLERS = ("path_expert", "predictive_expert", "robust_expert", "smooth_expert")
+#: the DAgger teachers by name, each built from the env whose truth it reads
+TEACHERS: dict[str, Callable[[Any], Any]] = {
+    "path_expert": PathExpert,
+    "predictive_expert": PredictiveExpert,
+    "robust_expert": robust_expert,
+    "smooth_expert": smooth_expert,
+}
 
 
 class Controller(Protocol):
@@ -74,11 +83,11 @@ class ShieldedController:
     :param max_yaw_rate: rad/s that an action of 1 stands for
     :param velocity: the measured body velocity (forward, left) now, less the drift estimate (the
         true motion as the scans show it), as the companion gives its shield (the env's
-        :meth:`~flightsim.env.LidarAvoidEnv.shield_velocity`)
+        :meth:`~flightsim.envs.env.LidarAvoidEnv.shield_velocity`)
     :param lateral: where the shield's sideways brake goes (the env's
-        :meth:`~flightsim.env.LidarAvoidEnv.command_lateral`), since an action carries none
+        :meth:`~flightsim.envs.env.LidarAvoidEnv.command_lateral`), since an action carries none
     :param drift: the drift estimate now (body forward, left, m/s), as the companion tracks it (the
-        env's :meth:`~flightsim.env.LidarAvoidEnv.shield_drift`), or None where it is not tracked
+        env's :meth:`~flightsim.envs.env.LidarAvoidEnv.shield_drift`), or None where it is not tracked
     :param max_sideways_speed: m/s that a third action component stands for (a goal env with
         ``sideways``); 0: actions have two. The sideways part the shield sends goes to ``lateral``
         with its brake, and the action returned asks none
@@ -206,16 +215,8 @@ def build_controller(
     )  # fmt: skip
 
 
-def sideways_scale(env_config: Any) -> float:
-    """m/s that a third action component stands for in an env of ``env_config`` (0: none)."""
-    return float(env_config.max_sideways_speed) if getattr(env_config, "sideways", False) else 0.0
-
-
 def _teacher_controller(kind: str, env: Any) -> Controller:
-    """A privileged teacher flying ``env`` (imported here: evaluation needs them only when named)."""
-    from training.dagger import TEACHERS
-    from training.path_expert import ExpertController
-
+    """A privileged teacher flying ``env``."""
     return ExpertController(TEACHERS[kind](env))
 
 
@@ -265,13 +266,6 @@ def _baseline(spec: ControllerSpec, env_config: Any, seed: int) -> Controller | 
     return None
 
 
-def observation_layout(env_config: Any) -> Any:
-    """The observation layout an env config produces (goal configs carry theirs)."""
-    from companion.observation import ObservationLayout
-
-    return getattr(env_config, "layout", None) or ObservationLayout(n_bins=N_BINS)
-
-
 def load_policy(
     path: Path, env_config: Any, n_stack: int = 4
 ) -> tuple[Callable[[np.ndarray], np.ndarray], int]:
@@ -279,8 +273,8 @@ def load_policy(
     if not path.is_file():
         raise UserError(f"policy file not found: {path}")
     if path.suffix == ".onnx":
-        from companion.policy import OnnxPolicy, PolicySpec
-        from companion.scan import BIN_CONVENTION
+        from companion.guidance.policy import OnnxPolicy, PolicySpec
+        from companion.perception.scan import BIN_CONVENTION
 
         spec = PolicySpec(
             stack=n_stack,

@@ -4,8 +4,8 @@ Plain behaviour cloning (:mod:`training.pretrain`) imitates the teacher in the s
 teacher visits; the student, flying on its own, soon leaves them and has never seen how to
 recover. DAgger (Ross et al., 2011) lets the student fly and asks the teacher what it would have
 done in every state the student reaches, and fits the student to the aggregate of all such
-labels. The teacher (:data:`TEACHERS`) reads the simulator's truth (map, pose, velocity, the
-autopilot's estimate error and, for the predictive one, the drawn autopilot response) that the
+labels. The teacher (:data:`~training.controllers.TEACHERS`) reads the simulator's truth (map, pose,
+velocity, the autopilot's estimate error and, for the predictive one, the drawn autopilot response) that the
 student never sees; the student sees only its stacked observations, as in flight.
 
 Read top to bottom: :func:`run` (iterations: collect with a mixture, fit, evaluate), then
@@ -23,10 +23,9 @@ from typing import Any
 
 import numpy as np
 
-from companion.errors import UserError
+from companion.common.errors import UserError
+from training.controllers import TEACHERS
 from training.mirror import Mirror
-from training.path_expert import PathExpert
-from training.predictive_expert import PredictiveExpert, robust_expert, smooth_expert
 from training.pretrain import Demonstrations, discounted_returns, fit
 
 log = logging.getLogger(__name__)
@@ -34,12 +33,6 @@ log = logging.getLogger(__name__)
 
 #: the teachers by ``[pretrain] teacher`` name: each is built on one unwrapped env, ``reset()`` at
 #: an episode's start and ``act()`` every step after, returning its action in ``[-1, 1]``
-TEACHERS: dict[str, Callable[[Any], Any]] = {
-    "path_expert": PathExpert,
-    "predictive_expert": PredictiveExpert,
-    "robust_expert": robust_expert,
-    "smooth_expert": smooth_expert,
-}
 
 
 @dataclass(frozen=True)

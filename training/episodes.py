@@ -12,7 +12,7 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
-from companion.tomlconfig import from_dict
+from companion.common.tomlconfig import from_dict
 from training.config import NEAR_MISS_DISTANCE, STEP_SECONDS, SUCCESS_MIN_MEAN_SPEED
 from training.controllers import ENV_OVERRIDES, Controller, ControllerSpec, build_controller
 
@@ -38,9 +38,9 @@ class WorldSpec:
         return {**family, "world_seed": self.seed, "difficulty": self.difficulty}
 
     def world(self, vehicle_radius: float) -> Any:
-        """The :class:`~flightsim.world.World` itself (for pictures)."""
-        from flightsim.families import generate_family_world
-        from flightsim.world import generate_world, load_world
+        """The :class:`~flightsim.worlds.world.World` itself (for pictures)."""
+        from flightsim.worlds.families import generate_family_world
+        from flightsim.worlds.world import generate_world, load_world
 
         if self.path:
             return load_world(self.path, vehicle_radius=vehicle_radius)
@@ -84,7 +84,7 @@ class EpisodeResult:
     timeout: bool = False
     time_s: float = 0.0
     shortest_path_m: float = 0.0
-    #: the autopilot response flown (:class:`~flightsim.autopilot_response.ResponseParams`'s fields)
+    #: the autopilot response flown (:class:`~flightsim.vehicle.autopilot_response.ResponseParams`'s fields)
     response: dict[str, Any] = field(default_factory=lambda: {"name": "ideal"})
 
 
@@ -173,10 +173,10 @@ def _worker_env(env_dict: dict[str, Any], env_id: str = AVOID_ENV_ID) -> Any:
 def make_eval_env(env_dict: dict[str, Any], env_id: str = AVOID_ENV_ID) -> Any:
     """A single simulator environment of ``env_id`` from an ``[env]`` table (strictly checked)."""
     if env_id == NAV_ENV_ID:
-        from flightsim.nav_env import LidarNavEnv, NavEnvConfig
+        from flightsim.envs.nav_env import LidarNavEnv, NavEnvConfig
 
         return LidarNavEnv(from_dict(NavEnvConfig, env_dict, prefix="env."))
-    from flightsim.env import EnvConfig, LidarAvoidEnv
+    from flightsim.envs.env import EnvConfig, LidarAvoidEnv
 
     return LidarAvoidEnv(from_dict(EnvConfig, env_dict, prefix="env."))
 

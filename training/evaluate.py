@@ -15,7 +15,7 @@ flown, both over successes only; ``spl_all`` is Anderson et al.'s, failures coun
 Baselines: the goal follower and the straight line; named in ``--baselines``, also the DAgger
 teachers (``path_expert`` and ``predictive_expert``, privileged: they read the simulator's truth,
 so their rates bound what imitating them can reach). ``--seeds N`` flies N test worlds per family
-(:data:`flightsim.seeds.TEST`), difficulties spread evenly over the config's ``difficulty_range``.
+(:data:`flightsim.envs.seeds.TEST`), difficulties spread evenly over the config's ``difficulty_range``.
 
 Every controller sees one scan per step through the same interface (``reset(scan)`` then
 ``act(scan)``). The learned policy goes through the companion's own :class:`FrameStack`; an
@@ -42,10 +42,10 @@ from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
+from companion.common.errors import UserError
+from companion.common.tomlconfig import from_dict, load_toml
 from companion.config import CompanionShieldConfig
-from companion.errors import UserError
-from companion.shield import ShieldConfig
-from companion.tomlconfig import from_dict, load_toml
+from companion.safety.shield import ShieldConfig
 from training.controllers import (
     BASELINES,
     GOAL_BASELINES,
@@ -99,14 +99,14 @@ def worlds_from_args(args: argparse.Namespace, env_config: Any = None) -> list[W
         files = sorted(directory.glob("*.json"))
         if not files:
             raise UserError(f"--worlds {directory}: no *.json world files")
-        from flightsim.world import load_world
+        from flightsim.worlds.world import load_world
 
         for f in files:
             load_world(f)  # a bad world file is the user's error, before any worker starts
         return [WorldSpec(name=f.stem, path=str(f.resolve())) for f in files]
     if hasattr(env_config, "families"):
         return _goal_worlds_from_args(args, env_config)
-    from flightsim.env import TRAIN_SEED_OFFSET
+    from flightsim.envs.env import TRAIN_SEED_OFFSET
 
     args.first_seed = 0 if args.first_seed is None else args.first_seed
     if args.difficulty is None:
@@ -123,7 +123,7 @@ def worlds_from_args(args: argparse.Namespace, env_config: Any = None) -> list[W
 
 
 def _goal_worlds_from_args(args: argparse.Namespace, env_config: Any) -> list[WorldSpec]:
-    from flightsim import seeds
+    from flightsim.envs import seeds
 
     first = seeds.TEST.start if args.first_seed is None else args.first_seed
     held_out = [r for r in (seeds.VALIDATION, seeds.TEST) if first in r and first + args.seeds - 1 in r]

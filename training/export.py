@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from companion.errors import UserError
+from companion.common.errors import UserError
 
 if TYPE_CHECKING:
     import torch
@@ -133,11 +133,12 @@ def export_onnx(models: Sequence[PPO], out: Path, metadata: dict[str, str]) -> N
 
 
 def policy_spec_for(config: TrainConfig):
-    """The companion's :class:`~companion.policy.PolicySpec` for what this training run fed the policy."""
-    from companion.observation import ObservationLayout
-    from companion.policy import PolicySpec
-    from companion.scan import BIN_CONVENTION, N_BINS
-    from training.controllers import sideways_scale
+    """The companion's :class:`~companion.guidance.policy.PolicySpec` for what this training run
+    fed the policy."""
+    from companion.guidance.policy import PolicySpec
+    from companion.perception.observation import ObservationLayout
+    from companion.perception.scan import BIN_CONVENTION, N_BINS
+    from training.config import sideways_scale
 
     env_config = config.env_config()
     # the goal task's frame layout (scan + goal + velocity); the avoidance task's is the scan alone
@@ -159,7 +160,7 @@ def rollout_observations(model: PPO, config: TrainConfig, n: int, seed: int = 0)
 
     Actions are sampled (not deterministic) so the set covers more than one line of flight.
     """
-    from training.train import make_vec_env
+    from training.vec_env import make_vec_env
 
     venv = make_vec_env(config, n_envs=1, seed=seed, subprocess=False)
     try:
@@ -218,8 +219,8 @@ def export_policy(
         first model's goes into the metadata, and every member's must feed the same observation)
     :param samples: rollout observations for the parity check
     """
-    from companion.policy import policy_metadata
-    from companion.tomlconfig import to_dict
+    from companion.common.tomlconfig import to_dict
+    from companion.guidance.policy import policy_metadata
     from training.config import load_train_config
 
     models = [load_model(path) for path in paths]

@@ -9,7 +9,7 @@ held-out labels than on its own, and the longer it fitted the more (action mean 
 0.188 against 0.146 after 15 epochs, 0.215 against 0.092 after 45): it learns the worlds it saw
 rather than how to fly, and a mirrored label is a world it did not see.
 
-In a frame (:class:`companion.observation.ObservationLayout`) the scan's bin ``i`` covers
+In a frame (:class:`companion.perception.observation.ObservationLayout`) the scan's bin ``i`` covers
 ``[i°, i+1°)`` counter-clockwise from the nose, so its mirror is bin ``n_bins - 1 - i``; what points
 left (the goal's ``sin``, the left velocity, the left drift, the yaw-rate command) changes sign;
 the rest stays. This module imports numpy only.
@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from companion.observation import ObservationLayout
+from companion.perception.observation import ObservationLayout
 
 #: a mirrored action: forward speed kept, yaw rate reversed
 ACTION_SIGNS = np.array([1.0, -1.0], dtype=np.float32)

@@ -3,7 +3,7 @@
 The policy flies on what the drone has (scan, goal, the autopilot's velocity estimate). The
 teacher reads the simulator instead: the world's map, the true pose and velocity, and the
 autopilot's velocity-estimate error. It plans a path through the remaining waypoints that keeps a
-margin beyond the vehicle's radius (:func:`flightsim.planner.shortest_safe_path`'s grid, less
+margin beyond the vehicle's radius (:func:`flightsim.worlds.planner.shortest_safe_path`'s grid, less
 inflated when a tighter passage is the only way), pursues a point ahead on it, and commands the
 velocity that, after the autopilot tracks its own (erroneous) estimate, flies the path truly.
 Behaviour cloning on its actions, in the states the student itself reaches (DAgger,
@@ -24,8 +24,8 @@ from typing import Any
 
 import numpy as np
 
-from flightsim.nav_env import LidarNavEnv
-from flightsim.planner import ClearanceGrid, astar_cells, clearance_grid
+from flightsim.envs.nav_env import LidarNavEnv
+from flightsim.worlds.planner import ClearanceGrid, astar_cells, clearance_grid
 
 
 def body_to_world(body: tuple[float, float], yaw: float) -> tuple[float, float]:
@@ -100,7 +100,7 @@ class PathExpertConfig:
 
 
 class PathExpert:
-    """Fly one :class:`~flightsim.nav_env.LidarNavEnv` (unwrapped) along its planned path.
+    """Fly one :class:`~flightsim.envs.nav_env.LidarNavEnv` (unwrapped) along its planned path.
 
     :param env: the env whose true state it reads (``reset`` it before :meth:`reset`)
     :param config: tuning

@@ -7,7 +7,7 @@ the autopilot's lag carries the vehicle into an obstacle while it brakes and tur
 held-out worlds). This teacher wraps it in a sampling model-predictive safety filter. Every step it
 takes a fixed set of (forward, yaw rate) commands, plus the path expert's own command and that
 command slowed, and for each it predicts the vehicle's path with
-:meth:`flightsim.autopilot_response.AutopilotResponse.predict` (privileged: the drawn firmware's
+:meth:`flightsim.vehicle.autopilot_response.AutopilotResponse.predict` (privileged: the drawn firmware's
 delays and state, the commands already in flight): the command sent for ``command_s``, then a hold
 for ``stop_s``. A candidate is safe if the whole prediction
 keeps the vehicle's radius plus a margin that grows with the look-ahead (the prediction's error
@@ -15,7 +15,7 @@ grows too). Of the safe ones it flies the one of least cost: mostly the distance
 expert's command (so it flies that command wherever it is predicted safe, and otherwise the
 gentlest change that is: a student imitates smooth labels far better than a choice that jumps
 across a grid), plus the cost to the current waypoint from the predicted end
-(:func:`flightsim.planner.cost_to_go` over the clearance-weighted grid the path expert plans on)
+(:func:`flightsim.worlds.planner.cost_to_go` over the clearance-weighted grid the path expert plans on)
 and small costs on turning and on changing the command from the one the last step flew (the
 env's, not this teacher's last label: when the student flies, that is the student's command, which
 its frame shows). With no safe candidate, it flies the least costly of those that keep the most
@@ -41,9 +41,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from flightsim.autopilot_response import ResponseParams, hardest_params
-from flightsim.nav_env import LidarNavEnv
-from flightsim.planner import ClearanceGrid, clearance_grid, cost_to_go
+from flightsim.envs.nav_env import LidarNavEnv
+from flightsim.vehicle.autopilot_response import ResponseParams, hardest_params
+from flightsim.worlds.planner import ClearanceGrid, clearance_grid, cost_to_go
 from training.path_expert import PathExpert, PathExpertConfig, _cell_costs, body_to_world
 
 #: s between commands (the env's control period)
@@ -75,7 +75,7 @@ class PredictiveExpertConfig:
         while the command is sent are equals and the least cost decides among them, metres (the
         first of a tie was an arbitrary, jumping label)
     :param hardest_response: a candidate must also stop clear through the drawn firmware's hardest
-        response (:func:`flightsim.autopilot_response.hardest_params`): the student cannot see the
+        response (:func:`flightsim.vehicle.autopilot_response.hardest_params`): the student cannot see the
         draw, so a label that brakes for a slow draw only and flies on for a quick one is, to the
         student, the same state with two answers, which regression averages into too fast for both
     :param sideways_options: with a sideways action (the env's ``sideways``), each candidate
@@ -119,7 +119,7 @@ def pick(spare: np.ndarray, near: np.ndarray, score: np.ndarray, recovery_tolera
 
 
 class PredictiveExpert:
-    """Fly one :class:`~flightsim.nav_env.LidarNavEnv` (unwrapped) by predicting its autopilot.
+    """Fly one :class:`~flightsim.envs.nav_env.LidarNavEnv` (unwrapped) by predicting its autopilot.
 
     :param env: the env whose true state and response model it reads (``reset`` it before :meth:`reset`)
     :param config: tuning

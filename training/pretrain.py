@@ -9,7 +9,7 @@ fitted to its actions (mean squared error; the exploration noise ``log_std`` sta
 and the critic to the discounted returns it earned. PPO then improves on the demonstrator, which
 collides where it misjudges the autopilot's lag; nothing keeps the policy close to it afterwards.
 
-The demonstrations come from the training worlds (:data:`flightsim.seeds.TRAIN`), so training and
+The demonstrations come from the training worlds (:data:`flightsim.envs.seeds.TRAIN`), so training and
 selection seeds stay apart. Read top to bottom: :func:`collect`, :func:`discounted_returns`,
 :func:`fit`.
 """

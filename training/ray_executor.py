@@ -15,7 +15,7 @@ from collections.abc import Callable
 from concurrent.futures import Executor, Future
 from typing import Any
 
-from companion.errors import UserError
+from companion.common.errors import UserError
 
 log = logging.getLogger(__name__)
 

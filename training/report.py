@@ -173,13 +173,13 @@ def plot_trajectories(
 
 
 def trajectory_figure(results: Sequence[EpisodeResult], worlds: Sequence[WorldSpec], env_config: Any) -> Any:
-    """One panel per world (drawn by :func:`flightsim.render.draw_top_down`), each controller's first
+    """One panel per world (drawn by :func:`flightsim.worlds.render.draw_top_down`), each controller's first
     episode over it in its own colour (:func:`controller_colours`), one legend for all; a red cross
     marks a collision."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from flightsim.render import draw_top_down
+    from flightsim.worlds.render import draw_top_down
 
     colours = controller_colours(r.controller for r in results)
     cols = min(len(worlds), 10 if len(worlds) > 16 else 4)

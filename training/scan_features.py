@@ -16,7 +16,7 @@ import torch
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from torch import nn
 
-from companion.scan import N_BINS
+from companion.perception.scan import N_BINS
 
 #: (output channels, kernel size, stride) of each convolution: 360 bins become 30 of 16 channels,
 #: and a training step costs about what the flat MLP's does
@@ -48,7 +48,8 @@ class CircularScanExtractor(BaseFeaturesExtractor):
     """Circular convolutions over the scans of ``n_stack`` frames, the other features beside them.
 
     The observation is ``n_stack`` frames side by side (SB3's ``VecFrameStack``, oldest first); each
-    frame starts with ``n_bins`` scan values (:class:`companion.observation.ObservationLayout`). The
+    frame starts with ``n_bins`` scan values
+    (:class:`companion.perception.observation.ObservationLayout`). The
     frames' scans are the convolution's input channels.
 
     :param observation_space: a flat Box of ``n_stack`` × frame floats

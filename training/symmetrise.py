@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from companion.errors import UserError
+from companion.common.errors import UserError
 from training.export import INPUT_NAME, OUTPUT_NAME, PARITY_TOLERANCE
 from training.mirror import Mirror, mirror_for
 

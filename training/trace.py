@@ -23,10 +23,11 @@ from typing import Any
 
 import numpy as np
 
-from companion.errors import UserError
-from companion.scan import N_BINS
-from companion.shield import command_from_action
-from training.controllers import Controller, ControllerSpec, ShieldedController, load_policy, sideways_scale
+from companion.common.errors import UserError
+from companion.perception.scan import N_BINS
+from companion.safety.shield import command_from_action
+from training.config import sideways_scale
+from training.controllers import Controller, ControllerSpec, ShieldedController, load_policy
 from training.episodes import EpisodeResult, make_tasks, run_task
 from training.evaluate import Flight, add_flight_arguments, load_flight, parse_baselines
 

@@ -22,7 +22,7 @@ import numpy as np
 
 from companion.autopilot.link import LandedState, VehicleStatus, body_velocity
 from companion.autopilot.mavlink_adapter import MavlinkEndpoint, mavlink, mode_name
-from companion.obstacle_distance import sector_distances
+from companion.autopilot.obstacle_distance import sector_distances
 
 log = logging.getLogger(__name__)
 

@@ -91,7 +91,7 @@ class AutopilotLink(Protocol):
         """Send OBSTACLE_DISTANCE.
 
         :param sectors_cm: ``(72,)`` uint16 centimetres, from
-            :func:`companion.obstacle_distance.obstacle_distance_from_scan`
+            :func:`companion.autopilot.obstacle_distance.obstacle_distance_from_scan`
         """
         ...
 

@@ -20,7 +20,7 @@ if mavutil.mavlink.WIRE_PROTOCOL_VERSION != "2.0":
     mavutil.set_dialect("ardupilotmega")
 
 from companion.autopilot.signing import enable_signing
-from companion.errors import UserError
+from companion.common.errors import UserError
 
 #: The MAVLink 2 ``ardupilotmega`` dialect module: message ids, enums and message classes.
 mavlink: Any = mavutil.mavlink

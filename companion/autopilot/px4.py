@@ -48,9 +48,9 @@ from mavsdk.plugins.telemetry.telemetry import FlightMode, Telemetry
 from companion.autopilot.ardupilot import SECTOR_INCREMENT_DEG, statustext_chunks
 from companion.autopilot.link import LandedState, VehicleStatus, body_velocity
 from companion.autopilot.mavlink_adapter import mavlink
+from companion.autopilot.obstacle_distance import sector_distances
 from companion.autopilot.px4_transport import RawMavlinkTransport
-from companion.errors import UserError
-from companion.obstacle_distance import sector_distances
+from companion.common.errors import UserError
 
 log = logging.getLogger(__name__)
 

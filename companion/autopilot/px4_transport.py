@@ -19,9 +19,9 @@ import select
 import threading
 from typing import Any
 
+from companion.autopilot.connection import parse_connection
 from companion.autopilot.mavlink_adapter import MavlinkEndpoint, mavlink
 from companion.autopilot.signing import FrameSigner
-from companion.connection import parse_connection
 
 log = logging.getLogger(__name__)
 

@@ -26,7 +26,7 @@ from typing import Any
 
 from pymavlink.generator.mavcrc import x25crc
 
-from companion.errors import UserError
+from companion.common.errors import UserError
 
 #: Length of the MAVLink 2 signing secret, bytes.
 KEY_LENGTH = 32

@@ -21,15 +21,52 @@ import struct
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import can
 import numpy as np
 
-from companion.errors import UserError
+from companion.common.errors import UserError
 
-if TYPE_CHECKING:
-    from companion.config import CanConfig
+
+@dataclass(frozen=True)
+class CanSensorConfig:
+    """One rangefinder of the CAN ring.
+
+    :param can_id: arbitration id its distance frames arrive with
+    :param yaw_deg: direction it points, degrees counter-clockwise from forward (body FLU)
+    """
+
+    can_id: int = field(default=0, metadata={"min": 0, "max": 0x1FFFFFFF})
+    yaw_deg: float = field(default=0.0, metadata={"min": -360.0, "max": 360.0})
+
+
+@dataclass(frozen=True)
+class CanConfig:
+    """A ring of CAN rangefinders read through python-can.
+
+    :param interface: python-can interface (``socketcan`` on the Jetson, ``virtual`` for tests)
+    :param channel: python-can channel (``can0``)
+    :param bitrate: bus bit rate (Benewake's default 250 kbit/s; ignored by interfaces that do not set
+        it, e.g. socketcan)
+    :param max_range: readings beyond this are "no return", metres
+    :param stale_after: a reading older than this is not used, s (a silent sensor stops the clouds)
+    :param sensors: one entry per rangefinder
+    """
+
+    interface: str = "socketcan"
+    channel: str = "can0"
+    bitrate: int = field(default=250_000, metadata={"min": 10_000, "max": 8_000_000})
+    max_range: float = field(default=12.0, metadata={"min": 0.5, "max": 200.0})
+    stale_after: float = field(default=0.3, metadata={"min": 0.01, "max": 10.0})
+    sensors: tuple[CanSensorConfig, ...] = ()
+
+    def __post_init__(self) -> None:
+        ids = [s.can_id for s in self.sensors]
+        duplicates = sorted({i for i in ids if ids.count(i) > 1})
+        if duplicates:
+            raise ValueError(f"sensors: CAN id {duplicates[0]:#x} is used more than once")
+
 
 log = logging.getLogger(__name__)
 

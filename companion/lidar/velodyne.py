@@ -25,7 +25,7 @@ from typing import Literal, NamedTuple
 
 import numpy as np
 
-from companion.errors import UserError
+from companion.common.errors import UserError
 from companion.lidar.vlp16_packet import (
     DISTANCE_UNIT_M,
     FIRINGS_PER_PACKET,

@@ -16,7 +16,7 @@ import numpy as np
 from mcap.records import Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 
-from companion.errors import UserError
+from companion.common.errors import UserError
 from companion.recording.schemas import SETPOINT
 
 #: the columns of :func:`setpoints` after the log time (``lidar_avoid.Setpoint`` fields)

@@ -27,10 +27,10 @@ from typing import Any
 
 import numpy as np
 
+from companion.perception.scan import N_BINS
 from companion.recording import messages as m
 from companion.recording import schemas as s
 from companion.recording.writer import McapSink
-from companion.scan import N_BINS
 
 log = logging.getLogger(__name__)
 
@@ -134,7 +134,7 @@ class FlightRecorder:
 
     def on_stacked(self, frame: np.ndarray, obs: np.ndarray, reset: bool) -> None:
         """A frame went into the frame stack (``reset``: the stack started over with it); its scan
-        (the frame's first :data:`~companion.scan.N_BINS` values) is recorded as the LaserScan, the
+        (the frame's first :data:`~companion.perception.scan.N_BINS` values) is recorded as the LaserScan, the
         whole frame inside the observation."""
         self._scan_seq += 1
         cloud_seq = self._pending_clouds.pop(0) if self._pending_clouds else None

@@ -34,8 +34,8 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from companion.common.errors import UserError
 from companion.config import CompanionConfig, load_config
-from companion.errors import UserError
 from companion.lidar.velodyne import RevolutionAssembler, revolution_problem
 from companion.lidar.vlp16_packet import (
     MAX_RANGE_M,

@@ -19,8 +19,8 @@ from typing import Any
 from pymavlink import mavutil
 
 from companion.autopilot.mavlink_adapter import mavlink
-from flightsim.companion_setup import free_tcp_port as free_tcp_port  # the tests' ports, re-exported
-from flightsim.companion_setup import free_udp_port as free_udp_port
+from flightsim.sitl.companion_setup import free_tcp_port as free_tcp_port  # the tests' ports, re-exported
+from flightsim.sitl.companion_setup import free_udp_port as free_udp_port
 
 COPTER_GUIDED = 4
 COPTER_LOITER = 5

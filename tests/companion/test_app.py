@@ -16,7 +16,7 @@ import time
 import pytest
 
 from companion.autopilot.mavlink_adapter import mavlink
-from companion.errors import UserError
+from companion.common.errors import UserError
 from tests.companion.companion_process import (
     LidarSender,
     NotifySocket,
@@ -427,7 +427,7 @@ def test_inference_faults_never_engage_and_never_crash(tmp_path):
     try:
         _run_for(companion, lidar, 1.5)
         assert companion.counters["inference_faults"] >= 8
-        assert companion.supervisor.state.value == "STANDBY"
+        assert companion.safety.supervisor.state.value == "STANDBY"
         assert vehicle.messages(SETPOINT) == []
         assert vehicle.messages("OBSTACLE_DISTANCE")  # the autopilot's own layer still gets the scans
     finally:
@@ -468,8 +468,8 @@ def test_a_fault_in_one_iteration_is_counted_and_the_loop_goes_on(tmp_path, monk
 def test_a_late_scan_repeat_keeps_the_brakes_sideways_part(tmp_path):
     """While a scan is late the last setpoint is repeated; the shield's active brake against a
     sideways slide is part of it (it once went out without, letting the slide creep on)."""
-    from companion.shield import Command
-    from companion.supervisor import CommandKind
+    from companion.safety.shield import Command
+    from companion.safety.supervisor import CommandKind
 
     companion, vehicle, lidar = _in_process(tmp_path, "forward")
     try:

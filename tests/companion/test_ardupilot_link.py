@@ -13,7 +13,7 @@ import pytest
 from companion.autopilot.ardupilot import VELOCITY_YAW_RATE_TYPE_MASK, ArduPilotLink, statustext_chunks
 from companion.autopilot.link import LandedState
 from companion.autopilot.mavlink_adapter import mavlink
-from companion.errors import UserError
+from companion.common.errors import UserError
 from tests.companion.mavlink_peer import COPTER_LOITER, AutopilotPeer, free_tcp_port, free_udp_port
 
 
@@ -314,7 +314,7 @@ def test_unopenable_connections_are_user_errors(tmp_path):
 
 def test_obstacle_distance_sectors_clockwise_on_the_wire(linked):
     """ArduPilot reads sector j at j × 5° clockwise; scan bins run counter-clockwise."""
-    from companion.obstacle_distance import obstacle_distance_from_scan
+    from companion.autopilot.obstacle_distance import obstacle_distance_from_scan
 
     link, peer, _ = linked
     max_range = 10.0

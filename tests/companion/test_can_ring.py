@@ -9,10 +9,16 @@ import can
 import numpy as np
 import pytest
 
-from companion.config import CanConfig, CanSensorConfig
-from companion.errors import UserError
-from companion.lidar.can_ring import CanRangefinder, CanRangefinderRing, benewake_frame, open_can_ring
-from companion.scan import ScanConfig, scan_from_points
+from companion.common.errors import UserError
+from companion.lidar.can_ring import (
+    CanConfig,
+    CanRangefinder,
+    CanRangefinderRing,
+    CanSensorConfig,
+    benewake_frame,
+    open_can_ring,
+)
+from companion.perception.scan import ScanConfig, scan_from_points
 
 _channels = itertools.count()
 

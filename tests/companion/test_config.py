@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
+from companion.common.errors import UserError
+from companion.common.tomlconfig import load_toml
 from companion.config import CompanionConfig, load_config
-from companion.errors import UserError
-from companion.tomlconfig import load_toml
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "config" / "companion.example.toml"
 

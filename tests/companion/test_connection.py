@@ -12,9 +12,9 @@ import time
 import pytest
 
 from companion.__main__ import main
+from companion.autopilot.connection import Connection, ensure_port_free, parse_connection
+from companion.common.errors import UserError
 from companion.config import AutopilotConfig
-from companion.connection import Connection, ensure_port_free, parse_connection
-from companion.errors import UserError
 from tests.companion.companion_process import free_udp_port, run_to_exit, start_companion, stop, write_config
 from tests.onnx_models import write_policy
 

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from companion.drift import DriftEstimator, DriftHoldConfig, held_drift
+from companion.perception.drift import DriftEstimator, DriftHoldConfig, held_drift
 from tests.companion.test_scan_motion import room_scan
 
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from stable_baselines3.common.vec_env import DummyVecEnv, VecFrameStack
 
-from companion.framestack import FrameStack
+from companion.perception.framestack import FrameStack
 
 
 class ReplayEnv(gym.Env):

@@ -19,7 +19,7 @@ import pytest
 from companion.app import policy_spec
 from companion.autopilot.mavlink_adapter import mavlink
 from companion.config import CompanionConfig, PolicyConfig
-from companion.drift import DriftHoldConfig
+from companion.perception.drift import DriftHoldConfig
 from tests.companion.companion_process import (
     WEST_AND_UP,
     Flight,

@@ -8,9 +8,9 @@ import struct
 import pytest
 
 from companion.autopilot.mavlink_adapter import mavlink
-from companion.goal import GoalTracker, NavInputs, Waypoint
-from companion.goal_frames import GlobalOrigin, global_to_local_ne, ned_to_body_flu, offset_global
-from companion.mission import (
+from companion.guidance.goal import GoalTracker, NavInputs, Waypoint
+from companion.guidance.goal_frames import GlobalOrigin, global_to_local_ne, ned_to_body_flu, offset_global
+from companion.guidance.mission import (
     MISSION_CURRENT_MISSION_ID_OFFSET,
     Mission,
     MissionDownloader,
@@ -337,8 +337,8 @@ def test_origin_from_global_and_local_position():
     ('[[goal.waypoints]]\nnorth = "far"\n', r"goal\.waypoints\[0\]\.north"),
 ])
 def test_goal_config_errors_name_the_key(tmp_path, text, message):
+    from companion.common.errors import UserError
     from companion.config import load_config
-    from companion.errors import UserError
 
     path = tmp_path / "c.toml"
     path.write_text(f'[policy]\nmodel = "m.onnx"\n{text}')

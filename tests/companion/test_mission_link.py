@@ -11,11 +11,11 @@ from companion.app import open_goal
 from companion.autopilot.ardupilot import ArduPilotLink
 from companion.autopilot.mavlink_adapter import mavlink
 from companion.config import AutopilotConfig, CompanionConfig, GoalConfig
-from companion.goal_frames import offset_global
-from companion.mission import Phase
-from flightsim.ground_station import GroundStation, MissionItemSpec
-from flightsim.sim_autopilot.frames import HOME_LAT_DEG, HOME_LON_DEG
-from flightsim.sim_autopilot.server import SimAutopilotServer
+from companion.guidance.goal_frames import offset_global
+from companion.guidance.mission import Phase
+from flightsim.sitl.ground_station import GroundStation, MissionItemSpec
+from flightsim.sitl.sim_autopilot.frames import HOME_LAT_DEG, HOME_LON_DEG
+from flightsim.sitl.sim_autopilot.server import SimAutopilotServer
 from tests.companion.mavlink_peer import AutopilotPeer, free_udp_port
 
 HOME = (round(HOME_LAT_DEG * 1e7), round(HOME_LON_DEG * 1e7))

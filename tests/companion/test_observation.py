@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from companion.observation import (
+from companion.perception.observation import (
     ObservationLayout,
     build_frame,
     command_features,

@@ -11,8 +11,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from companion.obstacle_distance import N_SECTORS, UNKNOWN_CM, obstacle_distance_from_scan, sector_distances
-from companion.scan import ScanConfig, scan_from_points
+from companion.autopilot.obstacle_distance import (
+    N_SECTORS,
+    UNKNOWN_CM,
+    obstacle_distance_from_scan,
+    sector_distances,
+)
+from companion.perception.scan import ScanConfig, scan_from_points
 
 EMPTY = 1001  # max_distance + 1
 
@@ -145,7 +150,7 @@ def test_sector_distances_are_72_plain_ints_and_a_wrong_count_is_refused() -> No
 
 def test_sent_only_while_airborne():
     from companion.autopilot.link import LandedState, VehicleStatus
-    from companion.obstacle_distance import obstacle_distance_allowed
+    from companion.autopilot.obstacle_distance import obstacle_distance_allowed
 
     def status(landed, altitude):
         return VehicleStatus(landed_state=landed, altitude=altitude)

@@ -19,11 +19,8 @@ from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.__main__ import main
-from companion.errors import UserError
-from companion.param_client import MavlinkParamClient, open_connection, wait_for_autopilot
-from companion.param_codec import encode_param_value
-from companion.param_files import WantedParam, default_param_file, load_param_file
-from companion.params import (
+from companion.common.errors import UserError
+from companion.params.check import (
     Status,
     compare_parameter,
     needs_reboot,
@@ -32,7 +29,10 @@ from companion.params import (
     values_match,
     yaw_rate_limit,
 )
-from flightsim.sim_autopilot.params import ParameterTable, default_table
+from companion.params.client import MavlinkParamClient, open_connection, wait_for_autopilot
+from companion.params.codec import encode_param_value
+from companion.params.files import WantedParam, default_param_file, load_param_file
+from flightsim.sitl.sim_autopilot.params import ParameterTable, default_table
 
 REPO = Path(__file__).resolve().parents[2]
 INT8, INT32, REAL32 = mavlink.MAV_PARAM_TYPE_INT8, mavlink.MAV_PARAM_TYPE_INT32, mavlink.MAV_PARAM_TYPE_REAL32
@@ -138,7 +138,7 @@ def test_every_file_parameter_exists_in_the_simulated_firmware():
 
 
 def test_yaw_rate_limit_read_from_a_check_report():
-    from companion.params import CheckReport, ParamResult
+    from companion.params.check import CheckReport, ParamResult
 
     def report(name, actual):
         wanted = WantedParam(name, 86.0, None, 1, "f")
@@ -362,8 +362,8 @@ def test_write_to_unknown_name_on_px4_returns_at_once(peer_factory):
     [("ardupilot", "tcpin:127.0.0.1:0", "tcp"), ("px4", "udpin:127.0.0.1:0", "udpout")],
 )
 def test_against_the_simulated_autopilot(capsys, personality, link, scheme):
-    """The whole simulated flight controller (flightsim.sim_autopilot), not only its table."""
-    from flightsim.sim_autopilot.server import SimAutopilotServer
+    """The whole simulated flight controller (flightsim.sitl.sim_autopilot), not only its table."""
+    from flightsim.sitl.sim_autopilot.server import SimAutopilotServer
 
     with SimAutopilotServer(personality, [link]) as server:
         host, port = server.endpoint.address(0)
@@ -382,7 +382,7 @@ def test_against_the_simulated_autopilot(capsys, personality, link, scheme):
 
 def _px4_sitl_table() -> ParameterTable:
     """PX4 at defaults without the TELEM2 parameters, as a PX4 SITL (no such serial port) has it."""
-    from flightsim.sim_autopilot.params import PX4_DEFAULTS
+    from flightsim.sitl.sim_autopilot.params import PX4_DEFAULTS
 
     sitl = {k: v for k, v in PX4_DEFAULTS.items() if k not in ("MAV_1_CONFIG", "SER_TEL2_BAUD")}
     return ParameterTable(sitl, bytewise=True)

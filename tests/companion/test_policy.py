@@ -12,9 +12,8 @@ import onnx
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
-from companion.errors import UserError
-from companion.observation import ObservationLayout
-from companion.policy import (
+from companion.common.errors import UserError
+from companion.guidance.policy import (
     LEGACY_VALUES,
     METADATA_KEYS,
     InferenceFault,
@@ -25,7 +24,8 @@ from companion.policy import (
     provider_options,
     select_providers,
 )
-from companion.scan import BIN_CONVENTION
+from companion.perception.observation import ObservationLayout
+from companion.perception.scan import BIN_CONVENTION
 from tests.onnx_models import write_policy
 
 SPEC = PolicySpec()
@@ -57,7 +57,7 @@ def test_metadata_helper_writes_exactly_the_checked_keys() -> None:
 
 
 def test_loads_and_logs_the_providers_in_use(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
-    caplog.set_level(logging.INFO, logger="companion.policy")
+    caplog.set_level(logging.INFO, logger="companion.guidance.policy")
     policy = OnnxPolicy(write_policy(tmp_path / "p.onnx", spec=SPEC), SPEC)
     assert policy.providers == ["CPUExecutionProvider"]  # this machine: no TensorRT/CUDA; Azure never asked
     assert "providers in use: CPUExecutionProvider" in caplog.text

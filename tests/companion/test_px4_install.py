@@ -5,7 +5,7 @@ from __future__ import annotations
 import subprocess
 import sys
 
-from companion.tomlconfig import tomllib
+from companion.common.tomlconfig import tomllib
 from tests.companion.companion_process import REPO, free_udp_port, write_config
 from tests.onnx_models import write_policy
 

@@ -11,7 +11,7 @@ import pytest
 from companion.autopilot.link import LandedState
 from companion.autopilot.mavlink_adapter import mavlink
 from companion.autopilot.px4 import Px4Link
-from companion.errors import UserError
+from companion.common.errors import UserError
 from tests.companion.mavlink_peer import (
     PX4_MAIN_OFFBOARD,
     PX4_MAIN_POSCTL,

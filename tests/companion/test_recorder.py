@@ -411,7 +411,7 @@ def test_setpoints_record_the_vertical_speed_and_older_recordings_read_as_before
     """A fixed waypoint 2 m above: the climb the link sends (vz, down-positive) is in the setpoint
     record, and the report shows it. The same recording as the recorder wrote it before
     ``vertical`` existed still replays bit for bit, and reads with the vertical speed unknown."""
-    from flightsim.recording_report import flight_series, summary
+    from flightsim.sitl.recording_report import flight_series, summary
 
     (path,) = _record_companion(tmp_path, extra=WEST_AND_UP)
     rec = read_recording(path)
@@ -443,8 +443,8 @@ def test_replay_of_a_file_that_is_not_a_recording_is_one_line_and_exit_2(tmp_pat
 
 
 def test_recorder_config_is_checked_and_its_directory_is_relative_to_the_config(tmp_path):
+    from companion.common.errors import UserError
     from companion.config import load_config
-    from companion.errors import UserError
 
     model = write_policy(tmp_path / "forward.onnx", kind="forward")
     path = tmp_path / "c.toml"
@@ -512,7 +512,7 @@ def test_a_recording_from_before_the_goal_layout_replays_as_scan_only(tmp_path):
 def test_the_recorded_yaw_cap_reads_back_exactly_and_is_none_when_not_read_or_not_recorded(tmp_path):
     from types import SimpleNamespace
 
-    from companion.errors import UserError
+    from companion.common.errors import UserError
     from companion.replay import recorded_autopilot_yaw_rate
 
     def recording(**meta: str) -> SimpleNamespace:

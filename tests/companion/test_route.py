@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from companion.route import RouteConfig, RoutePlanner
+from companion.guidance.route import RouteConfig, RoutePlanner
 
 MAX_RANGE = 10.0
 

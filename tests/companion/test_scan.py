@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from companion.scan import N_BINS, ScanConfig, scan_from_points
+from companion.perception.scan import N_BINS, ScanConfig, scan_from_points
 
 CFG = ScanConfig()
 coords = st.floats(-15.0, 15.0, allow_nan=False, width=32)
@@ -161,7 +161,7 @@ def test_matches_the_reference_on_a_dense_ordered_revolution() -> None:
 _EDGE_SCAN = """
 import sys
 import numpy as np
-from companion.scan import ScanConfig, scan_from_points
+from companion.perception.scan import ScanConfig, scan_from_points
 rng = np.random.default_rng(5)
 # points a few float32 ulps either side of every bin edge, at ranges that tell the bins apart
 edges = np.radians(np.repeat(np.arange(360.0), 40)) + rng.normal(0.0, 1e-6, 14400)

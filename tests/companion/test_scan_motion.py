@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from companion.scan_motion import scan_motion
+from companion.perception.scan_motion import scan_motion
 
 _THETA = np.radians(np.arange(360) + 0.5)
 

@@ -11,8 +11,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from companion.errors import UserError
-from companion.shield import (
+from companion.common.errors import UserError
+from companion.common.tomlconfig import from_dict
+from companion.safety.shield import (
     AUTOPILOT_LIMITS,
     Command,
     SafetyShield,
@@ -24,7 +25,6 @@ from companion.shield import (
     stopping_distance,
     stopping_speed,
 )
-from companion.tomlconfig import from_dict
 
 MAX_RANGE = 10.0
 CLEAR = np.ones(360, dtype=np.float32)

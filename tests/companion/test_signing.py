@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 
 from companion.autopilot.signing import KEY_LENGTH, load_signing_key, write_signing_key
+from companion.common.errors import UserError
 from companion.config import load_config
-from companion.errors import UserError
 from tests.companion.companion_process import run_to_exit
 
 KEY_HEX = bytes(range(1, 33)).hex()

@@ -7,9 +7,9 @@ import dataclasses
 import pytest
 
 from companion.autopilot.link import LandedState, VehicleStatus
-from companion.errors import UserError
-from companion.supervisor import CommandKind, Supervisor, SupervisorConfig, SupervisorState, Transition
-from companion.tomlconfig import from_dict
+from companion.common.errors import UserError
+from companion.common.tomlconfig import from_dict
+from companion.safety.supervisor import CommandKind, Supervisor, SupervisorConfig, SupervisorState, Transition
 
 S = SupervisorState
 DT = 0.1  # a 10 Hz lidar

@@ -7,9 +7,9 @@ from typing import Literal
 
 import pytest
 
-from companion.errors import UserError
-from companion.scan import ScanConfig
-from companion.tomlconfig import apply_overrides, from_dict, load_toml, to_dict
+from companion.common.errors import UserError
+from companion.common.tomlconfig import apply_overrides, from_dict, load_toml, to_dict
+from companion.perception.scan import ScanConfig
 
 
 @dataclass(frozen=True)

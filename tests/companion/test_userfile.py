@@ -3,7 +3,7 @@
 Issue 14 found tracebacks for a config holding byte 0xFF (UnicodeDecodeError), a config path that is a
 directory or a symlink loop, an ONNX model whose metadata holds invalid UTF-8, and a world of 100,000
 nested brackets (RecursionError in load_world). Each case runs the real command line where one reads
-that file, and the shared reader (companion.userfile) where the case is about the file itself.
+that file, and the shared reader (companion.common.userfile) where the case is about the file itself.
 """
 
 from __future__ import annotations
@@ -18,11 +18,11 @@ from pathlib import Path
 
 import pytest
 
-from companion.errors import UserError
-from companion.policy import OnnxPolicy, PolicySpec
-from companion.tomlconfig import load_toml
-from companion.userfile import load_user_file, read_user_bytes
-from flightsim.world import load_world
+from companion.common.errors import UserError
+from companion.common.tomlconfig import load_toml
+from companion.common.userfile import load_user_file, read_user_bytes
+from companion.guidance.policy import OnnxPolicy, PolicySpec
+from flightsim.worlds.world import load_world
 from tests.companion.companion_process import REPO, free_udp_port, run_to_exit, write_config
 from tests.onnx_models import write_policy
 

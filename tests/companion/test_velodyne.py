@@ -20,7 +20,7 @@ import velodyne_decoder as vd
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from companion.errors import UserError
+from companion.common.errors import UserError
 from companion.lidar import vlp16_packet
 from companion.lidar.velodyne import RevolutionAssembler, VelodyneUdpSource
 from companion.lidar.vlp16_packet import (

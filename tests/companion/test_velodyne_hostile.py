@@ -29,7 +29,7 @@ from companion.lidar.velodyne import (
     revolution_problem,
 )
 from companion.lidar.vlp16_packet import PACKET_SIZE, encode_packets
-from companion.scan import ScanConfig, scan_from_points
+from companion.perception.scan import ScanConfig, scan_from_points
 from tests.companion.vlp16_recording import load_recording
 
 

@@ -24,9 +24,13 @@ from dataclasses import fields, replace
 import numpy as np
 import pytest
 
-from companion.errors import UserError
-from companion.tomlconfig import from_dict
-from flightsim.autopilot_response import (
+from companion.common.errors import UserError
+from companion.common.tomlconfig import from_dict
+from flightsim.envs.env import EnvConfig, LidarAvoidEnv
+from flightsim.sitl.sim_autopilot.ardupilot import ArduCopterAutopilot, CopterMode
+from flightsim.sitl.sim_autopilot.frames import enu_to_ned
+from flightsim.sitl.sim_autopilot.params import default_table
+from flightsim.vehicle.autopilot_response import (
     _S_BX,
     _S_BY,
     ARDUPILOT,
@@ -40,9 +44,9 @@ from flightsim.autopilot_response import (
     random_ranges,
     response_params,
 )
-from flightsim.control import Setpoint
-from flightsim.env import EnvConfig, LidarAvoidEnv
-from flightsim.response_replay import (
+from flightsim.vehicle.control import Setpoint
+from flightsim.vehicle.quadrotor import Vehicle
+from flightsim.vehicle.response_replay import (
     SEQUENCES,
     Errors,
     compare,
@@ -51,11 +55,7 @@ from flightsim.response_replay import (
     recording_path,
     replay,
 )
-from flightsim.sim_autopilot.ardupilot import ArduCopterAutopilot, CopterMode
-from flightsim.sim_autopilot.frames import enu_to_ned
-from flightsim.sim_autopilot.params import default_table
-from flightsim.vehicle import Vehicle
-from flightsim.world import World
+from flightsim.worlds.world import World
 from tests.sitl.helpers import body_velocity
 from tests.sitl.helpers import fly as fly_autopilot
 
@@ -285,8 +285,8 @@ def test_sim_ardupilot_flies_its_firmware_response_by_default(vehicle, response)
 def test_the_servers_and_the_command_lines_choose_the_response():
     import argparse
 
-    from flightsim import demo, fly_cli, harness
-    from flightsim.sim_autopilot import server
+    from flightsim.sitl import demo, fly_cli, harness
+    from flightsim.sitl.sim_autopilot import server
 
     for personality, params in (("px4", PX4), ("ardupilot", ARDUPILOT)):
         with server.SimAutopilotServer(personality, ["udpin:127.0.0.1:0"]) as s:

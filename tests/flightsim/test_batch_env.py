@@ -15,11 +15,11 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from flightsim.batch_env import BatchedEnvs
-from flightsim.env import EnvConfig, LidarAvoidEnv
-from flightsim.nav_env import LidarNavEnv
+from flightsim.envs.batch_env import BatchedEnvs
+from flightsim.envs.env import EnvConfig, LidarAvoidEnv
+from flightsim.envs.nav_env import LidarNavEnv
 from training.config import load_train_config
-from training.train import TrainingWorlds
+from training.vec_env import TrainingWorlds
 
 
 def _assert_same_info(single: dict, batched: dict, where: str) -> None:
@@ -154,7 +154,7 @@ def test_a_wrapper_that_changes_step_is_refused() -> None:
 
 
 def test_different_sensors_cannot_share_a_batch() -> None:
-    from flightsim.raycast import LidarConfig
+    from flightsim.envs.raycast import LidarConfig
 
     with pytest.raises(ValueError, match="lidar"):
         BatchedEnvs([LidarAvoidEnv(), LidarAvoidEnv(EnvConfig(lidar=LidarConfig(noise_std=0.1)))])

@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from companion.scan import ScanConfig, scan_from_points
-from flightsim.batch_lidar import BatchLidar, scans_from_points
-from flightsim.env import EnvConfig, LidarAvoidEnv, slice_band
-from flightsim.raycast import LidarConfig
+from companion.perception.scan import ScanConfig, scan_from_points
+from flightsim.envs.batch_lidar import BatchLidar, scans_from_points
+from flightsim.envs.env import EnvConfig, LidarAvoidEnv, slice_band
+from flightsim.envs.raycast import LidarConfig
 
 
 def _pack(clouds: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:

@@ -15,11 +15,11 @@ import pytest
 from companion.autopilot.link import body_velocity
 from companion.autopilot.mavlink_adapter import mavlink
 from companion.config import CompanionConfig
-from companion.goal import GoalTracker, NavInputs, Waypoint
-from companion.observation import goal_features
-from companion.route import RoutePlanner, enu_pose
-from flightsim.nav_env import LidarNavEnv, NavEnvConfig
-from flightsim.world import Box, World
+from companion.guidance.goal import GoalTracker, NavInputs, Waypoint
+from companion.guidance.route import RoutePlanner, enu_pose
+from companion.perception.observation import goal_features
+from flightsim.envs.nav_env import LidarNavEnv, NavEnvConfig
+from flightsim.worlds.world import Box, World
 
 HALL = World("hall", (20.0, 8.0), 3.0, (), (-8.0, 0.0, 1.5), 30.0, ((6.0, 2.5, 1.5), (-4.0, -3.0, 1.5)))
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from flightsim.compiled_draws import draw, state_address
+from flightsim.envs.compiled_draws import draw, state_address
 
 
 def _draw_both(seeds: list[int], n_normal: list[int], uniform_shape: tuple[int, ...]):

@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from flightsim.control import GRAVITY, CascadedController, ControllerConfig, Setpoint, mix, wrap_angle
+from flightsim.vehicle.control import GRAVITY, CascadedController, ControllerConfig, Setpoint, mix, wrap_angle
 
 CFG = ControllerConfig()
 HOVER = CFG.mass_kg * GRAVITY

@@ -10,10 +10,12 @@ from pathlib import Path
 
 import pytest
 
-from companion.errors import UserError
-from flightsim import seeds
+from companion.common.errors import UserError
 from flightsim.__main__ import main
-from flightsim.demo import (
+from flightsim.envs import seeds
+from flightsim.envs.env import CONTROL_HZ
+from flightsim.envs.nav_env import LidarNavEnv
+from flightsim.sitl.demo import (
     GENERATED,
     LANES,
     _result,
@@ -22,12 +24,10 @@ from flightsim.demo import (
     time_limit,
     validation_worlds,
 )
-from flightsim.env import CONTROL_HZ
-from flightsim.families import FAMILIES
-from flightsim.flight_report import FlightReport
-from flightsim.fly_cli import default_policy
-from flightsim.harness import FlightOptions
-from flightsim.nav_env import LidarNavEnv
+from flightsim.sitl.flight_report import FlightReport
+from flightsim.sitl.fly_cli import default_policy
+from flightsim.sitl.harness import FlightOptions
+from flightsim.worlds.families import FAMILIES
 from tests.foreground import ctrl_c_once_flying, running_in_group, start_foreground
 
 

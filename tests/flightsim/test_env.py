@@ -13,14 +13,14 @@ import pytest
 from gymnasium.utils.env_checker import check_env as gym_check_env
 
 import flightsim
-from companion.errors import UserError
-from companion.scan import ScanConfig, scan_from_points
-from companion.shield import ShieldConfig
-from companion.tomlconfig import from_dict
-from flightsim.env import TRAIN_SEED_OFFSET, EnvConfig, LidarAvoidEnv, slice_band
-from flightsim.raycast import LidarConfig, VLP16Raycaster, grid_to_points
-from flightsim.reward import StepOutcome, progress_reward, tutorial_reward
-from flightsim.world import Box, Cylinder, World, generate_world
+from companion.common.errors import UserError
+from companion.common.tomlconfig import from_dict
+from companion.perception.scan import ScanConfig, scan_from_points
+from companion.safety.shield import ShieldConfig
+from flightsim.envs.env import TRAIN_SEED_OFFSET, EnvConfig, LidarAvoidEnv, slice_band
+from flightsim.envs.raycast import LidarConfig, VLP16Raycaster, grid_to_points
+from flightsim.envs.reward import StepOutcome, progress_reward, tutorial_reward
+from flightsim.worlds.world import Box, Cylinder, World, generate_world
 
 TWO_PILLARS = Path(str(files("flightsim") / "worlds" / "two-pillars.json"))
 # a corridor: start at x = -3 facing +x: end wall (x = +4) 7 m ahead, back wall 1 m, side walls 2 m

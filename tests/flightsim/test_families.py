@@ -7,13 +7,13 @@ from collections import defaultdict
 import numpy as np
 import pytest
 
-from companion.scan import ScanConfig, scan_from_points
-from flightsim.families import FAMILIES, generate_family_world
-from flightsim.families.open_spaces import LOW_OBSTACLE_TOP
-from flightsim.families.structures import gap_width
-from flightsim.planner import shortest_safe_path
-from flightsim.raycast import VLP16Raycaster
-from flightsim.world import (
+from companion.perception.scan import ScanConfig, scan_from_points
+from flightsim.envs.raycast import VLP16Raycaster
+from flightsim.worlds.families import FAMILIES, generate_family_world
+from flightsim.worlds.families.open_spaces import LOW_OBSTACLE_TOP
+from flightsim.worlds.families.structures import gap_width
+from flightsim.worlds.planner import shortest_safe_path
+from flightsim.worlds.world import (
     DEFAULT_VEHICLE_RADIUS,
     FLIGHT_ALTITUDE,
     Box,

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from flightsim.demo import _row
-from flightsim.flight_report import FlightReport, print_report
+from flightsim.sitl.demo import _row
+from flightsim.sitl.flight_report import FlightReport, print_report
 from tests.foreground import ctrl_c_once_flying, start_foreground
 
 REPO = Path(__file__).resolve().parents[2]
@@ -39,8 +39,8 @@ def test_ctrl_c_during_a_flight_exits_130(tmp_path):
 
 
 def test_the_flight_png_has_a_legend(tmp_path):
-    from flightsim.flight_report import plot_flight
-    from flightsim.world import load_world
+    from flightsim.sitl.flight_report import plot_flight
+    from flightsim.worlds.world import load_world
 
     world = load_world(REPO / "flightsim" / "worlds" / "two-pillars.json")
     t = np.linspace(0.0, 10.0, 50)

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from flightsim.__main__ import main
-from flightsim.render import render_rgb
-from flightsim.world import Box, World, load_world
+from flightsim.worlds.render import render_rgb
+from flightsim.worlds.world import Box, World, load_world
 
 WORLD = World(
     "wp", (10.0, 6.0), 3.0, (Box((0.0, 0.0, 0.3), (2.0, 2.0, 0.6)), Box((2.5, 1.0, 1.5), (3.0, 0.3, 0.3))),

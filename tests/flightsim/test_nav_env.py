@@ -10,15 +10,15 @@ import pytest
 from gymnasium.utils.env_checker import check_env as gym_check_env
 
 import flightsim
-from companion.drift import DriftHoldConfig, held_drift
-from companion.observation import ObservationLayout
-from companion.shield import ShieldConfig
-from companion.tomlconfig import from_dict
-from flightsim import seeds
-from flightsim.families import FAMILIES, generate_family_world
-from flightsim.nav_env import LidarNavEnv, NavEnvConfig, time_limit_steps
-from flightsim.reward import GoalRewardConfig, GoalStep, StepOutcome, goal_reward
-from flightsim.world import Box, World
+from companion.common.tomlconfig import from_dict
+from companion.perception.drift import DriftHoldConfig, held_drift
+from companion.perception.observation import ObservationLayout
+from companion.safety.shield import ShieldConfig
+from flightsim.envs import seeds
+from flightsim.envs.nav_env import LidarNavEnv, NavEnvConfig, time_limit_steps
+from flightsim.envs.reward import GoalRewardConfig, GoalStep, StepOutcome, goal_reward
+from flightsim.worlds.families import FAMILIES, generate_family_world
+from flightsim.worlds.world import Box, World
 
 # an empty 20 × 6 m hall: start at x = -8 facing +x, waypoint 1 at x = -2, waypoint 2 at x = +5
 HALL = World("hall", (20.0, 6.0), 3.0, (), (-8.0, 0.0, 1.5), 0.0, ((-2.0, 0.0, 1.5), (5.0, 0.0, 1.5)))
@@ -65,7 +65,7 @@ def test_config_is_strict_loadable_and_checked() -> None:
     with pytest.raises(ValueError, match="difficulty_range"):
         NavEnvConfig(difficulty_range=(0.8, 0.2))
     with pytest.raises(TypeError, match="NavEnvConfig"):
-        LidarNavEnv(flightsim.env.EnvConfig())
+        LidarNavEnv(flightsim.envs.env.EnvConfig())
 
 
 def test_observation_is_the_documented_layout(env: LidarNavEnv) -> None:
@@ -191,7 +191,7 @@ def test_reset_and_rollout_are_deterministic_for_a_seed(env: LidarNavEnv) -> Non
 
 def test_render_shows_the_waypoint_being_flown_to(env: LidarNavEnv) -> None:
     env.reset(seed=0, options={"world": HALL})
-    active = np.array([0xE0, 0x8A, 0x00])  # flightsim.render's active-waypoint colour
+    active = np.array([0xE0, 0x8A, 0x00])  # flightsim.worlds.render's active-waypoint colour
 
     def active_pixels() -> int:
         img = env.render()

@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from flightsim.planner import astar_cells, clearance_grid, cost_to_go, shortest_safe_path
-from flightsim.world import Box, Cylinder, World, clearances
+from flightsim.worlds.planner import astar_cells, clearance_grid, cost_to_go, shortest_safe_path
+from flightsim.worlds.world import Box, Cylinder, World, clearances
 
 R = 0.25
 ALT = 1.5

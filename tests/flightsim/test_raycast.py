@@ -7,12 +7,12 @@ import math
 import numpy as np
 import pytest
 
-from companion.errors import UserError
+from companion.common.errors import UserError
+from companion.common.tomlconfig import from_dict
 from companion.lidar.vlp16_packet import VLP16_ELEVATIONS_DEG
-from companion.scan import ScanConfig, scan_from_points
-from companion.tomlconfig import from_dict
-from flightsim.raycast import LidarConfig, RangeGrid, VLP16Raycaster, grid_to_points
-from flightsim.world import Box, Cylinder, World, generate_world
+from companion.perception.scan import ScanConfig, scan_from_points
+from flightsim.envs.raycast import LidarConfig, RangeGrid, VLP16Raycaster, grid_to_points
+from flightsim.worlds.world import Box, Cylinder, World, generate_world
 
 EL = np.radians(VLP16_ELEVATIONS_DEG)
 FLAT = [1, 14]  # laser ids at +1 and -1 degrees

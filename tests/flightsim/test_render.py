@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from flightsim.env import EnvConfig, LidarAvoidEnv
-from flightsim.render import draw_top_down, plot_worlds, render_rgb
-from flightsim.world import Box, Cylinder, World, generate_world
+from flightsim.envs.env import EnvConfig, LidarAvoidEnv
+from flightsim.worlds.render import draw_top_down, plot_worlds, render_rgb
+from flightsim.worlds.world import Box, Cylinder, World, generate_world
 
 WORLD = World(
     "render", (10.0, 6.0), 3.0,

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from flightsim.sim_autopilot.ardupilot import ArduCopterAutopilot, CopterMode
-from flightsim.sim_autopilot.common import Guidance
-from flightsim.sim_autopilot.params import default_table
-from flightsim.vehicle import Vehicle, VehicleConfig
+from flightsim.sitl.sim_autopilot.ardupilot import ArduCopterAutopilot, CopterMode
+from flightsim.sitl.sim_autopilot.common import Guidance
+from flightsim.sitl.sim_autopilot.params import default_table
+from flightsim.vehicle.quadrotor import Vehicle, VehicleConfig
 from tests.sitl.helpers import (
     COMPANION,
     acks,

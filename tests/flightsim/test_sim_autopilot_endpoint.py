@@ -12,10 +12,10 @@ import time
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from companion.errors import UserError
-from flightsim.companion_setup import free_tcp_port
-from flightsim.sim_autopilot.endpoint import LinkSpec, MavlinkEndpoint
-from flightsim.sim_autopilot.server import SimAutopilotServer, command, configure_parser
+from companion.common.errors import UserError
+from flightsim.sitl.companion_setup import free_tcp_port
+from flightsim.sitl.sim_autopilot.endpoint import LinkSpec, MavlinkEndpoint
+from flightsim.sitl.sim_autopilot.server import SimAutopilotServer, command, configure_parser
 
 
 def recv_messages(sock: socket.socket, duration: float) -> list:

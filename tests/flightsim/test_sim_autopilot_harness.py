@@ -11,19 +11,19 @@ import time
 import numpy as np
 import pytest
 
+from companion.common.errors import UserError
+from companion.common.tomlconfig import to_dict, toml_dumps
 from companion.config import CompanionConfig, load_config
-from companion.errors import UserError
-from companion.goal_frames import LATLON_TO_M
+from companion.guidance.goal_frames import LATLON_TO_M
 from companion.lidar.velodyne import VelodyneUdpSource
-from companion.scan import ScanConfig, scan_from_points
-from companion.tomlconfig import to_dict, toml_dumps
-from flightsim.companion_setup import companion_config, ephemeral_range, free_tcp_port, free_udp_port
-from flightsim.cosim import LidarCosim
-from flightsim.flight_report import latency_ms
-from flightsim.fly_cli import load_flight_world
-from flightsim.raycast import LidarConfig
-from flightsim.vehicle import VehicleState
-from flightsim.world import load_world
+from companion.perception.scan import ScanConfig, scan_from_points
+from flightsim.envs.raycast import LidarConfig
+from flightsim.sitl.companion_setup import companion_config, ephemeral_range, free_tcp_port, free_udp_port
+from flightsim.sitl.cosim import LidarCosim
+from flightsim.sitl.flight_report import latency_ms
+from flightsim.sitl.fly_cli import load_flight_world
+from flightsim.vehicle.quadrotor import VehicleState
+from flightsim.worlds.world import load_world
 
 
 def test_generated_companion_config_loads_strictly(tmp_path):
@@ -47,7 +47,7 @@ def test_generated_companion_config_loads_strictly(tmp_path):
 
 
 def test_toml_dumps_writes_tables_arrays_of_tables_and_scalars(tmp_path):
-    from companion.tomlconfig import load_toml
+    from companion.common.tomlconfig import load_toml
 
     data = {"a": 1, "b": {"c": 'x"y', "d": [1.5, 2.0], "e": True, "f": [{"g": 1}, {"g": 2}]}}
     path = tmp_path / "t.toml"
@@ -139,7 +139,7 @@ def test_external_pose_mirrors_ned_telemetry_into_the_world_frame():
     """Anchored on the ground facing East, the SITL's frame is rotated onto the world's start yaw."""
     from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-    from flightsim.external_sitl import ExternalPose
+    from flightsim.sitl.external_sitl import ExternalPose
 
     world = dataclasses.replace(load_world("flightsim/worlds/two-pillars.json"), start_yaw_deg=90.0)
     pose = ExternalPose(world)
@@ -161,7 +161,7 @@ def test_external_pose_mirrors_ned_telemetry_into_the_world_frame():
 def test_external_pose_prefers_ground_truth_over_the_estimate():
     from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-    from flightsim.external_sitl import ExternalPose
+    from flightsim.sitl.external_sitl import ExternalPose
 
     world = load_world("flightsim/worlds/two-pillars.json")  # start yaw 0 (East)
     pose = ExternalPose(world)
@@ -187,8 +187,8 @@ def test_simulated_ground_truth_round_trips_through_the_external_mirror(personal
     the external-SITL mirror, is where the simulated vehicle really is (start yaw rotated away)."""
     from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-    from flightsim.external_sitl import ExternalPose
-    from flightsim.sim_autopilot.server import ground_truth_message, make_autopilot
+    from flightsim.sitl.external_sitl import ExternalPose
+    from flightsim.sitl.sim_autopilot.server import ground_truth_message, make_autopilot
 
     def state(x, y, z, yaw):
         return VehicleState(time=0.0, position=np.array([x, y, z]), velocity=np.array([0.3, -0.2, 0.0]),
@@ -221,9 +221,9 @@ def test_mission_items_land_on_the_world_waypoints_in_a_turned_external_sitl(sit
     rotation, flown to in the SITL's own frame, are the world's waypoints in the mirrored world."""
     from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-    from companion.goal_frames import GlobalOrigin, global_to_local_ne, offset_global
-    from flightsim.external_sitl import ExternalPose
-    from flightsim.ground_station import mission_items
+    from companion.guidance.goal_frames import GlobalOrigin, global_to_local_ne, offset_global
+    from flightsim.sitl.external_sitl import ExternalPose
+    from flightsim.sitl.ground_station import mission_items
 
     world = dataclasses.replace(load_world("flightsim/worlds/two-pillars.json"), start_yaw_deg=-30.0,
                                 waypoints=((4.0, 1.0, 2.0), (-2.0, 3.5, 1.0)))
@@ -246,7 +246,7 @@ def test_mission_items_land_on_the_world_waypoints_in_a_turned_external_sitl(sit
 def test_mission_frame_needs_a_global_position():
     from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-    from flightsim.external_sitl import ExternalPose
+    from flightsim.sitl.external_sitl import ExternalPose
 
     pose = ExternalPose(load_world("flightsim/worlds/two-pillars.json"))
     pose.update(mavlink.MAVLink_local_position_ned_message(0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
@@ -258,9 +258,9 @@ def test_mission_frame_needs_a_global_position():
 
 
 def test_ground_station_takes_either_spelling_of_a_connection_and_names_a_bad_one():
-    """``--connect`` goes through companion/connection.py: a MAVSDK URL works as its pymavlink
+    """``--connect`` goes through companion/autopilot/connection.py: a MAVSDK URL works as its pymavlink
     spelling does (here against a real pymavlink peer on loopback), a bad one is one UserError."""
-    from flightsim.ground_station import GroundStation
+    from flightsim.sitl.ground_station import GroundStation
     from tests.companion.mavlink_peer import AutopilotPeer
 
     port = free_udp_port()

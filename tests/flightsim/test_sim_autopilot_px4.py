@@ -8,11 +8,11 @@ import struct
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from flightsim.sim_autopilot.common import Guidance
-from flightsim.sim_autopilot.frames import HOME_ALT_AMSL_M
-from flightsim.sim_autopilot.params import default_table
-from flightsim.sim_autopilot.px4 import AutoSubMode, MainMode, PX4Autopilot, px4_custom_mode
-from flightsim.vehicle import Vehicle, VehicleConfig
+from flightsim.sitl.sim_autopilot.common import Guidance
+from flightsim.sitl.sim_autopilot.frames import HOME_ALT_AMSL_M
+from flightsim.sitl.sim_autopilot.params import default_table
+from flightsim.sitl.sim_autopilot.px4 import AutoSubMode, MainMode, PX4Autopilot, px4_custom_mode
+from flightsim.vehicle.quadrotor import Vehicle, VehicleConfig
 from tests.sitl.helpers import COMPANION, acks, airborne, body_velocity, command, fly, on_ground, wire
 
 ACCEPTED = mavlink.MAV_RESULT_ACCEPTED

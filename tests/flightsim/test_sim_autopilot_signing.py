@@ -10,8 +10,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.autopilot.ardupilot import ArduPilotLink
 from companion.autopilot.signing import enable_signing
-from flightsim.sim_autopilot.server import SimAutopilotServer
-from flightsim.vehicle import Vehicle, VehicleConfig
+from flightsim.sitl.sim_autopilot.server import SimAutopilotServer
+from flightsim.vehicle.quadrotor import Vehicle, VehicleConfig
 from tests.companion.companion_process import wait_until
 from tests.companion.mavlink_peer import AutopilotPeer, free_udp_port
 

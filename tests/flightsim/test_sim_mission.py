@@ -5,11 +5,16 @@ from __future__ import annotations
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from companion.mission import MISSION_CURRENT_MISSION_ID_OFFSET, MissionDownloader, Phase, extension_u32
-from flightsim.sim_autopilot.common import VehicleSnapshot
-from flightsim.sim_autopilot.frames import HOME_ALT_AMSL_M
-from flightsim.sim_autopilot.mission import UPLOAD_RETRIES
-from flightsim.sim_autopilot.server import make_autopilot
+from companion.guidance.mission import (
+    MISSION_CURRENT_MISSION_ID_OFFSET,
+    MissionDownloader,
+    Phase,
+    extension_u32,
+)
+from flightsim.sitl.sim_autopilot.frames import HOME_ALT_AMSL_M
+from flightsim.sitl.sim_autopilot.mission import UPLOAD_RETRIES
+from flightsim.sitl.sim_autopilot.server import make_autopilot
+from flightsim.sitl.sim_autopilot.snapshot import VehicleSnapshot
 
 GCS = (255, 190)
 COMPANION = (1, 191)
@@ -127,10 +132,10 @@ def test_unsupported_command_kept_for_the_companion_to_report():
 def test_world_waypoints_as_mission_items_and_reached_in_order():
     import numpy as np
 
-    from companion.goal_frames import GlobalOrigin, global_to_local_ne
-    from flightsim.flight_report import waypoints_reached
-    from flightsim.ground_station import mission_items
-    from flightsim.world import load_world
+    from companion.guidance.goal_frames import GlobalOrigin, global_to_local_ne
+    from flightsim.sitl.flight_report import waypoints_reached
+    from flightsim.sitl.ground_station import mission_items
+    from flightsim.worlds.world import load_world
 
     world = load_world("flightsim/worlds/slalom.json")  # start (-8.5, 0); waypoints (8.5, 0), (-8.5, -2)
     items = mission_items(world, (LAT, LON))

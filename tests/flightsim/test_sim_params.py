@@ -7,8 +7,8 @@ import struct
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
-from companion.param_codec import decode_param_value, encode_param_value
-from flightsim.sim_autopilot.params import ParameterTable, default_table
+from companion.params.codec import decode_param_value, encode_param_value
+from flightsim.sitl.sim_autopilot.params import ParameterTable, default_table
 
 INT8 = mavlink.MAV_PARAM_TYPE_INT8
 INT32 = mavlink.MAV_PARAM_TYPE_INT32

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from flightsim.control import ControllerConfig, Setpoint
-from flightsim.vehicle import GEAR_HEIGHT_M, Vehicle, VehicleConfig
+from flightsim.vehicle.control import ControllerConfig, Setpoint
+from flightsim.vehicle.quadrotor import GEAR_HEIGHT_M, Vehicle, VehicleConfig
 
 
 @pytest.fixture(scope="module")

@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from companion.errors import UserError
-from flightsim.world import (
+from companion.common.errors import UserError
+from flightsim.worlds.world import (
     Box,
     Cylinder,
     World,
@@ -311,7 +311,7 @@ def test_shortest_path_is_derived_not_identity() -> None:
 
 @pytest.mark.parametrize("name", ["two-pillars.json", "slalom.json"])
 def test_shipped_examples_have_feasible_waypoints(name: str) -> None:
-    from flightsim.planner import shortest_safe_path
+    from flightsim.worlds.planner import shortest_safe_path
 
     world = load_world(Path(str(files("flightsim") / "worlds" / name)))
     assert 1 <= len(world.waypoints) <= 4

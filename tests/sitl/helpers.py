@@ -11,8 +11,9 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from flightsim.sim_autopilot.common import SimAutopilot, VehicleSnapshot
-from flightsim.world import World
+from flightsim.sitl.sim_autopilot.common import SimAutopilot
+from flightsim.sitl.sim_autopilot.snapshot import VehicleSnapshot
+from flightsim.worlds.world import World
 
 GCS = (255, 190)
 COMPANION = (1, 191)
@@ -94,7 +95,7 @@ def write_constant_policy(path: Path, forward: float, turn: float) -> Path:
     import onnx
     from onnx import TensorProto, helper, numpy_helper
 
-    from companion.policy import policy_metadata
+    from companion.guidance.policy import policy_metadata
     from tests.onnx_models import COMPANION_SPEC
 
     spec = COMPANION_SPEC  # what the default companion config feeds (the answer ignores it)

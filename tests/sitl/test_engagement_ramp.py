@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import pytest
 
-from companion.shield import ShieldConfig
+from companion.safety.shield import ShieldConfig
 from tests.sitl.helpers import engagement_ramp, is_command, ramp_problem
 
 COMMAND = (1.0, -0.6)  # the constant test policy's 0.5, 0.4: m/s forward, rad/s FRD

@@ -21,8 +21,8 @@ from pathlib import Path
 
 import pytest
 
-from flightsim.harness import FlightOptions, SitlFlight
-from flightsim.world import save_world
+from flightsim.sitl.harness import FlightOptions, SitlFlight
+from flightsim.worlds.world import save_world
 from tests.companion.mavlink_peer import free_tcp_port, free_udp_port
 from tests.onnx_models import write_policy
 from tests.sitl.helpers import OPEN_ROOM, write_constant_policy

@@ -17,8 +17,8 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.config import load_config
-from flightsim.autopilot_response import ARDUPILOT, CHUNK_S, AutopilotResponse
-from flightsim.harness import FlightOptions, SitlFlight
+from flightsim.sitl.harness import FlightOptions, SitlFlight
+from flightsim.vehicle.autopilot_response import ARDUPILOT, CHUNK_S, AutopilotResponse
 from tests.sitl.helpers import (
     OPEN_ROOM,
     companion_counters,

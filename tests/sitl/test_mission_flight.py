@@ -13,8 +13,8 @@ import time
 
 import pytest
 
-from flightsim.ground_station import mission_items
-from flightsim.harness import FlightOptions, SitlFlight
+from flightsim.sitl.ground_station import mission_items
+from flightsim.sitl.harness import FlightOptions, SitlFlight
 from tests.sitl.helpers import OPEN_ROOM, engage_mission, said, speed, wait_for, write_constant_policy
 
 pytestmark = pytest.mark.sitl

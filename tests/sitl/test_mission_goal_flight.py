@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from flightsim.harness import FlightOptions, SitlFlight
-from flightsim.world import load_world
+from flightsim.sitl.harness import FlightOptions, SitlFlight
+from flightsim.worlds.world import load_world
 from tests.onnx_models import write_policy
 from tests.sitl.helpers import OPEN_ROOM, engage_mission, said, wait_for
 

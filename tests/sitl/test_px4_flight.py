@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from companion.config import load_config
-from flightsim.harness import FlightOptions, SitlFlight
+from flightsim.sitl.harness import FlightOptions, SitlFlight
 from tests.sitl.helpers import (
     OPEN_ROOM,
     engagement_ramp,

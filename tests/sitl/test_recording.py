@@ -24,8 +24,8 @@ from mcap.reader import make_reader
 
 from companion.recording import schemas as s
 from companion.recording.reader import read_recording
-from flightsim.harness import FlightOptions, SitlFlight
-from flightsim.recording import FlightRecording
+from flightsim.sitl.harness import FlightOptions, SitlFlight
+from flightsim.sitl.recording import FlightRecording
 from tests.companion.test_recorder import tiny_tmpfs
 from tests.sitl.helpers import OPEN_ROOM, companion_counters, wait_for, write_constant_policy
 

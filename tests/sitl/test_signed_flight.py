@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from flightsim.harness import FlightOptions, SitlFlight
+from flightsim.sitl.harness import FlightOptions, SitlFlight
 from tests.companion.mavlink_peer import COPTER_LOITER, AutopilotPeer
 from tests.sitl.helpers import (
     OPEN_ROOM,

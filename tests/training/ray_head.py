@@ -13,7 +13,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from flightsim.companion_setup import free_tcp_port
+from flightsim.sitl.companion_setup import free_tcp_port
 
 #: the ports `ray start --head` takes for itself by default (GCS 6379, dashboard 8265, Ray Client
 #: 10001, workers 10002-19999); it refuses a chosen port among them ("used by other components")

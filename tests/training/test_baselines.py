@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from companion.drift import DriftHoldConfig
-from companion.observation import ObservationLayout, build_frame, drift_features, goal_features
+from companion.perception.drift import DriftHoldConfig
+from companion.perception.observation import ObservationLayout, build_frame, drift_features, goal_features
 from training.baselines import (
     GapFollower,
     GapFollowerConfig,

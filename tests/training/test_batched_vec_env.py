@@ -9,7 +9,7 @@ import pytest
 
 from training.batched_vec_env import BatchedVecEnv
 from training.config import load_train_config
-from training.train import make_vec_env
+from training.vec_env import make_vec_env
 
 
 def _info_equal(a: dict, b: dict, where: str) -> None:

@@ -4,8 +4,8 @@ import re
 
 import pytest
 
-from companion.errors import UserError
-from companion.tomlconfig import load_toml
+from companion.common.errors import UserError
+from companion.common.tomlconfig import load_toml
 from training.config import TrainConfig, config_from_dict, config_to_toml, load_train_config
 
 
@@ -132,6 +132,6 @@ def test_the_config_offers_every_dagger_teacher_and_no_other():
     from typing import get_args, get_type_hints
 
     from training.config import PretrainConfig
-    from training.dagger import TEACHERS
+    from training.controllers import TEACHERS
 
     assert set(get_args(get_type_hints(PretrainConfig)["teacher"])) == set(TEACHERS)

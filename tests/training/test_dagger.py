@@ -8,12 +8,13 @@ from contextlib import contextmanager
 import numpy as np
 import pytest
 
-from companion.errors import UserError
+from companion.common.errors import UserError
 from tests.training.test_pretrain import NAV
 from training import dagger
 from training.__main__ import main
 from training.config import load_train_config
-from training.train import build_model, make_vec_env, read_eval_log
+from training.train import build_model, read_eval_log
+from training.vec_env import make_vec_env
 
 #: test_pretrain's small goal-task run, taught by DAgger instead
 DAGGER = ["name=dagger", "seed=2", "pretrain.method='dagger'"]

@@ -5,7 +5,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from companion.shield import SafetyShield, ShieldConfig
+from companion.safety.shield import SafetyShield, ShieldConfig
 from training.controllers import ControllerSpec, ShieldedController
 from training.episodes import EpisodeResult, WorldSpec, is_success, run_episode
 from training.report import format_table, report
@@ -166,7 +166,7 @@ def test_shielded_rows_are_labelled_as_such():
 
 def test_every_controller_has_its_own_colour_and_the_legend_names_them_all():
     """With --shield every label ends in "+shield": each still gets its own colour."""
-    from flightsim.env import EnvConfig
+    from flightsim.envs.env import EnvConfig
     from training.episodes import EpisodeResult, WorldSpec
     from training.report import controller_colours, trajectory_figure
 

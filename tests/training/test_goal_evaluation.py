@@ -6,9 +6,9 @@ import json
 
 import pytest
 
-from companion.errors import UserError
-from flightsim import seeds
-from flightsim.families import FAMILIES
+from companion.common.errors import UserError
+from flightsim.envs import seeds
+from flightsim.worlds.families import FAMILIES
 from training.__main__ import main
 from training.episodes import EpisodeResult, goal_worlds
 from training.report import format_table, goal_summary, report
@@ -131,8 +131,7 @@ def test_the_teachers_are_flown_only_when_named_and_read_the_env_they_fly(tmp_pa
     (their rates bound the student's); they need the env, so a build without one is refused, and
     the avoidance task has none."""
     from training import controllers
-    from training.controllers import ControllerSpec, build_controller
-    from training.dagger import TEACHERS
+    from training.controllers import TEACHERS, ControllerSpec, build_controller
     from training.episodes import AVOID_ENV_ID, NAV_ENV_ID
     from training.evaluate import parse_baselines
 

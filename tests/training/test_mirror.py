@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from companion.observation import ObservationLayout
-from flightsim.nav_env import LidarNavEnv, NavEnvConfig
-from flightsim.world import Box, World
+from companion.perception.observation import ObservationLayout
+from flightsim.envs.nav_env import LidarNavEnv, NavEnvConfig
+from flightsim.worlds.world import Box, World
 from training.mirror import mirror_for
 
 

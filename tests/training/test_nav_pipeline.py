@@ -12,10 +12,10 @@ import numpy as np
 import onnx
 import pytest
 
-from companion.errors import UserError
-from companion.framestack import FrameStack
-from companion.observation import ObservationLayout
-from companion.policy import OnnxPolicy, PolicySpec
+from companion.common.errors import UserError
+from companion.guidance.policy import OnnxPolicy, PolicySpec
+from companion.perception.framestack import FrameStack
+from companion.perception.observation import ObservationLayout
 from training.__main__ import main
 
 TINY_NAV = """

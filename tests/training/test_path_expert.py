@@ -12,11 +12,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from companion.drift import DriftHoldConfig
-from flightsim.autopilot_response import _S_BX, _S_BY
-from flightsim.families import FAMILIES
-from flightsim.nav_env import LidarNavEnv, NavEnvConfig
-from flightsim.world import Box, World, clearances
+from companion.perception.drift import DriftHoldConfig
+from flightsim.envs.nav_env import LidarNavEnv, NavEnvConfig
+from flightsim.vehicle.autopilot_response import _S_BX, _S_BY
+from flightsim.worlds.families import FAMILIES
+from flightsim.worlds.world import Box, World, clearances
 from training.config import load_train_config
 from training.path_expert import PathExpert, PathExpertConfig, _stopping_speed
 

@@ -18,9 +18,9 @@ import numpy as np
 import onnx
 import pytest
 
-from companion.errors import UserError
-from companion.framestack import FrameStack
-from companion.policy import OnnxPolicy, PolicySpec
+from companion.common.errors import UserError
+from companion.guidance.policy import OnnxPolicy, PolicySpec
+from companion.perception.framestack import FrameStack
 from training.__main__ import main
 
 WORLDS = Path(__file__).parents[2] / "flightsim" / "worlds"
@@ -126,7 +126,7 @@ def test_vecframestack_sb3_and_companion_framestack_onnx_act_the_same(pipeline):
     from stable_baselines3 import PPO
 
     from training.config import load_train_config
-    from training.train import make_vec_env
+    from training.vec_env import make_vec_env
 
     onnx_path = pipeline["onnx"]
     model = PPO.load(pipeline["run_dir"] / "final_model.zip", device="cpu")

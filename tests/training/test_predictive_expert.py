@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from flightsim.nav_env import LidarNavEnv, NavEnvConfig
-from flightsim.world import Box, World, clearances
+from flightsim.envs.nav_env import LidarNavEnv, NavEnvConfig
+from flightsim.worlds.world import Box, World, clearances
 from tests.training.test_path_expert import (
     RADIUS,
     corridor,

@@ -10,9 +10,9 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from flightsim.autopilot_response import AutopilotResponse, ResponseParams
-from flightsim.nav_env import LidarNavEnv, NavEnvConfig
-from flightsim.world import World
+from flightsim.envs.nav_env import LidarNavEnv, NavEnvConfig
+from flightsim.vehicle.autopilot_response import AutopilotResponse, ResponseParams
+from flightsim.worlds.world import World
 from tests.training.test_path_expert import RADIUS, corridor
 from tests.training.test_predictive_expert import wall_ahead
 from training.predictive_expert import PredictiveExpert, pick, robust_expert

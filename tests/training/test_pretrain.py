@@ -9,7 +9,8 @@ import numpy as np
 
 from training.config import load_train_config
 from training.pretrain import Demonstrations, collect, discounted_returns, fit, proximity_weights
-from training.train import build_model, label_mirror, label_weights, make_vec_env
+from training.train import build_model, label_mirror, label_weights
+from training.vec_env import make_vec_env
 
 NAV = """
 env_id = "flightsim/LidarNav-v0"

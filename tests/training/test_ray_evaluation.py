@@ -12,7 +12,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 
-from flightsim.companion_setup import free_tcp_port
+from flightsim.sitl.companion_setup import free_tcp_port
 from tests.onnx_models import write_policy
 from tests.training.ray_head import ray_head as start_ray_head
 from training.__main__ import main
@@ -30,10 +30,9 @@ CONFIG = (
 def config(tmp_path_factory):
     """The config, and beside it a small ONNX policy for its observation layout (``policy.onnx``),
     which every worker loads from its path."""
-    from companion.policy import PolicySpec
-    from companion.scan import BIN_CONVENTION, N_BINS
-    from training.config import load_train_config
-    from training.controllers import observation_layout
+    from companion.guidance.policy import PolicySpec
+    from companion.perception.scan import BIN_CONVENTION, N_BINS
+    from training.config import load_train_config, observation_layout
 
     path = tmp_path_factory.mktemp("ray-evaluation") / "nav.toml"
     path.write_text(CONFIG)

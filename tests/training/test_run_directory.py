@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from companion.errors import UserError
+from companion.common.errors import UserError
 from tests.foreground import start_foreground
 from training.__main__ import main
 from training.train import EVAL_FIELDS, checkpoint_steps, truncate_eval_log, write_eval_log
@@ -163,7 +163,7 @@ class Missing(importlib.abc.MetaPathFinder):
         return None
 
 sys.meta_path.insert(0, Missing())
-from companion.errors import UserError
+from companion.common.errors import UserError
 from training.__main__ import main
 sys.exit(main(["train", "--config", {config!r}, "run_root={runs}"]))
 """

@@ -1,9 +1,9 @@
-"""Training, validation and test worlds never share a seed (flightsim/seeds.py is the one place)."""
+"""Training, validation and test worlds never share a seed (flightsim/envs/seeds.py is the one place)."""
 
 from itertools import combinations
 
-from flightsim import seeds
-from flightsim.env import TRAIN_SEED_OFFSET
+from flightsim.envs import seeds
+from flightsim.envs.env import TRAIN_SEED_OFFSET
 from training.config import EvalConfig, load_train_config
 
 

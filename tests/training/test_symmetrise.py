@@ -12,9 +12,9 @@ import onnxruntime as ort
 import pytest
 
 from companion.app import policy_spec
+from companion.common.errors import UserError
 from companion.config import CompanionConfig
-from companion.errors import UserError
-from companion.policy import OnnxPolicy
+from companion.guidance.policy import OnnxPolicy
 from training.__main__ import main
 from training.symmetrise import SYMMETRISED_KEY, mirror_of, symmetrise_onnx
 

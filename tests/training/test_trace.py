@@ -8,7 +8,7 @@ import math
 import pytest
 
 from companion.config import CompanionShieldConfig
-from companion.shield import ShieldConfig
+from companion.safety.shield import ShieldConfig
 from training.__main__ import main
 from training.controllers import ControllerSpec
 from training.episodes import make_tasks, run_task

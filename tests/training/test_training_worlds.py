@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from flightsim.env import TRAIN_SEED_OFFSET, EnvConfig, LidarAvoidEnv
-from training.train import TrainingWorlds
+from flightsim.envs.env import TRAIN_SEED_OFFSET, EnvConfig, LidarAvoidEnv
+from training.vec_env import TrainingWorlds
 
 
 def test_narrow_rooms_are_drawn_in_range_and_seeds_stay_out_of_evaluation() -> None:

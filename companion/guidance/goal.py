@@ -1,0 +1,199 @@
+"""Goal tracking (pure): where the vehicle is, which waypoint is next, and that goal in the body frame.
+
+:class:`NavInputs` keeps the navigation messages the autopilot streams (LOCAL_POSITION_NED for the
+position, ATTITUDE or GLOBAL_POSITION_INT for the heading, GPS_GLOBAL_ORIGIN or GLOBAL_POSITION_INT
+beside LOCAL_POSITION_NED for the origin). :class:`GoalTracker` walks a list of local-NED waypoints:
+each is reached within its acceptance radius, progress is reported as events, and every update says
+either where the current waypoint is in the body frame or why the vehicle must hold.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+from companion.guidance.goal_frames import GlobalOrigin, ned_to_body_flu, offset_global
+
+#: LOCAL_POSITION_NED older than this is no position at all, seconds (then: HOLD).
+POSITION_TIMEOUT_S = 1.0
+#: GLOBAL_POSITION_INT and LOCAL_POSITION_NED this close in time describe the same instant, seconds.
+ORIGIN_PAIRING_S = 0.2
+#: Gain of the altitude loop: vertical speed per metre of height error, 1/s.
+VERTICAL_GAIN = 1.0
+
+
+@dataclass(frozen=True)
+class Waypoint:
+    """A goal in local NED metres.
+
+    :param north: metres north of the origin
+    :param east: metres east of the origin
+    :param down: metres below the origin (negative: above)
+    :param acceptance_radius: reached within this distance, metres (None: the configured one)
+    :param label: how announcements name it (a mission item's sequence number, or "fixed 2")
+    :param seq: the mission item it came from (MISSION_ITEM_REACHED names it); None: not a mission's
+    """
+
+    north: float
+    east: float
+    down: float
+    acceptance_radius: float | None = None
+    label: str = ""
+    seq: int | None = None
+
+    def distance(self, position: tuple[float, float, float]) -> float:
+        return math.dist((self.north, self.east, self.down), position)
+
+
+@dataclass
+class NavInputs:
+    """The latest navigation messages from the autopilot, with the clock times they arrived."""
+
+    position: tuple[float, float, float] | None = None
+    position_time: float = -math.inf
+    heading: float | None = None
+    origin: GlobalOrigin | None = None
+    origin_from_gps_origin: bool = False
+    home_amsl: float | None = None
+    _global: tuple[float, Any] | None = field(default=None, repr=False)
+
+    def on_message(self, msg: Any, now: float) -> None:
+        """Take one decoded MAVLink message (others are ignored)."""
+        kind = msg.get_type()
+        if kind == "LOCAL_POSITION_NED":
+            values = (float(msg.x), float(msg.y), float(msg.z))
+            if all(math.isfinite(v) for v in values):
+                self.position, self.position_time = values, now
+                self._pair_origin(now)
+        elif kind == "ATTITUDE":
+            if math.isfinite(msg.yaw):
+                self.heading = float(msg.yaw)
+        elif kind == "GLOBAL_POSITION_INT":
+            self.home_amsl = (msg.alt - msg.relative_alt) / 1000.0
+            if msg.hdg != 65535:
+                self.heading = math.radians(msg.hdg / 100.0)
+            self._global = (now, msg)
+            self._pair_origin(now)
+        elif kind == "GPS_GLOBAL_ORIGIN":
+            self.origin = GlobalOrigin(int(msg.latitude), int(msg.longitude), msg.altitude / 1000.0)
+            self.origin_from_gps_origin = True
+        elif kind == "HOME_POSITION":
+            self.home_amsl = msg.altitude / 1000.0
+
+    def _pair_origin(self, now: float) -> None:
+        """Without GPS_GLOBAL_ORIGIN: origin = global position minus local position, same instant."""
+        if self.origin_from_gps_origin or self._global is None or self.position is None:
+            return
+        t, g = self._global
+        if abs(self.position_time - t) > ORIGIN_PAIRING_S or (g.lat == 0 and g.lon == 0):
+            return
+        n, e, d = self.position
+        lat, lon = offset_global(g.lat, g.lon, -n, -e)
+        self.origin = GlobalOrigin(round(lat), round(lon), g.alt / 1000.0 + d)
+
+    def position_fresh(self, now: float) -> bool:
+        return self.position is not None and now - self.position_time <= POSITION_TIMEOUT_S
+
+
+@dataclass(frozen=True)
+class GoalOutput:
+    """One update's answer.
+
+    :param hold_reason: why the vehicle must hold (None: fly toward ``goal_body``)
+    :param goal_body: the current waypoint from the vehicle, body FLU metres (x forward, y left, z up)
+    :param vertical_speed: climb rate toward the waypoint's height, up positive, bounded, m/s
+    :param index: index of the current waypoint (== number of waypoints when complete)
+    :param complete: every waypoint reached
+    """
+
+    hold_reason: str | None
+    goal_body: tuple[float, float, float] | None = None
+    vertical_speed: float = 0.0
+    index: int = 0
+    complete: bool = False
+
+
+class GoalTracker:
+    """Walk the waypoints in order; report each reached one and the end.
+
+    :param acceptance_radius: the radius for waypoints that carry none, metres
+    :param max_vertical_speed: bound of :attr:`GoalOutput.vertical_speed`, m/s
+    """
+
+    def __init__(self, acceptance_radius: float, max_vertical_speed: float) -> None:
+        self._radius = acceptance_radius
+        self._max_vz = max_vertical_speed
+        self.waypoints: tuple[Waypoint, ...] = ()
+        self.index = 0
+        self.events: list[str] = []  # progress to announce, oldest first (drained by the caller)
+        self.reached_items: list[int] = []  # mission items reached, for MISSION_ITEM_REACHED (drained)
+        self._reached: list[tuple[float, float, float]] = []
+        self._completed_announced = False
+
+    def radius(self, wp: Waypoint) -> float:
+        return wp.acceptance_radius if wp.acceptance_radius else self._radius
+
+    def set_waypoints(self, waypoints: tuple[Waypoint, ...] | list[Waypoint],
+                      position: tuple[float, float, float] | None) -> None:
+        """A new list. The first one starts at its first waypoint; a changed one resumes at the
+        nearest waypoint not yet reached (within its radius of one reached before), or without a
+        position at the first not yet reached.
+        """
+        if tuple(waypoints) == self.waypoints:
+            return  # downloaded again but unchanged: carry on where we are
+        first = not self.waypoints and not self._reached
+        self.waypoints = tuple(waypoints)
+        self._completed_announced = False
+        todo = [i for i, wp in enumerate(self.waypoints)
+                if not any(wp.distance(p) <= self.radius(wp) for p in self._reached)]
+        if not todo:
+            self.index = len(self.waypoints)
+        elif position is None or first:
+            self.index = todo[0]
+        else:
+            self.index = min(todo, key=lambda i: (self.waypoints[i].distance(position), i))
+        if self.waypoints and self.index < len(self.waypoints):
+            self.events.append(f"goal: {len(self.waypoints)} waypoints, next {self._name(self.index)}")
+
+    def _name(self, i: int) -> str:
+        return self.waypoints[i].label or f"waypoint {i + 1}"
+
+    def update(self, nav: NavInputs, now: float) -> GoalOutput:
+        """Advance past reached waypoints; say where the current one is, or why to hold."""
+        if not self.waypoints:
+            return GoalOutput("no waypoints")
+        if not nav.position_fresh(now):
+            return GoalOutput("no position", index=self.index)
+        assert nav.position is not None
+        pos = nav.position
+        while self.index < len(self.waypoints):
+            wp = self.waypoints[self.index]
+            if wp.distance(pos) > self.radius(wp):
+                break
+            self._reached.append((wp.north, wp.east, wp.down))
+            if wp.seq is not None:
+                self.reached_items.append(wp.seq)
+            self.events.append(f"goal: reached {self._name(self.index)} "
+                               f"({self.index + 1}/{len(self.waypoints)})")
+            self.index += 1
+        if self.index >= len(self.waypoints):
+            if not self._completed_announced:
+                self.events.append("goal: complete, holding")
+                self._completed_announced = True
+            return GoalOutput("goal complete", index=self.index, complete=True)
+        if nav.heading is None:
+            return GoalOutput("no heading", index=self.index)
+        wp = self.waypoints[self.index]
+        delta = (wp.north - pos[0], wp.east - pos[1], wp.down - pos[2])
+        body = ned_to_body_flu(delta, nav.heading)
+        vz = max(-self._max_vz, min(self._max_vz, VERTICAL_GAIN * body[2]))
+        return GoalOutput(None, goal_body=body, vertical_speed=vz, index=self.index)
+
+    def drain_events(self) -> list[str]:
+        out, self.events = self.events, []
+        return out
+
+    def drain_reached_items(self) -> list[int]:
+        out, self.reached_items = self.reached_items, []
+        return out

@@ -1,0 +1,272 @@
+"""``avoid-sim demo``: the whole system on a fresh machine in under three minutes.
+
+A few short SITL mission flights (:mod:`flightsim.sitl.harness`, as ``avoid-sim fly --mission``): three
+generated worlds of different families and the example worlds shipped in ``flightsim/worlds/``,
+each with its waypoints uploaded as a mission through the ground-station link; the shipped policy,
+the simulated ArduCopter (or PX4), the real companion process flying the mission. A flight ends
+when the companion announces the mission complete, or at the goal task's time limit (the one
+``avoid-train evaluate`` judges success by), so a demo mission succeeds as an evaluation episode
+does. Flights run :data:`LANES` at a time, each in its own process, so that even with every flight
+timed out the demo ends within three minutes. Prints one table row per flight as it ends, then the
+table in the worlds' order and where the top-down PNGs are.
+
+``--worlds validation`` flies instead every world family twice, at validation seeds (difficulties
+0.35 and 0.75): the SITL check of a policy or shield change before the test worlds are flown.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import multiprocessing
+import signal
+import time
+from concurrent.futures import CancelledError, Future, ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from companion.cli import LOG_FORMAT
+from companion.common.errors import UserError
+from flightsim.envs import seeds
+from flightsim.envs.env import CONTROL_HZ
+from flightsim.envs.nav_env import NavEnvConfig, time_limit_steps
+from flightsim.sitl.flight_report import INTERRUPTED, FlightReport
+from flightsim.sitl.fly_cli import default_policy
+from flightsim.sitl.harness import FlightOptions, run_flight
+from flightsim.worlds.families import FAMILIES, generate_family_world
+from flightsim.worlds.planner import shortest_safe_path
+from flightsim.worlds.world import DEFAULT_VEHICLE_RADIUS, World, load_world
+
+#: (family, seed, difficulty) of the generated worlds: held-out test seeds, never trained on
+GENERATED = (
+    ("forest", seeds.TEST.start + 1, 0.3),
+    ("office", seeds.TEST.start + 1, 0.3),
+    ("pillars", seeds.TEST.start + 1, 0.3),
+)
+#: the difficulties ``--worlds validation`` flies each family at, one seed each
+VALIDATION_DIFFICULTIES = (0.35, 0.75)
+#: flights flown at once, each in its own process: a flight takes about a third of one core (the
+#: simulated autopilot, the lidar packets and the companion), and this machine class has two
+LANES = 2
+
+
+def demo_worlds() -> list[World]:
+    """The generated worlds, then every example world shipped with the package (all with waypoints)."""
+    worlds = [generate_family_world(family, seed, difficulty) for family, seed, difficulty in GENERATED]
+    shipped = resources.files("flightsim") / "worlds"
+    for entry in sorted(shipped.iterdir(), key=lambda p: p.name):
+        if entry.name.endswith(".json"):
+            with resources.as_file(entry) as path:
+                worlds.append(load_world(path))
+    return worlds
+
+
+def validation_worlds() -> list[World]:
+    """Every family at each of :data:`VALIDATION_DIFFICULTIES`, each at its own validation seed (the
+    family's index modulo 5 from the first, 5 on for the second difficulty): 18 worlds that no
+    training run and no test figure flies."""
+    first = seeds.VALIDATION.start
+    return [
+        generate_family_world(family, first + i % 5 + 5 * j, difficulty)
+        for j, difficulty in enumerate(VALIDATION_DIFFICULTIES)
+        for i, family in enumerate(FAMILIES)
+    ]
+
+
+def time_limit(world: World) -> float:
+    """Seconds of companion flight a world's mission gets: the goal task's time limit
+    (:func:`flightsim.envs.nav_env.time_limit_steps`, from the world's shortest safe path)."""
+    length = world.shortest_path_m
+    if length is None:
+        path = shortest_safe_path(world, vehicle_radius=DEFAULT_VEHICLE_RADIUS)
+        length = path.length if path is not None else 0.0
+    return time_limit_steps(float(length), NavEnvConfig()) / CONTROL_HZ
+
+
+def lane_schedule(durations: list[float], lanes: int = LANES) -> float:
+    """When the last of ``durations`` ends, each started in order on the first lane free (s): how
+    :class:`~concurrent.futures.ProcessPoolExecutor` hands out the flights."""
+    free = [0.0] * lanes
+    for duration in durations:
+        lane = free.index(min(free))
+        free[lane] += duration
+    return max(free, default=0.0)
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--policy", help="ONNX policy (default: the shipped models/policy.onnx)")
+    parser.add_argument(
+        "--duration", type=float, default=None,
+        help="seconds of companion flight per world at most (default: the goal task's time limit, "
+        "from the world's shortest safe path)",
+    )
+    parser.add_argument(
+        "--worlds", choices=("demo", "validation"), default="demo",
+        help="demo: the generated and example worlds (under 3 minutes); validation: every family at "
+        "two validation seeds and difficulties (18 flights, about 8 minutes)",
+    )
+    parser.add_argument("--out", default="avoid-sim-demo", help="directory for PNGs, logs and summary.json")
+    parser.add_argument(
+        "--autopilot",
+        choices=("sim-ardupilot", "sim-px4"),
+        default="sim-ardupilot",
+        help="simulated autopilot personality (sim-ardupilot)",
+    )
+    parser.add_argument(
+        "--ideal-response",
+        action="store_true",
+        help="fly setpoints as given, not with the firmware's calibrated (slower) response",
+    )
+
+
+def command(args: argparse.Namespace) -> int:
+    if args.duration is not None and args.duration <= 0:
+        raise UserError(f"--duration must be positive, got {args.duration}")
+    policy = Path(args.policy) if args.policy else default_policy()
+    if not policy.is_file():
+        raise UserError(f"policy file not found: {policy}")
+    out = Path(args.out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"--out {out}: {exc.strerror}") from None
+    verbose = bool(getattr(args, "verbose", False))
+    if not verbose:  # the table is the demo's output; -v shows every step
+        logging.getLogger("flightsim").setLevel(logging.WARNING)
+    worlds = validation_worlds() if args.worlds == "validation" else demo_worlds()
+    lanes = f"{len(worlds)} mission flights, {LANES} at a time"
+    print(f"avoid-sim demo: {lanes}, policy {policy}, {args.autopilot}")
+    start = time.monotonic()
+    flights = [
+        FlightOptions(
+            autopilot=args.autopilot,
+            world=world,
+            policy=policy,
+            duration=args.duration if args.duration is not None else time_limit(world),
+            workdir=out / world.name,
+            mission=True,
+            ideal_response=args.ideal_response,
+        )
+        for world in worlds
+    ]
+    reports = _fly_all(flights, out, verbose)
+    wall = time.monotonic() - start
+    (out / "summary.json").write_text(
+        json.dumps({"wall_time_s": round(wall, 1), "flights": [r.__dict__ for r in reports]}, indent=2)
+    )
+    print(_table(reports))
+    print(f"wall time {wall:.0f} s; plots, companion logs and summary.json in {out.resolve()}")
+    if any(r.error == INTERRUPTED for r in reports):
+        return 130
+    return 0 if all(not r.error for r in reports) else 1
+
+
+def _fly_all(flights: list[FlightOptions], out: Path, verbose: bool) -> list[FlightReport]:
+    """Fly ``flights`` :data:`LANES` at a time; their reports in the same order. On Ctrl-C the
+    flights in the air end themselves (each process gets the signal and cleans up its flight),
+    those not started are cancelled and reported as interrupted."""
+    reports: dict[int, FlightReport] = {}
+    context = multiprocessing.get_context("spawn")  # no inherited threads; logging set up again
+    stop = context.Event()  # set on Ctrl-C: a flight already handed to a process does not start
+    with ProcessPoolExecutor(LANES, context, initializer=_start_worker, initargs=(verbose, stop)) as pool:
+        futures: dict[Future[FlightReport], int] = {
+            pool.submit(_fly, options, out / f"{options.world.name}.png"): i
+            for i, options in enumerate(flights)
+        }
+        try:
+            for future in as_completed(futures):
+                reports[futures[future]] = report = _result(future, flights[futures[future]])
+                print(_row(report), flush=True)
+        except KeyboardInterrupt:
+            stop.set()
+            for future in futures:
+                future.cancel()
+            for future, i in futures.items():
+                if i not in reports:
+                    reports[i] = _result(future, flights[i])
+    return [reports[i] for i in range(len(flights))]
+
+
+def _result(future: Future[FlightReport], options: FlightOptions) -> FlightReport:
+    """A flight's report, or the report of one cancelled by Ctrl-C or whose process died (any
+    other error in a flight process is raised here, as it would be flying in this one)."""
+    try:
+        return future.result()
+    except CancelledError:
+        return FlightReport.failed(options.world.name, options.autopilot, INTERRUPTED)
+    except BrokenProcessPool as exc:
+        return FlightReport.failed(options.world.name, options.autopilot, f"its process died ({exc})")
+
+
+_VEHICLE: Any = None  # a worker process's JSBSim vehicle, loaded once for all its flights
+_STOP: Any = None  # the demo's Ctrl-C event, shared by its worker processes
+
+
+def _start_worker(verbose: bool, stop: Any) -> None:
+    """A flight process: the demo's logging, its Ctrl-C event, and Ctrl-C ignored between flights
+    (see :func:`_fly`)."""
+    global _STOP
+    _STOP = stop
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, format=LOG_FORMAT)
+    if not verbose:
+        logging.getLogger("flightsim").setLevel(logging.WARNING)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _fly(options: FlightOptions, plot: Path) -> FlightReport:
+    """One flight in a worker process; Ctrl-C during it ends it as ``avoid-sim fly`` does, and one
+    before it (the pool hands a process its next flight early) keeps it on the ground."""
+    global _VEHICLE
+    interrupted = FlightReport.failed(options.world.name, options.autopilot, INTERRUPTED)
+    if _STOP.is_set():
+        return interrupted
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        if _VEHICLE is None:
+            from flightsim.vehicle.quadrotor import Vehicle
+
+            _VEHICLE = Vehicle()
+        report = run_flight(options, plot=plot, vehicle=_VEHICLE)
+    except RuntimeError as exc:  # this flight could not start; the others go on
+        report = FlightReport.failed(options.world.name, options.autopilot, str(exc))
+    except KeyboardInterrupt:  # before the flight's own handling took over
+        report = interrupted
+    finally:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if report.error == INTERRUPTED:  # before this process takes its next flight, whatever the demo does
+        _STOP.set()
+    return report
+
+
+HEADER = (
+    f"{'world':<20} {'engaged':>7} {'waypoints':>9} {'complete':>8} {'time s':>6} {'collision':>9} "
+    f"{'dist m':>6} {'min clr m':>9}"
+)
+
+
+def _cell(value: float | None, width: int, fmt: str) -> str:
+    """A figure right-aligned in its column, "n/a" where the flight measured none."""
+    return f"{'n/a' if value is None else format(value, fmt):>{width}}"
+
+
+def _row(r: FlightReport) -> str:
+    waypoints = f"{len(r.waypoints_reached)}/{r.waypoints_total}"
+    line = (
+        f"{r.world:<20} {'yes' if r.engaged else 'NO':>7} {waypoints:>9} "
+        f"{'yes' if r.mission_complete else 'no':>8} "
+        f"{_cell(r.mission_time_s if r.mission_complete else None, 6, '.1f')} "
+        f"{'YES' if r.collision else 'no':>9} {r.distance_m:>6.1f} {_cell(r.min_clearance_m, 9, '.2f')}"
+    )
+    return line + (f"  ({r.error})" if r.error else "")
+
+
+def _table(reports: list[FlightReport]) -> str:
+    lines = ["", HEADER, "-" * len(HEADER)]
+    lines += [_row(r) for r in reports]
+    complete = sum(r.mission_complete and not r.collision for r in reports)
+    lines += ["", f"{complete}/{len(reports)} missions complete without collision"]
+    lines += ["", "plots:"] + [f"  {r.plot}" for r in reports]
+    return "\n".join(lines)

@@ -1,0 +1,121 @@
+"""``avoid-sim fly``: one SITL flight from the command line (world, policy, autopilot), its report printed.
+
+Apart from :mod:`flightsim.sitl.harness` because the command line (arguments, their checks, the shipped
+policy, exit codes) is not the flight: the demo, the benchmarks and the SITL tests fly through the
+harness without it.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Any
+
+from companion.common.errors import UserError
+from flightsim.sitl.flight_report import INTERRUPTED, print_report
+from flightsim.sitl.harness import AUTOPILOTS, FlightOptions, run_flight
+from flightsim.worlds.world import World, generate_world, load_world
+
+
+def load_flight_world(world_file: str | None, seed: int | None, difficulty: float) -> World:
+    """``--world FILE`` or ``--seed N --difficulty D`` (UserError naming the problem)."""
+    if world_file and seed is not None:
+        raise UserError("give either --world or --seed, not both")
+    if world_file:
+        return load_world(world_file)
+    if not 0.0 <= difficulty <= 1.0:
+        raise UserError(f"--difficulty must be within [0, 1], got {difficulty}")
+    if seed is not None and seed < 0:
+        raise UserError(f"--seed must be a non-negative integer, got {seed}")
+    return generate_world(0 if seed is None else seed, difficulty)
+
+
+def default_policy() -> Path:
+    """The shipped policy (``models/policy.onnx`` in the checkout or the package's copy)."""
+    here = Path(__file__).resolve().parents[1]  # the flightsim package
+    for candidate in (here.parent / "models" / "policy.onnx", here / "models" / "policy.onnx"):
+        if candidate.is_file():
+            return candidate
+    raise UserError(
+        "no shipped policy found (models/policy.onnx): train and export one with `avoid-train`, "
+        "or pass --policy FILE"
+    )
+
+
+def configure_parser(parser: Any) -> None:
+    """``avoid-sim fly``."""
+    parser.add_argument(
+        "--autopilot",
+        choices=AUTOPILOTS,
+        default="sim-ardupilot",
+        help="simulated ArduCopter, simulated PX4, or an external SITL (default sim-ardupilot)",
+    )
+    parser.add_argument(
+        "--connect",
+        default="",
+        help="external SITL's MAVLink address (pymavlink string, e.g. tcp:127.0.0.1:5760)",
+    )
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument("--world", help="world JSON file (e.g. flightsim/worlds/slalom.json)")
+    where.add_argument("--seed", type=int, help="generate a room from this seed")
+    parser.add_argument("--difficulty", type=float, default=0.5, help="generated room difficulty 0..1 (0.5)")
+    parser.add_argument("--policy", help="ONNX policy (default: the shipped models/policy.onnx)")
+    parser.add_argument("--duration", type=float, default=30.0, help="seconds the companion flies (30)")
+    parser.add_argument(
+        "--lidar-step",
+        type=float,
+        default=0.2,
+        choices=(0.2, 1.0),
+        help="ray-cast azimuth step in degrees: 0.2 like the VLP-16, 1.0 to save CPU",
+    )
+    parser.add_argument("--signed", action="store_true",
+                        help="MAVLink 2 signing on every link: autopilot, GCS, companion (sim autopilots)")
+    parser.add_argument("--mission", action="store_true",
+                        help="upload the world's waypoints as a mission (GCS) and fly it "
+                        "(goal.source = mission)")
+    parser.add_argument(
+        "--ideal-response",
+        action="store_true",
+        help="simulated autopilots: fly setpoints as given, not with the firmware's calibrated response",
+    )
+    parser.add_argument("--json", help="write the flight report as JSON here")
+    parser.add_argument("--plot", help="write a top-down PNG of the flight here")
+    parser.add_argument("--workdir", help="where the companion's config and log go (default: a temp dir)")
+
+
+def command(args: Any) -> int:
+    """Fly once as the command line says: exit 0, 1 when the flight failed, 130 on Ctrl-C."""
+    import tempfile
+
+    if args.duration <= 0:
+        raise UserError(f"--duration must be positive, got {args.duration}")
+    world = load_flight_world(args.world, args.seed, args.difficulty)
+    policy = Path(args.policy) if args.policy else default_policy()
+    workdir = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="avoid-sim-fly-"))
+    options = FlightOptions(
+        autopilot=args.autopilot,
+        world=world,
+        policy=policy,
+        duration=args.duration,
+        connect=args.connect,
+        lidar_step_deg=args.lidar_step,
+        workdir=workdir,
+        signed=args.signed,
+        mission=args.mission,
+        ideal_response=args.ideal_response,
+    )
+    try:
+        report = run_flight(options, plot=Path(args.plot) if args.plot else None)
+    except KeyboardInterrupt:  # during start-up; run_flight cleaned up on its way out
+        print("avoid-sim fly: interrupted", file=sys.stderr)
+        return 130
+    except RuntimeError as exc:  # start-up failed (no autopilot heartbeat, ...): one line, no traceback
+        print(f"avoid-sim fly: error: {exc}", file=sys.stderr)
+        return 1
+    print_report(report)
+    print(f"companion log: {workdir / 'companion.log'}")
+    if args.json:
+        Path(args.json).write_text(report.to_json())
+    if report.error == INTERRUPTED:
+        return 130  # as a shell reports a command Ctrl-C stopped
+    return 0 if not report.error else 1
