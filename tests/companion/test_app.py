@@ -427,7 +427,7 @@ def test_inference_faults_never_engage_and_never_crash(tmp_path):
     try:
         _run_for(companion, lidar, 1.5)
         assert companion.counters["inference_faults"] >= 8
-        assert companion.safety.supervisor.state.value == "STANDBY"
+        assert companion.supervisor.state.value == "STANDBY"
         assert vehicle.messages(SETPOINT) == []
         assert vehicle.messages("OBSTACLE_DISTANCE")  # the autopilot's own layer still gets the scans
     finally:
