@@ -1,12 +1,12 @@
 """Every command the README and the docs mark runnable works as written, with the shipped model.
 
-A shell block preceded by ``<!-- run -->`` is run here line by line, in a scratch directory that
-sees the repository's files (``models/policy.onnx``, ``training/configs/``, ``flightsim/worlds/``)
-where the docs say they are; a line that an earlier block already ran is run once. Where the
-full run takes minutes, the command runs in a cheap form: the substitutions below change only
-how long it runs (fewer worlds, seconds, steps), never what it is, and each says why. A block
-that cannot run here says why in its ``<!-- norun: ... -->`` marker (tests/test_docs.py checks
-that every block has one of the two).
+A shell block preceded by ``<!-- run -->`` is run here line by line (a Python block whole), in
+a scratch directory that sees the repository's files (``models/policy.onnx``,
+``training/configs/``, ``flightsim/worlds/``) where the docs say they are; a line that an earlier
+block already ran is run once. Where the full run takes minutes, the command runs in a cheap
+form: the substitutions below change only how long it runs (fewer worlds, seconds, steps), never
+what it is, and each says why. A block that cannot run here says why in its
+``<!-- norun: ... -->`` marker (tests/test_docs.py checks that every block has one of the two).
 """
 
 from __future__ import annotations
@@ -50,10 +50,13 @@ def runnable_blocks() -> list[tuple[str, list[str]]]:
     blocks = []
     for doc in DOCS:
         text = (REPO / doc).read_text()
-        for match in re.finditer(r"<!-- run -->\n```(?:sh|bash)\n(.*?)```", text, re.S):
-            body = match.group(1).replace("\\\n", " ")
-            commands = [line.strip() for line in body.splitlines() if line.strip() and line[0] != "#"]
+        for match in re.finditer(r"<!-- run -->\n```(sh|bash|python)\n(.*?)```", text, re.S):
             line_no = text[: match.start()].count("\n") + 2
+            if match.group(1) == "python":
+                blocks.append((f"{doc}:{line_no}", [f"python3 - <<'EOF'\n{match.group(2)}EOF"]))
+                continue
+            body = match.group(2).replace("\\\n", " ")
+            commands = [line.strip() for line in body.splitlines() if line.strip() and line[0] != "#"]
             blocks.append((f"{doc}:{line_no}", commands))
     return blocks
 
@@ -81,7 +84,8 @@ def test_every_runnable_command_names_a_program_of_the_project():
     assert len(blocks) >= 10, "the docs mark fewer runnable blocks than they did"
     for where, commands in blocks:
         for command in commands:
-            assert re.match(r"(avoid-(sim|train|companion)|python3 -m venv) ", command), (where, command)
+            program = r"(avoid-(sim|train|companion)|python3 -m venv|python3 -) "
+            assert re.match(program, command), (where, command)
 
 
 def test_the_cheap_forms_change_only_how_long_a_command_runs():
