@@ -65,8 +65,11 @@ def _import(dotted: str) -> Any:
 
 
 def _md(text: str) -> str:
-    """One table cell: no newlines, no bare pipes."""
-    return " ".join(text.split()).replace("|", "\\|")
+    """One table cell: no newlines, no bare pipes, and ``<name>`` outside code spans shown, not
+    read as HTML."""
+    parts = " ".join(text.split()).replace("|", "\\|").split("`")
+    parts[::2] = [p.replace("<", "&lt;").replace(">", "&gt;") for p in parts[::2]]
+    return "`".join(parts)
 
 
 def _rst_to_md(text: str) -> str:
@@ -110,7 +113,8 @@ def _option_row(action: argparse.Action, prog: str) -> str:
     if action.choices is not None and not isinstance(action.choices, dict):
         help_text += f" (one of: {', '.join(f'`{c}`' for c in action.choices)})"
     default = action.default
-    if default in (None, False, argparse.SUPPRESS) or action.nargs == 0:
+    empty = isinstance(default, (list, tuple, set, frozenset, dict)) and not default
+    if default in (None, False, argparse.SUPPRESS) or action.nargs == 0 or empty:
         shown = ""
     else:
         shown = '`""`' if default == "" else f"`{default}`"
@@ -125,7 +129,7 @@ def cli_page(prog: str) -> str:
         "",
         f"{purpose[0].upper()}{purpose[1:]}. Generated from the program's argparse parsers.",
         f"`{prog} -v COMMAND ...` logs debug messages. A bad argument or input file is one line "
-        "`PROG: error: ...` and exit status 2.",
+        f"`{prog}: error: ...` and exit status 2.",
         "",
     ]
     for name, help_text, parser in _subcommand_parsers(prog):
