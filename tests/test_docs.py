@@ -80,10 +80,11 @@ def test_how_the_shipped_policy_was_made_is_one_short_page():
 
 @pytest.mark.parametrize(
     "path",
-    ["README.md", "config/companion.example.toml", *sorted(
-        str(p.relative_to(REPO)) for p in (REPO / "training" / "configs").glob("*.toml"))],
-)
-def test_readme_and_config_comments_carry_no_run_history(path):
+    ["README.md", "config/companion.example.toml",
+     *sorted(str(p.relative_to(REPO)) for p in (REPO / "docs").glob("*.md")),
+     *sorted(str(p.relative_to(REPO)) for p in (REPO / "training" / "configs").glob("*.toml"))],
+)  # fmt: skip
+def test_readme_docs_and_config_comments_carry_no_run_history(path):
     text = (REPO / path).read_text()
     if path.endswith(".toml"):
         text = "\n".join(line for line in text.splitlines() if line.lstrip().startswith("#"))
