@@ -273,6 +273,24 @@ def _table_sections(cls: type, table: str) -> list[str]:
     return sections
 
 
+def _default(f: dataclasses.Field) -> Any:
+    if f.default is not dataclasses.MISSING:
+        return f.default
+    return f.default_factory() if f.default_factory is not dataclasses.MISSING else None
+
+
+def default_differences(base: type, derived: type) -> list[str]:
+    """Table rows of the fields whose default (or type) ``derived`` changes from ``base``."""
+    hints_base, hints_derived = typing.get_type_hints(base), typing.get_type_hints(derived)
+    derived_fields = {f.name: f for f in dataclasses.fields(derived)}
+    rows = []
+    for f in dataclasses.fields(base):
+        other = derived_fields[f.name]
+        if _default(f) != _default(other) or hints_base[f.name] != hints_derived[f.name]:
+            rows.append(f"| `{f.name}` | `{_toml_value(_default(f))}` | `{_toml_value(_default(other))}` |")
+    return rows
+
+
 def config_page(title: str, intro: str, tables: list[tuple[str, str]]) -> str:
     """A reference page of config keys, one section per TOML table."""
     lines = [f"# {title}", "", intro, "", "Generated from the config dataclasses' docstrings.", ""]
@@ -280,6 +298,18 @@ def config_page(title: str, intro: str, tables: list[tuple[str, str]]) -> str:
         cls = _import(dotted)
         lines += [f"<!-- {dotted} -->", ""]
         lines += _table_sections(cls, table)
+        base = next((b for b in cls.__mro__[1:] if dataclasses.is_dataclass(b)), None)
+        if base is not None:
+            lines += [
+                f"## `[{table}]` defaults of `{base.__name__}`",
+                "",
+                f"`{cls.__name__}` above adds to `{base.__name__}` and changes these defaults:",
+                "",
+                f"| key | `{base.__name__}` | `{cls.__name__}` |",
+                "| --- | --- | --- |",
+                *default_differences(base, cls),
+                "",
+            ]
     return "\n".join(lines)
 
 
