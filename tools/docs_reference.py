@@ -5,9 +5,9 @@ subcommand module's ``configure_parser``), and every config key from the config 
 its type, default and range from the field, its meaning from the class docstring's ``:param:``
 line or the ``#:`` comment above the field.
 
-Used two ways: as a MkDocs hook (``hooks:`` in ``mkdocs.yml``; the pages are added to the build,
-never written into ``docs/``), and as a script that writes them to a directory to read them:
-``python tools/docs_reference.py OUT_DIR``.
+Used two ways: as a MkDocs hook (``hooks:`` in ``mkdocs.yml``; the pages, and the repository's
+``CHANGELOG.md`` as ``changelog.md``, are added to the build, never written into ``docs/``), and
+as a script that writes them to a directory to read them: ``python tools/docs_reference.py OUT``.
 """
 
 from __future__ import annotations
@@ -327,11 +327,12 @@ def generate_pages() -> dict[str, str]:
 
 
 def on_files(files: Any, config: Any) -> Any:
-    """MkDocs hook: add the generated pages to the build."""
+    """MkDocs hook: add the generated pages to the build, and the repository's CHANGELOG.md."""
     from mkdocs.structure.files import File
 
     for path, text in generate_pages().items():
         files.append(File.generated(config, path, content=text))
+    files.append(File.generated(config, "changelog.md", content=(REPO / "CHANGELOG.md").read_text()))
     return files
 
 
