@@ -38,6 +38,7 @@ TRAINING_BASE = {
     "path_expert",
     "predictive_expert",
     "mirror",
+    "attackers",
     "scan_features",
     "batched_vec_env",
     "vec_env",

@@ -21,6 +21,7 @@ from companion.common.errors import UserError
 from companion.perception.framestack import FrameStack
 from companion.perception.scan import N_BINS
 from companion.safety.shield import Command, SafetyShield, ShieldConfig, command_from_action
+from training.attackers import ATTACKERS, make_attacker
 from training.config import STEP_SECONDS, observation_layout, sideways_scale
 from training.path_expert import ExpertController, PathExpert
 from training.predictive_expert import PredictiveExpert, robust_expert, smooth_expert
@@ -91,6 +92,8 @@ class ShieldedController:
     :param max_sideways_speed: m/s that a third action component stands for (a goal env with
         ``sideways``); 0: actions have two. The sideways part the shield sends goes to ``lateral``
         with its brake, and the action returned asks none
+    :param heading: the heading now, rad counter-clockwise (the env's
+        :meth:`~flightsim.envs.env.LidarAvoidEnv.shield_heading`), for the shield's memory and gate
     """
 
     def __init__(
@@ -103,6 +106,7 @@ class ShieldedController:
         lateral: Callable[[float], None] | None = None,
         drift: Callable[[], tuple[float, float] | None] | None = None,
         max_sideways_speed: float = 0.0,
+        heading: Callable[[], float] | None = None,
     ) -> None:
         self._inner = inner
         self.shield = shield
@@ -111,6 +115,7 @@ class ShieldedController:
         self._velocity = velocity
         self._lateral = lateral
         self._drift = drift
+        self._heading = heading
         #: the last (requested, sent) commands, for a trace (``avoid-train trace``)
         self.last: tuple[Command, Command] | None = None
 
@@ -130,7 +135,8 @@ class ShieldedController:
             measured = (float(v[0]), float(v[1]))
         drift = self._drift() if self._drift is not None else None
         requested = command_from_action(action, max_speed, max_yaw_rate, self._sideways)
-        safe = self.shield.filter(requested, scan, STEP_SECONDS, measured, drift)
+        heading = self._heading() if self._heading is not None else None
+        safe = self.shield.filter(requested, scan, STEP_SECONDS, measured, drift, heading)
         self.last = (requested, safe)
         if self._lateral is not None:
             self._lateral(safe.lateral)
@@ -169,7 +175,8 @@ def sb3_controller(model: Any, n_stack: int, frame_size: int = N_BINS) -> Stacke
 @dataclass(frozen=True)
 class ControllerSpec:
     """What to build in a worker: ``kind`` is ``policy`` (``path``) or one of :data:`BASELINES` /
-    :data:`GOAL_BASELINES` / :data:`PRIVILEGED_GOAL_CONTROLLERS`; ``shield``: behind the
+    :data:`GOAL_BASELINES` / :data:`PRIVILEGED_GOAL_CONTROLLERS` / :data:`~training.attackers.ATTACKERS`;
+    ``shield``: behind the
     companion's safety shield, with ``shield_config``'s limits (None: the defaults)."""
 
     kind: str
@@ -196,6 +203,7 @@ def build_controller(
     lateral: Callable[[float], None] | None = None,
     env: Any = None,
     drift: Callable[[], tuple[float, float] | None] | None = None,
+    heading: Callable[[], float] | None = None,
 ) -> Controller:
     """Build the controller ``spec`` describes, behind the shield if it says so (the shield braking
     and capping yaw as the env's autopilot response does, watching ``velocity`` and carrying
@@ -211,7 +219,7 @@ def build_controller(
     shield = SafetyShield(limits, float(env_config.scan.max_range), env_config.autopilot_response)
     return ShieldedController(
         controller, shield, float(env_config.max_speed), float(env_config.max_yaw_rate), velocity, lateral,
-        drift, sideways_scale(env_config),
+        drift, sideways_scale(env_config), heading,
     )  # fmt: skip
 
 
@@ -224,6 +232,8 @@ def _bare_controller(
     spec: ControllerSpec, env_config: Any, seed: int, n_stack: int, env: Any = None
 ) -> Controller:
     """The controller itself (policies are loaded once per process)."""
+    if spec.kind in ATTACKERS:
+        return make_attacker(spec.kind, seed, 3 if sideways_scale(env_config) else 2)
     baseline = _baseline(spec, env_config, seed)
     if baseline is not None:
         return NoSidewaysController(baseline) if sideways_scale(env_config) else baseline

@@ -46,6 +46,7 @@ from companion.common.errors import UserError
 from companion.common.tomlconfig import from_dict, load_toml
 from companion.config import CompanionShieldConfig
 from companion.safety.shield import ShieldConfig
+from training.attackers import ATTACKERS
 from training.controllers import (
     BASELINES,
     GOAL_BASELINES,
@@ -268,7 +269,7 @@ def parse_baselines(value: str | None, env_id: str, flag: str = "--baselines") -
     (``flag``: the option named in the error)."""
     if value is None:
         return None
-    known = GOAL_BASELINES + PRIVILEGED_GOAL_CONTROLLERS if env_id == NAV_ENV_ID else BASELINES
+    known = (GOAL_BASELINES + PRIVILEGED_GOAL_CONTROLLERS if env_id == NAV_ENV_ID else BASELINES) + ATTACKERS
     names = [name.strip() for name in value.split(",") if name.strip()]
     unknown = [name for name in names if name not in known]
     if unknown:

@@ -35,6 +35,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from companion.perception.scan import N_BINS
+from companion.safety.backup import BackupGate, sector_clearances
+from companion.safety.envelope import ENVELOPES, ResponseEnvelope
+from companion.safety.obstacle_memory import ObstacleMemory, scan_points
 
 
 @dataclass(frozen=True)
@@ -154,6 +157,13 @@ class ShieldConfig:
         vehicle whose estimate read 0.65 m/s fast still before a gap). 0 (the default here):
         never; the companion's ``[shield]`` carries 0.6
         (:class:`companion.config.CompanionShieldConfig`)
+    :param backup_gate: the last word: every command, the rules' output included, passes only if
+        braking to a stop after it keeps the firmware envelope's worst case clear of every
+        remembered return (:mod:`companion.safety.backup`); otherwise the closest command that does,
+        or the stop itself
+    :param body_radius: the vehicle's radius the gate keeps clear, m
+    :param margin: room the gate keeps beyond ``body_radius``, m
+    :param memory_time: how long the gate remembers a return, s (:mod:`companion.safety.obstacle_memory`)
     """
 
     max_speed: float = field(default=2.0, metadata={"min": 0.0, "max": 20.0})
@@ -174,6 +184,10 @@ class ShieldConfig:
     keepout_gain: float = field(default=2.0, metadata={"min": 0.0, "max": 20.0})
     keepout_max_speed: float = field(default=1.0, metadata={"min": 0.0, "max": 5.0})
     drift_compensation: float = field(default=0.0, metadata={"min": 0.0, "max": 2.0})
+    backup_gate: bool = True
+    body_radius: float = field(default=0.25, metadata={"min": 0.0, "max": 5.0})
+    margin: float = field(default=0.05, metadata={"min": 0.0, "max": 5.0})
+    memory_time: float = field(default=0.5, metadata={"min": 0.0, "max": 5.0})
 
 
 def sector_bins(centre_deg: float, half_width_deg: float) -> np.ndarray:
@@ -385,11 +399,21 @@ class SafetyShield:
         self._rear_bins = sector_bins(180.0, config.rear_sector_deg)
         self._previous = Command(0.0, 0.0)
         self._previous_nearest: float | None = None  # nearest return of the previous scan, m
+        #: the firmware envelope the gate assumes
+        self.envelope: ResponseEnvelope = ENVELOPES[autopilot if isinstance(autopilot, str) else "random"]
+        clearance = config.body_radius + config.margin
+        self._gate = BackupGate(self.envelope, clearance) if config.backup_gate else None
+        self._memory = ObstacleMemory(config.memory_time, self.envelope.estimate_error)
+        self._gated_yaw_rate = 0.0  # the yaw rate last sent, flown until the next scan
 
     def reset(self) -> None:
-        """Forget the previous command, so the next one ramps up from standstill (e.g. after HOLD)."""
+        """Forget the previous command, so the next one ramps up from standstill (e.g. after HOLD),
+        and the remembered returns."""
         self._previous = Command(0.0, 0.0)
         self._previous_nearest = None
+        self._memory.reset()
+        if self._gate is not None:
+            self._gate.reset()
 
     def forward_cap(
         self,
@@ -431,6 +455,7 @@ class SafetyShield:
         dt: float,
         velocity: tuple[float, float] | None = None,
         drift: tuple[float, float] | None = None,
+        heading: float | None = None,
     ) -> Command:
         """Return the command that is safe to send.
 
@@ -448,7 +473,49 @@ class SafetyShield:
         :param drift: the drift estimate (the velocity estimate's error, reported minus true, body
             forward and left), m/s, carried by the setpoint while the brake or the keep-out acts
             (``drift_compensation``); None or not finite: none
+        :param heading: the vehicle's heading, rad counter-clockwise (any fixed origin), for the
+            gate's memory and setpoint history; None: the yaw rates sent, integrated
         """
+        out = self._rules(requested, scan, dt, velocity, drift)
+        if self._gate is None:
+            return out
+        return self._gated(out, scan, dt, velocity, heading)
+
+    def _gated(
+        self,
+        out: Command,
+        scan: np.ndarray,
+        dt: float,
+        velocity: tuple[float, float] | None,
+        heading: float | None,
+    ) -> Command:
+        """``out`` through the backup gate (:mod:`companion.safety.backup`)."""
+        values, _ = _finite_scan(scan)
+        known = velocity if _finite_pair(velocity) else None
+        yaw_rate = self._gated_yaw_rate
+        points, inflation = self._memory.update(
+            scan_points(values * self.max_range, self.max_range), dt, known, heading, yaw_rate
+        )
+        self._gate.advance(dt, heading, yaw_rate)
+        clearances = sector_clearances(points, inflation)
+        (forward, lateral), reason = self._gate.choose((out.forward, out.lateral), known, clearances)
+        if reason is not None:
+            self.interventions[reason] += 1
+            out = Command(forward, out.yaw_rate, lateral)
+        self._gate.record((out.forward, out.lateral))
+        self._gated_yaw_rate = out.yaw_rate
+        self._previous = out
+        return out
+
+    def _rules(
+        self,
+        requested: Command,
+        scan: np.ndarray,
+        dt: float,
+        velocity: tuple[float, float] | None,
+        drift: tuple[float, float] | None,
+    ) -> Command:
+        """The rules before the gate: limits, caps, brake, keep-out, ramps (see the module doc)."""
         forward, left = float(requested.forward), float(requested.lateral)
         if not math.isfinite(left):
             left = forward = math.nan  # counted and zeroed as a non-finite forward command is

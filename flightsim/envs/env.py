@@ -308,7 +308,7 @@ class LidarAvoidEnv(gym.Env):
             request = command_from_action((a0, a1), cfg.max_speed, cfg.max_yaw_rate)
             safe = self._shield.filter(
                 replace(request, lateral=sideways), seen, 1.0 / CONTROL_HZ,
-                velocity=velocity, drift=self.shield_drift(),
+                velocity=velocity, drift=self.shield_drift(), heading=self.shield_heading(),
             )
             a0, a1 = safe.forward / cfg.max_speed, safe.yaw_rate / cfg.max_yaw_rate
             lateral = safe.lateral
@@ -323,6 +323,11 @@ class LidarAvoidEnv(gym.Env):
         """``(a0, a1)`` clipped, and the sideways speed the action asks for, m/s (none here)."""
         v0, v1 = np.asarray(action, dtype=np.float32).reshape(2).tolist()
         return clip_unit(v0), clip_unit(v1), 0.0
+
+    def shield_heading(self) -> float:
+        """The heading a shield watching this env reads, rad counter-clockwise: the vehicle's, as
+        the autopilot's attitude estimate reports it."""
+        return float(self._state.yaw)
 
     def shield_drift(self) -> tuple[float, float] | None:
         """The drift estimate a shield's ``drift_compensation`` carries (body forward, left, m/s),

@@ -1,0 +1,98 @@
+"""The shield's obstacle memory: the returns of the last few scans, carried into the current body frame.
+
+A thin pole can fall between two beams for a revolution, and a corner the vehicle has passed can
+drop below the scan's height band; the memory keeps each return for ``memory_time`` seconds.
+
+Carrying a return needs odometry: the position is integrated from the measured velocity less the
+drift estimate, and the heading is the autopilot's (or the commanded yaw rates integrated). That
+velocity is wrong by at most the envelope's ``estimate_error`` (m/s), so a return carried for
+``age`` seconds may truly lie up to ``estimate_error * age`` from where the memory puts it: each
+point carries that inflation, and the gate subtracts it from the clearance. When the odometry is
+lost (no finite velocity), the memory is dropped and only the current scan counts.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+
+import numpy as np
+
+from companion.perception.scan import N_BINS
+
+_BIN_RAD = np.radians(np.arange(N_BINS) + 0.5)
+
+
+def scan_points(ranges_m: np.ndarray, max_range: float) -> np.ndarray:
+    """``(p, 2)`` body-frame points (forward, left) of the bins with a return (closer than ``max_range``).
+
+    Bins that are not finite are read as a return at the vehicle itself (unknown = blocked).
+    """
+    r = np.asarray(ranges_m, dtype=np.float64)
+    r = np.where(np.isfinite(r), r, 0.0)
+    hit = r < max_range * (1.0 - 1e-6)
+    return np.stack([r[hit] * np.cos(_BIN_RAD[hit]), r[hit] * np.sin(_BIN_RAD[hit])], axis=1)
+
+
+class ObstacleMemory:
+    """The returns of the scans of the last ``memory_time`` seconds, in the current body frame.
+
+    :param memory_time: how long a return is remembered, s (0: the current scan only)
+    :param estimate_error: the velocity error bound of the odometry, m/s (the envelope's)
+    """
+
+    def __init__(self, memory_time: float, estimate_error: float) -> None:
+        self.memory_time = float(memory_time)
+        self.estimate_error = float(estimate_error)
+        self._scans: deque[tuple[float, np.ndarray]] = deque()  # (time, points in the odometry frame)
+        self._time = 0.0
+        self._pose = np.zeros(3)  # x, y, heading of the body in the odometry frame
+
+    def reset(self) -> None:
+        """Forget every remembered return."""
+        self._scans.clear()
+
+    def update(
+        self,
+        points: np.ndarray,
+        dt: float,
+        velocity: tuple[float, float] | None,
+        heading: float | None,
+        yaw_rate: float,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Add a scan's points and return every remembered point in the body frame with its inflation.
+
+        :param points: ``(p, 2)`` the new scan's returns, body frame, m
+        :param dt: time since the previous scan, s
+        :param velocity: body velocity less the drift estimate, m/s; None or not finite: odometry lost
+        :param heading: the heading, rad counter-clockwise (None: integrate ``yaw_rate``)
+        :param yaw_rate: the yaw rate flown since the previous scan, rad/s (used without a heading)
+        :return: ``(q, 2)`` points and ``(q,)`` inflation, m
+        """
+        step = dt if math.isfinite(dt) and dt > 0.0 else 0.0
+        odometry = velocity is not None and all(math.isfinite(float(v)) for v in velocity)
+        if not odometry or self.memory_time <= 0.0:
+            self._scans.clear()
+        else:
+            c, s = math.cos(self._pose[2]), math.sin(self._pose[2])
+            self._pose[0] += (c * velocity[0] - s * velocity[1]) * step
+            self._pose[1] += (s * velocity[0] + c * velocity[1]) * step
+        self._pose[2] = (
+            float(heading)
+            if heading is not None and math.isfinite(heading)
+            else (self._pose[2] + yaw_rate * step)
+        )
+        self._time += step
+        while self._scans and self._time - self._scans[0][0] > self.memory_time + 1e-9:
+            self._scans.popleft()
+        x, y, h = self._pose
+        c, s = math.cos(h), math.sin(h)
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        self._scans.append(
+            (self._time, np.stack([x + c * pts[:, 0] - s * pts[:, 1], y + s * pts[:, 0] + c * pts[:, 1]], 1))
+        )
+        stored = [p for _, p in self._scans]
+        ages = np.concatenate([np.full(len(p), self._time - t) for t, p in self._scans])
+        world = np.concatenate(stored) - np.array([x, y])
+        body = np.stack([c * world[:, 0] + s * world[:, 1], -s * world[:, 0] + c * world[:, 1]], axis=1)
+        return body, self.estimate_error * ages

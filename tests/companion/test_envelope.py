@@ -1,0 +1,218 @@
+"""The firmware envelope: its worst case, and that it contains the real vehicles.
+
+The real flights are the shared recordings of the companion flying real ArduCopter and PX4 SITL
+(``../shared/fixtures/real-sitl-flights``, beside the repository); where they are absent the
+recording tests skip with that reason.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from companion.safety.envelope import (
+    ARDUPILOT,
+    ENVELOPES,
+    PX4,
+    STEP_S,
+    ResponseEnvelope,
+    window_targets,
+    worst_closing,
+)
+
+FLIGHTS = Path(os.environ.get("LIDAR_AVOID_SHARED", Path(__file__).resolve().parents[3] / "shared")) / (
+    "fixtures/real-sitl-flights"
+)
+#: the SITLs' ground truth jumps by up to 2.5 cm between two samples (20-32 Hz, SIMSTATE and
+#: HIL_STATE_QUATERNION rounding and timing): a displacement that small is the truth's own noise
+TRUTH_JITTER_M = 0.04
+
+
+def _flights(firmware: str) -> list[Path]:
+    return sorted(FLIGHTS.glob(f"{firmware}-*.mcap")) if FLIGHTS.is_dir() else []
+
+
+def _needs_flights() -> None:
+    if not FLIGHTS.is_dir():
+        pytest.skip(f"the real SITL recordings are not here: {FLIGHTS}")
+
+
+@pytest.mark.parametrize("firmware", ["ardupilot", "px4"])
+def test_every_real_flight_stays_inside_its_firmware_envelope(firmware: str) -> None:
+    _needs_flights()
+    from flightsim.vehicle.envelope_check import containment_margins, load_flight
+
+    worst = {
+        p.name: float(containment_margins(load_flight(p), ENVELOPES[firmware]).min())
+        for p in _flights(firmware)
+    }
+    assert len(worst) >= 20
+    outside = {name: round(m, 3) for name, m in worst.items() if m < -TRUTH_JITTER_M}
+    assert not outside, f"left the {firmware} envelope by (m): {outside}"
+
+
+@pytest.mark.parametrize(
+    ("firmware", "tighter"),
+    [
+        ("ardupilot", {"max_delay": 0.5}),
+        ("px4", {"estimate_error": 0.3}),
+        ("ardupilot", {"estimate_error": 0.1}),
+    ],
+)
+def test_a_tighter_envelope_is_refused_by_the_recordings(firmware: str, tighter: dict[str, float]) -> None:
+    """The containment check can fail: the recordings reject an envelope smaller than the fitted one."""
+    _needs_flights()
+    from flightsim.vehicle.envelope_check import containment_margins, load_flight
+
+    envelope = dataclasses.replace(ENVELOPES[firmware], **tighter)
+    least = min(float(containment_margins(load_flight(p), envelope).min()) for p in _flights(firmware))
+    assert least < -TRUTH_JITTER_M
+
+
+def test_the_random_envelope_covers_both_firmwares() -> None:
+    random = ENVELOPES["random"]
+    for one in (ARDUPILOT, PX4):
+        assert random.max_delay >= one.max_delay and random.min_delay <= one.min_delay
+        assert random.accel >= one.accel and random.decel <= one.decel
+        assert random.overshoot >= one.overshoot and random.undershoot >= one.undershoot
+        assert random.estimate_error >= one.estimate_error
+
+
+def test_an_envelope_with_a_negative_or_inverted_bound_is_refused() -> None:
+    with pytest.raises(ValueError, match="decel"):
+        dataclasses.replace(ARDUPILOT, decel=-1.0)
+    with pytest.raises(ValueError, match="min_delay"):
+        dataclasses.replace(ARDUPILOT, min_delay=2.0)
+
+
+def test_the_worst_case_rises_at_accel_and_falls_at_decel() -> None:
+    env = ResponseEnvelope("t", 0.0, 0.0, accel=2.0, decel=1.0, jerk=math.inf, overshoot=0.0, undershoot=0.0,
+                           estimate_error=0.0, max_yaw_rate=1.0)  # fmt: skip
+    up = np.full(20, 1.0)  # a 1 m/s target from standstill: 0.5 s at 2 m/s²
+    w, x = worst_closing(np.zeros(()), up, env)
+    assert w[5] == pytest.approx(0.5) and w[10] == pytest.approx(1.0) and w[19] == pytest.approx(1.0)
+    down = np.zeros(30)  # from 1 m/s to a zero target: 1 s at 1 m/s², 0.5 m
+    w, x = worst_closing(np.ones(()), down, env)
+    assert w[20] == pytest.approx(0.0) and x[-1] == pytest.approx(0.5 + 0.5 * STEP_S, abs=1e-9)
+
+
+def test_a_setpoint_counts_over_its_whole_delay_window() -> None:
+    env = dataclasses.replace(ARDUPILOT, min_delay=0.1, max_delay=0.5, overshoot=0.0, estimate_error=0.0)
+    sent = np.array([0.0, 1.0])
+    comps = np.array([[2.0], [0.0]])  # 2 m/s until 1 s, then 0
+    times = np.array([0.05, 0.5, 1.05, 1.45, 1.55])
+    targets = window_targets(sent, comps, times, env)[:, 0]
+    # the hold before it until 0.5 s, the 2 m/s setpoint from 0.1 s until 1.5 s, the zero one from 1.1 s
+    assert targets.tolist() == [0.0, 2.0, 2.0, 2.0, 0.0]
+
+
+def test_the_worst_case_bounds_any_motion_the_envelope_allows() -> None:
+    """Monte Carlo over motions inside the envelope, along one direction: a point mass whose
+    velocity chases a setpoint flown after a delay in the window, with any overshoot, undershoot
+    and estimate bias the envelope allows, rising no faster than ``accel`` and falling as slowly as
+    ``decel`` lets it, never gets farther than the worst case."""
+    rng = np.random.default_rng(3)
+    env = ARDUPILOT
+    for _ in range(300):
+        setpoints = rng.uniform(-2.0, 2.0, size=12)  # one every 0.1 s, the last one held
+        sent = 0.1 * np.arange(len(setpoints))
+        delay = rng.uniform(env.min_delay, env.max_delay)
+        bias = rng.uniform(-env.estimate_error, env.estimate_error)
+        v = rng.uniform(-1.5, 1.5)
+        times = STEP_S * np.arange(60)
+        targets = window_targets(sent, setpoints[:, None], times, env)[:, 0]
+        _, bound = worst_closing(np.array(v + bias), targets, env)
+        x = 0.0
+        for k, t in enumerate(times):
+            index = np.searchsorted(sent, t - delay, side="right") - 1
+            flown = setpoints[index] if index >= 0 else 0.0
+            goal = (
+                flown
+                - bias
+                + rng.uniform() * (env.overshoot * max(flown, 0.0) - env.undershoot * min(flown, 0.0))
+            )
+            if goal > v:
+                v_next = v + min(env.accel * STEP_S, goal - v) * rng.uniform()
+            else:
+                v_next = max(v - env.decel * STEP_S, goal)
+            x += 0.5 * (v + v_next) * STEP_S
+            v = v_next
+            assert x <= bound[k + 1] + 1e-9
+
+
+def _sim_flight(params, seed: int, seconds: float = 12.0):
+    """A JSBSim flight through ``params``' response (None: the ideal autopilot) with random setpoints
+    held 0.3-1.5 s, as a :class:`~flightsim.vehicle.envelope_check.RecordedFlight`."""
+    from flightsim.vehicle.autopilot_response import AutopilotResponse, fly
+    from flightsim.vehicle.envelope_check import RecordedFlight
+    from flightsim.vehicle.quadrotor import Vehicle
+
+    rng = np.random.default_rng(seed)
+    vehicle = Vehicle()
+    state = vehicle.reset((0.0, 0.0, 1.5), 0.0)
+    response = AutopilotResponse(params, rng) if params is not None else None
+    if response is not None:
+        response.reset(state.yaw)
+    for _ in range(5):  # the first half second hovering: the reset's own settling is no setpoint's answer
+        state = fly(vehicle, response, 0.0, 0.0, altitude=1.5)
+    rows, command, left = [], (0.0, 0.0, 0.0), 0
+    for k in range(round(seconds / 0.1)):
+        if left <= 0:
+            command = (rng.uniform(-1.0, 2.0), rng.uniform(-1.5, 1.5), rng.uniform(-1.0, 1.0))
+            left = int(rng.integers(3, 16))
+        left -= 1
+        measured = response.measured_body_velocity(state) if response is not None else _body(state)
+        rows.append(
+            (0.1 * k, state.position[0], state.position[1], state.yaw, *measured, command[0], command[2])
+        )
+        state = fly(vehicle, response, command[0], command[1], altitude=1.5, lateral=command[2])
+    a = np.array(rows)
+    return RecordedFlight(a[:, 0], a[:, 1:3], np.unwrap(a[:, 3]), a[:, 0], a[:, 4:6], a[:, 6:8])
+
+
+def _body(state) -> tuple[float, float]:
+    c, s = math.cos(state.yaw), math.sin(state.yaw)
+    return c * state.velocity[0] + s * state.velocity[1], -s * state.velocity[0] + c * state.velocity[1]
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_simulated_random_firmware_draws_stay_inside_the_random_envelope(seed: int) -> None:
+    """The env's random response (each draw of :func:`~flightsim.vehicle.autopilot_response.random_params`)
+    flown with random setpoints never leaves the envelope the env's shield assumes."""
+    from flightsim.vehicle.autopilot_response import random_params
+    from flightsim.vehicle.envelope_check import containment_margins
+
+    params = random_params(np.random.default_rng(100 + seed))
+    margins = containment_margins(_sim_flight(params, seed), ENVELOPES["random"])
+    assert len(margins) > 50 and margins.min() >= -0.01, (params.name, margins.min())
+
+
+@pytest.mark.parametrize("name", ["ardupilot", "px4", "ideal"])
+def test_each_simulated_firmware_stays_inside_its_own_envelope(name: str) -> None:
+    from flightsim.vehicle.autopilot_response import response_params
+    from flightsim.vehicle.envelope_check import containment_margins
+
+    margins = containment_margins(_sim_flight(response_params(name), 7), ENVELOPES[name])
+    assert len(margins) > 50 and margins.min() >= -0.01, margins.min()
+
+
+def test_the_simulated_estimate_error_never_leaves_the_envelope() -> None:
+    from flightsim.vehicle.autopilot_response import ESTIMATE_ERROR_MAX, PX4, AutopilotResponse
+
+    assert ENVELOPES["random"].estimate_error == ESTIMATE_ERROR_MAX
+    response = AutopilotResponse(dataclasses.replace(PX4, est_vel_sigma=1.0), np.random.default_rng(0))
+    response.reset(0.0)
+
+    class Hover:
+        yaw = 0.0
+
+    worst = 0.0
+    for _ in range(2000):
+        response.setpoint(Hover())
+        worst = max(worst, float(np.hypot(*response.estimate_error)))
+    assert ESTIMATE_ERROR_MAX - 1e-9 <= worst <= ESTIMATE_ERROR_MAX + 1e-12
