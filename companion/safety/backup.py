@@ -27,10 +27,12 @@ S holds at every step and no verified worst case touches a remembered return.
 horizon), anything that moves, an envelope the firmware leaves (a gust, a motor failure, a wrong
 heading), and the creep once stopped.
 
-The projection makes it cheap: for a point ``o`` now in direction ``n``, ``|o - x(t)| >= o·n -
-X_n(t)`` for the worst displacement ``X_n`` towards ``n``, so it is enough to bound the
-displacement towards a fixed set of directions and compare each with the nearest return in its
-sector (:func:`sector_clearances`).
+Separation makes it cheap: with ``X_m`` the worst displacement towards direction ``m`` over the
+horizon, every reachable position ``d`` has ``d·m <= X_m`` for all ``m``; so for a return ``o``,
+``|o - d| >= (o - d)·m >= o·m - X_m`` for any one ``m``. A return is clear when some direction
+separates it: ``max_m (o·m - X_m) >= body_radius + margin`` (:func:`separation`). The worst case is
+bounded towards 72 directions; a wall beside the course is separated by its normal, a return ahead
+by its bearing.
 """
 
 from __future__ import annotations
@@ -48,33 +50,38 @@ _DIR_RAD = np.radians(np.arange(N_DIRECTIONS) * (360.0 / N_DIRECTIONS))
 _DIR_UNIT = np.stack([np.cos(_DIR_RAD), np.sin(_DIR_RAD)], axis=1)
 #: the longest worst case integrated, s (a backup from the highest speed settles well inside it)
 MAX_HORIZON_S = 8.0
+#: returns searched at once in :func:`separation`
+_CHUNK = 64
 #: fractions of the asked velocity tried when it does not pass, fastest first
 _SCALES = np.linspace(1.0, 0.0, 11)
 
 
-def sector_clearances(points: np.ndarray, inflation: np.ndarray) -> np.ndarray:
-    """Per direction, the least ``o·n`` (less each point's inflation) over the points within half a
-    sector of it (and the point's own angular extent, half a scan bin), m; inf where none.
+def separation(points: np.ndarray, inflation: np.ndarray, displacement: np.ndarray) -> np.ndarray:
+    """Per candidate, the least over the returns of the best separating direction's room, m.
 
     :param points: ``(p, 2)`` returns in the body frame (forward, left), m
-    :param inflation: ``(p,)`` how far each point may truly lie from where it is recorded, m
+    :param inflation: ``(p,)`` how far each may truly lie from where it is recorded, m
+    :param displacement: ``(m, 72)`` each candidate's worst displacement towards each direction, m
+    :return: ``(m,)`` ``min_o max_n (o·n - inflation_o - X_n)``; inf without returns
     """
-    out = np.full(N_DIRECTIONS, math.inf)
-    if len(points) == 0:
-        return out
-    pts = np.asarray(points, dtype=np.float64)
-    rng = np.hypot(pts[:, 0], pts[:, 1])
-    bearing = np.arctan2(pts[:, 1], pts[:, 0])
-    half = math.pi / N_DIRECTIONS + math.radians(0.5)
-    step = 2.0 * math.pi / N_DIRECTIONS
-    # each point counts for the directions within `half` of its bearing: at most two of them
-    for shift in (-1, 0, 1):
-        sector = (np.floor(bearing / step + 0.5).astype(int) + shift) % N_DIRECTIONS
-        off = np.abs((bearing - _DIR_RAD[sector] + math.pi) % (2.0 * math.pi) - math.pi)
-        near = off <= half
-        along = rng[near] * np.cos(off[near]) - inflation[near]
-        np.minimum.at(out, sector[near], along)
-    return out
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    grown = np.asarray(inflation, dtype=np.float64)
+    least = np.full(len(displacement), math.inf)
+    if len(pts) == 0:
+        return least
+    # each return's own bearing (within half a sector of a direction) separates it by at least
+    # |o| cos(half a sector) - inflation - the farthest reach: take the returns in that order, and
+    # stop where that bound cannot go below what the nearer ones left
+    reach = float(displacement.max())
+    bound = np.hypot(pts[:, 0], pts[:, 1]) * math.cos(math.pi / N_DIRECTIONS) - grown - reach
+    order = np.argsort(bound)
+    for start in range(0, len(order), _CHUNK):
+        chunk = order[start : start + _CHUNK]
+        if bound[chunk[0]] >= least.max():
+            break
+        along = pts[chunk] @ _DIR_UNIT.T - grown[chunk][:, None]  # (c, 72)
+        least = np.minimum(least, (along[None, :, :] - displacement[:, None, :]).max(axis=2).min(axis=1))
+    return least
 
 
 @dataclass
@@ -131,14 +138,19 @@ class BackupGate:
         self._sent.vectors.append(np.array([c * body[0] - s * body[1], s * body[0] + c * body[1]]))
 
     def passes(
-        self, candidates: np.ndarray, velocity: tuple[float, float] | None, clearances: np.ndarray
+        self,
+        candidates: np.ndarray,
+        velocity: tuple[float, float] | None,
+        points: np.ndarray,
+        inflation: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Which candidate body setpoints keep their backup clear, and by how much.
 
         :param candidates: ``(m, 2)`` body setpoints (forward, left), m/s
         :param velocity: the measured body velocity less the drift estimate, m/s (None: not known)
-        :param clearances: ``(72,)`` :func:`sector_clearances`, body frame
-        :return: ``(m,)`` bools and ``(m,)`` the least room left over all directions, m
+        :param points: ``(p, 2)`` the remembered returns, body frame, m
+        :param inflation: ``(p,)`` their inflation, m
+        :return: ``(m,)`` bools and ``(m,)`` the least room left, m
         """
         env = self.envelope
         heading = self._heading
@@ -163,9 +175,16 @@ class BackupGate:
         )
         highest = np.where(backup_on[:, None, None], np.maximum(highest, 0.0), highest)
         targets = env.target(highest)
-        _, displacement = worst_closing(np.broadcast_to(closing, cand_comp.shape), targets, env)
-        room = clearances[None, :] - self.clearance - displacement.max(axis=0)
-        least = room.min(axis=1)
+        closing_bound, displacement = worst_closing(np.broadcast_to(closing, cand_comp.shape), targets, env)
+        # up to the stop: once only the backup is flown and the worst case has come down to its
+        # creep, the gate's promise is kept (what creeps on is the keep-out's, see the module doc)
+        stopped = (np.append(0.0, times + STEP_S) >= self.period + env.max_delay)[:, None, None] & (
+            closing_bound <= env.target(np.zeros(())) + 1e-9
+        )
+        settled = np.where(stopped.any(axis=0), stopped.argmax(axis=0), len(times))
+        upto = np.arange(len(times) + 1)[:, None, None] <= settled[None]
+        reach = np.where(upto, displacement, -np.inf).max(axis=0)
+        least = separation(points, inflation, reach) - self.clearance
         return least >= 0.0, least
 
     def _history_components(self, units_world: np.ndarray, times: np.ndarray) -> np.ndarray:
@@ -185,21 +204,26 @@ class BackupGate:
         return out
 
     def choose(
-        self, asked: tuple[float, float], velocity: tuple[float, float] | None, clearances: np.ndarray
+        self,
+        asked: tuple[float, float],
+        velocity: tuple[float, float] | None,
+        points: np.ndarray,
+        inflation: np.ndarray,
     ) -> tuple[tuple[float, float], str | None]:
         """The setpoint to send: ``asked`` when it passes; else the passing candidate closest to it
-        (scaled down, or with its part towards the tightest direction removed, then scaled); else,
-        when none passes (the assumptions were left: a return seen late, or closer than the creep
-        allows), whichever of them leaves the most room, the stop and ``asked`` included. The reason
-        is None, ``"gate_slowed"``, ``"gate_backup"`` (the stop) or ``"gate_best_effort"``."""
+        (scaled down, or with its part towards the nearest return removed, then scaled); else, when
+        none passes (the assumptions were left: a return seen late, or closer than the creep allows),
+        whichever of them leaves the most room, the stop and ``asked`` included. The reason is None,
+        ``"gate_slowed"``, ``"gate_backup"`` (the stop) or ``"gate_best_effort"``."""
         want = np.asarray(asked, dtype=np.float64)
-        ok, _ = self.passes(want[None], velocity, clearances)
+        ok, _ = self.passes(want[None], velocity, points, inflation)
         if ok[0]:
             return (float(want[0]), float(want[1])), None
-        tight = _DIR_UNIT[int(np.argmin(clearances))]
-        slide = want - max(float(want @ tight), 0.0) * tight
+        nearest = points[int(np.argmin(np.hypot(points[:, 0], points[:, 1]) - inflation))]
+        towards = nearest / max(float(np.hypot(*nearest)), 1e-9)
+        slide = want - max(float(want @ towards), 0.0) * towards
         candidates = np.concatenate([want[None], _SCALES[1:, None] * want, _SCALES[:-1, None] * slide])
-        ok, room = self.passes(candidates, velocity, clearances)
+        ok, room = self.passes(candidates, velocity, points, inflation)
         if ok.any():
             distance = np.where(ok, np.hypot(*(candidates - want).T), np.inf)
             pick = int(np.argmin(distance))
@@ -208,4 +232,4 @@ class BackupGate:
             pick = int(np.argmax(room))
             reason = "gate_best_effort"
         best = candidates[pick]
-        return (float(best[0]), float(best[1])), None if pick == 0 else reason
+        return (float(best[0]), float(best[1])), reason

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from companion.perception.scan import N_BINS
-from companion.safety.backup import BackupGate, sector_clearances
+from companion.safety.backup import BackupGate
 from companion.safety.envelope import ENVELOPES, ResponseEnvelope
 from companion.safety.obstacle_memory import ObstacleMemory, scan_points
 
@@ -497,8 +497,7 @@ class SafetyShield:
             scan_points(values * self.max_range, self.max_range), dt, known, heading, yaw_rate
         )
         self._gate.advance(dt, heading, yaw_rate)
-        clearances = sector_clearances(points, inflation)
-        (forward, lateral), reason = self._gate.choose((out.forward, out.lateral), known, clearances)
+        (forward, lateral), reason = self._gate.choose((out.forward, out.lateral), known, points, inflation)
         if reason is not None:
             self.interventions[reason] += 1
             out = Command(forward, out.yaw_rate, lateral)
