@@ -160,7 +160,8 @@ class ShieldConfig:
     :param backup_gate: the last word: every command, the rules' output included, passes only if
         braking to a stop after it keeps the firmware envelope's worst case clear of every
         remembered return (:mod:`companion.safety.backup`); otherwise the closest command that does,
-        or the stop itself
+        or the stop itself. Off by default: over the envelope the real firmware needs, the shipped
+        policy (trained without it) reaches too few goals in time behind it (docs/safety.md)
     :param body_radius: the vehicle's radius the gate keeps clear, m
     :param margin: room the gate keeps beyond ``body_radius``, m
     :param memory_time: how long the gate remembers a return, s (:mod:`companion.safety.obstacle_memory`)
@@ -184,7 +185,7 @@ class ShieldConfig:
     keepout_gain: float = field(default=2.0, metadata={"min": 0.0, "max": 20.0})
     keepout_max_speed: float = field(default=1.0, metadata={"min": 0.0, "max": 5.0})
     drift_compensation: float = field(default=0.0, metadata={"min": 0.0, "max": 2.0})
-    backup_gate: bool = True
+    backup_gate: bool = False
     body_radius: float = field(default=0.25, metadata={"min": 0.0, "max": 5.0})
     margin: float = field(default=0.05, metadata={"min": 0.0, "max": 5.0})
     memory_time: float = field(default=0.5, metadata={"min": 0.0, "max": 5.0})

@@ -44,8 +44,8 @@ def test_a_far_return_is_bounded_without_the_full_search() -> None:
     rng = np.random.default_rng(0)
     points = rng.uniform(-10.0, 10.0, size=(400, 2))
     displacement = rng.uniform(0.0, 2.0, size=(3, N_DIRECTIONS))
-    full = (points @ np.stack([np.cos(np.radians(np.arange(72) * 5.0)), np.sin(np.radians(np.arange(72) * 5.0))])
-            )[None] - displacement[:, None, :]  # fmt: skip
+    angles = np.radians(np.arange(N_DIRECTIONS) * 5.0)
+    full = (points @ np.stack([np.cos(angles), np.sin(angles)]))[None] - displacement[:, None, :]
     exact = full.max(axis=2).min(axis=1)
     got = separation(points, _none(points), displacement)
     assert (got <= exact + 1e-9).all() and (got >= exact - 1e-9).all()
