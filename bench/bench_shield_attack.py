@@ -1,0 +1,60 @@
+"""Figures: controllers that want to crash, flown behind today's shield and behind the backup gate.
+
+Each attacker (:mod:`training.attackers`: ram, dash, held_random) and, with ``--policy``, the
+policy itself fly LidarNav-v0 over every world family, a random firmware response per episode,
+behind the shield's rules alone and behind the rules with the backup gate, on the same worlds and
+seeds in the same run. Prints per attacker and shield: episodes, collisions, the least clearance
+(m, from the vehicle centre; a collision is below 0.25) and the worst episode.
+
+    python bench/bench_shield_attack.py [--seeds 4] [--first-seed 599000] [--max-steps 400]
+        [--workers 2] [--policy models/policy.onnx]
+
+The worlds are validation seeds (599,000 on by default), which no shield rule was tuned on.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from companion.safety.shield import ShieldConfig
+from training.attackers import ATTACKERS
+from training.config import load_train_config
+from training.episodes import NAV_ENV_ID, goal_worlds
+from training.evaluate import evaluate
+
+CONFIG = Path(__file__).resolve().parents[1] / "training" / "configs" / "nav.toml"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, default=4, help="worlds per family")
+    parser.add_argument("--first-seed", type=int, default=599_000)
+    parser.add_argument("--max-steps", type=int, default=400, help="steps per episode (10 a second)")
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--policy", type=Path, default=None, help="also fly this policy")
+    args = parser.parse_args()
+    config = load_train_config(CONFIG, [f"env.max_steps={args.max_steps}"])
+    env_config = config.env_config()
+    worlds = goal_worlds(env_config.families, args.first_seed, args.seeds, env_config.difficulty_range)
+    print(f"{'controller':22} {'shield':6} {'episodes':>8} {'collisions':>10} {'least m':>8}  worst episode")
+    for gate in (False, True):
+        start = time.perf_counter()
+        _, results = evaluate(
+            args.policy, worlds, 1, config.env, args.workers, baselines=list(ATTACKERS), shield=True,
+            env_id=NAV_ENV_ID, shield_config=ShieldConfig(backup_gate=gate),
+        )  # fmt: skip
+        for name in sorted({r.controller for r in results}):
+            mine = [r for r in results if r.controller == name]
+            worst = min(mine, key=lambda r: r.min_clearance)
+            print(
+                f"{name:22} {'gate' if gate else 'rules':6} {len(mine):8d} "
+                f"{sum(r.collision for r in mine):10d} {worst.min_clearance:8.3f}  {worst.world} "
+                f"({worst.response.get('name', '?') if worst.response else 'ideal'}, step {worst.steps})"
+            )
+        print(f"  ({time.perf_counter() - start:.0f} s wall)")
+
+
+if __name__ == "__main__":
+    main()
