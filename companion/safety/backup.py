@@ -168,8 +168,9 @@ class BackupGate:
         horizon = min(self.period + env.max_delay + max(peak, 0.0) / env.decel + STEP_S, MAX_HORIZON_S)
         times = STEP_S * np.arange(math.ceil(horizon / STEP_S))
         history = self._history_components(units_world, times)  # (k, 72), -inf where none in force
-        cand_on = (times >= env.min_delay) & (times <= self.period + env.max_delay)
-        backup_on = times >= self.period + env.min_delay
+        # a setpoint counts over every step its span touches (see envelope.window_targets)
+        cand_on = (times + STEP_S > env.min_delay) & (times <= self.period + env.max_delay)
+        backup_on = times + STEP_S > self.period + env.min_delay
         highest = np.where(
             cand_on[:, None, None], np.maximum(history[:, None, :], cand_comp[None]), history[:, None, :]
         )
@@ -199,7 +200,7 @@ class BackupGate:
         # setpoint j is flown over [t_j + min_delay, t_{j+1} + max_delay]; the newest until the candidate
         ends = np.append(sent_times[1:], 0.0) + env.max_delay
         for j, (start, end) in enumerate(zip(sent_times + env.min_delay, ends, strict=True)):
-            on = (times >= start) & (times <= end)
+            on = (times + STEP_S > start) & (times <= end)
             out[on] = np.maximum(out[on], comps[j])
         return out
 

@@ -32,7 +32,8 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-#: the integration step of the worst case, s
+#: the integration step of the worst case, s: a setpoint counts over every step it is in force
+#: for any part of, so a coarser step only widens the bound
 STEP_S = 0.05
 
 
@@ -151,20 +152,29 @@ ENVELOPES: dict[str, ResponseEnvelope] = {
 
 
 def window_targets(
-    sent_times: np.ndarray, components: np.ndarray, times: np.ndarray, envelope: ResponseEnvelope
+    sent_times: np.ndarray,
+    components: np.ndarray,
+    times: np.ndarray,
+    envelope: ResponseEnvelope,
+    step: float = STEP_S,
 ) -> np.ndarray:
-    """The highest setpoint component in force somewhere in the delay window at each time.
+    """The highest setpoint component that may be flown during each step.
+
+    Setpoint ``j`` may be flown from ``min_delay`` after it is sent until ``max_delay`` after the
+    next one is sent; it counts over a step ``[t, t + step)`` that this span touches.
 
     :param sent_times: ``(k,)`` when each setpoint was sent, s, ascending; before the first one the
         vehicle held still (a zero setpoint)
     :param components: ``(k, ...)`` each setpoint's component along each direction, m/s
-    :param times: ``(m,)`` the times to bound, s
+    :param times: ``(m,)`` the start of each step, s
     :return: ``(m, ...)`` target bounds (:meth:`ResponseEnvelope.target` of the highest component)
     """
     sent = np.asarray(sent_times, dtype=np.float64)
     comps = np.asarray(components, dtype=np.float64)
-    first = np.searchsorted(sent, times - envelope.max_delay, side="right") - 1
-    last = np.searchsorted(sent, times - envelope.min_delay, side="right")
+    # the first setpoint whose span reaches the step: its successor was sent at or after t - max_delay
+    first = np.searchsorted(sent, times - envelope.max_delay, side="left") - 1
+    # the last one flown within the step: sent before t + step - min_delay
+    last = np.searchsorted(sent, times + step - envelope.min_delay, side="left")
     out = np.full((len(times), *comps.shape[1:]), -np.inf)
     for i, (a, b) in enumerate(zip(first, last, strict=True)):
         if a < 0:  # the hold before the first setpoint is still in the window
@@ -184,16 +194,17 @@ def worst_closing(
     :return: ``W`` and ``X``, each ``(m + 1, ...)``; ``X`` integrates the larger end of each step
     """
     w = np.asarray(closing_now, dtype=np.float64) + envelope.estimate_error
-    x = np.zeros_like(w)
-    ws, xs = [w], [x]
+    targets = np.asarray(targets, dtype=np.float64)
+    ws = np.empty((len(targets) + 1, *np.broadcast_shapes(w.shape, targets.shape[1:])))
+    xs = np.empty_like(ws)
+    ws[0], xs[0] = w, 0.0
     rise, ramp = envelope.accel * step, envelope.jerk * step
-    braking = np.zeros_like(w)  # the deceleration built up so far, m/s²
-    for target in targets:
+    braking = np.zeros_like(ws[0])  # the deceleration built up so far, m/s²
+    for k, target in enumerate(targets):
+        w = ws[k]
         above = w > target
         braking = np.where(above, np.minimum(braking + ramp, envelope.decel), 0.0)
         nxt = np.where(above, np.maximum(w - braking * step, target), np.minimum(w + rise, target))
-        x = x + np.maximum(w, nxt) * step
-        w = nxt
-        ws.append(w)
-        xs.append(x)
-    return np.stack(ws), np.stack(xs)
+        ws[k + 1] = nxt
+        xs[k + 1] = xs[k] + np.maximum(w, nxt) * step
+    return ws, xs

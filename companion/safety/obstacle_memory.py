@@ -9,6 +9,10 @@ velocity is wrong by at most the envelope's ``estimate_error`` (m/s), so a retur
 ``age`` seconds may truly lie up to ``estimate_error * age`` from where the memory puts it: each
 point carries that inflation, and the gate subtracts it from the clearance. When the odometry is
 lost (no finite velocity), the memory is dropped and only the current scan counts.
+
+A return stands for a whole scan bin: the surface it hit may reach half a bin (0.5°) to either
+side, and the VLP-16 measures range to within :data:`RANGE_ACCURACY_M`. Every point starts with
+that inflation, ``r sin(0.5°) + RANGE_ACCURACY_M``.
 """
 
 from __future__ import annotations
@@ -21,6 +25,9 @@ import numpy as np
 from companion.perception.scan import N_BINS
 
 _BIN_RAD = np.radians(np.arange(N_BINS) + 0.5)
+#: the VLP-16's range accuracy (its datasheet's ±3 cm), m
+RANGE_ACCURACY_M = 0.03
+_HALF_BIN_SIN = float(np.sin(np.radians(0.5)))
 
 
 def scan_points(ranges_m: np.ndarray, max_range: float) -> np.ndarray:
@@ -45,12 +52,14 @@ class ObstacleMemory:
         self.memory_time = float(memory_time)
         self.estimate_error = float(estimate_error)
         self._scans: deque[tuple[float, np.ndarray]] = deque()  # (time, points in the odometry frame)
+        self._spans: deque[np.ndarray] = deque()  # each scan's points' own inflation, m
         self._time = 0.0
         self._pose = np.zeros(3)  # x, y, heading of the body in the odometry frame
 
     def reset(self) -> None:
         """Forget every remembered return."""
         self._scans.clear()
+        self._spans.clear()
 
     def update(
         self,
@@ -73,6 +82,7 @@ class ObstacleMemory:
         odometry = velocity is not None and all(math.isfinite(float(v)) for v in velocity)
         if not odometry or self.memory_time <= 0.0:
             self._scans.clear()
+            self._spans.clear()
         else:
             c, s = math.cos(self._pose[2]), math.sin(self._pose[2])
             self._pose[0] += (c * velocity[0] - s * velocity[1]) * step
@@ -91,8 +101,11 @@ class ObstacleMemory:
         self._scans.append(
             (self._time, np.stack([x + c * pts[:, 0] - s * pts[:, 1], y + s * pts[:, 0] + c * pts[:, 1]], 1))
         )
+        self._spans.append(np.hypot(pts[:, 0], pts[:, 1]) * _HALF_BIN_SIN + RANGE_ACCURACY_M)
+        while len(self._spans) > len(self._scans):
+            self._spans.popleft()
         stored = [p for _, p in self._scans]
         ages = np.concatenate([np.full(len(p), self._time - t) for t, p in self._scans])
         world = np.concatenate(stored) - np.array([x, y])
         body = np.stack([c * world[:, 0] + s * world[:, 1], -s * world[:, 0] + c * world[:, 1]], axis=1)
-        return body, self.estimate_error * ages
+        return body, np.concatenate(self._spans) + self.estimate_error * ages

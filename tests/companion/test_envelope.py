@@ -93,12 +93,18 @@ def test_an_envelope_with_a_negative_or_inverted_bound_is_refused() -> None:
 def test_the_worst_case_rises_at_accel_and_falls_at_decel() -> None:
     env = ResponseEnvelope("t", 0.0, 0.0, accel=2.0, decel=1.0, jerk=math.inf, overshoot=0.0, undershoot=0.0,
                            estimate_error=0.0, max_yaw_rate=1.0)  # fmt: skip
-    up = np.full(20, 1.0)  # a 1 m/s target from standstill: 0.5 s at 2 m/s²
+
+    def at(seconds: float) -> int:
+        return round(seconds / STEP_S)
+
+    up = np.full(at(1.0), 1.0)  # a 1 m/s target from standstill: 0.5 s at 2 m/s²
     w, x = worst_closing(np.zeros(()), up, env)
-    assert w[5] == pytest.approx(0.5) and w[10] == pytest.approx(1.0) and w[19] == pytest.approx(1.0)
-    down = np.zeros(30)  # from 1 m/s to a zero target: 1 s at 1 m/s², 0.5 m
+    assert (
+        w[at(0.2)] == pytest.approx(0.4) and w[at(0.5)] == pytest.approx(1.0) and w[-1] == pytest.approx(1.0)
+    )
+    down = np.zeros(at(1.5))  # from 1 m/s to a zero target: 1 s at 1 m/s², 0.5 m
     w, x = worst_closing(np.ones(()), down, env)
-    assert w[20] == pytest.approx(0.0) and x[-1] == pytest.approx(0.5 + 0.5 * STEP_S, abs=1e-9)
+    assert w[at(1.0)] == pytest.approx(0.0) and x[-1] == pytest.approx(0.5 + 0.5 * STEP_S, abs=1e-9)
 
 
 def test_a_setpoint_counts_over_its_whole_delay_window() -> None:
@@ -106,9 +112,11 @@ def test_a_setpoint_counts_over_its_whole_delay_window() -> None:
     sent = np.array([0.0, 1.0])
     comps = np.array([[2.0], [0.0]])  # 2 m/s until 1 s, then 0
     times = np.array([0.05, 0.5, 1.05, 1.45, 1.55])
-    targets = window_targets(sent, comps, times, env)[:, 0]
+    targets = window_targets(sent, comps, times, env, step=0.01)[:, 0]
     # the hold before it until 0.5 s, the 2 m/s setpoint from 0.1 s until 1.5 s, the zero one from 1.1 s
     assert targets.tolist() == [0.0, 2.0, 2.0, 2.0, 0.0]
+    # a coarse step counts a setpoint over the whole step its span touches: 0.05-0.15 s touches 0.1 s
+    assert window_targets(sent, comps, times[:1], env, step=0.1)[0, 0] == 2.0
 
 
 def test_the_worst_case_bounds_any_motion_the_envelope_allows() -> None:
