@@ -18,11 +18,10 @@ the setpoints' component. The envelope bounds ``w`` from above by ``W``:
 
 The displacement towards ``n``, ``X(t) = ∫ W``, bounds the true one for every ``n`` at once; and for
 a point ``o`` now at distance ``d`` in direction ``n``, ``|o - x(t)| >= o·n - X(t)``: a worst case
-per direction is a worst case in the plane. :func:`worst_displacement` integrates it.
+per direction is a worst case in the plane. :func:`worst_closing` integrates it.
 
 Calibrated so that the real ArduCopter and PX4 SITL flights of the companion
-(``tests/shield/test_envelope_contains_real_flights.py``) and the simulator's random firmware draws
-(``tests/shield/test_envelope_contains_simulated_draws.py``) lie inside it.
+and the simulator's random firmware draws lie inside it (``tests/companion/test_envelope.py``).
 """
 
 from __future__ import annotations

@@ -58,17 +58,12 @@ from typing import Any
 import numpy as np
 from numba import njit
 
-from companion.safety.envelope import ENVELOPES
 from flightsim.vehicle.control import Setpoint, wrap_angle
 
 CHUNK_S = 3 / 120
 """The step the model is called at: 3 physics steps of the 120 Hz vehicle (the sim autopilot's chunk)."""
 _INNER_DT = 0.005
 """Internal integration step of the model, s: several per chunk keeps the lags and the jerk limit stable."""
-#: the velocity-estimate error never grows beyond the shield's firmware envelope's bound, m/s: its
-#: random walk is held at that radius (the real PX4 SIH flights stay within it once the companion's
-#: drift estimate is taken off)
-ESTIMATE_ERROR_MAX = ENVELOPES["random"].estimate_error
 NAMES = ("ideal", "px4", "ardupilot", "random")
 """The values of ``EnvConfig.autopilot_response`` and of the sim autopilots' response option."""
 
@@ -285,15 +280,6 @@ _N_STATE = 18
 
 
 @njit(cache=True)
-def _hold_estimate_error(x: np.ndarray) -> None:
-    """Scale the estimate error in state ``x`` back to :data:`ESTIMATE_ERROR_MAX` when beyond it."""
-    norm = math.hypot(x[_S_BX], x[_S_BY])
-    if norm > ESTIMATE_ERROR_MAX:
-        x[_S_BX] *= ESTIMATE_ERROR_MAX / norm
-        x[_S_BY] *= ESTIMATE_ERROR_MAX / norm
-
-
-@njit(cache=True)
 def _advance(
     x: np.ndarray, p: np.ndarray, cmd_vx: float, cmd_vy: float, cmd_r: float, yaw: float, h: float, n: int
 ) -> None:
@@ -449,7 +435,6 @@ class AutopilotResponse:
         x[_S_SVX], x[_S_SVY], x[_S_VX], x[_S_VY], x[_S_YT] = vx, vy, vx, vy, yaw
         if self._rng is not None:
             x[_S_BX], x[_S_BY] = self._rng.normal(0.0, self.params.est_vel_sigma, 2)
-            _hold_estimate_error(x)
 
     # ----------------------------------------------------------------- public API
     def command(self, forward: float, lateral: float, yaw_rate: float, yaw: float) -> None:
@@ -492,7 +477,6 @@ class AutopilotResponse:
             noise = self._rng.standard_normal(2)
             x[_S_BX] = x[_S_BX] * decay + kick * noise[0]
             x[_S_BY] = x[_S_BY] * decay + kick * noise[1]
-            _hold_estimate_error(x)
         done = 0
         while done < n:
             # inner step i (1-based) acts on the last command due by time + i h

@@ -36,7 +36,6 @@ from flightsim.vehicle.autopilot_response import (
     _S_VY,
     CHUNK_S,
     AutopilotResponse,
-    _hold_estimate_error,
 )
 from flightsim.vehicle.autopilot_response import _advance as _response_advance
 from flightsim.vehicle.control import control_step, wrap_angle
@@ -287,7 +286,6 @@ def _physics_step(
             if noisy[i]:
                 x[i, _S_BX] = x[i, _S_BX] * decay[i] + kick[i] * noise[i, chunk, 0]
                 x[i, _S_BY] = x[i, _S_BY] * decay[i] + kick[i] * noise[i, chunk, 1]
-                _hold_estimate_error(x[i])
             yaw = wrap_angle(half_pi - r[6])
             _response_chunk(x, p, queue, queue_len, time, cmd, yaw, inner, h, i)
             sp = setpoints[i]

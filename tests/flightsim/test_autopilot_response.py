@@ -377,10 +377,9 @@ def test_predict_flies_a_sideways_command_as_the_model_does(params):
 def test_predict_lets_the_estimate_error_decay_as_its_expectation_does():
     """From a hover with a large estimate error, the predicted hold drifts as the mean of many
     flights does (the error relaxes with est_vel_tau_s); held at today's value it was predicted
-    to carry on, twice as far over 4 s. (A large error inside the envelope's bound,
-    ``ESTIMATE_ERROR_MAX``, which the simulated error never leaves.)"""
-    params = replace(PX4, est_vel_sigma=0.3)
-    base = AutopilotResponse(params, np.random.default_rng(6))
+    to carry on, twice as far over 4 s."""
+    params = replace(PX4, est_vel_sigma=0.6)
+    base = AutopilotResponse(params, np.random.default_rng(3))
     error = base.estimate_error
     assert np.hypot(*error) > 0.5
     predicted = base.predict(0.0, np.zeros((1, 2)), 1, 40)[0, -1, :2]
