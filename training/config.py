@@ -279,6 +279,63 @@ def load_train_config(path: str | Path | None, overrides: list[str] | None = Non
     return config_from_dict(apply_overrides(data, overrides or []))
 
 
+#: a goal-task config to name when a goal model meets an avoidance config (and back)
+TASK_CONFIGS = {ENV_IDS[0]: "training/configs/shipped.toml", ENV_IDS[1]: "training/configs/nav.toml"}
+_TASK_NAMES = {ENV_IDS[0]: "avoidance", ENV_IDS[1]: "goal"}
+
+
+def model_train_config(model: Path, overrides: list[str] | None = None) -> TrainConfig:
+    """The training config an exported model carries in its metadata (``lidar_avoid.config``),
+    with ``overrides`` applied: what ``evaluate`` and ``trace`` fly a model in without ``--config``.
+
+    :raises UserError: the model carries none that loads; the message says to give ``--config``
+    """
+    import json
+
+    from companion.guidance.policy import PREFIX, read_model_metadata
+
+    raw = read_model_metadata(model).get(PREFIX + "config", "")
+    try:
+        data = json.loads(raw)
+    except ValueError:
+        data = None
+    if not isinstance(data, dict) or "env_id" not in data:
+        raise UserError(
+            f"{model}: its metadata carries no training config; give the one it was trained with: "
+            "--config FILE"
+        )
+    try:
+        return config_from_dict(apply_overrides(data, overrides or []))
+    except UserError as exc:
+        raise UserError(f"{model}: the training config in its metadata does not load ({exc}); "
+                        "give one: --config FILE") from None
+
+
+def check_model_task(model: Path, config: TrainConfig, config_path: Path) -> None:
+    """Refuse, in one line naming the flag, a ``--config`` whose task or observation layout is not
+    the model's (read from its metadata).
+
+    :raises UserError: the model was trained for another task or layout than ``config`` flies
+    """
+    from companion.guidance.policy import LEGACY_LAYOUT, PREFIX, read_model_metadata
+
+    model_layout = read_model_metadata(model).get(PREFIX + "obs_layout", LEGACY_LAYOUT)
+    layout = observation_layout(config.env_config()).name
+    if model_layout == layout:
+        return
+    model_task = ENV_IDS[0] if model_layout == LEGACY_LAYOUT else ENV_IDS[1]
+    if model_task != config.env_id:
+        raise UserError(
+            f"{model} flies the {_TASK_NAMES[model_task]} task ({model_task}), --config {config_path} the "
+            f"{_TASK_NAMES[config.env_id]} task: drop --config to fly the model's own training config, "
+            f"or give a {_TASK_NAMES[model_task]}-task one such as --config {TASK_CONFIGS[model_task]}"
+        )
+    raise UserError(
+        f"{model} takes the observation {model_layout}, --config {config_path} makes {layout}: drop "
+        "--config to fly the model's own training config"
+    )
+
+
 def config_to_toml(config: TrainConfig) -> str:
     """The config as TOML text (saved into the run directory and the ONNX metadata)."""
     return toml_dumps(to_dict(config))

@@ -1,6 +1,8 @@
 """``avoid-train evaluate``: fly a policy and two baselines over the same worlds and compare them.
 
-The task is the training config's ``env_id``.
+The task is the training config's ``env_id``: ``--config``'s, or without it an exported (``.onnx``)
+policy's own, which its metadata carries, so a model is flown in the task and observation it was
+trained for.
 
 Avoidance (``flightsim/LidarAvoid-v0``): success is strict: the whole episode (``max_steps``)
 without a collision AND a mean speed of at least :data:`~training.config.SUCCESS_MIN_MEAN_SPEED`
@@ -200,7 +202,10 @@ def add_flight_arguments(parser: argparse.ArgumentParser) -> None:
         help="generator difficulty for --seeds (default 0.5; goal task: spread over env.difficulty_range)",
     )
     parser.add_argument(
-        "--config", type=Path, help="training config whose [env] table to fly in (default: env defaults)"
+        "--config",
+        type=Path,
+        help="training config whose task and [env] table to fly in (default: an .onnx policy's own, "
+        "from its metadata; else the avoidance task's env defaults)",
     )
     parser.add_argument(
         "--set",
@@ -314,12 +319,19 @@ def load_flight(args: argparse.Namespace) -> Flight:
 
     :raises UserError: a bad config, override, world or shield table, in one line
     """
-    from training.config import load_train_config
+    from training.config import check_model_task, load_train_config, model_train_config
 
     overrides = list(args.overrides)
     if args.autopilot_response:
         overrides.append(f"env.autopilot_response={args.autopilot_response}")
-    config = load_train_config(args.config, overrides)
+    policy = getattr(args, "policy", None)
+    exported = policy is not None and Path(policy).suffix == ".onnx"
+    if exported and args.config is None:
+        config = model_train_config(Path(policy), overrides)
+    else:
+        config = load_train_config(args.config, overrides)
+        if exported and args.config is not None:
+            check_model_task(Path(policy), config, args.config)
     env_config = config.env_config()
     worlds = worlds_from_args(args, env_config)
     # the limits the config trained behind (the defaults unless it says), unless a flight config is named

@@ -129,6 +129,29 @@ def policy_metadata(spec: PolicySpec, config_json: str) -> dict[str, str]:
     }
 
 
+def read_model_metadata(path: str | Path) -> dict[str, str]:
+    """The ``metadata_props`` of the ONNX model at ``path``, unchecked: what a tool that flies any
+    exported model (``avoid-sim fly``, ``avoid-train evaluate``) reads to configure itself for it.
+
+    :raises UserError: unreadable, not an ONNX model, or metadata that is not UTF-8
+    """
+    path = Path(path)
+    model = read_user_bytes(path, "policy model", MAX_MODEL_BYTES)
+    options = ort.SessionOptions()
+    options.log_severity_level = 3
+    try:
+        session = ort.InferenceSession(model, sess_options=options, providers=["CPUExecutionProvider"])
+    except Exception as exc:
+        detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise UserError(f"policy model {path} is not a loadable ONNX model: {detail}") from None
+    try:
+        return dict(session.get_modelmeta().custom_metadata_map)
+    except UnicodeDecodeError as exc:
+        raise UserError(
+            f"policy model {path}: metadata is not UTF-8 text ({exc.reason} at byte {exc.start})"
+        ) from None
+
+
 def select_providers(requested: Sequence[str] | None = None) -> list[str]:
     """The execution providers to ask for, in preference order, limited to those available.
 
