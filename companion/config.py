@@ -11,10 +11,12 @@ from __future__ import annotations
 
 import dataclasses
 import ipaddress
+import itertools
 import re
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 from companion.autopilot.connection import Connection, parse_connection
 from companion.autopilot.signing import load_signing_key
@@ -338,6 +340,39 @@ class CompanionConfig:
                 f"goal.source = {self.goal.source!r} needs a goal policy (policy.observation = \"goal\"); "
                 "a scan-only policy cannot fly to a goal"
             )
+
+
+def model_policy_settings(meta: Mapping[str, str]) -> dict[str, Any]:
+    """The ``[policy]`` values that feed a model what its metadata says it was trained on: the
+    observation (``scan`` or ``goal``, with its drift, command and firmware features), the stack
+    and the action scales. A tool that flies any exported model (``avoid-sim fly``, ``demo``)
+    configures the companion with them; the companion still checks the model against them.
+
+    :param meta: the model's ``lidar_avoid.*`` metadata
+        (:func:`~companion.guidance.policy.read_model_metadata`)
+    :raises UserError: a scale that is not a number, or a layout the companion cannot build
+    """
+    from companion.guidance.policy import LEGACY_VALUES, PREFIX
+
+    meta = {**LEGACY_VALUES, **meta}
+    settings: dict[str, Any] = {}
+    for key, kind in (("stack", int), ("max_speed", float), ("max_yaw_rate", float),
+                      ("max_sideways_speed", float)):  # fmt: skip
+        if PREFIX + key in meta:
+            try:
+                settings[key] = kind(float(meta[PREFIX + key]))
+            except ValueError:
+                raw = meta[PREFIX + key]
+                raise UserError(f"model metadata {PREFIX}{key} = {raw!r} is not a number") from None
+    wanted = meta[PREFIX + "obs_layout"]
+    goal_range = re.search(r"distance/([0-9.]+)m\b", wanted)  # the name spells the goal's scale out
+    if goal_range:
+        settings["goal_range"] = float(goal_range.group(1))
+    for observation, drift, command, firmware in itertools.product(("scan", "goal"), *[(False, True)] * 3):
+        choice = {"observation": observation, "drift": drift, "command": command, "firmware": firmware}
+        if PolicyConfig(**settings, **choice).layout.name == wanted:
+            return {**settings, **choice}
+    raise UserError(f"model observation layout {wanted} is not one the companion can feed")
 
 
 def load_config(path: str | Path, overrides: list[str] | None = None) -> CompanionConfig:

@@ -7,8 +7,11 @@ the simulated ArduCopter (or PX4), the real companion process flying the mission
 when the companion announces the mission complete, or at the goal task's time limit (the one
 ``avoid-train evaluate`` judges success by), so a demo mission succeeds as an evaluation episode
 does. Flights run :data:`LANES` at a time, each in its own process, so that even with every flight
-timed out the demo ends within three minutes. Prints one table row per flight as it ends, then the
-table in the worlds' order and where the top-down PNGs are.
+timed out the demo ends within three minutes. Prints a line per flight as it ends, then the table
+in the worlds' order and where the top-down PNGs are.
+
+Any exported model flies (:func:`~flightsim.sitl.fly_cli.model_overrides`: the companion is set up
+as the model's metadata says); a scan-only model flies no missions, each world for its time limit.
 
 ``--worlds validation`` flies instead every world family twice, at validation seeds (difficulties
 0.35 and 0.75): the SITL check of a policy or shield change before the test worlds are flown.
@@ -34,7 +37,7 @@ from flightsim.envs import seeds
 from flightsim.envs.env import CONTROL_HZ
 from flightsim.envs.nav_env import NavEnvConfig, time_limit_steps
 from flightsim.sitl.flight_report import INTERRUPTED, FlightReport
-from flightsim.sitl.fly_cli import default_policy
+from flightsim.sitl.fly_cli import default_policy, model_overrides
 from flightsim.sitl.harness import FlightOptions, run_flight
 from flightsim.worlds.families import FAMILIES, generate_family_world
 from flightsim.worlds.planner import shortest_safe_path
@@ -136,9 +139,11 @@ def command(args: argparse.Namespace) -> int:
     verbose = bool(getattr(args, "verbose", False))
     if not verbose:  # the table is the demo's output; -v shows every step
         logging.getLogger("flightsim").setLevel(logging.WARNING)
+    overrides = model_overrides(policy)
+    missions = overrides["policy"]["observation"] == "goal"
     worlds = validation_worlds() if args.worlds == "validation" else demo_worlds()
-    lanes = f"{len(worlds)} mission flights, {LANES} at a time"
-    print(f"avoid-sim demo: {lanes}, policy {policy}, {args.autopilot}")
+    kind = "mission flights" if missions else "flights (a scan-only model: no missions)"
+    print(f"avoid-sim demo: {len(worlds)} {kind}, {LANES} at a time, policy {policy}, {args.autopilot}")
     start = time.monotonic()
     flights = [
         FlightOptions(
@@ -147,8 +152,9 @@ def command(args: argparse.Namespace) -> int:
             policy=policy,
             duration=args.duration if args.duration is not None else time_limit(world),
             workdir=out / world.name,
-            mission=True,
+            mission=missions,
             ideal_response=args.ideal_response,
+            companion_overrides=overrides,
         )
         for world in worlds
     ]
@@ -179,7 +185,7 @@ def _fly_all(flights: list[FlightOptions], out: Path, verbose: bool) -> list[Fli
         try:
             for future in as_completed(futures):
                 reports[futures[future]] = report = _result(future, flights[futures[future]])
-                print(_row(report), flush=True)
+                print(_progress(len(reports), len(flights), report), flush=True)
         except KeyboardInterrupt:
             stop.set()
             for future in futures:
@@ -241,10 +247,11 @@ def _fly(options: FlightOptions, plot: Path) -> FlightReport:
     return report
 
 
-HEADER = (
-    f"{'world':<20} {'engaged':>7} {'waypoints':>9} {'complete':>8} {'time s':>6} {'collision':>9} "
-    f"{'dist m':>6} {'min clr m':>9}"
-)
+#: the table's columns after the world's: (title, width)
+COLUMNS = (("engaged", 7), ("waypoints", 9), ("complete", 8), ("time s", 6), ("collision", 9),
+           ("dist m", 6), ("min clr m", 9))  # fmt: skip
+#: the world column is at least this wide, and as wide as the longest name
+WORLD_WIDTH = 20
 
 
 def _cell(value: float | None, width: int, fmt: str) -> str:
@@ -252,20 +259,46 @@ def _cell(value: float | None, width: int, fmt: str) -> str:
     return f"{'n/a' if value is None else format(value, fmt):>{width}}"
 
 
-def _row(r: FlightReport) -> str:
+def _header(world_width: int = WORLD_WIDTH) -> str:
+    return f"{'world':<{world_width}} " + " ".join(f"{title:>{width}}" for title, width in COLUMNS)
+
+
+def _outcome(r: FlightReport) -> str:
+    """A flight's result in a few words, for the line printed as it ends."""
+    if r.error:
+        return f"error: {r.error}"
+    if r.collision:
+        return "collision"
+    if r.waypoints_total:
+        done = f"complete in {r.mission_time_s:.1f} s" if r.mission_complete else "not complete"
+        return f"{len(r.waypoints_reached)}/{r.waypoints_total} waypoints, {done}"
+    return f"{r.distance_m:.1f} m flown"
+
+
+def _progress(done: int, total: int, r: FlightReport) -> str:
+    """The line printed as a flight ends (the table follows once all have)."""
+    return f"[{done}/{total}] {r.world}: {_outcome(r)}"
+
+
+def _row(r: FlightReport, world_width: int = WORLD_WIDTH) -> str:
     waypoints = f"{len(r.waypoints_reached)}/{r.waypoints_total}"
+    widths = [width for _, width in COLUMNS]
     line = (
-        f"{r.world:<20} {'yes' if r.engaged else 'NO':>7} {waypoints:>9} "
-        f"{'yes' if r.mission_complete else 'no':>8} "
-        f"{_cell(r.mission_time_s if r.mission_complete else None, 6, '.1f')} "
-        f"{'YES' if r.collision else 'no':>9} {r.distance_m:>6.1f} {_cell(r.min_clearance_m, 9, '.2f')}"
+        f"{r.world:<{world_width}} {'yes' if r.engaged else 'NO':>{widths[0]}} {waypoints:>{widths[1]}} "
+        f"{'yes' if r.mission_complete else 'no':>{widths[2]}} "
+        f"{_cell(r.mission_time_s if r.mission_complete else None, widths[3], '.1f')} "
+        f"{'YES' if r.collision else 'no':>{widths[4]}} {r.distance_m:>{widths[5]}.1f} "
+        f"{_cell(r.min_clearance_m, widths[6], '.2f')}"
     )
     return line + (f"  ({r.error})" if r.error else "")
 
 
 def _table(reports: list[FlightReport]) -> str:
-    lines = ["", HEADER, "-" * len(HEADER)]
-    lines += [_row(r) for r in reports]
+    """Every flight's row in the worlds' order, the world column as wide as the longest name."""
+    width = max([WORLD_WIDTH, *(len(r.world) for r in reports)])
+    header = _header(width)
+    lines = ["", header, "-" * len(header)]
+    lines += [_row(r, width) for r in reports]
     complete = sum(r.mission_complete and not r.collision for r in reports)
     lines += ["", f"{complete}/{len(reports)} missions complete without collision"]
     lines += ["", "plots:"] + [f"  {r.plot}" for r in reports]

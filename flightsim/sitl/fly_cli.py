@@ -3,6 +3,11 @@
 Apart from :mod:`flightsim.sitl.harness` because the command line (arguments, their checks, the shipped
 policy, exit codes) is not the flight: the demo, the benchmarks and the SITL tests fly through the
 harness without it.
+
+Any exported model flies: the companion's ``[policy]`` table is set from the model's own metadata
+(:func:`model_overrides`), so a scan-only model (LidarAvoid-v0) flies as one and a goal model with
+the features it was trained on. A world file's waypoints are flown as a mission by a goal model
+unless ``--no-mission`` says otherwise.
 """
 
 from __future__ import annotations
@@ -12,6 +17,8 @@ from pathlib import Path
 from typing import Any
 
 from companion.common.errors import UserError
+from companion.config import model_policy_settings
+from companion.guidance.policy import read_model_metadata
 from flightsim.sitl.flight_report import INTERRUPTED, print_report
 from flightsim.sitl.harness import AUTOPILOTS, FlightOptions, run_flight
 from flightsim.worlds.world import World, generate_world, load_world
@@ -42,6 +49,34 @@ def default_policy() -> Path:
     )
 
 
+def model_overrides(policy: Path) -> dict[str, dict[str, Any]]:
+    """The companion config changes that fly ``policy`` as its metadata says it was trained
+    (``[policy]``: observation, features, stack and scales).
+
+    :raises UserError: the model is unreadable or its metadata names no layout the companion feeds
+    """
+    return {"policy": model_policy_settings(read_model_metadata(policy))}
+
+
+def flies_mission(world: World, scan_only: bool, asked: bool | None) -> tuple[bool, str]:
+    """Whether a flight of ``world`` flies its waypoints as a mission, and the line that says so
+    ("" when there is nothing to say).
+
+    :param scan_only: the model has no goal input (it cannot fly to a waypoint)
+    :param asked: ``--mission`` (True), ``--no-mission`` (False) or neither (None: a world's
+        waypoints are flown when the model can)
+    :raises UserError: ``--mission`` with a scan-only model
+    """
+    n = len(world.waypoints)
+    if asked and scan_only:
+        raise UserError("--mission: the model is scan-only (LidarAvoid-v0) and flies to no waypoint")
+    if asked is not None or not n:
+        return bool(asked), ""
+    if scan_only:
+        return False, f"world {world.name}: its {n} waypoints are not flown: the model is scan-only"
+    return True, f"world {world.name}: flying its {n} waypoints as a mission (--no-mission: fly without)"
+
+
 def configure_parser(parser: Any) -> None:
     """``avoid-sim fly``."""
     parser.add_argument(
@@ -70,9 +105,12 @@ def configure_parser(parser: Any) -> None:
     )
     parser.add_argument("--signed", action="store_true",
                         help="MAVLink 2 signing on every link: autopilot, GCS, companion (sim autopilots)")
-    parser.add_argument("--mission", action="store_true",
-                        help="upload the world's waypoints as a mission (GCS) and fly it "
-                        "(goal.source = mission)")
+    missions = parser.add_mutually_exclusive_group()
+    missions.add_argument("--mission", action="store_true", default=None,
+                          help="upload the world's waypoints as a mission (GCS) and fly it "
+                          "(goal.source = mission; the default for a world with waypoints and a goal model)")
+    missions.add_argument("--no-mission", dest="mission", action="store_false",
+                          help="fly without the world's waypoints (the goal model flies 20 m ahead)")
     parser.add_argument(
         "--ideal-response",
         action="store_true",
@@ -91,6 +129,10 @@ def command(args: Any) -> int:
         raise UserError(f"--duration must be positive, got {args.duration}")
     world = load_flight_world(args.world, args.seed, args.difficulty)
     policy = Path(args.policy) if args.policy else default_policy()
+    overrides = model_overrides(policy)
+    mission, note = flies_mission(world, overrides["policy"]["observation"] == "scan", args.mission)
+    if note:
+        print(note)
     workdir = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="avoid-sim-fly-"))
     options = FlightOptions(
         autopilot=args.autopilot,
@@ -101,8 +143,9 @@ def command(args: Any) -> int:
         lidar_step_deg=args.lidar_step,
         workdir=workdir,
         signed=args.signed,
-        mission=args.mission,
+        mission=mission,
         ideal_response=args.ideal_response,
+        companion_overrides=overrides,
     )
     try:
         report = run_flight(options, plot=Path(args.plot) if args.plot else None)

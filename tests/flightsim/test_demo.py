@@ -18,7 +18,9 @@ from flightsim.envs.nav_env import LidarNavEnv
 from flightsim.sitl.demo import (
     GENERATED,
     LANES,
+    _progress,
     _result,
+    _table,
     demo_worlds,
     lane_schedule,
     time_limit,
@@ -96,6 +98,34 @@ def test_bad_demo_command_line_is_one_line_and_exit_2(
     err = capsys.readouterr().err.strip()
     assert err == f"avoid-sim: error: {message}"
 
+
+def _report(world: str, reached: int = 2) -> FlightReport:
+    report = FlightReport(world, "sim-ardupilot", True, False, 30.0, 41.5, 0.8, 10.0, 4.0, 7.0, [], {})
+    report.waypoints_total, report.mission_complete, report.mission_time_s = 2, reached == 2, 28.4
+    report.waypoints_reached = [(i, 10.0 * (i + 1)) for i in range(reached)]
+    return report
+
+
+def test_the_table_fits_long_world_names_and_each_flight_has_one_row() -> None:
+    reports = [_report("pillars-900001-d0.30"), _report("a-much-longer-world-name-than-twenty", 1)]
+    lines = _table(reports).splitlines()
+    header = next(line for line in lines if line.startswith("world"))
+    rows = [line for line in lines if line.startswith(("pillars", "a-much"))]
+    assert len(rows) == 2
+    # every row's columns end where the header's do, however long the world's name
+    assert {len(row) for row in rows} == {len(header)}
+    assert [row.split()[1:] for row in rows] == [
+        ["yes", "2/2", "yes", "28.4", "no", "41.5", "0.80"],
+        ["yes", "1/2", "no", "n/a", "no", "41.5", "0.80"],
+    ]
+
+
+def test_a_flight_ending_prints_a_labelled_line_not_a_table_row() -> None:
+    report = _report("pillars-900001-d0.30")
+    assert _progress(3, 6, report) == "[3/6] pillars-900001-d0.30: 2/2 waypoints, complete in 28.4 s"
+    assert _progress(1, 6, _report("x", 1)) == "[1/6] x: 1/2 waypoints, not complete"
+    failed = FlightReport.failed("x", "sim-px4", "interrupted")
+    assert _progress(2, 6, failed) == "[2/6] x: error: interrupted"
 
 
 def test_an_unknown_world_set_is_named_in_the_error_and_exit_2(capsys: pytest.CaptureFixture[str]) -> None:
