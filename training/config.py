@@ -107,8 +107,9 @@ class PretrainConfig:
     PPO's evaluations after).
 
     :param method: ``"bc"`` or ``"dagger"``
-    :param steps: env steps recorded (all envs together; per iteration for DAgger; not counted in
-        ``total_timesteps``)
+    :param steps: env steps recorded (all envs together; per iteration for DAgger). Behaviour
+        cloning's are not counted in ``total_timesteps``; DAgger's are: with ``total_timesteps``
+        set, each iteration collects at most ``total_timesteps / iterations``
     :param demonstrator: the classical controller imitated (``bc`` only)
     :param teacher: DAgger's privileged teacher (``dagger`` only)
     :param iterations: DAgger's collect-and-fit rounds
@@ -149,8 +150,9 @@ class TrainConfig:
 
     :param name: config name; the run directory is ``<run_root>/<name>-s<seed>``
     :param seed: seeds PPO, the world sequence and the environments
-    :param total_timesteps: PPO's environment steps (all environments together); 0: imitation
-        only (``[pretrain]``), no PPO
+    :param total_timesteps: the run's environment steps (all environments together): PPO's, and
+        DAgger's before them (PPO gets what DAgger leaves); 0: imitation only (``[pretrain]``, at
+        its full size), no PPO
     :param n_envs: parallel simulator processes; 0 = one per CPU core
     :param n_stack: scans stacked into one observation (the companion's FrameStack depth)
     :param checkpoint_every: save a checkpoint every this many environment steps

@@ -27,6 +27,7 @@ from companion.common.errors import UserError
 from training.controllers import TEACHERS
 from training.mirror import Mirror
 from training.pretrain import Demonstrations, discounted_returns, fit
+from training.progress import Progress
 
 log = logging.getLogger(__name__)
 
@@ -72,7 +73,7 @@ def nav_envs(venv: Any) -> list[Any]:
 
 def collect(
     venv: Any, policy: Any, n_steps: int, beta: float, gamma: float, rng: np.random.Generator,
-    teacher: str = "path_expert", teacher_noise: float = 0.0,
+    teacher: str = "path_expert", teacher_noise: float = 0.0, progress: Progress | None = None,
 ) -> Rollouts:  # fmt: skip
     """Fly ``n_steps`` env steps (all envs together), each episode by the teacher with probability
     ``beta`` and otherwise by the student (deterministic), recording the teacher's action at every step.
@@ -90,6 +91,7 @@ def collect(
     :param rng: draws who flies each episode
     :param teacher: a :data:`TEACHERS` name
     :param teacher_noise: the noise's standard deviation, action units (0: none drawn)
+    :param progress: counts the env steps flown
     """
     envs = nav_envs(venv)
     n_envs = venv.num_envs
@@ -112,6 +114,8 @@ def collect(
             flown = np.clip(labels + rng.normal(0.0, teacher_noise, labels.shape), -1.0, 1.0)
         actions = np.where(teacher_flies[:, None], flown, student).astype(np.float32)
         obs, rewards[t], dones[t], infos = venv.step(actions)
+        if progress is not None:
+            progress.update(n_envs)
         for i in np.flatnonzero(dones[t]):
             success = bool(infos[i].get("success", False))
             counts += (1, success, not teacher_flies[i], success and not teacher_flies[i])
@@ -147,6 +151,7 @@ def run(
     schedule: str = "constant",
     weigh: Callable[[np.ndarray], np.ndarray] | None = None,
     mirror: Mirror | None = None,
+    bar: bool = False,
 ) -> Demonstrations:
     """DAgger: iteration 0 is the teacher's alone (plain behaviour cloning), then the student flies
     a growing share (teacher probability ``beta0 ** k``), and the student is refitted on every
@@ -168,6 +173,8 @@ def run(
     :param weigh: observations → each label's weight in the fit (``training.pretrain.fit``'s
         ``weights``); None: all alike
     :param mirror: mirror half of each fit's batches across the nose (``training.pretrain.fit``)
+    :param bar: show the collection's progress as a bar (False: a log line every 30 s), with
+        the time left
     :return: every label gathered (the data of the last fit)
     """
     rows = max(1, steps // venv.num_envs) * venv.num_envs  # what one new iteration gathers
@@ -178,38 +185,41 @@ def run(
     returns = np.empty(size, dtype=np.float32)
     collected = episodes = successes = 0
     data = Demonstrations(obs[:0], actions[:0], returns[:0], 0, 0)
-    for k in range(iterations):
-        beta = beta0**k
-        if k < len(previous):
-            rollouts = previous[k]
-        else:  # the draws of iteration k are its own: a resumed run draws as an unbroken one would
-            rng = np.random.default_rng([seed, k])
-            rollouts = collect(venv, model.policy, steps, beta, model.gamma, rng, teacher, teacher_noise)
-        n = len(rollouts.actions)
-        obs[collected : collected + n] = rollouts.obs
-        actions[collected : collected + n] = rollouts.actions
-        returns[collected : collected + n] = rollouts.returns
-        collected += n
-        episodes += rollouts.episodes
-        successes += rollouts.successes
-        data = Demonstrations(
-            obs[:collected], actions[:collected], returns[:collected], episodes, successes
-        )
-        if k < len(previous):
-            continue
-        student = (
-            f", student {rollouts.student_successes}/{rollouts.student_episodes}"
-            if rollouts.student_episodes
-            else ""
-        )
-        log.info(
-            "dagger iteration %d/%d (teacher share %.2f): %d/%d episodes reached every waypoint%s",
-            k + 1, iterations, beta, rollouts.successes, rollouts.episodes, student,
-        )  # fmt: skip
-        weights = None if weigh is None else weigh(data.obs)
-        fit(model.policy, data, epochs, batch_size, learning_rate, seed + k, schedule, weights, mirror)
-        if after_iteration is not None:
-            after_iteration(k, collected, rollouts)
+    with Progress(max(iterations - len(previous), 0) * rows, "dagger steps", "step", bar) as progress:
+        for k in range(iterations):
+            beta = beta0**k
+            if k < len(previous):
+                rollouts = previous[k]
+            else:  # the draws of iteration k are its own: a resumed run draws as an unbroken one would
+                rng = np.random.default_rng([seed, k])
+                rollouts = collect(
+                    venv, model.policy, steps, beta, model.gamma, rng, teacher, teacher_noise, progress
+                )
+            n = len(rollouts.actions)
+            obs[collected : collected + n] = rollouts.obs
+            actions[collected : collected + n] = rollouts.actions
+            returns[collected : collected + n] = rollouts.returns
+            collected += n
+            episodes += rollouts.episodes
+            successes += rollouts.successes
+            data = Demonstrations(
+                obs[:collected], actions[:collected], returns[:collected], episodes, successes
+            )
+            if k < len(previous):
+                continue
+            student = (
+                f", student {rollouts.student_successes}/{rollouts.student_episodes}"
+                if rollouts.student_episodes
+                else ""
+            )
+            log.info(
+                "dagger iteration %d/%d (teacher share %.2f): %d/%d episodes reached every waypoint%s; %s",
+                k + 1, iterations, beta, rollouts.successes, rollouts.episodes, student, progress.line(),
+            )  # fmt: skip
+            weights = None if weigh is None else weigh(data.obs)
+            fit(model.policy, data, epochs, batch_size, learning_rate, seed + k, schedule, weights, mirror)
+            if after_iteration is not None:
+                after_iteration(k, collected, rollouts)
     return data
 
 

@@ -35,6 +35,7 @@ Episodes are independent tasks run in a process pool (one process per core by de
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 from collections.abc import Sequence
@@ -66,6 +67,7 @@ from training.episodes import (
     make_tasks,
     run_task,
 )
+from training.progress import Progress
 from training.report import format_table, plot_trajectories, report
 
 #: where ``avoid-train evaluate`` runs its episodes
@@ -83,11 +85,19 @@ def make_executor(workers: int, kind: str = "local", address: str | None = None)
     return ProcessPoolExecutor(max_workers=workers, mp_context=get_context("forkserver"))
 
 
-def run_tasks(tasks: Sequence[EpisodeTask], executor: Executor | None = None) -> list[EpisodeResult]:
-    """Run ``tasks`` in ``executor`` (or in this process when ``None``), results in task order."""
-    if executor is None:
-        return [run_task(t) for t in tasks]
-    return list(executor.map(run_task, tasks))
+def run_tasks(
+    tasks: Sequence[EpisodeTask], executor: Executor | None = None, progress: Progress | None = None
+) -> list[EpisodeResult]:
+    """Run ``tasks`` in ``executor`` (or in this process when ``None``), results in task order.
+
+    :param progress: counts the episodes as they end
+    """
+    results = []
+    for result in map(run_task, tasks) if executor is None else executor.map(run_task, tasks):
+        results.append(result)
+        if progress is not None:
+            progress.update()
+    return results
 
 
 # --- command line ----------------------------------------------------------------------------------
@@ -156,6 +166,7 @@ def evaluate(
     executor: str = "local",
     address: str | None = None,
     shield_config: ShieldConfig | None = None,
+    bar: bool = False,
 ) -> tuple[dict[str, Any], list[EpisodeResult]]:
     """Evaluate ``policy`` (optional) and ``baselines`` on ``worlds``: (report dict, episode results).
 
@@ -166,6 +177,7 @@ def evaluate(
     :param executor: one of :data:`EXECUTORS` (see :func:`make_executor`; ``local`` with one worker
         runs in this process)
     :param address: the Ray cluster to join (``ray`` only; default: start a local Ray)
+    :param bar: show a progress bar of the episodes on stderr, with the time left
     """
     if baselines is None:
         baselines = GOAL_BASELINES if env_id == NAV_ENV_ID else BASELINES
@@ -173,11 +185,12 @@ def evaluate(
         [ControllerSpec("policy", str(policy), "policy", shield, shield_config)] if policy else []
     ) + [ControllerSpec(b, shield=shield, shield_config=shield_config) for b in baselines]
     tasks = make_tasks(controllers, worlds, episodes, env, env_id)
-    if workers <= 1 and executor == "local":
-        results = run_tasks(tasks)
-    else:
-        with make_executor(workers, executor, address) as pool:
-            results = run_tasks(tasks, pool)
+    with Progress(len(tasks), "episodes", "episode") if bar else contextlib.nullcontext() as progress:
+        if workers <= 1 and executor == "local":
+            results = run_tasks(tasks, progress=progress)
+        else:
+            with make_executor(workers, executor, address) as pool:
+                results = run_tasks(tasks, pool, progress)
     return report(results, worlds), results
 
 
@@ -357,7 +370,7 @@ def command(args: argparse.Namespace) -> int:
         raise UserError("--baselines '' and no --policy: nothing to evaluate")
     summary, results = evaluate(
         args.policy, worlds, args.episodes, config.env, workers, baselines=baselines, shield=shield,
-        env_id=config.env_id, executor=args.executor, address=args.address, shield_config=limits,
+        env_id=config.env_id, executor=args.executor, address=args.address, shield_config=limits, bar=True,
     )  # fmt: skip
     summary["env_id"] = config.env_id
     summary["policy"] = None if args.policy is None else str(args.policy)

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from training.mirror import Mirror
+from training.progress import Progress
 
 log = logging.getLogger(__name__)
 
@@ -46,8 +47,9 @@ class Demonstrations:
 
 
 def collect(
-    venv: Any, n_stack: int, demonstrator: str, env_config: Any, n_steps: int, gamma: float
-) -> Demonstrations:
+    venv: Any, n_stack: int, demonstrator: str, env_config: Any, n_steps: int, gamma: float,
+    bar: bool = False,
+) -> Demonstrations:  # fmt: skip
     """Fly ``demonstrator`` in every env of ``venv`` (frame-stacked) for ``n_steps`` steps in all.
 
     :param venv: the training VecEnv (monitored, frame-stacked), freshly built
@@ -56,6 +58,7 @@ def collect(
     :param env_config: the envs' config (the demonstrator reads the frame with its layout)
     :param n_steps: env steps to record, all envs together
     :param gamma: discount of the recorded returns (PPO's)
+    :param bar: show the progress as a bar (False: a log line every 30 s), with the time left
     """
     from training.controllers import ControllerSpec, build_controller
 
@@ -70,18 +73,20 @@ def collect(
     rewards = np.empty((rows, n_envs), dtype=np.float32)
     dones = np.empty((rows, n_envs), dtype=bool)
     episodes = successes = 0
-    for t in range(rows):
-        all_obs[t], all_actions[t] = obs, actions
-        obs, rewards[t], dones[t], infos = venv.step(actions)
-        next_actions = []
-        for i, (controller, o, info) in enumerate(zip(controllers, obs, infos, strict=True)):
-            if dones[t, i]:
-                episodes += 1
-                successes += bool(info.get("success", not info.get("collision", False)))
-                next_actions.append(controller.reset(o[-frame:]))
-            else:
-                next_actions.append(controller.act(o[-frame:]))
-        actions = np.clip(np.stack(next_actions), -1.0, 1.0).astype(np.float32)
+    with Progress(rows * n_envs, f"{demonstrator} steps", "step", bar) as progress:
+        for t in range(rows):
+            all_obs[t], all_actions[t] = obs, actions
+            obs, rewards[t], dones[t], infos = venv.step(actions)
+            progress.update(n_envs)
+            next_actions = []
+            for i, (controller, o, info) in enumerate(zip(controllers, obs, infos, strict=True)):
+                if dones[t, i]:
+                    episodes += 1
+                    successes += bool(info.get("success", not info.get("collision", False)))
+                    next_actions.append(controller.reset(o[-frame:]))
+                else:
+                    next_actions.append(controller.act(o[-frame:]))
+            actions = np.clip(np.stack(next_actions), -1.0, 1.0).astype(np.float32)
     returns = discounted_returns(rewards, dones, gamma)
     return Demonstrations(
         all_obs.reshape(-1, obs.shape[1]),

@@ -52,6 +52,7 @@ from training.controllers import ControllerSpec
 from training.episodes import WorldSpec, goal_worlds, make_tasks
 from training.evaluate import run_tasks
 from training.mirror import Mirror, mirror_for
+from training.progress import Progress
 from training.report import summarise
 from training.vec_env import ignore_sigint_in_worker, make_vec_env
 
@@ -256,9 +257,12 @@ def make_callbacks(config: TrainConfig, run_dir: Path, n_envs: int, executor: An
                 )
             policy = [ControllerSpec("policy", str(model_path))]
             modes = {}
-            for name, env in eval_envs:
-                tasks = make_tasks(policy, worlds, 1, env, config.env_id)
-                modes[name] = summarise(run_tasks(tasks, executor))
+            # logged, not a bar: PPO's own bar may be on the terminal
+            what = f"eval at {self.num_timesteps} steps: episodes"
+            with Progress(len(worlds) * len(eval_envs), what, "episode", bar=False) as progress:
+                for name, env in eval_envs:
+                    tasks = make_tasks(policy, worlds, 1, env, config.env_id)
+                    modes[name] = summarise(run_tasks(tasks, executor, progress))
             row = {
                 "timesteps": self.num_timesteps,
                 "wall_s": round(self.wall_offset + time.monotonic() - self.started, 1),
@@ -417,9 +421,19 @@ def initial_model(path: Path) -> Any:
         raise UserError(f"ppo.init_from: {exc}") from None
 
 
+def dagger_steps(config: TrainConfig) -> int:
+    """Env steps each DAgger iteration collects: ``pretrain.steps``, or with ``total_timesteps``
+    set, at most an even share of it, so that a short run is short (``total_timesteps`` counts
+    DAgger's steps; PPO gets what is left)."""
+    p = config.pretrain
+    if not config.total_timesteps:
+        return p.steps
+    return max(1, min(p.steps, config.total_timesteps // p.iterations))
+
+
 def warm_start(
     config: TrainConfig, venv: Any, model: Any, evaluation: Any, resume: Path | None = None
-) -> None:
+) -> int:
     """Imitation before PPO: behaviour cloning of a classical controller (:mod:`training.pretrain`)
     or DAgger from the privileged teacher (:mod:`training.dagger`), each fitting the fresh
     model's actor and critic. DAgger saves each iteration (its labels in ``dagger/``, the student
@@ -427,6 +441,8 @@ def warm_start(
 
     :param evaluation: the run's ``HeldOutEvaluation`` callback
     :param resume: a DAgger checkpoint of this run: go on after its iteration, on its labels
+    :return: the env steps DAgger collected, which count in ``total_timesteps`` (behaviour
+        cloning's do not: 0)
     """
     from training import pretrain
 
@@ -456,16 +472,18 @@ def warm_start(
         # learn sets up the logger; before it, the evaluation logs to a run-wide one (kept after)
         model.set_logger(configure(str(run_dir / "tb" / "dagger"), ["stdout", "csv", "tensorboard"]))
         evaluation.init_callback(model)
-        dagger.run(
-            venv, model, iterations=p.iterations, steps=p.steps, beta0=p.beta0, epochs=p.epochs,
-            batch_size=p.batch_size, learning_rate=p.learning_rate, seed=config.seed,
+        data = dagger.run(
+            venv, model, iterations=p.iterations, steps=dagger_steps(config), beta0=p.beta0,
+            epochs=p.epochs, batch_size=p.batch_size, learning_rate=p.learning_rate, seed=config.seed,
             previous=previous, after_iteration=after, teacher=p.teacher, teacher_noise=p.teacher_noise,
             schedule=p.learning_rate_schedule, weigh=label_weights(config), mirror=label_mirror(config),
+            bar=config.progress_bar,
         )  # fmt: skip
-        return
+        return len(data.actions)
     data = pretrain.collect(
-        venv, config.n_stack, p.demonstrator, config.env_config(), p.steps, config.ppo.gamma
-    )
+        venv, config.n_stack, p.demonstrator, config.env_config(), p.steps, config.ppo.gamma,
+        bar=config.progress_bar,
+    )  # fmt: skip
     log.info(
         "warm start: %d steps of %s, %d episodes ended, %d of them successes",
         len(data.actions), p.demonstrator, data.episodes, data.successes,
@@ -474,6 +492,7 @@ def warm_start(
         model.policy, data, p.epochs, p.batch_size, p.learning_rate, config.seed, p.learning_rate_schedule,
         mirror=label_mirror(config),
     )  # fmt: skip
+    return 0
 
 
 def label_weights(config: TrainConfig) -> Callable[[np.ndarray], np.ndarray] | None:
@@ -541,14 +560,15 @@ def train(config: TrainConfig, resume: Path | None = None) -> Path:
         model = build_model(config, venv, run_dir, resume)
         callbacks = make_callbacks(config, run_dir, n_envs, executor, difficulty)
         in_dagger = resume is not None and resume.name.startswith("dagger_")
+        imitated = 0  # DAgger's env steps, counted in total_timesteps
         if config.pretrain.steps and (resume is None or in_dagger):
-            warm_start(config, venv, model, callbacks[-1], resume)
-            if config.total_timesteps == 0:
+            imitated = warm_start(config, venv, model, callbacks[-1], resume)
+            if config.total_timesteps <= imitated:
                 final = run_dir / "final_model.zip"
                 save_atomically(model, final)
                 return final
         continued = resume is not None and not in_dagger  # PPO steps already taken
-        remaining = config.total_timesteps - (model.num_timesteps if continued else 0)
+        remaining = config.total_timesteps - (model.num_timesteps if continued else imitated)
         if remaining <= 0:
             raise UserError(f"{resume} already has {model.num_timesteps} steps >= total_timesteps")
         log.info(

@@ -169,3 +169,23 @@ def test_with_a_sideways_action_the_student_learns_all_three_parts(tmp_path, one
         untrained, _ = build_model(config, venv, tmp_path, None).predict(data.obs, deterministic=True)
         errors = np.mean((predicted - data.actions) ** 2, axis=0)
         assert np.all(errors < 0.25 * np.mean((untrained - data.actions) ** 2, axis=0)), errors
+
+
+def test_total_timesteps_bounds_dagger_and_counts_its_steps(tmp_path, caplog):
+    """A short goal-task run is short: ``total_timesteps`` 300 over three iterations collects 100
+    steps in each (not ``pretrain.steps`` 60,000) and leaves no PPO after them; the progress log
+    says how much is left."""
+    path = tmp_path / "dagger.toml"
+    path.write_text(NAV)
+    short = [*DAGGER, f"run_root={tmp_path}", "total_timesteps=300", "pretrain.steps=60000",
+             "pretrain.iterations=3", "pretrain.epochs=1", "eval.n_worlds=1", "eval.workers=1",
+             "env.max_steps=40", "progress_bar=false"]  # fmt: skip
+    with caplog.at_level("INFO", logger="training.dagger"):
+        assert main(["train", "--config", str(path), *short]) == 0
+    run_dir = tmp_path / "dagger-s2"
+    assert sorted(p.name for p in (run_dir / "checkpoints").glob("dagger_*")) == [
+        "dagger_100_steps.zip", "dagger_200_steps.zip", "dagger_300_steps.zip"]  # fmt: skip
+    assert not (run_dir / "tb" / "ppo_1").exists()  # DAgger took the whole budget
+    flown = [r.getMessage() for r in caplog.records if "dagger iteration" in r.getMessage()]
+    assert flown[0].endswith("dagger steps: 100/300 (33%), " + flown[0].split("(33%), ")[1])
+    assert "left" in flown[0] and flown[-1].split("; ")[1].startswith("dagger steps: 300/300 (100%)")
