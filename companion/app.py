@@ -82,6 +82,9 @@ ZERO_SETPOINT_PERIOD = 0.1
 #: picture: the autopilot keeps flying the last setpoint it got, and supervisor.lidar_timeout (0.3 s)
 #: still ends it with HOLD.
 LATE_SCAN_AFTER = 0.12
+#: while no autopilot has been heard, a line saying so, with the address listened on, this often (s)
+WAITING_LOG_INTERVAL = 5.0
+
 #: After an iteration whose lidar read stopped at its bounds with datagrams still waiting (a flood),
 #: the loop pauses this long, s: it reads at most about half the time instead of spinning, so a
 #: flood cannot take the whole processor (run SCHED_FIFO, the companion would starve the kernel's
@@ -331,6 +334,7 @@ class Companion:
         self._last_heartbeat = -math.inf
         self._last_watchdog = -math.inf
         self._last_log = clock()
+        self._last_waiting_log = clock()  # the start-up line names the address; this repeats it
         self._stopping = False
         self.goal = open_goal(config, self.link, clock)
         # with a goal source: hold until the goal is first evaluated, and announce what it says then
@@ -592,6 +596,11 @@ class Companion:
         if now - self._last_log >= self.config.runtime.log_interval:
             self._last_log = now
             log.info("%s", self.summary())
+        waiting = self.supervisor.state == SupervisorState.WAITING_FOR_AUTOPILOT
+        if waiting and now - self._last_waiting_log >= WAITING_LOG_INTERVAL:
+            self._last_waiting_log = now
+            log.info("waiting for the autopilot (%s) on %s: no heartbeat yet", self.config.autopilot.type,
+                     self.config.autopilot.connection)
 
     def summary(self) -> str:
         """One line of counters for the periodic log."""
@@ -683,12 +692,15 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", required=True, metavar="FILE.toml",
                         help="companion configuration (see config/companion.example.toml)")
     parser.add_argument("overrides", nargs="*", metavar="KEY=VALUE",
-                        help="override config keys, e.g. shield.max_speed=1.0")
+                        help="override config keys, e.g. shield.max_speed=1.0 (relative paths: from the "
+                        "working directory)")
+    parser.add_argument("--set", dest="set_overrides", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a config key, as KEY=VALUE after the options does")
 
 
 def command(args: argparse.Namespace) -> int:
     """Run the companion until SIGTERM/SIGINT."""
-    config = load_config(args.config, args.overrides)
+    config = load_config(args.config, [*args.set_overrides, *args.overrides])
     companion = Companion(config)
     try:
         return companion.run()

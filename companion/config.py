@@ -3,8 +3,10 @@
 Each table of the file is one dataclass below (``[scan]``, ``[shield]`` and ``[supervisor]`` are
 the pure modules' own config classes). Loading is strict (:mod:`companion.common.tomlconfig`): an unknown
 key, a wrong type or a value out of range stops start-up with a message naming the dotted key.
-Relative file paths (the model, the parameter file) are taken relative to the config file, so a
-deployment directory can be moved as a whole. ``config/companion.example.toml`` documents every key.
+Relative file paths (the model, the parameter file) written in the file are taken relative to the
+file, so a deployment directory can be moved as a whole; those given on the command line
+(``--set policy.model=...``) relative to the working directory, as a shell user expects.
+``config/companion.example.toml`` documents every key.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import ipaddress
 import itertools
+import os
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -249,7 +252,9 @@ class RecorderConfig:
     """The flight recorder (:mod:`companion.recording`): every flight to MCAP files, viewable in Foxglove.
 
     :param enabled: record (a recorder that cannot write turns itself off; the flight goes on)
-    :param directory: where the ``flight-*.mcap`` files go (relative: to the config file)
+    :param directory: where the ``flight-*.mcap`` files go (relative: to the config file); empty:
+        :func:`default_recording_directory` (the service's logs directory, else the user's state
+        directory)
     :param budget_mb: the recordings in ``directory`` never take more than this; the oldest go first
     :param file_mb: a file is closed and a new one started at this size
     :param cloud_decimation: 0 = no point cloud; N = every N-th point of each revolution (1 = all:
@@ -265,8 +270,6 @@ class RecorderConfig:
     queue_size: int = field(default=512, metadata={"min": 8, "max": 1_000_000})
 
     def __post_init__(self) -> None:
-        if self.enabled and not self.directory:
-            raise ValueError("enabled is true but no directory is given")
         if self.file_mb > self.budget_mb:
             raise ValueError(f"file_mb {self.file_mb:g} is larger than budget_mb {self.budget_mb:g}")
 
@@ -375,37 +378,64 @@ def model_policy_settings(meta: Mapping[str, str]) -> dict[str, Any]:
     raise UserError(f"model observation layout {wanted} is not one the companion can feed")
 
 
+def default_recording_directory(environ: Mapping[str, str] = os.environ) -> Path:
+    """Where flights are recorded when ``recorder.directory`` is empty: ``flights`` in the
+    service's logs directory (systemd's ``LogsDirectory=``, handed over as ``$LOGS_DIRECTORY``:
+    /var/log/lidar-avoid), else in the user's state directory (``$XDG_STATE_HOME``, by default
+    ~/.local/state) under ``lidar-avoid``: a run on a workstation writes nowhere it should not.
+
+    :param environ: the environment to read
+    """
+    logs = environ.get("LOGS_DIRECTORY", "").split(":")[0]
+    if logs:
+        return Path(logs) / "flights"
+    state = environ.get("XDG_STATE_HOME", "")
+    base = Path(state) if state and Path(state).is_absolute() else Path.home() / ".local" / "state"
+    return base / "lidar-avoid" / "flights"
+
+
 def load_config(path: str | Path, overrides: list[str] | None = None) -> CompanionConfig:
     """Read, override (``key.sub=value``), check and complete the companion config.
+
+    Relative paths (the model, the TensorRT cache, the signing key, the parameter file, the
+    recordings) written in the file are taken from the file's directory, those in ``overrides``
+    from the working directory.
 
     :param path: the TOML file
     :param overrides: command-line ``dotted.key=value`` items (value parsed as TOML)
     :raises UserError: naming the key that is unknown, ill-typed, out of range or missing
     """
     path = Path(path)
-    data = apply_overrides(load_toml(path), list(overrides or []))
+    overrides = list(overrides or [])
+    data = apply_overrides(load_toml(path), overrides)
     config = from_dict(CompanionConfig, data)
     if not config.policy.model:
         raise UserError("policy.model: required (path of the ONNX policy)")
     base = path.resolve().parent
+    given = {item.split("=", 1)[0].strip() for item in overrides}
 
-    def resolve(p: str) -> str:
+    def resolve(key: str, p: str) -> str:
         if not p:
             return p
         expanded = Path(p).expanduser()
-        return str(expanded if expanded.is_absolute() else base / expanded)
+        return str((Path.cwd() if key in given else base) / expanded)  # an absolute one stays
 
-    signing_key = resolve(config.autopilot.signing_key)
+    signing_key = resolve("autopilot.signing_key", config.autopilot.signing_key)
     if signing_key:
         load_signing_key(signing_key)  # a bad key file stops start-up here, before the model loads
+    recordings = resolve("recorder.directory", config.recorder.directory)
     return dataclasses.replace(
         config,
         autopilot=dataclasses.replace(config.autopilot, signing_key=signing_key),
         policy=dataclasses.replace(
             config.policy,
-            model=resolve(config.policy.model),
-            trt_cache_dir=resolve(config.policy.trt_cache_dir),
+            model=resolve("policy.model", config.policy.model),
+            trt_cache_dir=resolve("policy.trt_cache_dir", config.policy.trt_cache_dir),
         ),
-        params_check=dataclasses.replace(config.params_check, file=resolve(config.params_check.file)),
-        recorder=dataclasses.replace(config.recorder, directory=resolve(config.recorder.directory)),
+        params_check=dataclasses.replace(
+            config.params_check, file=resolve("params_check.file", config.params_check.file)
+        ),
+        recorder=dataclasses.replace(
+            config.recorder, directory=recordings or str(default_recording_directory())
+        ),
     )

@@ -442,20 +442,20 @@ def test_replay_of_a_file_that_is_not_a_recording_is_one_line_and_exit_2(tmp_pat
     assert done.stderr.strip().count("\n") == 0 and "junk.mcap" in done.stderr
 
 
-def test_recorder_config_is_checked_and_its_directory_is_relative_to_the_config(tmp_path):
+def test_recorder_config_is_checked_and_its_directory_is_relative_to_the_config(tmp_path, monkeypatch):
     from companion.common.errors import UserError
-    from companion.config import load_config
+    from companion.config import default_recording_directory, load_config
 
     model = write_policy(tmp_path / "forward.onnx", kind="forward")
     path = tmp_path / "c.toml"
     path.write_text(f'[policy]\nmodel = "{model}"\n[recorder]\nenabled = true\n')
-    with pytest.raises(UserError, match=r"recorder.*no directory"):
-        load_config(path)
+    assert load_config(path).recorder.directory == str(default_recording_directory())
     with pytest.raises(UserError, match=r"recorder.*file_mb"):
         load_config(path, ['recorder.directory="flights"', "recorder.file_mb=500.0",
                            "recorder.budget_mb=100.0"])
-    config = load_config(path, ['recorder.directory="flights"'])
-    assert config.recorder.directory == str(tmp_path / "flights")
+    path.write_text(f'[policy]\nmodel = "{model}"\n[recorder]\nenabled = true\ndirectory = "flights"\n')
+    monkeypatch.chdir(tmp_path.parent)
+    assert load_config(path).recorder.directory == str(tmp_path / "flights")
 
 
 def test_the_recorder_and_replay_need_neither_foxglove_nor_matplotlib(tmp_path):
