@@ -71,8 +71,16 @@ _MAVSDK_LOG_LEVELS = {
 _mavsdk_log = logging.getLogger("mavsdk")
 
 
+#: MAVSDK's warning when the raw connection's reader subscribes before the connection exists,
+#: which :class:`Px4Link` does on purpose (see :class:`RawMavlinkTransport`): not worth a warning
+_EXPECTED_AT_START = "No raw connection available"
+
+
 def _forward_mavsdk_log(level: LogLevel, message: str, file: str | None, line: int) -> bool:
-    _mavsdk_log.log(_MAVSDK_LOG_LEVELS.get(level, logging.INFO), "%s", message)
+    python_level = _MAVSDK_LOG_LEVELS.get(level, logging.INFO)
+    if message.startswith(_EXPECTED_AT_START):
+        python_level = logging.DEBUG
+    _mavsdk_log.log(python_level, "%s", message)
     return True  # handled: MAVSDK prints nothing itself
 
 
@@ -140,17 +148,20 @@ class Px4Link:
         self._configuration = configuration  # kept alive as long as MAVSDK runs
         self._mavsdk = Mavsdk(configuration)
         # MAVSDK gets its bytes through the companion's own endpoint (one autopilot, one address,
-        # signing), not through a socket of its own: see companion.autopilot.px4_transport.
-        result = self._mavsdk.add_any_connection("raw://")
-        if result != ConnectionResult.SUCCESS:
-            self._mavsdk.destroy()
-            raise UserError(f"autopilot.connect: MAVSDK refused its raw connection: {result.name}")
+        # signing), not through a socket of its own: see companion.autopilot.px4_transport. The
+        # transport listens before the raw connection exists: MAVSDK sends a heartbeat at once.
         try:
             self._transport = RawMavlinkTransport(self._mavsdk, connect, autopilot, source_system,
                                                   source_component, signing_key)
         except BaseException:
             self._mavsdk.destroy()
             raise
+        result = self._mavsdk.add_any_connection("raw://")
+        if result != ConnectionResult.SUCCESS:
+            self._mavsdk.destroy()
+            self._transport.close()
+            raise UserError(f"autopilot.connect: MAVSDK refused its raw connection: {result.name}")
+        self._transport.start_reading()
         self.connect = connect
 
         # Two locks, so MAVSDK's callback thread (status) never waits on a plugin teardown (offboard).

@@ -28,7 +28,10 @@ log = logging.getLogger(__name__)
 class RawMavlinkTransport:
     """Pump MAVLink between a MAVSDK ``raw://`` connection and a :class:`MavlinkEndpoint`.
 
-    :param mavsdk: the ``Mavsdk`` instance, with a ``raw://`` connection added
+    :param mavsdk: the ``Mavsdk`` instance; its ``raw://`` connection is added after this subscribed
+        to what MAVSDK sends (MAVSDK sends its first heartbeat as soon as the connection exists, and
+        a raw connection nobody reads fails it: "Sending message failed"), then
+        :meth:`start_reading` feeds it
     :param url: MAVSDK URL of the autopilot link (``udpin://0.0.0.0:14540``, ``serial:///dev/X:B``)
     :param autopilot: (system id, component id) of the autopilot
     :param signing_key: MAVLink 2 signing secret (32 bytes); None = no signing
@@ -54,6 +57,9 @@ class RawMavlinkTransport:
         self._stop = threading.Event()
         self._send_handle = mavsdk.subscribe_raw_bytes_to_be_sent(self._on_outgoing)
         self._reader = threading.Thread(target=self._read, name="px4-mavlink-in", daemon=True)
+
+    def start_reading(self) -> None:
+        """Feed MAVSDK what the autopilot sends (once its ``raw://`` connection exists)."""
         self._reader.start()
 
     @property
@@ -113,7 +119,8 @@ class RawMavlinkTransport:
     def stop_reading(self) -> None:
         """Stop feeding MAVSDK (before it is destroyed: the reader thread calls into it)."""
         self._stop.set()
-        self._reader.join(timeout=1.0)
+        if self._reader.is_alive():
+            self._reader.join(timeout=1.0)
 
     def close(self) -> None:
         """Close the endpoint (after MAVSDK is destroyed, so nothing writes to it any more)."""

@@ -206,3 +206,21 @@ def test_an_impostor_px4_that_speaks_first_is_never_used():
         impostor.close()
         if vehicle is not None:
             vehicle.close()
+
+
+def test_a_normal_start_logs_no_warning_or_error(caplog):
+    """MAVSDK sends its first heartbeat as soon as its raw connection exists: before, the transport
+    subscribed after, and that heartbeat failed with "ERROR mavsdk: Sending message failed" at
+    every start. The link then finds the autopilot and its first heartbeat goes out."""
+    port = free_udp_port()
+    with caplog.at_level("DEBUG"):
+        link = Px4Link(f"udpin://127.0.0.1:{port}", source_system=1)
+        vehicle = SimulatedAutopilot(f"udpout:127.0.0.1:{port}", autopilot=mavlink.MAV_AUTOPILOT_PX4)
+        try:
+            _wait(lambda: link.poll().heartbeat_time is not None)
+            assert vehicle.wait_for("HEARTBEAT").type == mavlink.MAV_TYPE_ONBOARD_CONTROLLER
+        finally:
+            link.close()
+            vehicle.close()
+    loud = [f"{r.levelname} {r.name}: {r.getMessage()}" for r in caplog.records if r.levelno >= 30]
+    assert loud == []
