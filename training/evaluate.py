@@ -38,6 +38,7 @@ import argparse
 import contextlib
 import json
 import os
+import sys
 from collections.abc import Sequence
 from concurrent.futures import Executor, ProcessPoolExecutor
 from dataclasses import asdict, dataclass
@@ -103,20 +104,35 @@ def run_tasks(
 # --- command line ----------------------------------------------------------------------------------
 
 
-def worlds_from_args(args: argparse.Namespace, env_config: Any = None) -> list[WorldSpec]:
-    """The worlds the command line names; ``--seeds`` of the goal task when ``env_config`` is one."""
-    if args.worlds is not None:
-        directory = Path(args.worlds)
-        if not directory.is_dir():
-            raise UserError(f"--worlds {directory}: not a directory")
-        files = sorted(directory.glob("*.json"))
-        if not files:
-            raise UserError(f"--worlds {directory}: no *.json world files")
-        from flightsim.worlds.world import load_world
+def world_files(directory: Path) -> tuple[list[WorldSpec], list[str]]:
+    """The worlds of ``--worlds DIR`` that load, and a line for each file that does not (each
+    also warned about on stderr as it is skipped): one bad file does not stop an evaluation.
 
-        for f in files:
-            load_world(f)  # a bad world file is the user's error, before any worker starts
-        return [WorldSpec(name=f.stem, path=str(f.resolve())) for f in files]
+    :raises UserError: not a directory, no world files, or none of them loads
+    """
+    if not directory.is_dir():
+        raise UserError(f"--worlds {directory}: not a directory")
+    files = sorted(directory.glob("*.json"))
+    if not files:
+        raise UserError(f"--worlds {directory}: no *.json world files")
+    from flightsim.worlds.world import load_world
+
+    worlds, bad = [], []
+    for f in files:
+        try:
+            load_world(f)  # checked before any worker starts
+        except UserError as exc:
+            bad.append(str(exc))
+            print(f"avoid-train: warning: skipping {exc}", file=sys.stderr)
+            continue
+        worlds.append(WorldSpec(name=f.stem, path=str(f.resolve())))
+    if not worlds:
+        raise UserError(f"--worlds {directory}: none of its {len(files)} world files loads")
+    return worlds, bad
+
+
+def worlds_from_args(args: argparse.Namespace, env_config: Any = None) -> list[WorldSpec]:
+    """The generated worlds ``--seeds`` names; the goal task's when ``env_config`` is one."""
     if hasattr(env_config, "families"):
         return _goal_worlds_from_args(args, env_config)
     from flightsim.envs.env import TRAIN_SEED_OFFSET
@@ -318,6 +334,7 @@ class Flight:
     :param worlds: the worlds named
     :param shield_config: the shield's limits
     :param shield: whether controllers fly behind the shield
+    :param bad_worlds: the world files of ``--worlds`` skipped, each with what is wrong with it
     """
 
     config: Any
@@ -325,6 +342,7 @@ class Flight:
     worlds: list[WorldSpec]
     shield_config: ShieldConfig
     shield: bool
+    bad_worlds: tuple[str, ...] = ()
 
 
 def load_flight(args: argparse.Namespace) -> Flight:
@@ -346,10 +364,15 @@ def load_flight(args: argparse.Namespace) -> Flight:
         if exported and args.config is not None:
             check_model_task(Path(policy), config, args.config)
     env_config = config.env_config()
-    worlds = worlds_from_args(args, env_config)
+    bad: list[str] = []
+    if args.worlds is not None:
+        worlds, bad = world_files(Path(args.worlds))
+    else:
+        worlds = worlds_from_args(args, env_config)
     # the limits the config trained behind (the defaults unless it says), unless a flight config is named
     limits = read_shield_table(args.shield_config) if args.shield_config else env_config.shield_limits
-    return Flight(config, env_config, worlds, limits, args.shield or args.shield_config is not None)
+    shield = args.shield or args.shield_config is not None
+    return Flight(config, env_config, worlds, limits, shield, tuple(bad))
 
 
 def command(args: argparse.Namespace) -> int:
@@ -383,4 +406,8 @@ def command(args: argparse.Namespace) -> int:
     if args.png:
         plot_trajectories(results, worlds, args.png, env_config)
         print(f"wrote {args.png}")
+    if flight.bad_worlds:  # the user's error, said at the end where it is not scrolled away
+        print(f"avoid-train: error: {len(flight.bad_worlds)} world file(s) skipped: "
+              + "; ".join(flight.bad_worlds), file=sys.stderr)
+        return 2
     return 0

@@ -220,3 +220,31 @@ def test_the_shield_judges_a_sideways_action_and_sends_it_sideways(wall_bin: int
     with pytest.raises(ValueError, match="action must have 2 values, got 3"):
         shielded_two = ShieldedController(FullLeft(), SafetyShield(ShieldConfig(), max_range=10.0), 2.0, 1.5)
         shielded_two.reset(scan)
+
+
+def test_a_bad_world_file_is_skipped_with_a_warning_and_the_run_exits_2_naming_it(tmp_path, capsys):
+    """Before, one bad file in ``--worlds DIR`` stopped the whole evaluation before it began."""
+    import shutil
+    from pathlib import Path
+
+    from training.__main__ import main
+
+    shutil.copy(Path(__file__).parents[2] / "flightsim" / "worlds" / "two-pillars.json", tmp_path)
+    (tmp_path / "broken.json").write_text('{"name": "broken"')
+    argv = ["evaluate", "--worlds", str(tmp_path), "--baselines", "gap_follower", "--workers", "1",
+            "--set", "env.max_steps=10"]  # fmt: skip
+    assert main(argv) == 2
+    captured = capsys.readouterr()
+    assert "two-pillars" in captured.out  # the good world was flown
+    err = captured.err.strip().splitlines()
+    assert err[0].startswith("avoid-train: warning: skipping world ") and "broken.json" in err[0]
+    assert err[-1].startswith("avoid-train: error: 1 world file(s) skipped: world ")
+    assert "broken.json" in err[-1]
+
+
+def test_a_directory_of_bad_world_files_only_is_one_line(tmp_path, capsys):
+    from training.__main__ import main
+
+    (tmp_path / "broken.json").write_text("[")
+    assert main(["evaluate", "--worlds", str(tmp_path), "--baselines", "gap_follower"]) == 2
+    assert capsys.readouterr().err.strip().endswith("none of its 1 world files loads")
