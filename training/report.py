@@ -163,6 +163,12 @@ def format_goal_table(summary: dict[str, Any], per_world: bool) -> str:
     return "\n".join(lines)
 
 
+#: the evaluation PNG's legend at 9 pt: inches a label's character, a handle with its gaps, a row takes
+LEGEND_CHAR_IN = 0.075
+LEGEND_HANDLE_IN = 0.7
+LEGEND_ROW_IN = 0.25
+
+
 def plot_trajectories(
     results: Sequence[EpisodeResult], worlds: Sequence[WorldSpec], out: Path, env_config: Any
 ) -> None:
@@ -209,6 +215,11 @@ def trajectory_figure(results: Sequence[EpisodeResult], worlds: Sequence[WorldSp
     handles = [legend[n] for n in labels]
     handles.append(Line2D([], [], color="red", marker="x", ls="none", mew=2))
     labels = [*labels, "collision"]
-    fig.legend(handles, labels, loc="lower center", ncol=len(handles), fontsize=9)
-    fig.tight_layout(rect=(0, 0.6 / fig.get_figheight(), 1, 1))
+    # below the panels, never over a map: as many entries a row as the figure's width holds
+    entry = max(LEGEND_CHAR_IN * len(label) + LEGEND_HANDLE_IN for label in labels)
+    ncol = max(1, min(len(labels), int(fig.get_figwidth() // entry)))
+    rows_needed = math.ceil(len(labels) / ncol)
+    fig.set_figheight(fig.get_figheight() + LEGEND_ROW_IN * (rows_needed - 1))
+    fig.legend(handles, labels, loc="lower center", ncol=ncol, fontsize=9, frameon=False)
+    fig.tight_layout(rect=(0, (LEGEND_ROW_IN * rows_needed + 0.2) / fig.get_figheight(), 1, 1))
     return fig

@@ -130,7 +130,8 @@ def plot_flight(
         flying = traj[:, 0] >= engaged_at if engaged_at is not None else np.zeros(len(traj), bool)
         parts = [traj[~flying, 1:3], traj[flying, 1:3]]  # take-off and hold first, then the companion
         pose = (traj[-1, 1:4], float(traj[-1, 4]))
-    fig = Figure(figsize=(7, 7 * world.room_size[1] / world.room_size[0] + 0.6))
+    # constrained: the layout makes room for the legend beside the map
+    fig = Figure(figsize=(9, 7 * world.room_size[1] / world.room_size[0] + 0.6), layout="constrained")
     FigureCanvasAgg(fig)
     ax = fig.add_subplot()
     draw_top_down(
@@ -142,7 +143,6 @@ def plot_flight(
         title=title,
         labels=("take-off and hold (ground station)", "companion flying"),
     )
-    fig.tight_layout()
     fig.savefig(path, dpi=90)
     return fig
 

@@ -160,8 +160,8 @@ def draw_top_down(
     ax.tick_params(labelsize=7)
     if title:
         ax.set_title(title, fontsize=9)
-    if labels is not None:
-        ax.legend(loc="upper right", fontsize=7, framealpha=0.85)
+    if labels is not None:  # beside the map, never over it
+        ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0, fontsize=7)
     return ax
 
 

@@ -51,3 +51,21 @@ def test_the_flight_png_has_a_legend(tmp_path):
     names = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
     assert "take-off and hold (ground station)" in names and "companion flying" in names
     assert (tmp_path / "f.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_the_flight_png_legend_is_beside_the_map_within_the_picture(tmp_path):
+    from flightsim.sitl.flight_report import plot_flight
+    from flightsim.worlds.world import load_world
+
+    world = load_world(REPO / "flightsim" / "worlds" / "two-pillars.json")
+    t = np.linspace(0.0, 10.0, 50)
+    traj = np.column_stack(
+        [t, -4.5 + 0.3 * t, 0.1 * t, np.full_like(t, 1.5), np.zeros_like(t), np.ones_like(t)]
+    )
+    fig = plot_flight(world, traj, engaged_at=4.0, collision_at=None, path=tmp_path / "f.png", title="t")
+    fig.canvas.draw()  # laid out again at the figure's own dpi, where it is measured
+    renderer = fig.canvas.get_renderer()
+    ax = fig.axes[0]
+    box = ax.get_legend().get_window_extent(renderer)
+    assert not box.overlaps(ax.get_window_extent(renderer))  # not over the map
+    assert box.x0 >= 0 and box.x1 <= fig.bbox.x1 and box.y0 >= 0 and box.y1 <= fig.bbox.y1

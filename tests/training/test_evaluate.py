@@ -248,3 +248,34 @@ def test_a_directory_of_bad_world_files_only_is_one_line(tmp_path, capsys):
     (tmp_path / "broken.json").write_text("[")
     assert main(["evaluate", "--worlds", str(tmp_path), "--baselines", "gap_follower"]) == 2
     assert capsys.readouterr().err.strip().endswith("none of its 1 world files loads")
+
+
+def _inside(inner, outer) -> bool:
+    return inner.x0 >= outer.x0 - 0.5 and inner.x1 <= outer.x1 + 0.5 and inner.y0 >= outer.y0 - 0.5 \
+        and inner.y1 <= outer.y1 + 0.5
+
+
+@pytest.mark.parametrize("n_worlds", [1, 3])
+def test_the_legend_fits_the_png_and_covers_no_map(n_worlds):
+    """Before, one row of every entry: wider than a one-world figure (cut at both edges), and over
+    the panels' maps."""
+    from flightsim.envs.env import EnvConfig
+    from training.report import trajectory_figure
+
+    names = ["goal_follower+shield", "path_expert+shield", "policy+shield", "predictive_expert+shield",
+             "straight_line+shield"]  # fmt: skip
+    worlds = [WorldSpec(f"seed-{i}", seed=i, difficulty=0.5) for i in range(n_worlds)]
+    results = [
+        EpisodeResult(name, w.name, 0, 10, 10, k == 0, 1.0, 1.0, 1.0, 0, True,
+                      trajectory=[(0.0, 0.0), (1.0, 0.5 * k)])
+        for w in worlds
+        for k, name in enumerate(names)
+    ]  # fmt: skip
+    fig = trajectory_figure(results, worlds, EnvConfig())
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    (legend,) = fig.legends
+    box = legend.get_window_extent(renderer)
+    assert _inside(box, fig.bbox)
+    for ax in fig.axes:
+        assert not box.overlaps(ax.get_tightbbox(renderer)), ax.get_title()
