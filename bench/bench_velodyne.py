@@ -5,7 +5,8 @@ core, called through its Python binding), taking turns revolution by revolution 
 hits both alike:
   burst      all packets of a revolution handed over at once (what a main loop that was busy sees):
              synthetic revolutions with a return in every slot (28,800 points, a closed room), and
-             the real recording in tests/fixtures (about 15,300 returns per revolution);
+             the real recording in ../shared/fixtures beside the repository, when there (about
+             15,300 returns per revolution);
   stream     packets fed one by one as they arrive; "completing packet" is the work done on the
              packet that closes the revolution (the latency added after the revolution ends).
 The companion's end-to-end budget is p99 ≤ 2 ms from packets in to setpoint out.
@@ -107,8 +108,8 @@ def report_burst(title: str, times: dict[str, list[float]]) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--revolutions", type=int, default=300)
-    default_fixtures = (
-        os.environ.get("LIDAR_AVOID_FIXTURES") or Path(__file__).resolve().parents[1] / "tests/fixtures"
+    default_fixtures = (  # fetched data lives beside the repository, never in it
+        os.environ.get("LIDAR_AVOID_FIXTURES") or Path(__file__).resolve().parents[2] / "shared/fixtures"
     )
     parser.add_argument("--fixtures", type=Path, default=default_fixtures)
     args = parser.parse_args()

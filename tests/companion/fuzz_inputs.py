@@ -3,10 +3,10 @@
     python -m tests.companion.fuzz_inputs vlp16 --examples 100000
     python -m tests.companion.fuzz_inputs config --examples 20000
 
-``vlp16``: streams made of the real recording (tests/fixtures) with packets corrupted (bytes flipped,
-azimuth fields overwritten, truncated, extended), duplicated, dropped, reordered or replaced by noise,
-fed to the RevolutionAssembler in random batch sizes. Nothing may raise; every revolution that comes
-out is a finite (N, 3) float32 cloud within the sensor's range and its firings pass
+``vlp16``: streams made of the room packets (tests/companion/vlp16_recording.py) with packets corrupted
+(bytes flipped, azimuth fields overwritten, truncated, extended), duplicated, dropped, reordered or
+replaced by noise, fed to the RevolutionAssembler in random batch sizes. Nothing may raise; every
+revolution that comes out is a finite (N, 3) float32 cloud within the sensor's range and its firings pass
 ``revolution_problem`` (one whole turn), and the counters add up.
 
 ``config``: companion config files built from the real keys with hostile values (NaN, ±inf, huge,
@@ -44,9 +44,9 @@ from companion.lidar.vlp16_packet import (
     firing_azimuths_array,
     packet_error,
 )
-from tests.companion.vlp16_recording import load_recording
+from tests.companion.vlp16_recording import room_recording
 
-RECORDING = load_recording()
+RECORDING = room_recording()
 
 # --- VLP-16 packets ----------------------------------------------------------------------------
 

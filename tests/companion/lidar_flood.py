@@ -1,10 +1,10 @@
-"""Hostile lidar traffic from a separate process: the real recording at the sensor's pace, and floods.
+"""Hostile lidar traffic from a separate process: the room packets at the sensor's pace, and floods.
 
 Run as ``python -m tests.companion.lidar_flood`` by the flood test and bench/bench_flood.py, so that
 sending 10,000 datagrams a second shares no interpreter (and no GIL) with the measurement:
 
-- ``--play SPEED:SECONDS,...``: the real VLP-16 recording (tests/fixtures), looped, from the sensor's
-  address, at SPEED times the sensor's 754 packets/s for SECONDS, phase after phase (2.5 replays
+- ``--play SPEED:SECONDS,...``: the room packets (tests/companion/vlp16_recording.py), looped, from
+  the sensor's address, at SPEED times the sensor's 754 packets/s for SECONDS, phase after phase (2.5 replays
   25 whole turns a second, more than a VLP-16 can make);
 - ``--flood KIND --rate N --seconds S``: N hostile datagrams a second of one of FLOOD_KINDS.
 
@@ -28,7 +28,8 @@ from tests.companion.vlp16_recording import looped_recording
 #: garbage: datagrams of random length and bytes, and 1206-byte packets with one header field wrong;
 #: foreign: well-formed packets with random azimuths (a wrap in almost every one) and returns, from
 #: another address; forged: the same from the sensor's own address (a spoofed source);
-#: replay: the real recording again, from the sensor's address, at the flood's rate.
+#: replay: the room's packets again (tests/companion/vlp16_recording.py), from the sensor's address,
+#: at the flood's rate.
 FLOOD_KINDS = ("garbage", "foreign", "forged", "replay")
 SENSOR_HOST = "127.0.0.1"
 FOREIGN_HOST = "127.0.0.2"
@@ -78,7 +79,7 @@ def _pace(sock: socket.socket, target: tuple[str, int], packets: list[bytes], ra
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--port", type=int, required=True)
-    parser.add_argument("--play", default="", help="SPEED:SECONDS,... of the real recording")
+    parser.add_argument("--play", default="", help="SPEED:SECONDS,... of the room packets")
     parser.add_argument("--flood", choices=FLOOD_KINDS)
     parser.add_argument("--rate", type=float, default=10_000.0)
     parser.add_argument("--seconds", type=float, default=3.0)

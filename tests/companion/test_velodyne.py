@@ -1,7 +1,9 @@
-"""VLP-16 decoding, revolution assembly, encoding and the UDP source, against a real recording.
+"""VLP-16 decoding, revolution assembly, encoding and the UDP source.
 
-The reference facts about the recording come from tests/fixtures/README.md. Parsing done here for
-comparison uses `struct` and plain Python, independently of the module's numpy code.
+Most tests run on packets the project makes itself (:func:`~tests.companion.vlp16_recording.room_recording`);
+those of what only a real sensor shows run on its recording where it is available (its facts are in
+tests/fixtures/README.md) and skip otherwise. Parsing done here for comparison uses `struct` and
+plain Python, independently of the module's numpy code.
 """
 
 from __future__ import annotations
@@ -12,7 +14,6 @@ import select
 import socket
 import struct
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -32,18 +33,19 @@ from companion.lidar.vlp16_packet import (
     laser_azimuths_deg,
     packet_error,
 )
-
-
-def _fixture_dir() -> Path:
-    override = os.environ.get("LIDAR_AVOID_FIXTURES")
-    return Path(override) if override else Path(__file__).resolve().parents[1] / "fixtures"
+from tests.companion.vlp16_recording import load_recording, needs_recording, room_recording
 
 
 @pytest.fixture(scope="module")
 def recording() -> list[bytes]:
-    raw = (_fixture_dir() / "vlp16-recording.bin").read_bytes()
-    assert len(raw) == 1000 * PACKET_SIZE
-    return [raw[i : i + PACKET_SIZE] for i in range(0, len(raw), PACKET_SIZE)]
+    """The real sensor's packets (only for tests marked ``needs_recording``)."""
+    return load_recording()
+
+
+@pytest.fixture(scope="module")
+def room() -> list[bytes]:
+    """1,000 packets of a room, made with the project's encoder, laid out as the recording is."""
+    return room_recording()
 
 
 def parse_packet(packet: bytes) -> tuple[list[int], list[list[int]], list[list[int]], int, int, int]:
@@ -90,8 +92,16 @@ def test_elevations_by_laser_id_follow_the_manual() -> None:
         VLP16_ELEVATIONS_DEG[0] = 0.0
 
 
+@needs_recording
 def test_every_recorded_packet_is_well_formed(recording: list[bytes]) -> None:
     assert [packet_error(p) for p in recording] == [None] * len(recording)
+
+
+def test_every_made_packet_is_well_formed_and_the_room_turns_twelve_times(room: list[bytes]) -> None:
+    assert [packet_error(p) for p in room] == [None] * len(room)
+    assembler = RevolutionAssembler()
+    revolutions = assembler.feed_batch(room)
+    assert len(revolutions) == 12 and assembler.counters.partial == {"start_not_seen": 1}
 
 
 def _corrupt(packet: bytes, offset: int, value: bytes) -> bytes:
@@ -108,20 +118,20 @@ def malformed_variants(packet: bytes) -> dict[str, bytes]:
     }
 
 
-def test_packet_error_names_each_reason(recording: list[bytes]) -> None:
-    variants = malformed_variants(recording[0])
+def test_packet_error_names_each_reason(room: list[bytes]) -> None:
+    variants = malformed_variants(room[0])
     assert set(variants) == set(MALFORMED_REASONS)
     for reason, packet in variants.items():
         assert packet_error(packet) == reason
     assert packet_error(b"") == "wrong_length"
-    assert packet_error(recording[0] + b"\x00") == "wrong_length"
+    assert packet_error(room[0] + b"\x00") == "wrong_length"
     # The first reason found wins: a bad flag and a bad product id is a bad flag.
     assert packet_error(_corrupt(variants["unknown_product_id"], 0, b"\x00\x00")) == "bad_block_flag"
 
 
-def test_batch_checks_agree_with_the_per_packet_ones(recording: list[bytes]) -> None:
+def test_batch_checks_agree_with_the_per_packet_ones(room: list[bytes]) -> None:
     """Batches are checked with numpy, single packets in plain Python: same verdicts, same azimuths."""
-    packets = [*malformed_variants(recording[3]).values(), *recording[:50]]
+    packets = [*malformed_variants(room[3]).values(), *room[:50]]
     packets = [p for p in packets if len(p) == PACKET_SIZE]
     data = np.frombuffer(b"".join(packets), dtype=np.uint8).reshape(-1, PACKET_SIZE)
     codes = vlp16_packet.reason_codes(data)
@@ -130,20 +140,20 @@ def test_batch_checks_agree_with_the_per_packet_ones(recording: list[bytes]) -> 
     blocks = good.view(vlp16_packet.PACKET_DTYPE)[:, 0]["blocks"]["azimuth"]
     expected = [a for row in blocks.tolist() for a in vlp16_packet.firing_azimuths(row)]
     assert vlp16_packet.firing_azimuths_array(blocks.astype(np.float64)).tolist() == expected
-    # and both agree with the plain-struct reference on the recording
-    assert expected[: 24 * 50] == [az for az, _ in reference_firings(recording[:50])]
+    # and both agree with the plain-struct reference
+    assert expected[: 24 * 50] == [az for az, _ in reference_firings(room[:50])]
 
 
 @pytest.mark.parametrize("backend", ["numpy", "velodyne-decoder"])
 def test_malformed_packets_are_counted_and_dropped_without_disturbing_assembly(
-    recording: list[bytes], backend: str
+    room: list[bytes], backend: str
 ) -> None:
     clean = RevolutionAssembler(backend)
-    expected = [rev.points for rev in clean.feed_batch(recording[:300])]
+    expected = [rev.points for rev in clean.feed_batch(room[:300])]
     dirty = RevolutionAssembler(backend)
     got: list[np.ndarray] = []
-    garbage = [*malformed_variants(recording[0]).values(), b"", b"\x00" * PACKET_SIZE, os.urandom(1206)]
-    for i, packet in enumerate(recording[:300]):
+    garbage = [*malformed_variants(room[0]).values(), b"", b"\x00" * PACKET_SIZE, os.urandom(1206)]
+    for i, packet in enumerate(room[:300]):
         if i % 20 == 0:
             for bad in garbage:
                 assert dirty.feed(bad) == []
@@ -172,6 +182,7 @@ def assembled(request: pytest.FixtureRequest, recording: list[bytes]) -> tuple[R
     return assembler, revolutions
 
 
+@needs_recording
 def test_recording_yields_twelve_revolutions_cut_at_the_wrap(assembled: tuple) -> None:
     assembler, revolutions = assembled
     assert len(revolutions) == 12
@@ -190,6 +201,7 @@ def test_recording_yields_twelve_revolutions_cut_at_the_wrap(assembled: tuple) -
         assert np.all(np.diff(np.unwrap(np.radians(azimuth[::200]))) > -0.1)
 
 
+@needs_recording
 def test_recording_revolutions_hold_exactly_the_returns_between_the_wraps(
     assembled: tuple, recording: list[bytes]
 ) -> None:
@@ -202,6 +214,7 @@ def test_recording_revolutions_hold_exactly_the_returns_between_the_wraps(
         assert len(cloud) == returns
 
 
+@needs_recording
 def test_recording_looks_like_a_room(assembled: tuple) -> None:
     _, revolutions = assembled
     ranges = np.linalg.norm(np.concatenate(revolutions), axis=1)
@@ -213,9 +226,9 @@ def test_recording_looks_like_a_room(assembled: tuple) -> None:
     assert max(counts) - min(counts) < 0.01 * np.mean(counts)
 
 
-def test_decoded_points_follow_the_flu_formula(recording: list[bytes]) -> None:
+def test_decoded_points_follow_the_flu_formula(room: list[bytes]) -> None:
     """Points computed by hand from raw bytes with x = r cosω cosα, y = −r cosω sinα, z = r sinω."""
-    packet = recording[0]
+    packet = room[0]
     azimuths, distances, *_ = parse_packet(packet)
     decoded = decode_packets_numpy(np.frombuffer(packet, dtype=np.uint8).reshape(1, -1))
     expected = []
@@ -238,17 +251,17 @@ def test_decoded_points_follow_the_flu_formula(recording: list[bytes]) -> None:
     np.testing.assert_allclose(decoded.points, np.array(expected), atol=2e-5)
 
 
-def test_backends_agree_on_the_recording(recording: list[bytes]) -> None:
+def test_backends_agree_on_the_room(room: list[bytes]) -> None:
     """Same points in the same order; velodyne-decoder adds the manual's ±11.2 mm vertical offsets."""
-    data = np.frombuffer(b"".join(recording[:200]), dtype=np.uint8).reshape(-1, PACKET_SIZE)
-    ours = RevolutionAssembler("numpy")._decode(data, recording[:200])
-    theirs = RevolutionAssembler("velodyne-decoder")._decode(data, recording[:200])
+    data = np.frombuffer(b"".join(room[:200]), dtype=np.uint8).reshape(-1, PACKET_SIZE)
+    ours = RevolutionAssembler("numpy")._decode(data, room[:200])
+    theirs = RevolutionAssembler("velodyne-decoder")._decode(data, room[:200])
     np.testing.assert_array_equal(ours.points_per_firing, theirs.points_per_firing)
     assert ours.points_per_firing.sum() == len(ours.points) == len(theirs.points)
     horizontal = np.hypot(ours.points[:, 0], ours.points[:, 1])
     np.testing.assert_allclose(np.hypot(theirs.points[:, 0], theirs.points[:, 1]), horizontal, atol=1e-5)
     # velodyne-decoder 3.1 rounds each laser's azimuth to 0.01° and advances it at the mean rotation
-    # rate rather than by each block's own step (the recording's steps jitter 0.38–0.42°).
+    # rate rather than by each block's own step (a real sensor's steps jitter 0.38–0.42°).
     difference = (clockwise_azimuth_deg(theirs.points) - clockwise_azimuth_deg(ours.points) + 180) % 360 - 180
     assert np.abs(difference).max() < 0.03
     assert np.median(np.abs(difference)) < 0.004
@@ -258,6 +271,7 @@ def test_backends_agree_on_the_recording(recording: list[bytes]) -> None:
     assert np.all(dz[ours.points[:, 2] > 0.05] < 0) and np.all(dz[ours.points[:, 2] < -0.05] > 0)
 
 
+@needs_recording
 def test_velodyne_decoder_stream_cuts_at_packet_boundaries_with_more_points(
     recording: list[bytes], assembled: tuple
 ) -> None:
@@ -274,6 +288,7 @@ def test_velodyne_decoder_stream_cuts_at_packet_boundaries_with_more_points(
 # --- encoder ------------------------------------------------------------------------------------
 
 
+@needs_recording
 def test_encoder_reproduces_the_recording_bit_for_bit(recording: list[bytes]) -> None:
     for packet in recording[::37]:
         azimuths, distances, reflectivities, timestamp, mode, product = parse_packet(packet)
@@ -481,15 +496,15 @@ def _drain(source: VelodyneUdpSource, until: float = 0.2) -> list[np.ndarray]:
     return clouds
 
 
-def test_udp_source_assembles_revolutions_from_real_datagrams(recording: list[bytes]) -> None:
+def test_udp_source_assembles_revolutions_from_datagrams(room: list[bytes]) -> None:
     sender = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     with VelodyneUdpSource("127.0.0.1", 0) as source:
         assert source.read_available() == []  # non-blocking when nothing waits
         address = source.address
-        garbage = [*malformed_variants(recording[5]).values(), b"x", os.urandom(3000)]
+        garbage = [*malformed_variants(room[5]).values(), b"x", os.urandom(3000)]
         clouds: list[np.ndarray] = []
         for start in range(0, 400, 25):  # in chunks, so the loopback queue never overflows
-            for packet in recording[start : start + 25]:
+            for packet in room[start : start + 25]:
                 sender.sendto(packet, address)
             for bad in garbage:
                 sender.sendto(bad, address)
@@ -498,7 +513,7 @@ def test_udp_source_assembles_revolutions_from_real_datagrams(recording: list[by
         clouds += _drain(source)
         counters = source.counters
     reference = RevolutionAssembler()
-    expected = [c for p in recording[:400] for c in reference.feed(p)]
+    expected = [c for p in room[:400] for c in reference.feed(p)]
     assert len(clouds) == len(expected) == 4
     for got, want in zip(clouds, expected, strict=True):
         np.testing.assert_array_equal(got, want)
