@@ -299,7 +299,11 @@ def _table(reports: list[FlightReport]) -> str:
     header = _header(width)
     lines = ["", header, "-" * len(header)]
     lines += [_row(r, width) for r in reports]
-    complete = sum(r.mission_complete and not r.collision for r in reports)
-    lines += ["", f"{complete}/{len(reports)} missions complete without collision"]
+    if any(r.waypoints_total for r in reports):
+        complete = sum(r.mission_complete and not r.collision for r in reports)
+        lines += ["", f"{complete}/{len(reports)} missions complete without collision"]
+    else:  # a scan-only model flies no missions
+        safe = sum(r.engaged and not r.collision and not r.error for r in reports)
+        lines += ["", f"{safe}/{len(reports)} flights without collision"]
     lines += ["", "plots:"] + [f"  {r.plot}" for r in reports]
     return "\n".join(lines)

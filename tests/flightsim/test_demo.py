@@ -120,6 +120,17 @@ def test_the_table_fits_long_world_names_and_each_flight_has_one_row() -> None:
     ]
 
 
+def test_flights_without_missions_are_counted_as_flights() -> None:
+    """A scan-only model flies no missions: the last line counts flights without a collision."""
+    mission = _table([_report("a"), _report("b", 1)])
+    assert "1/2 missions complete without collision" in mission
+    flown = _report("a")
+    flown.waypoints_total, flown.waypoints_reached, flown.mission_complete = 0, [], False
+    crashed = _report("b")
+    crashed.waypoints_total, crashed.collision = 0, True
+    assert "1/2 flights without collision" in _table([flown, crashed])
+
+
 def test_a_flight_ending_prints_a_labelled_line_not_a_table_row() -> None:
     report = _report("pillars-900001-d0.30")
     assert _progress(3, 6, report) == "[3/6] pillars-900001-d0.30: 2/2 waypoints, complete in 28.4 s"
