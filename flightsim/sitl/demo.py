@@ -34,14 +34,11 @@ from typing import Any
 from companion.cli import LOG_FORMAT
 from companion.common.errors import UserError
 from flightsim.envs import seeds
-from flightsim.envs.env import CONTROL_HZ
-from flightsim.envs.nav_env import NavEnvConfig, time_limit_steps
 from flightsim.sitl.flight_report import INTERRUPTED, FlightReport
-from flightsim.sitl.fly_cli import default_policy, model_overrides
+from flightsim.sitl.fly_cli import default_policy, model_overrides, time_limit
 from flightsim.sitl.harness import FlightOptions, run_flight
 from flightsim.worlds.families import FAMILIES, generate_family_world
-from flightsim.worlds.planner import shortest_safe_path
-from flightsim.worlds.world import DEFAULT_VEHICLE_RADIUS, World, load_world
+from flightsim.worlds.world import World, load_world
 
 #: (family, seed, difficulty) of the generated worlds: held-out test seeds, never trained on
 GENERATED = (
@@ -77,16 +74,6 @@ def validation_worlds() -> list[World]:
         for j, difficulty in enumerate(VALIDATION_DIFFICULTIES)
         for i, family in enumerate(FAMILIES)
     ]
-
-
-def time_limit(world: World) -> float:
-    """Seconds of companion flight a world's mission gets: the goal task's time limit
-    (:func:`flightsim.envs.nav_env.time_limit_steps`, from the world's shortest safe path)."""
-    length = world.shortest_path_m
-    if length is None:
-        path = shortest_safe_path(world, vehicle_radius=DEFAULT_VEHICLE_RADIUS)
-        length = path.length if path is not None else 0.0
-    return time_limit_steps(float(length), NavEnvConfig()) / CONTROL_HZ
 
 
 def lane_schedule(durations: list[float], lanes: int = LANES) -> float:

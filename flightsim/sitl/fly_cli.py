@@ -7,7 +7,7 @@ harness without it.
 Any exported model flies: the companion's ``[policy]`` table is set from the model's own metadata
 (:func:`model_overrides`), so a scan-only model (LidarAvoid-v0) flies as one and a goal model with
 the features it was trained on. A world file's waypoints are flown as a mission by a goal model
-unless ``--no-mission`` says otherwise.
+unless ``--no-mission`` says otherwise, for the goal task's time limit unless ``--duration`` says.
 """
 
 from __future__ import annotations
@@ -19,9 +19,12 @@ from typing import Any
 from companion.common.errors import UserError
 from companion.config import model_policy_settings
 from companion.guidance.policy import read_model_metadata
+from flightsim.envs.env import CONTROL_HZ
+from flightsim.envs.nav_env import NavEnvConfig, time_limit_steps
 from flightsim.sitl.flight_report import INTERRUPTED, print_report
 from flightsim.sitl.harness import AUTOPILOTS, FlightOptions, run_flight
-from flightsim.worlds.world import World, generate_world, load_world
+from flightsim.worlds.planner import shortest_safe_path
+from flightsim.worlds.world import DEFAULT_VEHICLE_RADIUS, World, generate_world, load_world
 
 
 def load_flight_world(world_file: str | None, seed: int | None, difficulty: float) -> World:
@@ -47,6 +50,21 @@ def default_policy() -> Path:
         "no shipped policy found (models/policy.onnx): train and export one with `avoid-train`, "
         "or pass --policy FILE"
     )
+
+
+#: seconds of companion flight without a mission (``--duration``'s default then)
+FREE_FLIGHT_S = 30.0
+
+
+def time_limit(world: World) -> float:
+    """Seconds of companion flight a world's mission gets: the goal task's time limit
+    (:func:`flightsim.envs.nav_env.time_limit_steps`, from the world's shortest safe path), the
+    one ``avoid-train evaluate`` judges an episode by."""
+    length = world.shortest_path_m
+    if length is None:
+        path = shortest_safe_path(world, vehicle_radius=DEFAULT_VEHICLE_RADIUS)
+        length = path.length if path is not None else 0.0
+    return time_limit_steps(float(length), NavEnvConfig()) / CONTROL_HZ
 
 
 def model_overrides(policy: Path) -> dict[str, dict[str, Any]]:
@@ -95,7 +113,9 @@ def configure_parser(parser: Any) -> None:
     where.add_argument("--seed", type=int, help="generate a room from this seed")
     parser.add_argument("--difficulty", type=float, default=0.5, help="generated room difficulty 0..1 (0.5)")
     parser.add_argument("--policy", help="ONNX policy (default: the shipped models/policy.onnx)")
-    parser.add_argument("--duration", type=float, default=30.0, help="seconds the companion flies (30)")
+    parser.add_argument("--duration", type=float,
+                        help="seconds the companion flies (default: a mission's time limit, the goal "
+                        "task's, from the world's shortest safe path; 30 without a mission)")
     parser.add_argument(
         "--lidar-step",
         type=float,
@@ -125,7 +145,7 @@ def command(args: Any) -> int:
     """Fly once as the command line says: exit 0, 1 when the flight failed, 130 on Ctrl-C."""
     import tempfile
 
-    if args.duration <= 0:
+    if args.duration is not None and args.duration <= 0:
         raise UserError(f"--duration must be positive, got {args.duration}")
     world = load_flight_world(args.world, args.seed, args.difficulty)
     policy = Path(args.policy) if args.policy else default_policy()
@@ -133,12 +153,13 @@ def command(args: Any) -> int:
     mission, note = flies_mission(world, overrides["policy"]["observation"] == "scan", args.mission)
     if note:
         print(note)
+    duration = args.duration or (time_limit(world) if mission else FREE_FLIGHT_S)
     workdir = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="avoid-sim-fly-"))
     options = FlightOptions(
         autopilot=args.autopilot,
         world=world,
         policy=policy,
-        duration=args.duration,
+        duration=duration,
         connect=args.connect,
         lidar_step_deg=args.lidar_step,
         workdir=workdir,

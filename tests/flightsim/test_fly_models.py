@@ -70,3 +70,27 @@ def test_fly_flies_a_scan_only_model(tmp_path):
     assert result.returncode == 0, result.stdout + result.stderr
     assert "engaged: True" in result.stdout
     assert 'observation = "scan"' in (tmp_path / "fly" / "companion.toml").read_text()
+
+
+def test_a_mission_flies_for_the_goal_tasks_time_limit_unless_told(monkeypatch, capsys):
+    """Before, a mission had 30 s like any flight: too short for slalom's two waypoints."""
+    import argparse
+
+    from flightsim.sitl import fly_cli
+    from flightsim.sitl.flight_report import FlightReport
+
+    flown: list[fly_cli.FlightOptions] = []
+
+    def record(options, plot=None):
+        flown.append(options)
+        return FlightReport.failed(options.world.name, options.autopilot, "")
+
+    monkeypatch.setattr(fly_cli, "run_flight", record)
+    parser = argparse.ArgumentParser()
+    fly_cli.configure_parser(parser)
+    for extra, mission in (([], True), (["--no-mission"], False), (["--duration", "12"], True)):
+        fly_cli.command(parser.parse_args(["--world", str(SLALOM), *extra]))
+        assert flown[-1].mission is mission
+    limit = fly_cli.time_limit(load_world(SLALOM))
+    assert limit > 30.0
+    assert [o.duration for o in flown] == [limit, fly_cli.FREE_FLIGHT_S, 12.0]
