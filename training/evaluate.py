@@ -1,8 +1,8 @@
 """``avoid-train evaluate``: fly a policy and two baselines over the same worlds and compare them.
 
-The task is the training config's ``env_id``: ``--config``'s, or without it an exported (``.onnx``)
-policy's own, which its metadata carries, so a model is flown in the task and observation it was
-trained for.
+The task is the training config's ``env_id``: ``--config``'s, or without it the policy's own: the
+one an exported (``.onnx``) policy's metadata carries, or its run directory's ``config.toml`` for a
+checkpoint (``.zip``), so a model is flown in the task and observation it was trained for.
 
 Avoidance (``flightsim/LidarAvoid-v0``): success is strict: the whole episode (``max_steps``)
 without a collision AND a mean speed of at least :data:`~training.config.SUCCESS_MIN_MEAN_SPEED`
@@ -233,8 +233,8 @@ def add_flight_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--config",
         type=Path,
-        help="training config whose task and [env] table to fly in (default: an .onnx policy's own, "
-        "from its metadata; else the avoidance task's env defaults)",
+        help="training config whose task and [env] table to fly in (default: the policy's own, from an "
+        ".onnx file's metadata or a checkpoint's run directory; else the avoidance task's env defaults)",
     )
     parser.add_argument(
         "--set",
@@ -325,6 +325,18 @@ def read_shield_table(path: Path) -> ShieldConfig:
     return from_dict(CompanionShieldConfig, table, "shield.")
 
 
+def run_config(policy: Path | None) -> Path | None:
+    """The ``config.toml`` of the run an SB3 checkpoint (``.zip``) comes from, when there is one."""
+    if policy is None or Path(policy).suffix != ".zip":
+        return None
+    from training.export import find_run_config
+
+    try:
+        return find_run_config(Path(policy))
+    except UserError:
+        return None
+
+
 @dataclass(frozen=True)
 class Flight:
     """What :func:`add_flight_arguments` said, loaded and checked.
@@ -360,7 +372,7 @@ def load_flight(args: argparse.Namespace) -> Flight:
     if exported and args.config is None:
         config = model_train_config(Path(policy), overrides)
     else:
-        config = load_train_config(args.config, overrides)
+        config = load_train_config(args.config or run_config(policy), overrides)
         if exported and args.config is not None:
             check_model_task(Path(policy), config, args.config)
     env_config = config.env_config()

@@ -9,7 +9,7 @@ from pathlib import Path
 from companion.common.tomlconfig import to_dict
 from tests.onnx_models import SCAN_SPEC, write_policy
 from training.__main__ import main
-from training.config import load_train_config, model_train_config
+from training.config import config_to_toml, load_train_config, model_train_config
 
 REPO = Path(__file__).resolve().parents[2]
 SHIPPED = REPO / "models" / "policy.onnx"
@@ -72,3 +72,18 @@ def test_a_model_whose_training_config_does_not_load_names_the_key(tmp_path, cap
     assert main(["evaluate", "--policy", str(model), "--seeds", "1", "--first-seed", "500000"]) == 2
     err = capsys.readouterr().err.strip()
     assert "bogus: unknown config key" in err and "--config FILE" in err
+
+
+def test_a_checkpoint_is_evaluated_in_its_run_directorys_config(tmp_path, capsys) -> None:
+    """A goal-task checkpoint without --config: before, flown in the avoidance task and refused."""
+    from tests.training.test_dagger import dagger_run
+
+    with dagger_run(tmp_path, "env.max_steps=30") as (config, _venv, model):
+        run = tmp_path / "run"
+        run.mkdir()
+        (run / "config.toml").write_text(config_to_toml(config))
+        model.save(run / "final_model.zip")
+    argv = ["evaluate", "--policy", str(run / "final_model.zip"), "--seeds", "1", "--first-seed", "500000",
+            "--set", 'env.families=["gaps"]', "--baselines", "", "--workers", "1"]  # fmt: skip
+    assert main(argv) == 0
+    assert "gaps" in capsys.readouterr().out
