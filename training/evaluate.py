@@ -201,12 +201,12 @@ def evaluate(
         [ControllerSpec("policy", str(policy), "policy", shield, shield_config)] if policy else []
     ) + [ControllerSpec(b, shield=shield, shield_config=shield_config) for b in baselines]
     tasks = make_tasks(controllers, worlds, episodes, env, env_id)
-    with Progress(len(tasks), "episodes", "episode") if bar else contextlib.nullcontext() as progress:
-        if workers <= 1 and executor == "local":
-            results = run_tasks(tasks, progress=progress)
-        else:
-            with make_executor(workers, executor, address) as pool:
-                results = run_tasks(tasks, pool, progress)
+    with contextlib.ExitStack() as stack:
+        local = workers <= 1 and executor == "local"
+        pool = None if local else stack.enter_context(make_executor(workers, executor, address))
+        # the bar once the executor stands: a Ray that cannot start is one line, no bar before it
+        progress = stack.enter_context(Progress(len(tasks), "episodes", "episode")) if bar else None
+        results = run_tasks(tasks, pool, progress)
     return report(results, worlds), results
 
 
