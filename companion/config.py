@@ -252,9 +252,9 @@ class RecorderConfig:
     """The flight recorder (:mod:`companion.recording`): every flight to MCAP files, viewable in Foxglove.
 
     :param enabled: record (a recorder that cannot write turns itself off; the flight goes on)
-    :param directory: where the ``flight-*.mcap`` files go (relative: to the config file); empty:
-        :func:`default_recording_directory` (the service's logs directory, else the user's state
-        directory)
+    :param directory: where the ``flight-*.mcap`` files go (relative: to the config file); empty
+        and enabled: :func:`default_recording_directory` (the service's logs directory, else the
+        user's state directory)
     :param budget_mb: the recordings in ``directory`` never take more than this; the oldest go first
     :param file_mb: a file is closed and a new one started at this size
     :param cloud_decimation: 0 = no point cloud; N = every N-th point of each revolution (1 = all:
@@ -424,6 +424,8 @@ def load_config(path: str | Path, overrides: list[str] | None = None) -> Compani
     if signing_key:
         load_signing_key(signing_key)  # a bad key file stops start-up here, before the model loads
     recordings = resolve("recorder.directory", config.recorder.directory)
+    if not recordings and config.recorder.enabled:
+        recordings = str(default_recording_directory())
     return dataclasses.replace(
         config,
         autopilot=dataclasses.replace(config.autopilot, signing_key=signing_key),
@@ -435,7 +437,5 @@ def load_config(path: str | Path, overrides: list[str] | None = None) -> Compani
         params_check=dataclasses.replace(
             config.params_check, file=resolve("params_check.file", config.params_check.file)
         ),
-        recorder=dataclasses.replace(
-            config.recorder, directory=recordings or str(default_recording_directory())
-        ),
+        recorder=dataclasses.replace(config.recorder, directory=recordings),
     )
