@@ -47,6 +47,10 @@ TRUTH_RATE_HZ = 50.0
 #: estimate streams the mirror needs, and their rate
 ESTIMATE_MESSAGES = ("LOCAL_POSITION_NED", "ATTITUDE", "GLOBAL_POSITION_INT")
 ESTIMATE_RATE_HZ = 20.0
+#: how long to wait by default for the autopilot's first position (a fresh ArduPilot SITL needs 40-47 s), s
+POSITION_TIMEOUT_S = 120.0
+#: how often the wait for a position says how long it has waited, s
+POSITION_PROGRESS_S = 5.0
 #: how long to wait for a truth message before judging on the estimate, s
 TRUTH_WAIT_S = 3.0
 #: a vehicle armed at connect must have landed and disarmed within this, s
@@ -95,7 +99,8 @@ class ExternalPose:
                 self._est_rpy = (float(msg.roll), float(msg.pitch), float(msg.yaw))
                 return None
             if kind == "GLOBAL_POSITION_INT":
-                self._est_ll = (int(msg.lat), int(msg.lon))
+                if msg.lat != 0 or msg.lon != 0:  # 0, 0: sent before the GPS fix, no position yet
+                    self._est_ll = (int(msg.lat), int(msg.lon))
                 return None
             if kind == "SIMSTATE":
                 self.truth_source = kind
@@ -115,10 +120,14 @@ class ExternalPose:
                 return "truth"
         return None
 
-    @property
-    def has_estimate(self) -> bool:
+    def missing_estimate(self) -> list[str]:
+        """The estimate messages not heard yet (empty: the world can be anchored)."""
         with self._lock:
-            return self._est_ned is not None and math.isfinite(self._est_rpy[2]) and self._est_ll is not None
+            return [name for name, seen in (
+                ("LOCAL_POSITION_NED", self._est_ned is not None),
+                ("ATTITUDE", math.isfinite(self._est_rpy[2])),
+                ("GLOBAL_POSITION_INT", self._est_ll is not None),
+            ) if not seen]  # fmt: skip
 
     def anchor(self) -> None:
         """Fix the mapping: the pose now (vehicle on the ground) is the world's start pose."""
@@ -238,6 +247,35 @@ def land_and_disarm(gcs: Any, timeout: float = LAND_TIMEOUT_S) -> bool:
             f"and disarmed ({exc}): land and disarm it from a ground station, or restart the SITL"
         ) from None
     return True
+
+
+def wait_for_position(
+    pose: ExternalPose,
+    timeout: float = POSITION_TIMEOUT_S,
+    progress_every: float = POSITION_PROGRESS_S,
+    clock: Callable[[], float] = time.monotonic,
+    sleep: Callable[[float], None] = time.sleep,
+) -> float:
+    """Wait as a pilot does for the autopilot's position (its EKF origin), saying every
+    ``progress_every`` s how long it has waited; the pump fills ``pose`` meanwhile.
+
+    :return: the seconds waited
+    :raises RuntimeError: ``timeout`` s passed, naming what never arrived
+    """
+    start = clock()
+    next_note = start + progress_every
+    while missing := pose.missing_estimate():
+        now = clock()
+        if now - start >= timeout:
+            raise RuntimeError(
+                f"external SITL: no {' / '.join(missing)} within {timeout:.0f} s: the autopilot never "
+                "reported a position (no GPS fix or EKF origin?); raise --position-timeout or check the SITL"
+            )
+        if now >= next_note:
+            log.info("waiting for EKF origin: %.0f s (no %s yet)", now - start, " / ".join(missing))
+            next_note += progress_every
+        sleep(0.05)
+    return clock() - start
 
 
 def wait_for_truth(pose: ExternalPose, pump: Callable[[float], None], timeout: float = TRUTH_WAIT_S) -> str:

@@ -49,6 +49,7 @@ class FlightReport:
     mission_time_s: float = -1.0
     goal_events: list[str] = field(default_factory=list)
     ground_truth: str = ""  # what collisions and clearance were judged on
+    position_wait_s: float = 0.0  # external: how long the autopilot took to report a position, s
     warnings: list[str] = field(default_factory=list)
 
     def to_json(self) -> str:

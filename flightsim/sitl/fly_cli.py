@@ -21,6 +21,7 @@ from companion.config import model_policy_settings
 from companion.guidance.policy import read_model_metadata
 from flightsim.envs.env import CONTROL_HZ
 from flightsim.envs.nav_env import NavEnvConfig, time_limit_steps
+from flightsim.sitl.external_sitl import POSITION_TIMEOUT_S
 from flightsim.sitl.flight_report import INTERRUPTED, print_report
 from flightsim.sitl.harness import AUTOPILOTS, FlightOptions, run_flight
 from flightsim.worlds.planner import shortest_safe_path
@@ -136,6 +137,9 @@ def configure_parser(parser: Any) -> None:
         action="store_true",
         help="simulated autopilots: fly setpoints as given, not with the firmware's calibrated response",
     )
+    parser.add_argument("--position-timeout", type=float, default=POSITION_TIMEOUT_S, metavar="S",
+                        help="external SITL: seconds to wait for its first position, the EKF origin "
+                        "(a fresh ArduPilot SITL needs 40-47 s; default 120)")
     parser.add_argument("--json", help="write the flight report as JSON here")
     parser.add_argument("--plot", help="write a top-down PNG of the flight here")
     parser.add_argument("--workdir", help="where the companion's config and log go (default: a temp dir)")
@@ -147,6 +151,8 @@ def command(args: Any) -> int:
 
     if args.duration is not None and args.duration <= 0:
         raise UserError(f"--duration must be positive, got {args.duration}")
+    if not args.position_timeout > 0:
+        raise UserError(f"--position-timeout must be positive, got {args.position_timeout}")
     world = load_flight_world(args.world, args.seed, args.difficulty)
     policy = Path(args.policy) if args.policy else default_policy()
     overrides = model_overrides(policy)
@@ -167,6 +173,7 @@ def command(args: Any) -> int:
         mission=mission,
         ideal_response=args.ideal_response,
         companion_overrides=overrides,
+        position_timeout=args.position_timeout,
     )
     try:
         report = run_flight(options, plot=Path(args.plot) if args.plot else None)

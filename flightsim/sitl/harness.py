@@ -77,6 +77,8 @@ class FlightOptions:
         the companion's ``goal.source = "mission"``
     :param ideal_response: simulated autopilots only: fly setpoints as given instead of through the
         firmware's calibrated response (:mod:`flightsim.vehicle.autopilot_response`)
+    :param position_timeout: external only: seconds to wait for the autopilot's first position
+        (its EKF origin; a fresh ArduPilot SITL needs 40-47 s)
     """
 
     autopilot: str
@@ -92,6 +94,7 @@ class FlightOptions:
     signed: bool = False
     mission: bool = False
     ideal_response: bool = False
+    position_timeout: float = external_sitl.POSITION_TIMEOUT_S
 
 
 # ------------------------------------------------------------------------------------ the flight
@@ -120,6 +123,7 @@ class SitlFlight:
         self.companion: subprocess.Popen[bytes] | None = None
         self.external: external_sitl.ExternalPose | None = None
         self.ground_truth = "simulator"  # external: the SITL's truth message, or "estimate"
+        self.position_wait_s = 0.0  # external: how long the autopilot took to report a position
         self.recorder = Recorder(t0=time.monotonic())
         self.recording = FlightRecording(self.workdir, self.world, options.lidar_step_deg)  # MCAP + truth
         self.lidar_port = free_udp_port()
@@ -268,13 +272,7 @@ class SitlFlight:
         self._relay_thread.start()
         external_sitl.request_streams(gcs)
         self.pump_gcs()  # from connect onwards: the companion must hear the autopilot before take-off
-        end = time.monotonic() + 10.0
-        while not external.has_estimate:
-            if time.monotonic() > end:
-                raise RuntimeError(
-                    "external SITL: no LOCAL_POSITION_NED / ATTITUDE / GLOBAL_POSITION_INT within 10 s"
-                )
-            time.sleep(0.05)
+        self.position_wait_s = external_sitl.wait_for_position(external, self.options.position_timeout)
         self.pilot(external_sitl.land_and_disarm)
         self.ground_truth = self.pilot(lambda g: external_sitl.wait_for_truth(external, g.pump))
         if self.ground_truth == "estimate":
@@ -532,6 +530,7 @@ class SitlFlight:
             error=error,
             recording=str(self.recording.path),
             ground_truth=self.ground_truth,
+            position_wait_s=round(self.position_wait_s, 1),
             warnings=[external_sitl.ESTIMATE_WARNING] if self.ground_truth == "estimate" else [],
         )
         if self.options.mission:

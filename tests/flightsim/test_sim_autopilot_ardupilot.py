@@ -267,3 +267,37 @@ def test_proximity_stop_only_when_prx1_type_is_mavlink_and_avoid_enabled():
     assert ap.flight_command(0.3)[1].vy == pytest.approx(1.0)
     ap.params.set("AVOID_ENABLE", 3)
     assert ap.flight_command(1.0)[1].vy == pytest.approx(1.0)  # the reading is stale after 0.5 s
+
+
+@pytest.mark.parametrize("personality", ["ardupilot", "px4"])
+def test_no_position_and_no_arming_until_the_estimator_has_its_origin(personality):
+    """``position_delay``: a fresh ArduPilot SITL reports no position for 40-47 s (GPS fix, EKF
+    origin) and refuses to arm meanwhile; attitude and heartbeats flow from boot."""
+    from flightsim.sitl.sim_autopilot.server import make_autopilot
+
+    ap = make_autopilot(personality, boot_time=0.0, response=False, position_delay=2.0)
+    ap.observe(on_ground())
+    ap.add_link(0)
+    gcs = mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0, 3)
+    ap.handle(wire(gcs), 0, 0.0)  # PX4 sends its STATUSTEXTs to ground stations
+    if personality == "ardupilot":
+        ap.set_mode(CopterMode.GUIDED)
+    else:
+        from flightsim.sitl.sim_autopilot.px4 import AutoSubMode, MainMode
+
+        ap.main, ap.sub = MainMode.AUTO, AutoSubMode.LOITER
+
+    def names(t0: float, t1: float) -> set[str]:
+        return {o.message.get_type() for k in range(int((t1 - t0) / 0.01)) for o in ap.tick(t0 + k * 0.01)}
+
+    early = names(0.0, 1.9)
+    assert "ATTITUDE" in early and "HEARTBEAT" in early
+    assert not early & {"LOCAL_POSITION_NED", "GLOBAL_POSITION_INT", "HOME_POSITION"}
+    refused = ap.handle(command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1), 0, 1.9)
+    assert acks(refused) == [(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, FAILED)] and not ap.armed
+    texts = [o.message.text for o in refused if o.message.get_type() == "STATUSTEXT"]
+    assert any(ap.NO_POSITION_REFUSAL in text for text in texts), texts
+    late = names(2.0, 3.0)
+    assert {"LOCAL_POSITION_NED", "GLOBAL_POSITION_INT"} <= late
+    accepted = ap.handle(command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1), 0, 3.0)
+    assert acks(accepted) == [(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, ACCEPTED)] and ap.armed

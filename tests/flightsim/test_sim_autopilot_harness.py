@@ -251,7 +251,7 @@ def test_mission_frame_needs_a_global_position():
     pose = ExternalPose(load_world("flightsim/worlds/two-pillars.json"))
     pose.update(mavlink.MAVLink_local_position_ned_message(0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
     pose.update(mavlink.MAVLink_attitude_message(0, 0.0, 0.0, 0.0, 0, 0, 0))
-    assert not pose.has_estimate  # the harness waits for GLOBAL_POSITION_INT too
+    assert pose.missing_estimate() == ["GLOBAL_POSITION_INT"]  # the harness waits for it too
     pose.anchor()
     with pytest.raises(RuntimeError, match="GLOBAL_POSITION_INT"):
         pose.mission_frame()
@@ -286,3 +286,39 @@ def wire(msg):
 
     mav = mavlink.MAVLink(None, 1, 1)
     return mav.decode(bytearray(msg.pack(mav)))
+
+
+def test_wait_for_position_says_how_long_every_5_s_and_names_what_never_came(caplog):
+    """The external path waits as a pilot does: a progress line every 5 s, and at the timeout one
+    line naming the messages that never arrived (a fake clock: this is the wait's own logic)."""
+    import logging
+
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+    from flightsim.sitl.external_sitl import ExternalPose, wait_for_position
+
+    pose = ExternalPose(load_world("flightsim/worlds/two-pillars.json"))
+    pose.update(mavlink.MAVLink_attitude_message(0, 0.0, 0.0, 0.0, 0, 0, 0))
+    pose.update(mavlink.MAVLink_global_position_int_message(0, 0, 0, 0, 0, 0, 0, 0, 0))  # no fix yet
+    clock = [0.0]
+
+    def sleep(dt: float) -> None:
+        clock[0] += dt
+        if clock[0] >= 23.0:  # the EKF's origin arrives
+            pose.update(mavlink.MAVLink_local_position_ned_message(0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
+            pose.update(mavlink.MAVLink_global_position_int_message(0, 473977420, 85455940, 0, 0, 0, 0, 0, 0))
+
+    with caplog.at_level(logging.INFO, logger="flightsim.sitl.external_sitl"):
+        waited = wait_for_position(pose, timeout=120.0, clock=lambda: clock[0], sleep=sleep)
+    assert waited == pytest.approx(23.0, abs=0.06)
+    notes = [r.getMessage() for r in caplog.records if "waiting for EKF origin" in r.getMessage()]
+    assert [n.split(" (")[0] for n in notes] == [f"waiting for EKF origin: {s} s" for s in (5, 10, 15, 20)]
+
+    late = ExternalPose(load_world("flightsim/worlds/two-pillars.json"))
+    late.update(mavlink.MAVLink_attitude_message(0, 0.0, 0.0, 0.0, 0, 0, 0))
+    clock[0] = 0.0
+    with pytest.raises(RuntimeError) as exc:
+        wait_for_position(late, timeout=8.0, clock=lambda: clock[0],
+                          sleep=lambda dt: clock.__setitem__(0, clock[0] + dt))
+    assert "no LOCAL_POSITION_NED / GLOBAL_POSITION_INT within 8 s" in str(exc.value)
+    assert "\n" not in str(exc.value)

@@ -64,15 +64,21 @@ def stop_autopilot(proc: subprocess.Popen[bytes]) -> None:
     proc.log.close()  # type: ignore[attr-defined]
 
 
-def fly_cli(tmp_path: Path, name: str, connect: str, policy: Path, world: Path, *extra: str) -> dict:
-    """``avoid-sim fly --autopilot external`` as the user runs it; returns its JSON report."""
-    report = tmp_path / f"{name}.json"
-    result = subprocess.run(
+def fly_process(tmp_path: Path, name: str, connect: str, policy: Path, world: Path,
+                *extra: str) -> subprocess.CompletedProcess[str]:
+    """``avoid-sim fly --autopilot external`` as the user runs it (report in ``<name>.json``)."""
+    return subprocess.run(
         [sys.executable, "-m", "flightsim", "fly", "--autopilot", "external", "--connect", connect,
          "--world", str(world), "--policy", str(policy), "--duration", "6", "--lidar-step", "1.0",
-         "--json", str(report), "--workdir", str(tmp_path / name), *extra],
+         "--json", str(tmp_path / f"{name}.json"), "--workdir", str(tmp_path / name), *extra],
         capture_output=True, text=True, timeout=240,
     )  # fmt: skip
+
+
+def fly_cli(tmp_path: Path, name: str, connect: str, policy: Path, world: Path, *extra: str) -> dict:
+    """``avoid-sim fly --autopilot external`` as the user runs it; returns its JSON report."""
+    result = fly_process(tmp_path, name, connect, policy, world, *extra)
+    report = tmp_path / f"{name}.json"
     assert report.exists(), result.stdout + result.stderr
     data = json.loads(report.read_text())
     assert result.returncode == 0, result.stdout + result.stderr
@@ -198,3 +204,36 @@ def test_companion_flies_a_real_external_sitl(tmp_path, world_file, mission_file
         proc.terminate()
         proc.wait(timeout=20)
         log.close()
+
+
+def test_fly_external_waits_for_an_autopilot_whose_position_starts_late(tmp_path, world_file):
+    """A fresh ArduPilot SITL reports no position for 40-47 s: ``fly`` waits for it (saying so every
+    5 s), then flies; a position that never comes within ``--position-timeout`` is one line naming
+    what never arrived, exit 1."""
+    port = free_tcp_port()
+    policy = write_constant_policy(tmp_path / "circle.onnx", 0.5, 0.4)
+    sitl = start_autopilot(tmp_path, "ardupilot", f"tcpin:127.0.0.1:{port}", "--position-delay", "14")
+    try:
+        result = fly_process(tmp_path, "late", f"tcp:127.0.0.1:{port}", policy, world_file)
+    finally:
+        stop_autopilot(sitl)
+    assert result.returncode == 0, result.stdout + result.stderr
+    report = json.loads((tmp_path / "late.json").read_text())
+    assert report["error"] == "" and report["engaged"] and not report["collision"], report
+    assert 8.0 < report["position_wait_s"] < 14.5, report  # the autopilot's boot came first
+    assert "waiting for EKF origin: 5 s" in result.stderr and "waiting for EKF origin: 10 s" in result.stderr
+
+    port = free_udp_port()
+    sitl = start_autopilot(tmp_path, "px4", f"udpin:127.0.0.1:{port}", "--position-delay", "600")
+    try:
+        result = fly_process(tmp_path, "never", f"udpout:127.0.0.1:{port}", policy, world_file,
+                             "--position-timeout", "6")
+    finally:
+        stop_autopilot(sitl)
+    assert result.returncode == 1, result.stdout + result.stderr
+    assert "waiting for EKF origin: 5 s" in result.stderr
+    errors = [line for line in result.stderr.splitlines() if "error" in line]
+    assert errors == ["avoid-sim fly: error: external SITL: no LOCAL_POSITION_NED / GLOBAL_POSITION_INT "
+                      "within 6 s: the autopilot never reported a position (no GPS fix or EKF origin?); "
+                      "raise --position-timeout or check the SITL"], result.stderr
+    assert "Traceback" not in result.stderr

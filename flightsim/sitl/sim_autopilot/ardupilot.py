@@ -57,6 +57,7 @@ class ArduCopterAutopilot(SimAutopilot):
     """A simulated ArduCopter (custom modes, GUIDED, GUID_TIMEOUT, simple proximity avoidance)."""
 
     RESPONSE = "ardupilot"
+    NO_POSITION_REFUSAL = "AHRS: waiting for home"
     AUTOPILOT = mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
     #: accepted unsigned while signing is on (GCS_Signing.cpp's accept list; USB, which takes
     #: everything unsigned, is not simulated)

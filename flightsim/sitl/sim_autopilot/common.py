@@ -99,6 +99,9 @@ class SimAutopilot:
         (:mod:`flightsim.vehicle.autopilot_response`, preset :attr:`RESPONSE`) and report its velocity
         estimate; False flies setpoints as given with a perfect estimate (the ideal autopilot)
     :param seed: seeds the velocity-estimate error (None: fresh entropy)
+    :param position_delay: seconds from boot until the estimator has an origin; until then no
+        :attr:`POSITION_MESSAGES` and no arming, as a fresh ArduPilot SITL waits 40-47 s for its
+        GPS fix and EKF origin (0: a position at once, as PX4 SIH)
     """
 
     AUTOPILOT: int = mavlink.MAV_AUTOPILOT_GENERIC
@@ -121,6 +124,10 @@ class SimAutopilot:
         "VFR_HUD",
         "MISSION_CURRENT",
     )
+    #: messages that need the estimator's origin (a GPS fix): none of them until it has one
+    POSITION_MESSAGES = frozenset(("LOCAL_POSITION_NED", "GLOBAL_POSITION_INT", "HOME_POSITION"))
+    #: why arming is refused while the estimator has no origin (the firmware's pre-arm text)
+    NO_POSITION_REFUSAL = "no position estimate yet"
     #: mission-protocol messages, handled by :class:`~flightsim.sitl.sim_autopilot.mission.MissionStore`
     MISSION_MESSAGES = frozenset((
         "MISSION_REQUEST_LIST", "MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_COUNT",
@@ -141,9 +148,10 @@ class SimAutopilot:
 
     def __init__(
         self, params: Any, *, system_id: int = 1, boot_time: float = 0.0, response: bool = True,
-        seed: int | None = None,
+        seed: int | None = None, position_delay: float = 0.0,
     ) -> None:  # fmt: skip
         self.params = params
+        self.position_delay = position_delay
         self.response = (
             AutopilotResponse(PRESETS[self.RESPONSE], np.random.default_rng(seed))
             if response and self.RESPONSE
@@ -191,6 +199,11 @@ class SimAutopilot:
         except KeyError:
             return default
         return default if value is None else float(value)
+
+    @property
+    def has_position(self) -> bool:
+        """The estimator has its origin (:attr:`position_delay` has passed since boot)."""
+        return self.now - self.boot_time >= self.position_delay
 
     def time_boot_ms(self) -> int:
         return max(0, int((self.now - self.boot_time) * 1000.0)) & 0xFFFFFFFF
@@ -345,6 +358,8 @@ class SimAutopilot:
             name = self._message_name(int(p[0]))
             if name is None:
                 return [self.ack(link, cmd, mavlink.MAV_RESULT_UNSUPPORTED)]
+            if name in self.POSITION_MESSAGES and not self.has_position:
+                return [self.ack(link, cmd, mavlink.MAV_RESULT_TEMPORARILY_REJECTED)]
             return [self.ack(link, cmd, mavlink.MAV_RESULT_ACCEPTED), Outgoing(self.build(name), link)]
         if cmd.command == mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
             return [
@@ -352,6 +367,8 @@ class SimAutopilot:
                 Outgoing(self.build("AUTOPILOT_VERSION"), link),
             ]
         if cmd.command == mavlink.MAV_CMD_GET_HOME_POSITION:
+            if not self.has_position:
+                return [self.ack(link, cmd, mavlink.MAV_RESULT_TEMPORARILY_REJECTED)]
             return [
                 self.ack(link, cmd, mavlink.MAV_RESULT_ACCEPTED),
                 Outgoing(self.build("HOME_POSITION"), link),
@@ -399,7 +416,9 @@ class SimAutopilot:
         if cmd.params[0] > 0.5:
             if self.armed:
                 return [self.ack(link, cmd, mavlink.MAV_RESULT_ACCEPTED)]
-            reason = None if force else self.arm_allowed()
+            reason = None
+            if not force:
+                reason = self.NO_POSITION_REFUSAL if not self.has_position else self.arm_allowed()
             if reason is not None:
                 return [
                     self.ack(link, cmd, mavlink.MAV_RESULT_FAILED),
@@ -526,6 +545,8 @@ class SimAutopilot:
         for link in sorted(links):
             for name in self.STREAMABLE:
                 if name == "HEARTBEAT" and not self.heartbeat_enabled:
+                    continue
+                if name in self.POSITION_MESSAGES and not self.has_position:
                     continue
                 period = self.interval(link, name)
                 if period <= 0:

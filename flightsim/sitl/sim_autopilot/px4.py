@@ -92,6 +92,7 @@ class PX4Autopilot(SimAutopilot):
     """A simulated PX4 multicopter (custom modes, OFFBOARD, offboard-loss failsafe)."""
 
     RESPONSE = "px4"
+    NO_POSITION_REFUSAL = "no valid position estimate"
     AUTOPILOT = mavlink.MAV_AUTOPILOT_PX4
     #: accepted unsigned while signing is on (mavlink_sign_control.cpp, MAV_SIGN_CFG = 2)
     UNSIGNED_ACCEPTED = frozenset((mavlink.MAVLINK_MSG_ID_RADIO_STATUS, mavlink.MAVLINK_MSG_ID_ADSB_VEHICLE,

@@ -43,10 +43,15 @@ MessageHook = Callable[[int, Any, float], None]
 StepHook = Callable[[VehicleState], None]
 
 
-def make_autopilot(personality: str, boot_time: float, response: bool = True) -> SimAutopilot:
+def make_autopilot(
+    personality: str, boot_time: float, response: bool = True, position_delay: float = 0.0
+) -> SimAutopilot:
     """A personality (``"ardupilot"`` or ``"px4"``) with its firmware's default parameter table;
-    ``response`` False flies setpoints as given (the ideal autopilot) instead of the firmware's response."""
-    return PERSONALITIES[personality](default_table(personality), boot_time=boot_time, response=response)
+    ``response`` False flies setpoints as given (the ideal autopilot) instead of the firmware's response;
+    ``position_delay`` s pass before it reports a position."""
+    return PERSONALITIES[personality](
+        default_table(personality), boot_time=boot_time, response=response, position_delay=position_delay
+    )
 
 
 def ground_truth_message(personality: str, autopilot: SimAutopilot, state: VehicleState, now: float) -> Any:
@@ -83,6 +88,8 @@ class SimAutopilotServer:
         earlier with SETUP_SIGNING); None = unsigned until a SETUP_SIGNING arrives
     :param ground_truth: stream the simulator's truth on every link after each physics chunk
     :param response: fly the firmware's calibrated response (False: the ideal autopilot)
+    :param position_delay: seconds before the autopilot reports a position (its EKF origin) and
+        lets itself be armed
     """
 
     def __init__(
@@ -96,13 +103,15 @@ class SimAutopilotServer:
         signing_key: bytes | None = None,
         ground_truth: bool = False,
         response: bool = True,
+        position_delay: float = 0.0,
     ) -> None:
         self.endpoint = MavlinkEndpoint(links, signing_key=signing_key,
                                         accept_unsigned=PERSONALITIES[personality].UNSIGNED_ACCEPTED)
         self.personality = personality
         self.ground_truth = ground_truth
         self.t0 = time.monotonic()
-        self.autopilot = make_autopilot(personality, boot_time=0.0, response=response)
+        self.autopilot = make_autopilot(personality, boot_time=0.0, response=response,
+                                        position_delay=position_delay)
         for name, value in (params or {}).items():
             self.autopilot.params.set(name, value)
         self.vehicle = vehicle or Vehicle(VehicleConfig())
@@ -218,6 +227,10 @@ def configure_parser(parser: Any) -> None:
                         help="initial heading, degrees counter-clockwise from East (0)")
     parser.add_argument("--no-ground-truth", action="store_true",
                         help="do not stream SIMSTATE / HIL_STATE_QUATERNION (a SITL that sends no truth)")
+    parser.add_argument("--position-delay", type=float, default=0.0, metavar="S",
+                        help="report no position (no EKF origin: no LOCAL_POSITION_NED, GLOBAL_POSITION_INT, "
+                        "HOME_POSITION) and refuse to arm for the first S seconds, as a fresh ArduPilot "
+                        "SITL does for about 40 s (0)")
     parser.add_argument(
         "--param",
         action="append",
@@ -254,6 +267,9 @@ def command(args: Any) -> int:
     for name in params:
         if name not in known:
             raise UserError(f"--param {name}: not a parameter of the {args.personality} table")
+    if not (math.isfinite(args.position_delay) and args.position_delay >= 0):
+        raise UserError(f"--position-delay must be a non-negative number of seconds, "
+                        f"got {args.position_delay}")
     if not math.isfinite(args.start_yaw):
         raise UserError(f"--start-yaw must be a finite number of degrees, got {args.start_yaw}")
 
@@ -268,6 +284,7 @@ def command(args: Any) -> int:
         signing_key=key,
         ground_truth=not args.no_ground_truth,
         response=not args.ideal_response,
+        position_delay=args.position_delay,
     )
     stop = threading.Event()
     # Ctrl-C, or a supervisor's/test's SIGTERM; the caller's handlers come back on return, so a
