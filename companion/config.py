@@ -295,6 +295,8 @@ class GoalConfig:
         uploaded to the autopilot, downloaded over MAVLink)
     :param waypoints: the ``fixed`` waypoints, in order
     :param acceptance_radius: a waypoint without its own radius is reached within this, metres
+    :param acceptance_altitude: PX4: a mission item is reached within its radius horizontally and
+        this vertically, metres (PX4's NAV_MC_ALT_RAD); ArduPilot judges the radius in 3D
     :param max_vertical_speed: bound of the climb/descent toward a waypoint's height, m/s
     :param on_complete: after the last waypoint: ``hold`` (zero velocity; the companion never
         changes the mode), or request ``land`` / ``rtl`` once
@@ -309,6 +311,7 @@ class GoalConfig:
     source: Literal["none", "fixed", "mission"] = "none"
     waypoints: tuple[FixedWaypointConfig, ...] = ()
     acceptance_radius: float = field(default=1.0, metadata={"min": 0.1, "max": 100.0})
+    acceptance_altitude: float = field(default=0.8, metadata={"min": 0.05, "max": 100.0})
     max_vertical_speed: float = field(default=0.5, metadata={"min": 0.05, "max": 5.0})
     on_complete: Literal["hold", "land", "rtl"] = "hold"
     download_timeout: float = field(default=1.0, metadata={"min": 0.1, "max": 10.0})

@@ -3,8 +3,10 @@
 :class:`NavInputs` keeps the navigation messages the autopilot streams (LOCAL_POSITION_NED for the
 position, ATTITUDE or GLOBAL_POSITION_INT for the heading, GPS_GLOBAL_ORIGIN or GLOBAL_POSITION_INT
 beside LOCAL_POSITION_NED for the origin). :class:`GoalTracker` walks a list of local-NED waypoints:
-each is reached within its acceptance radius, progress is reported as events, and every update says
-either where the current waypoint is in the body frame or why the vehicle must hold.
+each is reached within its acceptance radius as the firmware judges it (3D on ArduPilot, horizontal
+and vertical on PX4), a mission's starts and resumes at the autopilot's current item, progress is
+reported as events, and every update says either where the current waypoint is in the body frame
+or why the vehicle must hold.
 """
 
 from __future__ import annotations
@@ -33,6 +35,9 @@ class Waypoint:
     :param acceptance_radius: reached within this distance, metres (None: the configured one)
     :param label: how announcements name it (a mission item's sequence number, or "fixed 2")
     :param seq: the mission item it came from (MISSION_ITEM_REACHED names it); None: not a mission's
+    :param altitude_radius: reached within ``acceptance_radius`` horizontally and this vertically,
+        metres, as PX4 judges a mission item (NAV_MC_ALT_RAD); None: within ``acceptance_radius``
+        in 3D, as ArduPilot's waypoint navigation does (WPNAV_RADIUS along its 3D track)
     """
 
     north: float
@@ -41,9 +46,17 @@ class Waypoint:
     acceptance_radius: float | None = None
     label: str = ""
     seq: int | None = None
+    altitude_radius: float | None = None
 
     def distance(self, position: tuple[float, float, float]) -> float:
         return math.dist((self.north, self.east, self.down), position)
+
+    def reached(self, position: tuple[float, float, float], radius: float) -> bool:
+        """Within ``radius`` (and :attr:`altitude_radius`) of ``position``, as the firmware judges it."""
+        if self.altitude_radius is None:
+            return self.distance(position) <= radius
+        horizontal = math.dist((self.north, self.east), position[:2])
+        return horizontal <= radius and abs(self.down - position[2]) <= self.altitude_radius
 
 
 @dataclass
@@ -128,33 +141,51 @@ class GoalTracker:
         self.index = 0
         self.events: list[str] = []  # progress to announce, oldest first (drained by the caller)
         self.reached_items: list[int] = []  # mission items reached, for MISSION_ITEM_REACHED (drained)
-        self._reached: list[tuple[float, float, float]] = []
         self._completed_announced = False
 
     def radius(self, wp: Waypoint) -> float:
         return wp.acceptance_radius if wp.acceptance_radius else self._radius
 
     def set_waypoints(self, waypoints: tuple[Waypoint, ...] | list[Waypoint],
-                      position: tuple[float, float, float] | None) -> None:
-        """A new list. The first one starts at its first waypoint; a changed one resumes at the
-        nearest waypoint not yet reached (within its radius of one reached before), or without a
-        position at the first not yet reached.
+                      current_seq: int | None = None) -> None:
+        """A new list; the same list again changes nothing. A mission's starts, or resumes after a
+        change, at the autopilot's current item (MISSION_CURRENT ``seq``), as the firmware would fly
+        it: the first waypoint from that item on, else (none known, or past the end) the first.
         """
         if tuple(waypoints) == self.waypoints:
             return  # downloaded again but unchanged: carry on where we are
-        first = not self.waypoints and not self._reached
         self.waypoints = tuple(waypoints)
         self._completed_announced = False
-        todo = [i for i, wp in enumerate(self.waypoints)
-                if not any(wp.distance(p) <= self.radius(wp) for p in self._reached)]
-        if not todo:
-            self.index = len(self.waypoints)
-        elif position is None or first:
-            self.index = todo[0]
-        else:
-            self.index = min(todo, key=lambda i: (self.waypoints[i].distance(position), i))
-        if self.waypoints and self.index < len(self.waypoints):
+        self.index = self._index_of(current_seq) or 0
+        if self.waypoints:
             self.events.append(f"goal: {len(self.waypoints)} waypoints, next {self._name(self.index)}")
+
+    def _index_of(self, seq: int | None) -> int | None:
+        """The first waypoint from mission item ``seq`` on (None: no such waypoint, or no seq)."""
+        if seq is None:
+            return None
+        return next((i for i, wp in enumerate(self.waypoints) if wp.seq is not None and wp.seq >= seq), None)
+
+    @property
+    def current_seq(self) -> int | None:
+        """The mission item flown to now (None: not a mission's, or complete)."""
+        return self.waypoints[self.index].seq if self.index < len(self.waypoints) else None
+
+    def follow_current(self, seq: int) -> None:
+        """The autopilot's current item changed to ``seq`` (a ground station set it): fly to it."""
+        i = self._index_of(seq)
+        if i is None or i == self.index or self.waypoints[i].seq != seq:
+            return
+        self.index = i
+        self._completed_announced = False
+        self.events.append(f"goal: autopilot's current item is {seq}, next {self._name(i)}")
+
+    def autopilot_reached(self, seq: int) -> None:
+        """The autopilot reports mission item ``seq`` reached (MISSION_ITEM_REACHED): past it."""
+        while (current := self.current_seq) is not None and current <= seq:
+            self.events.append(f"goal: autopilot reached {self._name(self.index)} "
+                               f"({self.index + 1}/{len(self.waypoints)})")
+            self.index += 1
 
     def _name(self, i: int) -> str:
         return self.waypoints[i].label or f"waypoint {i + 1}"
@@ -169,9 +200,8 @@ class GoalTracker:
         pos = nav.position
         while self.index < len(self.waypoints):
             wp = self.waypoints[self.index]
-            if wp.distance(pos) > self.radius(wp):
+            if not wp.reached(pos, self.radius(wp)):
                 break
-            self._reached.append((wp.north, wp.east, wp.down))
             if wp.seq is not None:
                 self.reached_items.append(wp.seq)
             self.events.append(f"goal: reached {self._name(self.index)} "

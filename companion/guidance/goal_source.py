@@ -4,8 +4,17 @@ A :class:`GoalSource` is fed every message the link received from the autopilot 
 they are queued) and stepped by the main loop. It keeps the navigation inputs, runs the mission
 download (``source = "mission"``) or takes the configured waypoints (``"fixed"``), hands the
 waypoints to the :class:`~companion.guidance.goal.GoalTracker`, and says what the policy's goal is, or why
-the vehicle must hold. Requests for the autopilot go out through the ``send`` callable the link
-provides; text for the pilot collects in :attr:`GoalSource.announcements`.
+the vehicle must hold.
+
+A mission follows the autopilot, as the firmware's own mission would: it starts, and resumes after a
+real change, at the autopilot's current item (MISSION_CURRENT); a ground station setting another
+current item moves the goal there, and an item the autopilot reports reached (MISSION_ITEM_REACHED)
+is passed. The companion's own progress goes back as MISSION_SET_CURRENT, so the autopilot's current
+item is the one flown to (and AUTO, if the pilot switches to it, carries on from there). A download
+whose items are the same as the mission flown is no change, whatever its plan id.
+
+Requests for the autopilot go out through the ``send`` callable the link provides; text for the
+pilot collects in :attr:`GoalSource.announcements`.
 """
 
 from __future__ import annotations
@@ -32,7 +41,7 @@ log = logging.getLogger(__name__)
 #: Messages a goal source uses; the links pass these on.
 GOAL_MESSAGES = frozenset({
     "LOCAL_POSITION_NED", "ATTITUDE", "GLOBAL_POSITION_INT", "GPS_GLOBAL_ORIGIN", "HOME_POSITION",
-    "MISSION_COUNT", "MISSION_ITEM_INT", "MISSION_ACK", "MISSION_CURRENT",
+    "MISSION_COUNT", "MISSION_ITEM_INT", "MISSION_ACK", "MISSION_CURRENT", "MISSION_ITEM_REACHED",
 })
 #: Streams a goal source needs beyond the supervisor's (heading without GPS, the plan id).
 GOAL_STREAMS = ("ATTITUDE", "MISSION_CURRENT")
@@ -45,7 +54,9 @@ class GoalSource:
 
     :param config: the ``[goal]`` table (:class:`companion.config.GoalConfig`)
     :param own: (system, component) the companion sends as
-    :param skip_home: the autopilot keeps home as mission item 0 (ArduPilot)
+    :param skip_home: the autopilot keeps home as mission item 0 (ArduPilot); it also says how an
+        item is judged reached: ArduPilot in 3D within ``acceptance_radius``, PX4 within the item's own
+        radius (else ``acceptance_radius``) horizontally and ``acceptance_altitude`` vertically
     :param clock: the loop's monotonic clock, seconds
     :param send: sends one :class:`~companion.guidance.mission.Request` to the autopilot
     """
@@ -55,6 +66,7 @@ class GoalSource:
         self.config = config
         self._clock = clock
         self._send = send
+        self._skip_home = skip_home
         self.nav = NavInputs()
         self.tracker = GoalTracker(config.acceptance_radius, config.max_vertical_speed)
         self.downloader = MissionDownloader(own, skip_home, config.download_timeout, config.download_retries)
@@ -63,6 +75,8 @@ class GoalSource:
         self._lock = threading.Lock()
         self._mission_used: Mission | None = None
         self._mission_problem: str | None = None
+        self._current_seen: int | None = None  # the autopilot's current item, as last followed
+        self._current_sent: set[int] = set()  # MISSION_SET_CURRENTs sent and not yet echoed
         self._started = False
         self.output = GoalOutput("starting")
         if config.source == "fixed":
@@ -86,6 +100,8 @@ class GoalSource:
             self.nav.on_message(msg, now)
             if self.config.source == "mission":
                 requests += self.downloader.on_message(msg, now)
+                if msg.get_type() == "MISSION_ITEM_REACHED" and self._mission_used is self.downloader.mission:
+                    self.tracker.autopilot_reached(int(msg.seq))
         if self.config.source == "mission" and autopilot_found:
             if not self._started:
                 self._started = True
@@ -99,20 +115,46 @@ class GoalSource:
         return self.output
 
     def _goal(self, now: float) -> GoalOutput:
-        if self.config.source == "mission":
-            problem = self._use_mission()
-            if problem is not None:
-                return GoalOutput(problem, index=self.tracker.index)
-        return self.tracker.update(self.nav, now)
+        if self.config.source != "mission":
+            return self.tracker.update(self.nav, now)
+        problem = self._use_mission()
+        if problem is not None:
+            return GoalOutput(problem, index=self.tracker.index)
+        self._follow_current()
+        before = self.tracker.current_seq
+        output = self.tracker.update(self.nav, now)
+        after = self.tracker.current_seq
+        if after is not None and after != before:  # our own progress: the autopilot's current item too
+            self._current_sent.add(after)
+            self._send(Request("MISSION_SET_CURRENT", after))
+        return output
+
+    def _follow_current(self) -> None:
+        """A new current item from the autopilot (a ground station set it) moves the goal there;
+        the echo of the companion's own MISSION_SET_CURRENT does not."""
+        seq = self.downloader.current_seq
+        if seq is None or seq == self._current_seen or not self.downloader.current_is_of_held():
+            return
+        self._current_seen = seq
+        if seq in self._current_sent:
+            self._current_sent.clear()
+            return
+        self.tracker.follow_current(seq)
 
     def _use_mission(self) -> str | None:
         """Give the tracker the downloaded mission once it can be placed; else why not."""
         d = self.downloader
         if d.phase is not Phase.DONE or d.mission is None:
             return "mission download failed" if d.phase is Phase.FAILED else "mission downloading"
+        if d.mission is not self._mission_used and d.mission.same_items(self._mission_used):
+            self._mission_used = d.mission  # downloaded again, nothing changed: carry on
+            self.announcements.append(f"mission unchanged, carrying on to item {self.tracker.current_seq}")
         if d.mission is not self._mission_used:
             try:
-                waypoints = mission_waypoints(d.mission, self.nav.origin, self.nav.home_amsl)
+                waypoints = mission_waypoints(d.mission, self.nav.origin, self.nav.home_amsl,
+                                              item_radius=not self._skip_home,
+                                              altitude_radius=None if self._skip_home
+                                              else self.config.acceptance_altitude)
             except ValueError as exc:
                 problem = str(exc)
                 if problem != self._mission_problem:
@@ -125,7 +167,8 @@ class GoalSource:
                 return "mission empty"
             self._mission_used = d.mission
             self._mission_problem = None
-            self.tracker.set_waypoints(waypoints, self.nav.position)
+            self.tracker.set_waypoints(waypoints, d.current_seq)
+            self._current_seen = d.current_seq
         return None
 
     def drain_announcements(self) -> list[str]:
@@ -141,6 +184,8 @@ def request_message(request: Request, target: tuple[int, int]) -> Any:
         return mavlink.MAVLink_mission_request_int_message(*target, request.seq, MAV_MISSION_TYPE_MISSION)
     if request.kind == "MISSION_ACK":
         return mavlink.MAVLink_mission_ack_message(*target, request.result, MAV_MISSION_TYPE_MISSION)
+    if request.kind == "MISSION_SET_CURRENT":
+        return mavlink.MAVLink_mission_set_current_message(*target, request.seq)
     raise ValueError(f"unknown mission request {request.kind!r}")
 
 

@@ -38,6 +38,9 @@ RELATIVE_FRAMES = (MAV_FRAME_GLOBAL_RELATIVE_ALT, MAV_FRAME_GLOBAL_RELATIVE_ALT_
 #: MAV_FRAME_LOCAL_NED items carry x, y as metres × 1e4 in MISSION_ITEM_INT
 LOCAL_FRAMES = (MAV_FRAME_LOCAL_NED,)
 
+#: float32's relative precision: two encodings of one value differ by no more
+FLOAT32_EPS = 2.0**-23
+
 #: Payload offsets of the plan-id extension fields (MAVLink common.xml wire order).
 MISSION_CURRENT_MISSION_ID_OFFSET = 6
 MISSION_COUNT_OPAQUE_ID_OFFSET = 5
@@ -77,6 +80,15 @@ class MissionItem:
     y: int
     z: float
 
+    def same_as(self, other: MissionItem) -> bool:
+        """The same item, within MISSION_ITEM_INT's precision (x, y integers, the rest float32)."""
+        return (
+            (self.seq, self.frame, self.command, self.x, self.y)
+            == (other.seq, other.frame, other.command, other.x, other.y)
+            and all(math.isclose(a, b, rel_tol=FLOAT32_EPS, abs_tol=FLOAT32_EPS)
+                    for a, b in ((self.param1, other.param1), (self.param2, other.param2), (self.z, other.z)))
+        )
+
     @classmethod
     def of(cls, msg: Any) -> MissionItem:
         return cls(int(msg.seq), int(msg.frame), int(msg.command), float(msg.param1), float(msg.param2),
@@ -107,17 +119,26 @@ class Mission:
     def problems(self) -> list[str]:
         return [p for p in (item.unsupported() for item in self.items) if p is not None]
 
+    def same_items(self, other: Mission | None) -> bool:
+        """Downloaded again with nothing changed (the plan id may differ: it is not an item)."""
+        return other is not None and len(self.items) == len(other.items) and all(
+            a.same_as(b) for a, b in zip(self.items, other.items, strict=True))
+
     @property
     def needs_origin(self) -> bool:
         return any(item.frame not in LOCAL_FRAMES for item in self.items)
 
 
-def mission_waypoints(mission: Mission, origin: GlobalOrigin | None,
-                      home_amsl: float | None) -> list[Waypoint]:
-    """The mission's items as local-NED waypoints.
+def mission_waypoints(mission: Mission, origin: GlobalOrigin | None, home_amsl: float | None,
+                      item_radius: bool = True, altitude_radius: float | None = None) -> list[Waypoint]:
+    """The mission's items as local-NED waypoints, each reached as the firmware judges it.
 
     :param origin: where local NED (0, 0, 0) is (needed for global frames)
     :param home_amsl: home's altitude above sea level (needed for relative-altitude frames)
+    :param item_radius: an item's own acceptance radius (param2 > 0) counts, as on PX4; False: the
+        configured one for every item, as on ArduPilot Copter (its WPNAV_RADIUS; param2 unused)
+    :param altitude_radius: reached within this vertically and the radius horizontally (PX4's
+        NAV_MC_ALT_RAD), metres; None: within the radius in 3D (ArduPilot)
     :raises ValueError: an item is unsupported, or the origin / home it needs is unknown
     """
     problems = mission.problems()
@@ -125,10 +146,10 @@ def mission_waypoints(mission: Mission, origin: GlobalOrigin | None,
         raise ValueError(problems[0])
     out = []
     for item in mission.items:
-        radius = item.param2 if item.param2 > 0 else None
+        radius = item.param2 if item_radius and item.param2 > 0 else None
         label = f"item {item.seq}"
         if item.frame in LOCAL_FRAMES:
-            out.append(Waypoint(item.x / 1e4, item.y / 1e4, item.z, radius, label, item.seq))
+            out.append(Waypoint(item.x / 1e4, item.y / 1e4, item.z, radius, label, item.seq, altitude_radius))
             continue
         if origin is None:
             raise ValueError("no origin")
@@ -139,7 +160,7 @@ def mission_waypoints(mission: Mission, origin: GlobalOrigin | None,
             amsl = home_amsl + item.z
         else:
             amsl = item.z
-        out.append(Waypoint(north, east, -(amsl - origin.alt_amsl), radius, label, item.seq))
+        out.append(Waypoint(north, east, -(amsl - origin.alt_amsl), radius, label, item.seq, altitude_radius))
     return out
 
 
@@ -147,8 +168,9 @@ def mission_waypoints(mission: Mission, origin: GlobalOrigin | None,
 class Request:
     """A message for the link to send to the autopilot.
 
-    :param kind: ``MISSION_REQUEST_LIST``, ``MISSION_REQUEST_INT`` or ``MISSION_ACK``
-    :param seq: item asked for (MISSION_REQUEST_INT)
+    :param kind: ``MISSION_REQUEST_LIST``, ``MISSION_REQUEST_INT``, ``MISSION_ACK`` or
+        ``MISSION_SET_CURRENT``
+    :param seq: item asked for (MISSION_REQUEST_INT) or made current (MISSION_SET_CURRENT)
     :param result: MAV_MISSION_RESULT (MISSION_ACK)
     """
 
@@ -195,6 +217,7 @@ class MissionDownloader:
         self._tries = 0
         self._opaque_id = 0
         self._latest_current: tuple[int, int] | None = None  # (plan id, total) of the last MISSION_CURRENT
+        self.current_seq: int | None = None  # the autopilot's current item (the last MISSION_CURRENT)
         self._current_at_start: tuple[int, int] | None = None  # ... when the download began
         self._reference: tuple[int, int] | None = None  # ... of the mission held
         self._start_at: float | None = None  # a (re)download is due at this time
@@ -258,6 +281,7 @@ class MissionDownloader:
         """
         seen = (extension_u32(msg, MISSION_CURRENT_MISSION_ID_OFFSET), int(msg.total))
         self._latest_current = seen
+        self.current_seq = int(msg.seq)
         if self.phase is not Phase.DONE or self.mission is None:
             return []
         if self._reference is None:
@@ -324,6 +348,16 @@ class MissionDownloader:
         if self.phase is Phase.LISTING:
             return self._ask(Request("MISSION_REQUEST_LIST"), now)
         return self._ask(Request("MISSION_REQUEST_INT", self._next), now)
+
+    def current_is_of_held(self) -> bool:
+        """The last MISSION_CURRENT speaks of the mission held (same plan id, where both carry one),
+        not of a new one still to download."""
+        if self.phase is not Phase.DONE or self.mission is None or self._latest_current is None:
+            return False
+        if self._start_at is not None:
+            return False  # a change is known and its download due
+        plan_id = self._latest_current[0]
+        return plan_id == 0 or self.mission.mission_id == 0 or plan_id == self.mission.mission_id
 
     def drain_events(self) -> list[str]:
         out, self.events = self.events, []

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import struct
 
+import numpy as np
 import pytest
 
 from companion.autopilot.mavlink_adapter import mavlink
@@ -291,17 +293,53 @@ def test_first_mission_starts_at_its_first_waypoint():
     assert tr.index == 0
 
 
-def test_changed_mission_resumes_at_nearest_not_reached():
+def test_changed_mission_resumes_at_the_autopilots_current_item_not_the_nearest():
     tr = GoalTracker(1.0, 0.5)
-    a, b, c, d = Waypoint(5, 0, -2), Waypoint(10, 0, -2), Waypoint(15, 0, -2), Waypoint(20, 0, -2)
-    tr.set_waypoints([a, b, c], None)
+    a, b, c, d = (Waypoint(5, 0, -2, seq=1), Waypoint(10, 0, -2, seq=2), Waypoint(15, 0, -2, seq=3),
+                  Waypoint(20, 0, -2, seq=2))
+    tr.set_waypoints([a, b, c], 1)
     tr.update(_nav((5, 0, -2), 0.0), 0.0)  # a reached
     assert tr.index == 1
-    # new mission: a again, then d, then c; the vehicle is near c
-    tr.set_waypoints([a, d, c], (14, 0, -2))
-    assert tr.index == 2  # c is nearest; a was reached already
-    tr.set_waypoints([a], (14, 0, -2))
-    assert tr.index == 1  # everything reached: complete
+    tr.set_waypoints([a, d, c], 1)  # the vehicle is near c; the autopilot's current item is 1
+    assert tr.index == 0
+    tr.set_waypoints([a, b], 2)
+    assert tr.index == 1 and tr.current_seq == 2
+    tr.set_waypoints([a, d], 7)  # past the end: the firmware starts over
+    assert tr.index == 0
+
+
+def test_tracker_follows_the_autopilots_current_item_and_its_reached_items():
+    tr = GoalTracker(1.0, 0.5)
+    tr.set_waypoints([Waypoint(5, 0, -2, seq=1), Waypoint(10, 0, -2, seq=2), Waypoint(15, 0, -2, seq=3)], 1)
+    tr.follow_current(3)
+    assert tr.current_seq == 3
+    tr.follow_current(1)
+    assert tr.current_seq == 1
+    tr.follow_current(9)  # no such item: stays
+    assert tr.current_seq == 1
+    tr.autopilot_reached(2)  # MISSION_ITEM_REACHED 2: 1 and 2 are behind
+    assert tr.current_seq == 3 and tr.drain_reached_items() == []  # not echoed back
+    tr.autopilot_reached(3)
+    assert tr.update(_nav((0, 0, -2), 0.0), 0.0).complete
+
+
+def test_reached_as_each_firmware_judges_it():
+    """ArduPilot: within the radius in 3D; PX4: the radius horizontally and NAV_MC_ALT_RAD vertically
+    (1.05 m below a waypoint right over it is reached on PX4 with 1.1 m, never in ArduPilot's 1 m sphere)."""
+    ardupilot, px4 = Waypoint(5, 0, -1.5), Waypoint(5, 0, -1.5, altitude_radius=1.1)
+    assert not ardupilot.reached((5, 0, -0.45), 1.0) and px4.reached((5, 0, -0.45), 1.0)
+    assert ardupilot.reached((5.6, 0.6, -1.5), 1.0) and px4.reached((5.6, 0.6, -1.5), 1.0)
+    assert not px4.reached((5, 0, -0.3), 1.0)  # 1.2 m below: outside NAV_MC_ALT_RAD
+    assert not px4.reached((6.01, 0, -1.5), 1.0)
+
+
+def test_a_redownload_within_the_encodings_precision_is_the_same_mission():
+    item = MissionItem(1, 6, 16, 0.0, 1.0, 473977420, 85455940, 1.5)
+    again = dataclasses.replace(item, z=float(np.float32(1.5 + 1e-7)), param2=float(np.float32(1.0)))
+    assert Mission((item,), 7).same_items(Mission((again,), 8))  # a new plan id is not a new mission
+    assert not Mission((item,), 7).same_items(Mission((dataclasses.replace(item, x=item.x + 1),), 7))
+    assert not Mission((item,), 7).same_items(Mission((item, item), 7))
+    assert not Mission((item,), 7).same_items(None)
 
 
 def test_same_mission_again_keeps_the_current_waypoint():
@@ -309,7 +347,7 @@ def test_same_mission_again_keeps_the_current_waypoint():
     wps = [Waypoint(5, 0, -2), Waypoint(10, 0, -2), Waypoint(15, 0, -2)]
     tr.set_waypoints(wps, None)
     tr.update(_nav((5, 0, -2), 0.0), 0.0)
-    tr.set_waypoints(list(wps), (14, 0, -2))  # nearer the third, but the list is the same
+    tr.set_waypoints(list(wps), 3)  # another current item, but the list is the same
     assert tr.index == 1
 
 

@@ -65,7 +65,9 @@ def test_download_track_and_change_against_the_simulated_autopilot(personality):
             out = run_until(link, goal, lambda o: o.hold_reason is None)
             # the vehicle rests at home facing east (ENU yaw 0): 10 m north is 10 m to its left
             assert out.goal_body == pytest.approx((0.0, 10.0, 2.0), abs=0.15)
-            assert [w.acceptance_radius for w in goal.tracker.waypoints] == [None, 2.0]
+            # PX4 takes an item's own radius; ArduPilot Copter leaves it unused (its WPNAV_RADIUS)
+            radii = [None, 2.0] if personality == "px4" else [None, None]
+            assert [w.acceptance_radius for w in goal.tracker.waypoints] == radii
             said = goal.drain_announcements()
             assert "mission downloaded: 2 items" in said
             # the pilot uploads another mission: MISSION_CURRENT's plan id changes, the companion follows
@@ -73,6 +75,63 @@ def test_download_track_and_change_against_the_simulated_autopilot(personality):
             out = run_until(link, goal, lambda o: goal.downloader.counters["downloads"] == 2
                             and o.hold_reason is None)
             assert out.goal_body == pytest.approx((-6.0, 0.0, 2.5), abs=0.15)  # 6 m west: straight behind
+        finally:
+            link.close()
+            gcs.close()
+
+
+def _set_current(gcs: GroundStation, seq: int) -> None:
+    gcs.mav.mav.mission_set_current_send(gcs.target_system, 1, seq)
+
+
+@pytest.mark.parametrize("personality", ["ardupilot", "px4"])
+def test_mission_follows_the_autopilots_current_item_and_ignores_an_unchanged_redownload(personality):
+    """The autopilot's current item (a ground station sets it) is where the goal goes; a new plan id
+    with the same items (PX4 announced one right after the first download) is downloaded again and
+    is no change: the goal stays; a real change resumes at the autopilot's current item, not at the
+    nearest waypoint; the companion's own progress is sent back as MISSION_SET_CURRENT."""
+    port = free_udp_port()
+    with SimAutopilotServer(personality, [f"udpout:127.0.0.1:{port}", "udpin:127.0.0.1:0"]) as server:
+        gcs = GroundStation("udpout:{}:{}".format(*server.endpoint.address(1)))
+        link = open_link(personality, port)
+        first = 1 if personality == "ardupilot" else 0  # ArduPilot's item 0 is home
+        try:
+            gcs.wait_heartbeat()
+            gcs.upload_mission([spec(10.0, 0.0, 2.0), spec(10.0, 8.0, 3.0), spec(0.0, 8.0, 2.0)])
+            goal = open_goal(config(personality), link, time.monotonic)
+            run_until(link, goal, lambda o: o.hold_reason is None)
+            assert goal.tracker.current_seq == first
+            _set_current(gcs, first + 1)  # the pilot skips an item from the ground station
+            run_until(link, goal, lambda o: goal.tracker.current_seq == first + 1)
+            # the MISSION_CURRENT the link heard before the upload may bring one download more: let it
+            settle = time.monotonic() + 2.0
+            run_until(link, goal, lambda o: time.monotonic() > settle, timeout=5.0)
+            goal.drain_announcements()
+            downloads = goal.downloader.counters["downloads"]
+            server.call(lambda ap: setattr(ap.mission, "mission_id", ap.mission.mission_id + 1))
+            run_until(link, goal, lambda o: goal.downloader.counters["downloads"] == downloads + 1
+                      and o.hold_reason is None)
+            said = goal.drain_announcements()
+            assert goal.tracker.current_seq == first + 1, said  # where it was
+            assert f"mission unchanged, carrying on to item {first + 1}" in said
+            assert not any("waypoints, next" in s for s in said), said
+            # a real change: the vehicle (at home, on the ground) is nearest the new third item, but
+            # the autopilot's current item after the upload is its first: the goal goes there
+            _set_current(gcs, first + 2)
+            run_until(link, goal, lambda o: goal.tracker.current_seq == first + 2)
+            gcs.upload_mission([spec(-8.0, 0.0, 2.0), spec(0.0, -8.0, 2.0), spec(1.5, 0.0, 2.0)])
+            run_until(link, goal, lambda o: o.hold_reason is None and goal.tracker.waypoints[0].north < -7)
+            assert goal.tracker.current_seq == server.autopilot.mission.current == first
+            # an item the vehicle is at is reached: the autopilot's current item follows the companion
+            gcs.upload_mission([spec(0.0, 0.0, 0.0), spec(0.0, -8.0, 2.0)])
+            run_until(link, goal, lambda o: len(goal.tracker.waypoints) == 2
+                      and goal.tracker.current_seq == first + 1)
+            end = time.monotonic() + 5.0
+            while server.autopilot.mission.current != first + 1 and time.monotonic() < end:
+                time.sleep(0.05)
+            assert server.autopilot.mission.current == first + 1
+            run_until(link, goal, lambda o: True, timeout=1.0)
+            assert goal.tracker.current_seq == first + 1  # its own MISSION_SET_CURRENT's echo: no jump
         finally:
             link.close()
             gcs.close()

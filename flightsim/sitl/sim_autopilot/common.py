@@ -131,7 +131,7 @@ class SimAutopilot:
     #: mission-protocol messages, handled by :class:`~flightsim.sitl.sim_autopilot.mission.MissionStore`
     MISSION_MESSAGES = frozenset((
         "MISSION_REQUEST_LIST", "MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_COUNT",
-        "MISSION_ITEM_INT", "MISSION_ITEM", "MISSION_ACK", "MISSION_CLEAR_ALL",
+        "MISSION_ITEM_INT", "MISSION_ITEM", "MISSION_ACK", "MISSION_CLEAR_ALL", "MISSION_SET_CURRENT",
     ))
     #: the firmware keeps home as mission item 0 (ArduPilot)
     MISSION_HOME_ITEM = False

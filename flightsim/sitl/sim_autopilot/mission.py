@@ -9,7 +9,9 @@ As the firmwares do it:
 - download (MISSION_REQUEST_LIST): MISSION_COUNT with the plan id, then each item asked for;
 - ArduPilot keeps home as item 0: a download returns home there (and counts it), an upload's item 0
   is replaced by home; PX4's items start at 0;
-- MISSION_CURRENT (streamed) carries the current item, the total and the plan id ``mission_id``.
+- MISSION_CURRENT (streamed) carries the current item, the total and the plan id ``mission_id``;
+  MISSION_SET_CURRENT makes an item current in any mode (answered with MISSION_CURRENT; an item
+  that does not exist is refused with a STATUSTEXT on the firmware, ignored here).
 
 pymavlink 2.4 predates the plan-id extension fields, so the three messages that carry one are sent
 through small subclasses that append it to the payload (wire order of common.xml).
@@ -167,6 +169,11 @@ class MissionStore:
             return self._start_upload(msg, peer, link, now)
         if kind in ("MISSION_ITEM_INT", "MISSION_ITEM"):
             return self._on_item(msg, peer, link, now)
+        if kind == "MISSION_SET_CURRENT":
+            if self.items and self.offset <= msg.seq < self.total:
+                self.current = int(msg.seq)
+                return [(self.current_message(), link)]
+            return []
         if kind == "MISSION_CLEAR_ALL":
             self._replace([])
             return [(MissionAckWithId(*peer, mavlink.MAV_MISSION_ACCEPTED, self.mission_id), link)]
