@@ -227,9 +227,9 @@ def check_parameters(config: CompanionConfig) -> tuple[list[str], float | None]:
         return [], None
     from companion.params import check as params
     from companion.params.client import open_connection
-    from companion.params.files import load_param_file
+    from companion.params.files import default_param_file, load_param_file
 
-    wanted = load_param_file(pc.file, config.autopilot.type)
+    wanted = load_param_file(pc.file or default_param_file(config.autopilot.type), config.autopilot.type)
     link = config.autopilot.link
     try:
         ensure_port_free(link)

@@ -217,7 +217,8 @@ class ParamsCheckConfig:
     """Compare the autopilot's parameters with a reference file at start-up.
 
     :param mode: ``off``; ``warn`` (log + STATUSTEXT each mismatch, carry on); ``refuse`` (exit)
-    :param file: ``.parm`` (ArduPilot) or ``.params`` (PX4) file (relative: to the config file)
+    :param file: ``.parm`` (ArduPilot) or ``.params`` (PX4) file (relative: to the config file);
+        empty: the project's own file for ``autopilot.type`` (``firmware_params/``)
     :param timeout: how long to wait for the autopilot's parameters, s
     :param allow_missing: parameters this autopilot may lack (``params --allow-missing``: a SITL
         has no TELEM2, so ``["MAV_1_CONFIG", "SER_TEL2_BAUD"]`` on PX4 SITL); empty = all must exist
@@ -227,10 +228,6 @@ class ParamsCheckConfig:
     file: str = ""
     timeout: float = field(default=30.0, metadata={"min": 1.0, "max": 600.0})
     allow_missing: tuple[str, ...] = ()
-
-    def __post_init__(self) -> None:
-        if self.mode != "off" and not self.file:
-            raise ValueError(f"mode is {self.mode!r} but no file is given")
 
 
 @dataclass(frozen=True)

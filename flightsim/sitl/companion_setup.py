@@ -1,5 +1,8 @@
 """What a SITL flight hands the companion process: a free loopback port and its config, built from
-the companion's own dataclasses (written with :func:`companion.common.tomlconfig.toml_dumps`)."""
+the companion's own dataclasses (written with :func:`companion.common.tomlconfig.toml_dumps`).
+
+The start-up parameter check is the example config's, the one a drone starts from: the companion in
+SITL reads the autopilot's parameters, and its yaw-rate cap, as it does on the drone."""
 
 from __future__ import annotations
 
@@ -10,7 +13,10 @@ from collections.abc import Container
 from pathlib import Path
 from typing import Any
 
-from companion.config import CompanionConfig
+from companion.config import CompanionConfig, ParamsCheckConfig, load_config
+
+#: the config a drone's companion starts from (config/companion.example.toml in the checkout)
+EXAMPLE_CONFIG = Path(__file__).resolve().parents[2] / "config" / "companion.example.toml"
 
 #: Linux's default ephemeral range, for systems that do not publish theirs
 DEFAULT_EPHEMERAL = (32768, 60999)
@@ -63,6 +69,14 @@ def free_tcp_port(avoid: Container[int] = ()) -> int:
     return free_port(socket.SOCK_STREAM, avoid)
 
 
+def example_params_check() -> ParamsCheckConfig:
+    """The example config's ``[params_check]``: the drone's start-up parameter check (the default
+    check where the example is not installed)."""
+    if not EXAMPLE_CONFIG.is_file():
+        return ParamsCheckConfig()
+    return load_config(EXAMPLE_CONFIG).params_check
+
+
 def companion_config(
     *,
     autopilot_type: str,
@@ -80,6 +94,7 @@ def companion_config(
         ),
         policy=dataclasses.replace(base.policy, model=str(policy)),
         autopilot=dataclasses.replace(base.autopilot, type=autopilot_type, connect=connect),
+        params_check=example_params_check(),
     )
     for section, values in (overrides or {}).items():
         cfg = dataclasses.replace(cfg, **{section: dataclasses.replace(getattr(cfg, section), **values)})

@@ -33,6 +33,8 @@ def test_example_config_loads():
     assert config.autopilot.source_component == 191
     assert config.scan.mount_xyz == (0.0, 0.0, 0.1)
     assert config.supervisor.recover_scans == 5
+    # the drone checks its autopilot's parameters against the project's file and reads the yaw cap
+    assert config.params_check.mode == "warn" and config.params_check.file == ""
 
 
 def _keys(cls: type, prefix: str = "") -> set[str]:
@@ -91,7 +93,7 @@ def test_defaults_and_overrides(tmp_path):
         ("[autopilot]\ntype = \"px4\"\nconnect = \"udpin:0.0.0.0:99999\"\n",
          r"autopilot: connect: .*'udpin:0\.0\.0\.0:99999': port '99999' is not a port number 1-65535"),
         ("[autopilot]\nconnect = \"udpin//0.0.0.0:14550\"\n", r"autopilot: connect: .*unknown scheme"),
-        ("[params_check]\nmode = \"refuse\"\n", r"params_check: mode is 'refuse' but no file is given"),
+        ("[params_check]\ntimeout = 0.5\n", r"params_check\.timeout: 0\.5 is below the minimum 1"),
         ("[goal.route_planner]\npreferred_clearance = 0.1\n",
          r"goal\.route_planner: preferred_clearance 0\.1 must be at least blocked_clearance 0\.4"),
         ("[goal.route_planner]\nreplan_every = 0\n",
