@@ -420,6 +420,8 @@ class Companion:
 
     def _on_cloud(self, cloud: np.ndarray) -> None:
         scan = scan_from_points(cloud, self.config.scan)
+        if self.goal is not None:
+            self.goal.observe_cloud(cloud, self.config.scan)
         self.counters["scans"] += 1
         self._unsent_scan = scan
         frame = self._frame(scan)

@@ -295,6 +295,10 @@ class GoalConfig:
     :param acceptance_altitude: PX4: a mission item is reached within its radius horizontally and
         this vertically, metres (PX4's NAV_MC_ALT_RAD); ArduPilot judges the radius in 3D
     :param max_vertical_speed: bound of the climb/descent toward a waypoint's height, m/s
+    :param height_hold: measure the height above the floor with the lidar's downward lasers and,
+        while the autopilot's altitude estimate is off from it by more than ``height_tolerance``,
+        climb or descend to the waypoint's height on the lidar's measure
+    :param height_tolerance: the estimate's error the height hold lets pass, m
     :param on_complete: after the last waypoint: ``hold`` (zero velocity; the companion never
         changes the mode), or request ``land`` / ``rtl`` once
     :param download_timeout: wait for each mission-protocol reply, s
@@ -310,6 +314,8 @@ class GoalConfig:
     acceptance_radius: float = field(default=1.0, metadata={"min": 0.1, "max": 100.0})
     acceptance_altitude: float = field(default=0.8, metadata={"min": 0.05, "max": 100.0})
     max_vertical_speed: float = field(default=0.5, metadata={"min": 0.05, "max": 5.0})
+    height_hold: bool = True
+    height_tolerance: float = field(default=0.3, metadata={"min": 0.05, "max": 5.0})
     on_complete: Literal["hold", "land", "rtl"] = "hold"
     download_timeout: float = field(default=1.0, metadata={"min": 0.1, "max": 10.0})
     download_retries: int = field(default=5, metadata={"min": 0, "max": 50})

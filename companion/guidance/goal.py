@@ -66,6 +66,9 @@ class NavInputs:
     position: tuple[float, float, float] | None = None
     position_time: float = -math.inf
     heading: float | None = None
+    roll: float = 0.0  # ATTITUDE roll (FRD), rad
+    pitch: float = 0.0  # ATTITUDE pitch (nose up), rad
+    height: float | None = None  # GLOBAL_POSITION_INT relative_alt: the estimate's height above home, m
     origin: GlobalOrigin | None = None
     origin_from_gps_origin: bool = False
     home_amsl: float | None = None
@@ -82,8 +85,11 @@ class NavInputs:
         elif kind == "ATTITUDE":
             if math.isfinite(msg.yaw):
                 self.heading = float(msg.yaw)
+            if math.isfinite(msg.roll) and math.isfinite(msg.pitch):
+                self.roll, self.pitch = float(msg.roll), float(msg.pitch)
         elif kind == "GLOBAL_POSITION_INT":
             self.home_amsl = (msg.alt - msg.relative_alt) / 1000.0
+            self.height = msg.relative_alt / 1000.0
             if msg.hdg != 65535:
                 self.heading = math.radians(msg.hdg / 100.0)
             self._global = (now, msg)
@@ -190,14 +196,18 @@ class GoalTracker:
     def _name(self, i: int) -> str:
         return self.waypoints[i].label or f"waypoint {i + 1}"
 
-    def update(self, nav: NavInputs, now: float) -> GoalOutput:
-        """Advance past reached waypoints; say where the current one is, or why to hold."""
+    def update(self, nav: NavInputs, now: float, height_correction: float = 0.0) -> GoalOutput:
+        """Advance past reached waypoints; say where the current one is, or why to hold.
+
+        :param height_correction: metres to add to the estimate's down coordinate for the true
+            height (the lidar's measure of the estimate's drift; 0: the estimate is right)
+        """
         if not self.waypoints:
             return GoalOutput("no waypoints")
         if not nav.position_fresh(now):
             return GoalOutput("no position", index=self.index)
         assert nav.position is not None
-        pos = nav.position
+        pos = (nav.position[0], nav.position[1], nav.position[2] + height_correction)
         while self.index < len(self.waypoints):
             wp = self.waypoints[self.index]
             if not wp.reached(pos, self.radius(wp)):

@@ -13,6 +13,13 @@ is passed. The companion's own progress goes back as MISSION_SET_CURRENT, so the
 item is the one flown to (and AUTO, if the pilot switches to it, carries on from there). A download
 whose items are the same as the mission flown is no change, whatever its plan id.
 
+Height (``goal.height_hold``): each revolution's height above the floor
+(:func:`~companion.perception.floor.floor_height`) is compared with the autopilot's estimate of its
+height above home. When they differ by more than ``goal.height_tolerance`` the goal's vertical
+speed and its reach are judged on the lidar's height (the estimate plus the difference), so the
+vehicle holds the mission altitude over the floor it flies above; back within half the tolerance,
+or with the floor out of sight, the autopilot's estimate is flown again, and the pilot is told.
+
 Requests for the autopilot go out through the ``send`` callable the link provides; text for the
 pilot collects in :attr:`GoalSource.announcements`.
 """
@@ -25,6 +32,8 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
+
 from companion.autopilot.mavlink_adapter import mavlink
 from companion.guidance.goal import GoalOutput, GoalTracker, NavInputs, Waypoint
 from companion.guidance.mission import (
@@ -35,6 +44,8 @@ from companion.guidance.mission import (
     Request,
     mission_waypoints,
 )
+from companion.perception.floor import floor_height
+from companion.perception.scan import ScanConfig
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +56,10 @@ GOAL_MESSAGES = frozenset({
 })
 #: Streams a goal source needs beyond the supervisor's (heading without GPS, the plan id).
 GOAL_STREAMS = ("ATTITUDE", "MISSION_CURRENT")
+#: The lidar's height is the median of this many revolutions' (a stray revolution moves it little).
+HEIGHT_WINDOW = 5
+#: This many revolutions in a row without the floor in sight: the autopilot's altitude is flown.
+FLOOR_LOST_REVOLUTIONS = 5
 #: Most queued messages kept (the loop drains them every iteration; a flood drops the oldest).
 QUEUE_LIMIT = 1024
 
@@ -78,6 +93,10 @@ class GoalSource:
         self._current_seen: int | None = None  # the autopilot's current item, as last followed
         self._current_sent: set[int] = set()  # MISSION_SET_CURRENTs sent and not yet echoed
         self._started = False
+        self._floor: collections.deque[float] = collections.deque(maxlen=HEIGHT_WINDOW)
+        self._floor_missed = 0
+        self._floor_seen: bool | None = None  # as last announced
+        self.height_correction = 0.0  # m added to the estimate's down coordinate (lidar - estimate)
         self.output = GoalOutput("starting")
         if config.source == "fixed":
             self.tracker.set_waypoints(
@@ -114,15 +133,54 @@ class GoalSource:
         self.announcements += self.tracker.drain_events()
         return self.output
 
+    def observe_cloud(self, points: np.ndarray, scan: ScanConfig) -> None:
+        """One revolution's returns (sensor frame): the height above the floor, and from it how far
+        the autopilot's altitude estimate is off (``goal.height_hold``)."""
+        if not self.config.height_hold:
+            return
+        height = floor_height(points, scan, self.nav.roll, self.nav.pitch)
+        if height is None:
+            self._floor_missed += 1
+            if self._floor_missed >= FLOOR_LOST_REVOLUTIONS:
+                self._floor.clear()
+                self._set_height_correction(0.0, "floor not in sight: flying the autopilot's altitude")
+                self._announce_floor(False)
+            return
+        self._floor_missed = 0
+        self._floor.append(height)
+        self._announce_floor(True)
+        if self.nav.height is None:
+            return
+        lidar = float(np.median(self._floor))
+        drift = self.nav.height - lidar  # > 0: the estimate says higher than the vehicle is
+        tolerance = self.config.height_tolerance
+        if abs(drift) > tolerance or (self.height_correction and abs(drift) > tolerance / 2):
+            self._set_height_correction(drift, f"autopilot altitude {self.nav.height:.2f} m, lidar "
+                                               f"{lidar:.2f} m over the floor: holding the lidar's")
+        else:
+            self._set_height_correction(0.0, f"autopilot altitude {self.nav.height:.2f} m agrees with "
+                                             f"the lidar's {lidar:.2f} m again")
+
+    def _set_height_correction(self, value: float, why: str) -> None:
+        if (value == 0.0) != (self.height_correction == 0.0):
+            self.announcements.append(f"height: {why}")
+        self.height_correction = value
+
+    def _announce_floor(self, seen: bool) -> None:
+        if seen != self._floor_seen:
+            if seen or self._floor_seen is not None:
+                self.announcements.append("height: floor in sight" if seen else "height: floor not in sight")
+            self._floor_seen = seen
+
     def _goal(self, now: float) -> GoalOutput:
         if self.config.source != "mission":
-            return self.tracker.update(self.nav, now)
+            return self.tracker.update(self.nav, now, self.height_correction)
         problem = self._use_mission()
         if problem is not None:
             return GoalOutput(problem, index=self.tracker.index)
         self._follow_current()
         before = self.tracker.current_seq
-        output = self.tracker.update(self.nav, now)
+        output = self.tracker.update(self.nav, now, self.height_correction)
         after = self.tracker.current_seq
         if after is not None and after != before:  # our own progress: the autopilot's current item too
             self._current_sent.add(after)

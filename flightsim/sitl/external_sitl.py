@@ -10,9 +10,11 @@ the companion; this module is the part that differs from the simulated autopilot
   the world's start position, and the SITL's frame is rotated so that its heading then is the
   world's start yaw. The world is rotated into the SITL's heading rather than the vehicle yawed
   after take-off: no extra manoeuvre, and the companion starts facing what the world says.
-- **Ground truth**: collisions, clearance and the lidar use the simulator's truth where the SITL
-  sends it: SIMSTATE from ArduPilot SITL (lat/lng, attitude), HIL_STATE_QUATERNION from PX4 SIH
-  (lat/lon/alt, quaternion, velocity), both asked for with MAV_CMD_SET_MESSAGE_INTERVAL. Without
+- **Ground truth**: collisions, clearance, height and the lidar use the simulator's truth where the
+  SITL sends it: SIMSTATE from ArduPilot SITL (lat/lng, attitude) with its SIM_STATE for the
+  altitude (SIMSTATE carries none; SIM_STATE's lat/lon are float32 degrees, decimetres, so only its
+  altitude is taken), HIL_STATE_QUATERNION from PX4 SIH (lat/lon/alt, quaternion, velocity), all
+  asked for with MAV_CMD_SET_MESSAGE_INTERVAL. Without
   them the autopilot's estimate (LOCAL_POSITION_NED + ATTITUDE) is used and the report says so:
   PX4's estimate was measured 0.2-0.4 m/s off the truth, and one flight's true clearance fell
   below the vehicle radius 11 s before the estimate's did.
@@ -41,8 +43,9 @@ from flightsim.worlds.world import World
 
 log = logging.getLogger(__name__)
 
-#: ground-truth message of each SITL, and the rate asked for it
-TRUTH_MESSAGES = ("SIMSTATE", "HIL_STATE_QUATERNION")
+#: ground-truth messages of the SITLs (ArduPilot's SIMSTATE has no altitude: its SIM_STATE does), and
+#: the rate asked for them
+TRUTH_MESSAGES = ("SIMSTATE", "SIM_STATE", "HIL_STATE_QUATERNION")
 TRUTH_RATE_HZ = 50.0
 #: estimate streams the mirror needs, and their rate
 ESTIMATE_MESSAGES = ("LOCAL_POSITION_NED", "ATTITUDE", "GLOBAL_POSITION_INT")
@@ -81,7 +84,8 @@ class ExternalPose:
         self._est_rpy = (0.0, 0.0, math.nan)  # roll, pitch (FRD), yaw (NED)
         self._est_ll: tuple[int, int] | None = None  # GLOBAL_POSITION_INT lat, lon, degrees × 1e7
         self._truth_ll: tuple[int, int] | None = None  # lat, lon, degrees × 1e7
-        self._truth_alt: float | None = None  # m AMSL (PX4's HIL_STATE_QUATERNION only)
+        self._truth_alt: float | None = None  # m AMSL (HIL_STATE_QUATERNION, SIM_STATE)
+        self._alt_source: str | None = None  # the message the true altitude comes from
         self._truth_rpy = (0.0, 0.0, math.nan)
         self._truth_vel_ned: np.ndarray | None = None
         self._anchor: dict[str, Any] | None = None
@@ -107,6 +111,12 @@ class ExternalPose:
                 self._truth_ll = (msg.lat, msg.lng)
                 self._truth_rpy = (float(msg.roll), float(msg.pitch), float(msg.yaw))
                 return "truth"
+            if kind == "SIM_STATE":
+                if not math.isfinite(msg.alt):
+                    return None
+                self._truth_alt = float(msg.alt)
+                self._alt_source = kind
+                return "truth" if self.truth_source is not None else None
             if kind == "HIL_STATE_QUATERNION":
                 q = np.array(msg.attitude_quaternion, dtype=np.float64)
                 if not np.all(np.isfinite(q)) or np.linalg.norm(q) < 0.5:
@@ -115,10 +125,19 @@ class ExternalPose:
                 roll, pitch, yaw = QuaternionBase(q / np.linalg.norm(q)).euler
                 self._truth_ll = (msg.lat, msg.lon)
                 self._truth_alt = msg.alt / 1000.0
+                self._alt_source = kind
                 self._truth_rpy = (float(roll), float(pitch), float(yaw))
                 self._truth_vel_ned = np.array([msg.vx, msg.vy, msg.vz], dtype=np.float64) / 100.0
                 return "truth"
         return None
+
+    @property
+    def altitude_source(self) -> str:
+        """What the height is judged on: the truth message giving it, or ``"estimate"``."""
+        with self._lock:
+            if self._anchor is not None and self._anchor.get("truth_alt") is None:
+                return "estimate"  # no true altitude when anchored: the estimate's, throughout
+            return self._alt_source or "estimate"
 
     def missing_estimate(self) -> list[str]:
         """The estimate messages not heard yet (empty: the world can be anchored)."""
@@ -186,7 +205,7 @@ class ExternalPose:
                 north, east = global_to_local_ne(*self._truth_ll, GlobalOrigin(*anchor["truth_ll"], 0.0))
                 d_ned = np.array([north, east, d_ned[2]])
                 if self._truth_alt is not None and anchor["truth_alt"] is not None:
-                    up = self._truth_alt - anchor["truth_alt"]  # SIMSTATE has none: the estimate's
+                    up = self._truth_alt - anchor["truth_alt"]  # none (SIMSTATE alone): the estimate's
                 if self._truth_vel_ned is not None:
                     vel_ned = self._truth_vel_ned
                 roll, pitch, yaw_ned = self._truth_rpy

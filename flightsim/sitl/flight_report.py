@@ -19,6 +19,11 @@ import numpy as np
 from flightsim.sitl.ground_station import MISSION_ACCEPTANCE_RADIUS
 from flightsim.worlds.world import World
 
+#: a vehicle's centre this near the floor touches it (landing gear), m
+FLOOR_CONTACT_M = 0.1
+#: ... and this near the room's height touches the ceiling (or leaves the room over the walls), m
+CEILING_MARGIN_M = 0.1
+
 #: ``FlightReport.error`` of a flight stopped by Ctrl-C (``avoid-sim fly`` then exits 130)
 INTERRUPTED = "interrupted"
 
@@ -50,6 +55,12 @@ class FlightReport:
     goal_events: list[str] = field(default_factory=list)
     ground_truth: str = ""  # what collisions and clearance were judged on
     position_wait_s: float = 0.0  # external: how long the autopilot took to report a position, s
+    altitude_truth: str = ""  # what the height was judged on (simulator, a truth message, estimate)
+    altitude_min_m: float | None = None  # the height above the floor while engaged (None: not flown)
+    altitude_max_m: float | None = None
+    room_height_m: float = 0.0  # the room's walls' height (the ceiling a vehicle must stay under)
+    floor_contact: bool = False  # while engaged the vehicle came within FLOOR_CONTACT_M of the floor
+    ceiling_contact: bool = False  # ... or within CEILING_MARGIN_M of the room's height (or above it)
     warnings: list[str] = field(default_factory=list)
 
     def to_json(self) -> str:
@@ -59,6 +70,17 @@ class FlightReport:
     def failed(cls, world: str, autopilot: str, error: str) -> FlightReport:
         """The report of a flight that could not start."""
         return cls(world, autopilot, False, False, 0.0, 0.0, None, 0.0, None, None, [], {}, error=error)
+
+    def judge_height(self, heights: np.ndarray, room_height: float, source: str) -> None:
+        """Fill the height figures from the true heights above the floor while engaged."""
+        self.room_height_m = room_height
+        self.altitude_truth = source
+        if not len(heights):
+            return
+        self.altitude_min_m = round(float(np.min(heights)), 3)
+        self.altitude_max_m = round(float(np.max(heights)), 3)
+        self.floor_contact = self.altitude_min_m < FLOOR_CONTACT_M
+        self.ceiling_contact = self.altitude_max_m > room_height - CEILING_MARGIN_M
 
     def title(self) -> str:
         """One line for the flight's picture: outcome, distance, clearance (and waypoints on a mission)."""
@@ -163,6 +185,10 @@ def print_report(r: FlightReport) -> None:
         f"  setpoints {r.setpoint_rate_hz:.1f} Hz, latency revolution end → setpoint "
         f"p50 {measured(r.latency_p50_ms, '.1f', 'ms')}, p99 {measured(r.latency_p99_ms, '.1f', 'ms')}"
     )
+    if r.altitude_min_m is not None and r.altitude_max_m is not None:
+        contact = [name for name, hit in (("FLOOR", r.floor_contact), ("CEILING", r.ceiling_contact)) if hit]
+        print(f"  height {r.altitude_min_m:.2f}-{r.altitude_max_m:.2f} m in a {r.room_height_m:.1f} m room "
+              f"(judged on {r.altitude_truth}){': ' + ' and '.join(contact) + ' CONTACT' if contact else ''}")
     print(f"  companion states: {' | '.join(r.transitions) or '-'}")
     if r.goal_events or r.waypoints_reached:
         reached = ", ".join(f"#{i + 1} at {t:.1f} s" for i, t in r.waypoints_reached) or "none"

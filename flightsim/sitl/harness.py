@@ -77,6 +77,7 @@ class FlightOptions:
         the companion's ``goal.source = "mission"``
     :param ideal_response: simulated autopilots only: fly setpoints as given instead of through the
         firmware's calibrated response (:mod:`flightsim.vehicle.autopilot_response`)
+    :param altitude_drift: simulated autopilots only: their altitude estimate's error after arming, m
     :param position_timeout: external only: seconds to wait for the autopilot's first position
         (its EKF origin; a fresh ArduPilot SITL needs 40-47 s)
     """
@@ -95,6 +96,7 @@ class FlightOptions:
     mission: bool = False
     ideal_response: bool = False
     position_timeout: float = external_sitl.POSITION_TIMEOUT_S
+    altitude_drift: float = 0.0
 
 
 # ------------------------------------------------------------------------------------ the flight
@@ -231,6 +233,7 @@ class SitlFlight:
             vehicle=self.vehicle,
             signing_key=self.signing_key,
             response=not self.options.ideal_response,
+            altitude_drift=self.options.altitude_drift,
         )
         self.recorder.t0 = self.server.t0
         self.server.message_hooks.append(self._on_autopilot_message)
@@ -533,6 +536,9 @@ class SitlFlight:
             position_wait_s=round(self.position_wait_s, 1),
             warnings=[external_sitl.ESTIMATE_WARNING] if self.ground_truth == "estimate" else [],
         )
+        source = "simulator" if self.external is None else self.external.altitude_source
+        engaged = len(traj) and self.engaged_at is not None
+        result.judge_height(traj[:, 3] if engaged else np.zeros(0), self.world.room_height, source)
         if self.options.mission:
             reached = waypoints_reached(self.world, traj, self.engaged_at)
             result.waypoints_reached = reached

@@ -188,7 +188,7 @@ def test_simulated_ground_truth_round_trips_through_the_external_mirror(personal
     from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
     from flightsim.sitl.external_sitl import ExternalPose
-    from flightsim.sitl.sim_autopilot.server import ground_truth_message, make_autopilot
+    from flightsim.sitl.sim_autopilot.server import ground_truth_messages, make_autopilot
 
     def state(x, y, z, yaw):
         return VehicleState(time=0.0, position=np.array([x, y, z]), velocity=np.array([0.3, -0.2, 0.0]),
@@ -202,16 +202,22 @@ def test_simulated_ground_truth_round_trips_through_the_external_mirror(personal
     pose = ExternalPose(world)
     pose.update(mavlink.MAVLink_local_position_ned_message(0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
     pose.update(mavlink.MAVLink_attitude_message(0, 0.0, 0.0, 0.0, 0, 0, 0))
-    truth = ground_truth_message(personality, autopilot, start, 1.0)
-    assert truth.get_type() == ("SIMSTATE" if personality == "ardupilot" else "HIL_STATE_QUATERNION")
-    assert pose.update(wire(truth)) == "truth"
+    truth = ground_truth_messages(personality, autopilot, start, 1.0)
+    kinds = ["SIMSTATE", "SIM_STATE"] if personality == "ardupilot" else ["HIL_STATE_QUATERNION"]
+    assert [m.get_type() for m in truth] == kinds
+    assert [pose.update(wire(m)) for m in truth] == ["truth"] * len(truth)
     pose.anchor()
-    moved = state(0.0, 2.0, 1.5, math.radians(120.0))  # 2 m North of the start, turned 30° left
+    # 2 m North of the start, turned 30° left
+    # the estimate says 1.5 m up, the truth 0.5 m: the truth's altitude is what the world sees
     pose.update(mavlink.MAVLink_local_position_ned_message(0, 2.0, 0.0, -1.5, 0.0, 0.0, 0.0))
-    pose.update(wire(ground_truth_message(personality, autopilot, moved, 2.0)))
+    moved = state(0.0, 2.0, 0.5, math.radians(120.0))
+    for message in ground_truth_messages(personality, autopilot, moved, 2.0):
+        pose.update(wire(message))
     mirrored = pose.state()
     x0, y0, _ = world.start_position
     assert mirrored.position[:2] == pytest.approx([x0 + 2.0, y0], abs=0.02)  # North became East
+    assert mirrored.position[2] == pytest.approx(0.5, abs=0.002)
+    assert pose.altitude_source == kinds[-1]
     assert mirrored.yaw == pytest.approx(math.radians(30.0), abs=1e-3)
 
 

@@ -82,6 +82,10 @@ class Guidance(Enum):
     RTL = "rtl"  # flying home at the current altitude, then landing
 
 
+#: the altitude estimate's drift grows to :attr:`SimAutopilot.altitude_drift` over this from arming, s
+ALTITUDE_DRIFT_S = 20.0
+
+
 def _setpoint(**kw: Any) -> Setpoint:
     """A Setpoint where a given ``yaw`` is held (Setpoint's yaw_rate defaults to 0, which wins)."""
     if "yaw" in kw:
@@ -99,6 +103,9 @@ class SimAutopilot:
         (:mod:`flightsim.vehicle.autopilot_response`, preset :attr:`RESPONSE`) and report its velocity
         estimate; False flies setpoints as given with a perfect estimate (the ideal autopilot)
     :param seed: seeds the velocity-estimate error (None: fresh entropy)
+    :param altitude_drift: how far the altitude estimate ends up above the truth, m (negative:
+        below), reached :data:`ALTITUDE_DRIFT_S` after arming; the autopilot flies its estimate, so
+        the vehicle flies that much lower (the real PX4 SIH flights: -1.08 to +0.82 m)
     :param position_delay: seconds from boot until the estimator has an origin; until then no
         :attr:`POSITION_MESSAGES` and no arming, as a fresh ArduPilot SITL waits 40-47 s for its
         GPS fix and EKF origin (0: a position at once, as PX4 SIH)
@@ -148,10 +155,12 @@ class SimAutopilot:
 
     def __init__(
         self, params: Any, *, system_id: int = 1, boot_time: float = 0.0, response: bool = True,
-        seed: int | None = None, position_delay: float = 0.0,
+        seed: int | None = None, position_delay: float = 0.0, altitude_drift: float = 0.0,
     ) -> None:  # fmt: skip
         self.params = params
         self.position_delay = position_delay
+        self.altitude_drift = altitude_drift
+        self.armed_at: float | None = None
         self.response = (
             AutopilotResponse(PRESETS[self.RESPONSE], np.random.default_rng(seed))
             if response and self.RESPONSE
@@ -199,6 +208,13 @@ class SimAutopilot:
         except KeyError:
             return default
         return default if value is None else float(value)
+
+    def altitude_bias(self) -> float:
+        """The altitude estimate's error now (estimate minus truth), m: :attr:`altitude_drift`,
+        grown linearly over :data:`ALTITUDE_DRIFT_S` from arming; none on the ground before it."""
+        if not self.altitude_drift or self.armed_at is None:
+            return 0.0
+        return self.altitude_drift * min(1.0, max(0.0, self.now - self.armed_at) / ALTITUDE_DRIFT_S)
 
     @property
     def has_position(self) -> bool:
@@ -266,8 +282,13 @@ class SimAutopilot:
 
     # ----------------------------------------------------------------- inputs
     def observe(self, state: Any) -> None:
-        """Take the vehicle's latest state (a VehicleState or a :class:`VehicleSnapshot`)."""
+        """Take the vehicle's latest state (a VehicleState or a :class:`VehicleSnapshot`): what the
+        estimator says, the truth with :meth:`altitude_bias` on its altitude."""
         self.snap = state if isinstance(state, VehicleSnapshot) else VehicleSnapshot.of(state)
+        bias = self.altitude_bias()
+        if bias:
+            estimate = self.snap.position + np.array([0.0, 0.0, bias])
+            self.snap = dataclasses.replace(self.snap, position=estimate)
         if not self.home_set:
             self.home = self.snap.position.copy()
             self.hold_position = self.snap.position.copy()
@@ -436,6 +457,7 @@ class SimAutopilot:
 
     def arm(self) -> list[Outgoing]:
         self.armed = True
+        self.armed_at = self.now
         self.ground_since = self.now
         self.guidance = Guidance.IDLE
         self.hold_position = self.snap.position.copy()
@@ -565,7 +587,15 @@ class SimAutopilot:
 
     # ----------------------------------------------------------------- flight control
     def flight_command(self, now: float) -> tuple[bool, Setpoint]:
-        """What the vehicle's controller should do now: (motors armed, setpoint)."""
+        """What the vehicle's controller should do now: (motors armed, setpoint); an altitude to hold
+        is the estimate's, so the vehicle truly holds it less :meth:`altitude_bias`."""
+        armed, setpoint = self._flight_command(now)
+        bias = self.altitude_bias()
+        if bias and setpoint.altitude is not None:
+            setpoint = dataclasses.replace(setpoint, altitude=setpoint.altitude - bias)
+        return armed, setpoint
+
+    def _flight_command(self, now: float) -> tuple[bool, Setpoint]:
         self.now = now
         s = self.snap
         if not self.armed or self.guidance == Guidance.IDLE:

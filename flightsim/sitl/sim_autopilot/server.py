@@ -7,7 +7,7 @@ Other threads (the lidar co-simulation, a test) read :attr:`SimAutopilotServer.s
 small control surface (:meth:`set_heartbeat_enabled`, :meth:`call`).
 
 With ``ground_truth`` it also streams the simulator's truth after every physics chunk, as the real
-SITLs do: SIMSTATE (ArduPilot SITL) or HIL_STATE_QUATERNION (PX4 SIH), so a harness judging
+SITLs do: SIMSTATE and SIM_STATE (ArduPilot SITL) or HIL_STATE_QUATERNION (PX4 SIH), so a harness judging
 collisions of an external SITL finds the same messages here. ``avoid-sim autopilot`` runs the
 server alone as its own process, the way an external SITL runs.
 """
@@ -44,35 +44,46 @@ StepHook = Callable[[VehicleState], None]
 
 
 def make_autopilot(
-    personality: str, boot_time: float, response: bool = True, position_delay: float = 0.0
+    personality: str, boot_time: float, response: bool = True, position_delay: float = 0.0,
+    altitude_drift: float = 0.0,
 ) -> SimAutopilot:
     """A personality (``"ardupilot"`` or ``"px4"``) with its firmware's default parameter table;
     ``response`` False flies setpoints as given (the ideal autopilot) instead of the firmware's response;
-    ``position_delay`` s pass before it reports a position."""
+    ``position_delay`` s pass before it reports a position; its altitude estimate drifts
+    ``altitude_drift`` m from the truth after arming."""
     return PERSONALITIES[personality](
-        default_table(personality), boot_time=boot_time, response=response, position_delay=position_delay
+        default_table(personality), boot_time=boot_time, response=response, position_delay=position_delay,
+        altitude_drift=altitude_drift,
     )
 
 
-def ground_truth_message(personality: str, autopilot: SimAutopilot, state: VehicleState, now: float) -> Any:
-    """The simulator's truth as the real SITL sends it: SIMSTATE (ArduPilot SITL: attitude, gyro,
-    lat/lng) or HIL_STATE_QUATERNION (PX4 SIH: quaternion, rates, lat/lon/alt, NED velocity)."""
+def ground_truth_messages(
+    personality: str, autopilot: SimAutopilot, state: VehicleState, now: float
+) -> list[Any]:
+    """The simulator's truth as the real SITL sends it: ArduPilot SITL's SIMSTATE (attitude, gyro,
+    lat/lng: no altitude) and SIM_STATE (its altitude, AMSL), or PX4 SIH's HIL_STATE_QUATERNION
+    (quaternion, rates, lat/lon/alt, NED velocity)."""
     rel = state.position - autopilot.home
     lat, lon = lat_lon(rel)
     roll, pitch, yaw = state.roll, -state.pitch, yaw_enu_to_ned(state.yaw)  # NED/FRD, as MAVLink
     p, q, r = (float(x) for x in state.angular_rate)
-    if personality == "ardupilot":
-        return mavlink.MAVLink_simstate_message(roll, pitch, yaw, 0.0, 0.0, -9.81, p, -q, -r, lat, lon)
     cr, sr = math.cos(roll / 2), math.sin(roll / 2)
     cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
     cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
     quaternion = [cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
                   cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy]
-    vn, ve, vd = (round(v * 100) for v in enu_to_ned(state.velocity))
-    alt_mm = round((HOME_ALT_AMSL_M + float(rel[2])) * 1000)
-    return mavlink.MAVLink_hil_state_quaternion_message(
-        int(now * 1e6), quaternion, p, -q, -r, lat, lon, alt_mm, vn, ve, vd, 0, 0, 0, 0, -1000
-    )
+    vn, ve, vd = enu_to_ned(state.velocity)
+    alt = HOME_ALT_AMSL_M + float(rel[2])
+    if personality == "ardupilot":
+        return [
+            mavlink.MAVLink_simstate_message(roll, pitch, yaw, 0.0, 0.0, -9.81, p, -q, -r, lat, lon),
+            mavlink.MAVLink_sim_state_message(*quaternion, roll, pitch, yaw, 0.0, 0.0, -9.81, p, -q, -r,
+                                              lat * 1e-7, lon * 1e-7, alt, 0.0, 0.0, vn, ve, vd, lat, lon),
+        ]
+    return [mavlink.MAVLink_hil_state_quaternion_message(
+        int(now * 1e6), quaternion, p, -q, -r, lat, lon, round(alt * 1000),
+        round(vn * 100), round(ve * 100), round(vd * 100), 0, 0, 0, 0, -1000
+    )]
 
 
 class SimAutopilotServer:
@@ -90,6 +101,7 @@ class SimAutopilotServer:
     :param response: fly the firmware's calibrated response (False: the ideal autopilot)
     :param position_delay: seconds before the autopilot reports a position (its EKF origin) and
         lets itself be armed
+    :param altitude_drift: the altitude estimate's error after arming, m (it flies its estimate)
     """
 
     def __init__(
@@ -104,6 +116,7 @@ class SimAutopilotServer:
         ground_truth: bool = False,
         response: bool = True,
         position_delay: float = 0.0,
+        altitude_drift: float = 0.0,
     ) -> None:
         self.endpoint = MavlinkEndpoint(links, signing_key=signing_key,
                                         accept_unsigned=PERSONALITIES[personality].UNSIGNED_ACCEPTED)
@@ -111,7 +124,7 @@ class SimAutopilotServer:
         self.ground_truth = ground_truth
         self.t0 = time.monotonic()
         self.autopilot = make_autopilot(personality, boot_time=0.0, response=response,
-                                        position_delay=position_delay)
+                                        position_delay=position_delay, altitude_drift=altitude_drift)
         for name, value in (params or {}).items():
             self.autopilot.params.set(name, value)
         self.vehicle = vehicle or Vehicle(VehicleConfig())
@@ -195,9 +208,9 @@ class SimAutopilotServer:
                 self.autopilot.observe(self.state)
                 self._send(self.autopilot.tick(now))
                 if self.ground_truth:
-                    truth = ground_truth_message(self.personality, self.autopilot, self.state, now)
-                    for link in range(self.endpoint.link_count):
-                        self.endpoint.send(link, truth)
+                    for truth in ground_truth_messages(self.personality, self.autopilot, self.state, now):
+                        for link in range(self.endpoint.link_count):
+                            self.endpoint.send(link, truth)
             for hook in self.step_hooks:
                 hook(self.state)
             next_step += CHUNK_S
@@ -231,6 +244,9 @@ def configure_parser(parser: Any) -> None:
                         help="report no position (no EKF origin: no LOCAL_POSITION_NED, GLOBAL_POSITION_INT, "
                         "HOME_POSITION) and refuse to arm for the first S seconds, as a fresh ArduPilot "
                         "SITL does for about 40 s (0)")
+    parser.add_argument("--altitude-drift", type=float, default=0.0, metavar="M",
+                        help="the altitude estimate ends up M metres above the truth (negative: below) "
+                        "20 s after arming, and the autopilot flies its estimate (0)")
     parser.add_argument(
         "--param",
         action="append",
@@ -270,6 +286,8 @@ def command(args: Any) -> int:
     if not (math.isfinite(args.position_delay) and args.position_delay >= 0):
         raise UserError(f"--position-delay must be a non-negative number of seconds, "
                         f"got {args.position_delay}")
+    if not (math.isfinite(args.altitude_drift) and abs(args.altitude_drift) <= 10.0):
+        raise UserError(f"--altitude-drift must be within ±10 m, got {args.altitude_drift}")
     if not math.isfinite(args.start_yaw):
         raise UserError(f"--start-yaw must be a finite number of degrees, got {args.start_yaw}")
 
@@ -285,6 +303,7 @@ def command(args: Any) -> int:
         ground_truth=not args.no_ground_truth,
         response=not args.ideal_response,
         position_delay=args.position_delay,
+        altitude_drift=args.altitude_drift,
     )
     stop = threading.Event()
     # Ctrl-C, or a supervisor's/test's SIGTERM; the caller's handlers come back on return, so a
