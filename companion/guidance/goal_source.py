@@ -56,7 +56,7 @@ GOAL_MESSAGES = frozenset({
 })
 #: Streams a goal source needs beyond the supervisor's (heading without GPS, the plan id).
 GOAL_STREAMS = ("ATTITUDE", "MISSION_CURRENT")
-#: The lidar's height is the median of this many revolutions' (a stray revolution moves it little).
+#: The estimate's error is the median of this many revolutions' (a stray revolution moves it little).
 HEIGHT_WINDOW = 5
 #: This many revolutions in a row without the floor in sight: the autopilot's altitude is flown.
 FLOOR_LOST_REVOLUTIONS = 5
@@ -93,7 +93,7 @@ class GoalSource:
         self._current_seen: int | None = None  # the autopilot's current item, as last followed
         self._current_sent: set[int] = set()  # MISSION_SET_CURRENTs sent and not yet echoed
         self._started = False
-        self._floor: collections.deque[float] = collections.deque(maxlen=HEIGHT_WINDOW)
+        self._floor: collections.deque[float] = collections.deque(maxlen=HEIGHT_WINDOW)  # estimate - lidar
         self._floor_missed = 0
         self._floor_seen: bool | None = None  # as last announced
         self.height_correction = 0.0  # m added to the estimate's down coordinate (lidar - estimate)
@@ -147,19 +147,18 @@ class GoalSource:
                 self._announce_floor(False)
             return
         self._floor_missed = 0
-        self._floor.append(height)
         self._announce_floor(True)
         if self.nav.height is None:
             return
-        lidar = float(np.median(self._floor))
-        drift = self.nav.height - lidar  # > 0: the estimate says higher than the vehicle is
+        # the estimate's error at each revolution, paired as measured (a climb moves both alike)
+        self._floor.append(self.nav.height - height)
+        drift = float(np.median(self._floor))  # > 0: the estimate says higher than the vehicle is
         tolerance = self.config.height_tolerance
+        said = f"autopilot altitude {self.nav.height:.2f} m, lidar {height:.2f} m over the floor"
         if abs(drift) > tolerance or (self.height_correction and abs(drift) > tolerance / 2):
-            self._set_height_correction(drift, f"autopilot altitude {self.nav.height:.2f} m, lidar "
-                                               f"{lidar:.2f} m over the floor: holding the lidar's")
+            self._set_height_correction(drift, f"{said}: holding the lidar's")
         else:
-            self._set_height_correction(0.0, f"autopilot altitude {self.nav.height:.2f} m agrees with "
-                                             f"the lidar's {lidar:.2f} m again")
+            self._set_height_correction(0.0, f"{said}: the autopilot's agrees again")
 
     def _set_height_correction(self, value: float, why: str) -> None:
         if (value == 0.0) != (self.height_correction == 0.0):
