@@ -21,6 +21,7 @@ from numba import njit
 
 from companion.common.errors import UserError
 from companion.common.userfile import load_user_file
+from flightsim.worlds.moving import MovingObstacle, PathMotion, RandomWalk
 
 WALL_THICKNESS = 0.1
 DEFAULT_VEHICLE_RADIUS = 0.25
@@ -73,6 +74,8 @@ class World:
         waypoint in order, as :func:`flightsim.worlds.planner.shortest_safe_path` found it for the radius
         the world was generated for. Set by the family generators; None for a world read from a
         file or without waypoints (plan it on demand). Not part of equality: it is derived.
+    :param moving: obstacles that move (:mod:`flightsim.worlds.moving`); empty: a static world,
+        which every part of the simulator treats exactly as before moving obstacles existed
     """
 
     name: str
@@ -83,6 +86,16 @@ class World:
     start_yaw_deg: float
     waypoints: tuple[tuple[float, float, float], ...] = ()
     shortest_path_m: float | None = field(default=None, compare=False)
+    moving: tuple[MovingObstacle, ...] = ()
+
+    def clearance_at(self, position: Sequence[float] | np.ndarray, time: float) -> float:
+        """:meth:`clearance` with the moving obstacles where they are at ``time`` (seconds since the
+        start); a static world's is :meth:`clearance` itself."""
+        static = self.clearance(position)
+        if not self.moving:
+            return static
+        p = np.asarray(position, dtype=np.float64)[:3].reshape(1, 3)
+        return min(static, min(float(m.clearance(p, time)[0]) for m in self.moving))
 
     def clearance(self, position: Sequence[float] | np.ndarray) -> float:
         """Distance from a point to the nearest wall or obstacle surface, metres (negative inside).
@@ -222,11 +235,16 @@ def footprint_center(obstacle: Obstacle) -> tuple[float, float]:
 # loading and saving
 
 _TOP_KEYS = {"name", "room", "obstacles", "start"}
-_TOP_OPTIONAL = {"waypoints"}
+_TOP_OPTIONAL = {"waypoints", "moving"}
 _ROOM_KEYS = {"size", "height"}
 _START_KEYS = {"position", "yaw_deg"}
 _BOX_KEYS = {"type", "center", "size", "yaw_deg"}
 _CYL_KEYS = {"type", "center", "radius", "height"}
+_MOVING_CYL_KEYS = {"type", "radius", "height"}
+_MOVING_BOX_KEYS = {"type", "size"}
+_MOVING_OPTIONAL = {"base", "kind", "path", "walk"}
+_PATH_KEYS = {"points", "speed"}
+_WALK_KEYS = {"bounds", "speed", "seed"}
 
 
 class _Reader:
@@ -329,11 +347,106 @@ def world_from_dict(
     if not isinstance(waypoints, list):
         raise r.fail("waypoints", f"expected a list of [x, y, z], got {type(waypoints).__name__}")
     goals = tuple(r.vector(w, f"waypoints[{i}]", 3) for i, w in enumerate(waypoints))
-    world = World(name, room_size, room_height, tuple(obstacles), position, yaw, goals)  # type: ignore[arg-type]
+    moving_items = top.get("moving", [])
+    if not isinstance(moving_items, list):
+        raise r.fail("moving", f"expected a list, got {type(moving_items).__name__}")
+    moving = tuple(
+        _moving_from_dict(r, item, f"moving[{i}]", room_size) for i, item in enumerate(moving_items)
+    )
+    world = World(name, room_size, room_height, tuple(obstacles), position, yaw, goals, moving=moving)  # type: ignore[arg-type]
     _check_clear(world, r, "start.position", world.start_position, vehicle_radius)
+    p0 = np.asarray([world.start_position], dtype=np.float64)
+    for i, m in enumerate(world.moving):
+        if m.clearance(p0, 0.0)[0] < vehicle_radius:
+            raise r.fail("start.position", f"closer than {vehicle_radius:g} m to moving[{i}] at the start")
     for i, goal in enumerate(world.waypoints):
         _check_clear(world, r, f"waypoints[{i}]", goal, vehicle_radius)
     return world
+
+
+def _moving_from_dict(r: _Reader, item: Any, key: str, room_size: tuple[float, ...]) -> MovingObstacle:
+    """One entry of ``moving``: a shape and exactly one of ``path`` or ``walk``."""
+    if not isinstance(item, dict):
+        raise r.fail(key, f"expected an object, got {type(item).__name__}")
+    shape = item.get("type")
+    if shape not in ("cylinder", "box"):
+        if "type" not in item:
+            raise r.fail(f"{key}.type", "missing field")
+        raise r.fail(f"{key}.type", f"must be 'box' or 'cylinder', got {shape!r}")
+    if shape == "cylinder":
+        item = r.table(item, key, _MOVING_CYL_KEYS, _MOVING_OPTIONAL)
+        radius, size, yaw = r.number(item["radius"], f"{key}.radius", positive=True), (0.0, 0.0), 0.0
+        height = r.number(item["height"], f"{key}.height", positive=True)
+    else:
+        item = r.table(item, key, _MOVING_BOX_KEYS, _MOVING_OPTIONAL | {"yaw_deg"})
+        sx, sy, height = r.vector(item["size"], f"{key}.size", 3, positive=True)
+        radius, size, yaw = 0.0, (sx, sy), r.number(item.get("yaw_deg", 0.0), f"{key}.yaw_deg")
+    base = r.number(item.get("base", 0.0), f"{key}.base")
+    if base < 0.0:
+        raise r.fail(f"{key}.base", f"must be 0 or more, got {base:g}")
+    kind = r.string(item["kind"], f"{key}.kind") if "kind" in item else ""
+    if ("path" in item) == ("walk" in item):
+        raise r.fail(key, "give exactly one of 'path' and 'walk'")
+    hx, hy = room_size[0] / 2.0, room_size[1] / 2.0
+
+    def inside(point: tuple[float, ...], where: str) -> tuple[float, float]:
+        if not (abs(point[0]) < hx and abs(point[1]) < hy):
+            raise r.fail(where, f"({point[0]:g}, {point[1]:g}) is outside the room")
+        return (point[0], point[1])
+
+    motion: PathMotion | RandomWalk
+    if "path" in item:
+        path = r.table(item["path"], f"{key}.path", _PATH_KEYS, {"loop"})
+        points = path["points"]
+        if not isinstance(points, list) or len(points) < 2:
+            raise r.fail(f"{key}.path.points", "expected a list of at least 2 [x, y]")
+        corners = tuple(
+            inside(r.vector(p, f"{key}.path.points[{j}]", 2), f"{key}.path.points[{j}]")
+            for j, p in enumerate(points)
+        )
+        loop = path.get("loop", False)
+        if not isinstance(loop, bool):
+            raise r.fail(f"{key}.path.loop", f"expected true or false, got {loop!r}")
+        motion = PathMotion(corners, r.number(path["speed"], f"{key}.path.speed", positive=True), loop)
+    else:
+        walk = r.table(item["walk"], f"{key}.walk", _WALK_KEYS)
+        bounds = walk["bounds"]
+        if not isinstance(bounds, list) or len(bounds) != 2:
+            raise r.fail(f"{key}.walk.bounds", "expected [[x_min, y_min], [x_max, y_max]]")
+        lo = inside(r.vector(bounds[0], f"{key}.walk.bounds[0]", 2), f"{key}.walk.bounds[0]")
+        hi = inside(r.vector(bounds[1], f"{key}.walk.bounds[1]", 2), f"{key}.walk.bounds[1]")
+        if not (lo[0] < hi[0] and lo[1] < hi[1]):
+            raise r.fail(f"{key}.walk.bounds", "the first corner must be below the second in x and y")
+        seed = walk["seed"]
+        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+            raise r.fail(f"{key}.walk.seed", f"expected a non-negative integer, got {seed!r}")
+        motion = RandomWalk((lo, hi), r.number(walk["speed"], f"{key}.walk.speed", positive=True), seed)
+    return MovingObstacle(shape, motion, height, radius, size, yaw, base, kind)
+
+
+def moving_to_dict(m: MovingObstacle) -> dict[str, Any]:
+    """One moving obstacle in the documented schema (inverse of the loader's ``moving`` entries)."""
+    if m.shape == "cylinder":
+        item: dict[str, Any] = {"type": "cylinder", "radius": m.radius, "height": m.height}
+    else:
+        item = {"type": "box", "size": [*m.size, m.height], "yaw_deg": m.yaw_deg}
+    if m.base:
+        item["base"] = m.base
+    if m.kind:
+        item["kind"] = m.kind
+    if isinstance(m.motion, PathMotion):
+        item["path"] = {
+            "points": [list(p) for p in m.motion.points],
+            "speed": m.motion.speed,
+            "loop": m.motion.loop,
+        }
+    else:
+        item["walk"] = {
+            "bounds": [list(b) for b in m.motion.bounds],
+            "speed": m.motion.speed,
+            "seed": m.motion.seed,
+        }
+    return item
 
 
 def _check_clear(
@@ -391,6 +504,8 @@ def world_to_dict(world: World) -> dict[str, Any]:
     }
     if world.waypoints:  # an exploration world's file stays in the original schema
         data["waypoints"] = [list(w) for w in world.waypoints]
+    if world.moving:
+        data["moving"] = [moving_to_dict(m) for m in world.moving]
     return data
 
 

@@ -1,0 +1,163 @@
+"""Moving obstacles: a cylinder or a box carried along a path or a bounded random walk.
+
+A moving obstacle keeps its shape and heading; only its horizontal position changes with time, as a
+pure function of the time since the episode began, so a world with motion stays deterministic and
+any part of the simulator (ray cast, collision, render, feasibility check) can ask where every
+obstacle is at any moment. A path that is not a loop is flown out and back; a random walk is a
+loop of straight legs between points drawn from its own seed inside its bounds.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import cached_property
+from typing import Literal
+
+import numpy as np
+
+# a random walk draws this many legs, then repeats them (a loop far longer than any episode)
+WALK_LEGS = 256
+
+
+@dataclass(frozen=True)
+class PathMotion:
+    """Along a polyline at a constant speed.
+
+    :param points: the path's corners (x, y), metres; at least two
+    :param speed: m/s along the path
+    :param loop: True: from the last point straight back to the first and round again;
+        False: out to the last point and back the same way
+    """
+
+    points: tuple[tuple[float, float], ...]
+    speed: float
+    loop: bool = False
+
+
+@dataclass(frozen=True)
+class RandomWalk:
+    """Straight legs between random points of a rectangle, at a constant speed.
+
+    :param bounds: ``((x_min, y_min), (x_max, y_max))`` the obstacle's centre never leaves, metres
+    :param speed: m/s
+    :param seed: draws the points: the same seed, the same walk
+    """
+
+    bounds: tuple[tuple[float, float], tuple[float, float]]
+    speed: float
+    seed: int
+
+    def corners(self) -> tuple[tuple[float, float], ...]:
+        """The walk as the closed polyline it repeats."""
+        rng = np.random.default_rng(self.seed)
+        pts = rng.uniform(self.bounds[0], self.bounds[1], size=(WALK_LEGS, 2))
+        return tuple((float(x), float(y)) for x, y in pts)
+
+
+Motion = PathMotion | RandomWalk
+
+
+@dataclass(frozen=True)
+class MovingObstacle:
+    """A shape that moves: a vertical cylinder or a z-rotated box, between ``base`` and ``base + height``.
+
+    :param shape: ``"cylinder"`` or ``"box"``
+    :param motion: where its centre goes (:class:`PathMotion` or :class:`RandomWalk`)
+    :param height: metres from its bottom to its top
+    :param radius: the cylinder's radius, metres (0 for a box)
+    :param size: the box's horizontal extents (sx, sy), metres ((0, 0) for a cylinder)
+    :param yaw_deg: the box's heading, degrees counter-clockwise from +x (kept while it moves)
+    :param base: height of its bottom above the floor, metres (a drone flies, a walker stands)
+    :param kind: what it stands for (``pedestrian``, ``drone``, ``forklift``, …); informative only
+    """
+
+    shape: Literal["cylinder", "box"]
+    motion: Motion
+    height: float
+    radius: float = 0.0
+    size: tuple[float, float] = (0.0, 0.0)
+    yaw_deg: float = 0.0
+    base: float = 0.0
+    kind: str = ""
+
+    @property
+    def speed(self) -> float:
+        """Its speed, m/s (constant)."""
+        return self.motion.speed
+
+    @property
+    def footprint_radius(self) -> float:
+        """Radius of the smallest vertical cylinder around its footprint, metres."""
+        return self.radius if self.shape == "cylinder" else 0.5 * math.hypot(*self.size)
+
+    @cached_property
+    def _track(self) -> tuple[np.ndarray, np.ndarray, float, bool]:
+        """The closed or open polyline it follows: corners, cumulative lengths, total, loop."""
+        if isinstance(self.motion, RandomWalk):
+            corners, loop = self.motion.corners(), True
+        else:
+            corners, loop = self.motion.points, self.motion.loop
+        pts = np.asarray((*corners, corners[0]) if loop else corners, dtype=np.float64)
+        cumulative = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(pts, axis=0).T))])
+        return pts, cumulative, float(cumulative[-1]), loop
+
+    def positions(self, times: np.ndarray | float) -> np.ndarray:
+        """Its centre (x, y) at each of ``times`` (seconds since the start), ``(T, 2)``."""
+        t = np.atleast_1d(np.asarray(times, dtype=np.float64))
+        pts, cumulative, total, loop = self._track
+        if total <= 0.0:
+            return np.repeat(pts[:1], t.size, axis=0)
+        s = np.mod(self.speed * t, total if loop else 2.0 * total)
+        if not loop:
+            s = np.where(s > total, 2.0 * total - s, s)  # on the way back
+        return np.column_stack([np.interp(s, cumulative, pts[:, 0]), np.interp(s, cumulative, pts[:, 1])])
+
+    def packed(self, times: np.ndarray) -> np.ndarray:
+        """Its pose at each of ``times`` as the ray caster's rows, ``(T, 8)`` for a box (centre xyz,
+        half sizes, cos yaw, sin yaw, as ``World.packed``) or ``(T, 5)`` for a cylinder (centre xy,
+        radius, bottom z, top z)."""
+        xy = self.positions(times)
+        n = xy.shape[0]
+        if self.shape == "cylinder":
+            rest = np.array([self.radius, self.base, self.base + self.height])
+            return np.column_stack([xy, np.broadcast_to(rest, (n, 3))])
+        c, s = math.cos(math.radians(self.yaw_deg)), math.sin(math.radians(self.yaw_deg))
+        rest = np.array(
+            [self.base + self.height / 2.0, self.size[0] / 2.0, self.size[1] / 2.0, self.height / 2.0]
+        )
+        return np.column_stack([xy, np.broadcast_to(rest[:1], (n, 1)), np.broadcast_to(rest[1:], (n, 3)),
+                                np.full(n, c), np.full(n, s)])  # fmt: skip
+
+    def clearance(self, points: np.ndarray, time: float) -> np.ndarray:
+        """Signed distance from each of ``points`` ``(N, 3)`` to the shape at ``time`` (negative inside)."""
+        return self.clearance_over_time(points, np.array([time]))[0]
+
+    def clearance_over_time(self, points: np.ndarray, times: np.ndarray) -> np.ndarray:
+        """Signed distance from each of ``points`` ``(N, 3)`` to the shape at each of ``times``: (T, N)."""
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        xy = self.positions(times)
+        dx = p[None, :, 0] - xy[:, 0:1]
+        dy = p[None, :, 1] - xy[:, 1:2]
+        dz = np.broadcast_to(
+            np.abs(p[None, :, 2] - (self.base + self.height / 2.0)) - self.height / 2.0, dx.shape
+        )
+        if self.shape == "cylinder":
+            q = np.stack([np.hypot(dx, dy) - self.radius, dz], axis=-1)
+        else:
+            c, s = math.cos(math.radians(self.yaw_deg)), math.sin(math.radians(self.yaw_deg))
+            qx = np.abs(c * dx + s * dy) - self.size[0] / 2.0
+            qy = np.abs(-s * dx + c * dy) - self.size[1] / 2.0
+            q = np.stack([qx, qy, dz], axis=-1)
+        return np.linalg.norm(np.maximum(q, 0.0), axis=-1) + np.minimum(q.max(axis=-1), 0.0)
+
+
+def pack_moving(moving: tuple[MovingObstacle, ...], times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Every moving obstacle's pose at each of ``times``: boxes ``(T, B, 8)``, cylinders ``(T, C, 5)``."""
+    t = np.asarray(times, dtype=np.float64)
+    boxes = [m.packed(t) for m in moving if m.shape == "box"]
+    cylinders = [m.packed(t) for m in moving if m.shape == "cylinder"]
+    return (
+        np.ascontiguousarray(np.stack(boxes, axis=1)) if boxes else np.zeros((t.size, 0, 8)),
+        np.ascontiguousarray(np.stack(cylinders, axis=1)) if cylinders else np.zeros((t.size, 0, 5)),
+    )
