@@ -103,6 +103,7 @@ class BatchedEnvs:
             np.array([origin for origin, _ in poses]),
             np.array([rotation for _, rotation in poses]),
             [core.np_random for core in cores],
+            [core.sim_time for core in cores],
         )
         results = [
             core._conclude(c, scans[i]) for i, (core, c) in enumerate(zip(cores, commands, strict=True))

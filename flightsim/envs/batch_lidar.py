@@ -80,7 +80,7 @@ class BatchLidar:
         self.n = n
         self.lidar = lidar
         self.scan = scan
-        caster = VLP16Raycaster(lidar)
+        caster = self._caster = VLP16Raycaster(lidar)
         self._columns, self._cos_el, self._sin_el, self._unit = (
             caster._columns, caster._cos_el, caster._sin_el, caster._unit,
         )  # fmt: skip
@@ -93,7 +93,12 @@ class BatchLidar:
         self._unit_xyz = tuple(np.ascontiguousarray(self._unit[:, :, c]) for c in range(3))
 
     def scans(
-        self, worlds: list[World], origins: np.ndarray, rotations: np.ndarray, rngs: list[np.random.Generator]
+        self,
+        worlds: list[World],
+        origins: np.ndarray,
+        rotations: np.ndarray,
+        rngs: list[np.random.Generator],
+        times: list[float] | None = None,
     ) -> np.ndarray:
         """``(N, 360)`` float32 scans: lidar ``i`` at ``origins[i]``, ``rotations[i]`` in ``worlds[i]``.
 
@@ -102,6 +107,8 @@ class BatchLidar:
         :param rotations: ``(N, 3, 3)`` sensor-to-world rotations
         :param rngs: each vehicle's generator, for range noise and dropout (drawn as
             :func:`flightsim.envs.raycast._corrupt` draws them)
+        :param times: each vehicle's time since its world's start, seconds: where a world's moving
+            obstacles are (:meth:`~flightsim.envs.raycast.VLP16Raycaster.cast_moving`); None: 0
         """
         self.worlds.update(worlds)
         w, cfg = self.worlds, self.lidar
@@ -109,6 +116,11 @@ class BatchLidar:
             origins, rotations, self._columns, self._cos_el, self._sin_el, w.rooms, w.boxes, w.box_offsets,
             w.cylinders, w.cylinder_offsets, cfg.min_range, cfg.max_range, self._ranges,
         )  # fmt: skip
+        for v, world in enumerate(worlds):
+            if world.moving:  # a second pass, then the count of returns the noise draws for again
+                time = 0.0 if times is None else float(times[v])
+                self._caster.cast_moving(world, origins[v], rotations[v], time, self._ranges[v])
+                hits[v] = np.count_nonzero(self._ranges[v])
         noise_offsets = self._draws.draw(hits, rngs)
         corrupt = (
             self._draws.noise, noise_offsets, cfg.noise_std, self._draws.drop, cfg.noise_std > 0.0,

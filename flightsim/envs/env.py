@@ -261,7 +261,7 @@ class LidarAvoidEnv(gym.Env):
         self._steps = 0
         self._distance = 0.0
         self._collided = False
-        self._clearance = self.world.clearance(self._state.position)
+        self._clearance = self.world.clearance_at(self._state.position, self.sim_time)
         self._trajectory = [self._state.position.copy()]
         self._scan = self._fresh_scan()
         self._previous_scan = self._scan
@@ -307,8 +307,12 @@ class LidarAvoidEnv(gym.Env):
         if self._shielded:
             request = command_from_action((a0, a1), cfg.max_speed, cfg.max_yaw_rate)
             safe = self._shield.filter(
-                replace(request, lateral=sideways), seen, 1.0 / CONTROL_HZ,
-                velocity=velocity, drift=self.shield_drift(), heading=self.shield_heading(),
+                replace(request, lateral=sideways),
+                seen,
+                1.0 / CONTROL_HZ,
+                velocity=velocity,
+                drift=self.shield_drift(),
+                heading=self.shield_heading(),
             )
             a0, a1 = safe.forward / cfg.max_speed, safe.yaw_rate / cfg.max_yaw_rate
             lateral = safe.lateral
@@ -352,7 +356,7 @@ class LidarAvoidEnv(gym.Env):
         self._distance += math.dist(position.tolist(), previous.tolist())
         self._trajectory.append(position.copy())
         self._steps += 1
-        self._clearance = self.world.clearance(position)
+        self._clearance = self.world.clearance_at(position, self.sim_time)
         self._collided = self._clearance < self.config.vehicle_radius
 
     def _conclude(self, command: StepCommand, scan: np.ndarray):
@@ -471,8 +475,15 @@ class LidarAvoidEnv(gym.Env):
     def _fresh_scan(self) -> np.ndarray:
         """Cast the lidar from the current pose and reduce it with the companion's scan code."""
         origin, rotation = self._sensor_pose()
-        points = self._caster.cast_points(self.world, origin, rotation, self.np_random, self._slice_band)
+        points = self._caster.cast_points(
+            self.world, origin, rotation, self.np_random, self._slice_band, self.sim_time
+        )
         return scan_from_points(points, self.config.scan)
+
+    @property
+    def sim_time(self) -> float:
+        """Seconds since the episode began (where the world's moving obstacles are), 0.1 s a step."""
+        return self._steps / CONTROL_HZ
 
     def _update_wind(self) -> None:
         """Piecewise-constant horizontal gusts: a new random wind every 1–3 s."""

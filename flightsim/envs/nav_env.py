@@ -23,7 +23,7 @@ from companion.perception.observation import (
 from flightsim.envs import seeds
 from flightsim.envs.env import CONTROL_HZ, EnvConfig, LidarAvoidEnv, StepCommand, clip_unit
 from flightsim.envs.reward import GoalRewardConfig, GoalStep, StepOutcome, goal_reward
-from flightsim.worlds.families import FAMILIES, generate_family_world
+from flightsim.worlds.families import ALL_FAMILIES, DYNAMIC_SUFFIX, FAMILIES, generate_family_world
 from flightsim.worlds.planner import shortest_safe_path
 from flightsim.worlds.render import render_rgb
 from flightsim.worlds.world import World
@@ -38,8 +38,9 @@ class NavEnvConfig(EnvConfig):
     ``difficulty`` and ``reward`` of the base config do not apply: difficulties are drawn from
     ``difficulty_range`` and the reward is :func:`flightsim.envs.reward.goal_reward`.
 
-    :param families: world families training draws from (uniformly), see
-        :data:`flightsim.worlds.families.FAMILIES`
+    :param families: world families training draws from (uniformly): by default the static
+        :data:`flightsim.worlds.families.FAMILIES`; any of
+        :data:`~flightsim.worlds.families.ALL_FAMILIES` (the ``-dynamic`` ones have moving obstacles)
     :param difficulty_range: a generated world's difficulty is drawn uniformly in it
     :param acceptance_radius: a waypoint is reached when the vehicle's centre comes this close,
         horizontally, metres
@@ -97,9 +98,9 @@ class NavEnvConfig(EnvConfig):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        unknown = [f for f in self.families if f not in FAMILIES]
+        unknown = [f for f in self.families if f not in ALL_FAMILIES]
         if unknown or not self.families:
-            raise ValueError(f"families: {unknown or 'none'} not among {', '.join(FAMILIES)}")
+            raise ValueError(f"families: {unknown or 'none'} not among {', '.join(ALL_FAMILIES)}")
         if self.drift_hold and not self.drift:
             raise ValueError("drift_hold needs the drift estimate: set drift = true")
         low, high = self.difficulty_range
@@ -349,8 +350,8 @@ class LidarNavEnv(LidarAvoidEnv):
             if set(options) - {"world"}:
                 raise ValueError("reset options: give either 'world' or 'family'/'world_seed'/'difficulty'")
             world = super()._choose_world(options)
-            prefix = world.name.split("-")[0]
-            self.family = prefix if prefix in FAMILIES else "custom"
+            prefix = world.name.split("-")[0] + (DYNAMIC_SUFFIX if world.moving else "")
+            self.family = prefix if prefix in ALL_FAMILIES else "custom"
             return world
         cfg, rng = self.config, self.np_random
         family = options.get("family")

@@ -9,6 +9,13 @@ steps per second), so the kernel is a numba function that culls obstacles per az
 an obstacle is only tested by the columns whose horizontal direction passes near its footprint
 circle, widened by how far the vehicle's tilt can swing a ±15° laser's heading away from its
 column's. Floor and walls are closed-form and cheap.
+
+Moving obstacles (:mod:`flightsim.worlds.moving`) are cast as the real sensor sees them: the
+revolution ends at the time asked for and takes :data:`REVOLUTION_S`, and each azimuth column
+fires at its own moment within it (column 0, just right of the nose, first, as the sensor spins
+clockwise), with every moving obstacle where it is at that moment. An object moving across the
+sweep comes out skewed, as on a real VLP-16. A world without moving obstacles casts exactly as
+before (the second pass never runs).
 """
 
 from __future__ import annotations
@@ -20,9 +27,11 @@ import numpy as np
 from numba import njit
 
 from companion.lidar.vlp16_packet import VLP16_ELEVATIONS_DEG
+from flightsim.worlds.moving import pack_moving
 from flightsim.worlds.world import World
 
 N_LASERS = 16
+REVOLUTION_S = 0.1  # one turn of the sensor at 600 rpm (10 Hz), seconds
 _MAX_ABS_ELEVATION_RAD = math.radians(float(np.max(np.abs(VLP16_ELEVATIONS_DEG))))
 
 
@@ -182,13 +191,16 @@ class VLP16Raycaster:
         position: np.ndarray,
         rotation: np.ndarray,
         rng: np.random.Generator | None = None,
+        time: float = 0.0,
     ) -> RangeGrid:
         """One revolution from a sensor pose.
 
-        :param world: the geometry to hit (floor, walls, boxes, cylinders)
+        :param world: the geometry to hit (floor, walls, boxes, cylinders, moving obstacles)
         :param position: ``(3,)`` sensor origin in the world frame (ENU), metres
         :param rotation: ``(3, 3)`` sensor (FLU) to world rotation
         :param rng: random source for noise and dropout (a fresh unseeded one if None and needed)
+        :param time: when the revolution ends, seconds since the world's start (moves the moving
+            obstacles; a static world ignores it)
         """
         room, boxes, cylinders = world.packed
         cfg = self.config
@@ -206,6 +218,8 @@ class VLP16Raycaster:
             cfg.max_range,
             ranges,
         )
+        if world.moving:
+            self.cast_moving(world, position, rotation, time, ranges)
         if cfg.noise_std > 0.0 or cfg.dropout > 0.0:
             _corrupt(ranges, cfg, rng if rng is not None else np.random.default_rng())
         return RangeGrid(self.azimuth_deg, ranges)
@@ -217,6 +231,7 @@ class VLP16Raycaster:
         rotation: np.ndarray,
         rng: np.random.Generator | None = None,
         keep_band: tuple[np.ndarray, float, float] | None = None,
+        time: float = 0.0,
     ) -> np.ndarray:
         """One revolution straight to its point cloud: ``grid_to_points(cast(...), keep_band)``.
 
@@ -228,11 +243,12 @@ class VLP16Raycaster:
         :param rotation: ``(3, 3)`` sensor (FLU) to world rotation
         :param rng: random source for noise and dropout (see :meth:`cast`)
         :param keep_band: see :func:`grid_to_points`
+        :param time: see :meth:`cast`
         :return: ``(N, 3)`` float32 sensor-frame points
         """
         cfg = self.config
-        if cfg.noise_std > 0.0 or cfg.dropout > 0.0:
-            return grid_to_points(self.cast(world, position, rotation, rng), keep_band)
+        if cfg.noise_std > 0.0 or cfg.dropout > 0.0 or world.moving:
+            return grid_to_points(self.cast(world, position, rotation, rng, time), keep_band)
         room, boxes, cylinders = world.packed
         points = _cast_points_kernel(
             np.ascontiguousarray(position, dtype=np.float64),
@@ -241,6 +257,24 @@ class VLP16Raycaster:
             cfg.min_range, cfg.max_range, self._scratch, self._unit, *_band_floats(keep_band),
         )  # fmt: skip
         return points.view(np.float32)  # numba's float32 dtype instance is not numpy's (see grid_to_points)
+
+    def firing_times(self, time: float) -> np.ndarray:
+        """``(A,)`` when each azimuth column fires in the revolution that ends at ``time``, seconds."""
+        n = self.config.n_columns
+        return time - REVOLUTION_S + (np.arange(n) + 0.5) * (REVOLUTION_S / n)
+
+    def cast_moving(
+        self, world: World, position: np.ndarray, rotation: np.ndarray, time: float, ranges: np.ndarray
+    ) -> None:
+        """Add the moving obstacles to a cast revolution's ``ranges`` ``(A, 16)`` in place: a return
+        from one, where it is when its column fires, replaces a farther static return or none."""
+        boxes, cylinders = pack_moving(world.moving, self.firing_times(time))
+        _cast_moving_kernel(
+            np.ascontiguousarray(position, dtype=np.float64),
+            np.ascontiguousarray(rotation, dtype=np.float64),
+            self._columns, self._cos_el, self._sin_el, boxes, cylinders,
+            self.config.min_range, self.config.max_range, ranges,
+        )  # fmt: skip
 
 
 def _corrupt(ranges: np.ndarray, cfg: LidarConfig, rng: np.random.Generator) -> None:
@@ -378,3 +412,50 @@ def _cast_kernel(
         for i in range(n_el):
             t = t_col[i]
             out[j, i] = t if (t >= min_range) & (t <= max_range) else 0.0
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _hit_lifted_cylinder(px, py, pz, dx, dy, dz, r, h):  # pragma: no cover - compiled
+    """Entry distance of a ray (origin relative to the axis at the bottom) into a vertical cylinder
+    from its bottom up ``h``: :func:`_hit_cylinder` and the bottom cap, seen from below."""
+    t = _hit_cylinder(px, py, pz, dx, dy, dz, r, h)
+    t_bottom = -pz / dz
+    qx, qy = px + t_bottom * dx, py + t_bottom * dy
+    bottom = (dz > 0.0) & (pz < 0.0) & (qx * qx + qy * qy <= r * r) & (t_bottom < t)
+    return t_bottom if bottom else t
+
+
+@njit(cache=True, error_model="numpy")
+def _cast_moving_kernel(
+    origin, rot, columns, cos_el, sin_el, boxes, cylinders, min_range, max_range, out
+):  # pragma: no cover - compiled
+    """The moving obstacles into ``out``: ``boxes`` ``(A, B, 8)`` and ``cylinders`` ``(A, C, 5)``
+    (centre xy, radius, bottom z, top z) hold each one's pose when column ``j`` fires. A return
+    from one within the range limits replaces a farther return or none. (A static surface nearer
+    than ``min_range`` reads as none, so a moving one behind it would show: the vehicle has
+    collided long before anything is that near.)"""
+    ox, oy, oz = origin[0], origin[1], origin[2]
+    zx, zy, zz = rot[0, 2], rot[1, 2], rot[2, 2]
+    n_el = cos_el.shape[0]
+    for j in range(columns.shape[0]):
+        sx, sy = columns[j, 0], columns[j, 1]
+        ux = rot[0, 0] * sx + rot[0, 1] * sy
+        uy = rot[1, 0] * sx + rot[1, 1] * sy
+        uz = rot[2, 0] * sx + rot[2, 1] * sy
+        for i in range(n_el):
+            dx = cos_el[i] * ux + sin_el[i] * zx
+            dy = cos_el[i] * uy + sin_el[i] * zy
+            dz = cos_el[i] * uz + sin_el[i] * zz
+            t = np.inf
+            for k in range(boxes.shape[1]):
+                b = boxes[j, k]
+                t = min(t, _hit_box(ox - b[0], oy - b[1], oz - b[2], dx, dy, dz, b))
+            for k in range(cylinders.shape[1]):
+                c = cylinders[j, k]
+                t = min(
+                    t, _hit_lifted_cylinder(ox - c[0], oy - c[1], oz - c[3], dx, dy, dz, c[2], c[4] - c[3])
+                )
+            if (t >= min_range) & (t <= max_range):
+                r = out[j, i]
+                if (r == 0.0) | (t < r):
+                    out[j, i] = t
