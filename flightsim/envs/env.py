@@ -429,6 +429,7 @@ class LidarAvoidEnv(gym.Env):
             self.world, np.asarray(self._trajectory), scan=self._scan,
             pose=(self._state.position, self._state.yaw), scan_max_range=self.config.scan.max_range,
             vehicle_radius=self.config.vehicle_radius, collided=self._collided, title=title,
+            time=self.sim_time,
         )  # fmt: skip
 
     def close(self) -> None:

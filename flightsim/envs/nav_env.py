@@ -285,7 +285,7 @@ class LidarNavEnv(LidarAvoidEnv):
             self.world, np.asarray(self._trajectory), scan=self._scan,
             pose=(self._state.position, self._state.yaw), scan_max_range=self.config.scan.max_range,
             vehicle_radius=self.config.vehicle_radius, collided=self._collided, title=title,
-            active_waypoint=self._waypoint if self._waypoint < n else None,
+            active_waypoint=self._waypoint if self._waypoint < n else None, time=self.sim_time,
         )  # fmt: skip
 
     def shield_drift(self) -> tuple[float, float] | None:

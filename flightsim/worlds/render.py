@@ -19,6 +19,7 @@ from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle, Polygon, Rectangle
 
+from flightsim.worlds.moving import MovingObstacle
 from flightsim.worlds.world import WALL_THICKNESS, Box, World
 
 _WALL = "#303030"
@@ -32,6 +33,8 @@ _VEHICLE = "#1f5fbf"
 _WAYPOINT = "#2a9d3f"
 _WAYPOINT_ACTIVE = "#e08a00"
 _PLANNED = "#555555"
+_MOVING = "#8e44ad"
+TRACK_PREVIEW_S = 10.0  # a world's picture without a time shows where its movers go in this long
 _TRAJECTORY_COLOURS = ("#1f77b4", "#2ca02c", "#9467bd", "#ff7f0e", "#17becf", "#8c564b", "#e377c2")
 
 
@@ -56,6 +59,7 @@ def draw_top_down(
     active_waypoint: int | None = None,
     planned: np.ndarray | None = None,
     labels: Sequence[str] | None = None,
+    time: float | None = None,
 ) -> Axes:
     """Draw a world seen from above: walls, obstacles, start, waypoints, trajectories, vehicle, scan.
 
@@ -78,6 +82,8 @@ def draw_top_down(
         (waypoints before it faded: already reached)
     :param planned: ``(N, 2)`` planned path (e.g. :attr:`flightsim.worlds.planner.PlannedPath.points`),
         drawn dashed
+    :param time: seconds since the start: each moving obstacle is drawn where it is then, with its
+        trail from the start; None: where it starts, with its track over the next 10 s dotted
     :param labels: one name per trajectory; given, the Axes gets a legend (start, each trajectory,
         the vehicle, a collision) so the picture reads on its own
     :return: the Axes drawn on
@@ -102,6 +108,8 @@ def draw_top_down(
         elif bottom > 0.05:  # floating (a beam): hatched
             patch.set(facecolor=_FLOATING, hatch="////")
         ax.add_patch(patch)
+    for mover in world.moving:
+        _draw_moving(ax, mover, time)
     sx, sy, _ = world.start_position
     yaw0 = math.radians(world.start_yaw_deg)
     start_style = {"marker": "o", "markersize": 5, "markerfacecolor": "none", "linestyle": "none"}
@@ -165,6 +173,27 @@ def draw_top_down(
     return ax
 
 
+def _draw_moving(ax: Axes, mover: MovingObstacle, time: float | None) -> None:
+    """Its outline (hatched in the movers' colour) at ``time`` and its trail up to then, or where
+    it starts and its track ahead."""
+    until = TRACK_PREVIEW_S if time is None else max(float(time), 0.0)
+    samples = max(2, min(2000, int(until * 20) + 1))
+    trail = mover.positions(np.linspace(0.0, until, samples))
+    ax.plot(
+        trail[:, 0], trail[:, 1], color=_MOVING, linewidth=1.2, zorder=2,
+        linestyle=":" if time is None else "-",
+    )  # fmt: skip
+    x, y = trail[0] if time is None else trail[-1]
+    if mover.shape == "cylinder":
+        patch = Circle((x, y), mover.radius)
+    else:
+        patch = Polygon(
+            _box_corners(Box((x, y, 0.0), (*mover.size, mover.height), mover.yaw_deg)), closed=True
+        )
+    patch.set(facecolor="#d7bde2", edgecolor=_MOVING, linewidth=1.0, hatch="....", zorder=3)
+    ax.add_patch(patch)
+
+
 def _draw_waypoints(ax: Axes, world: World, active: int | None) -> None:
     """Numbered discs in visiting order; the active one highlighted, those before it faded."""
     for i, (x, y, _) in enumerate(world.waypoints):
@@ -204,11 +233,13 @@ def render_rgb(
     title: str | None = None,
     width_px: int = 720,
     active_waypoint: int | None = None,
+    time: float | None = None,
 ) -> np.ndarray:
     """The :func:`draw_top_down` picture as an ``(H, W, 3)`` uint8 array.
 
     :param width_px: image width; the height follows the room's aspect ratio
     :param active_waypoint: see :func:`draw_top_down`
+    :param time: see :func:`draw_top_down`
     """
     sx, sy = world.room_size[0] + 1.0, world.room_size[1] + 1.0
     dpi = 100
@@ -220,6 +251,7 @@ def render_rgb(
     draw_top_down(
         world, trajectory, ax=ax, scan=scan, pose=pose, scan_max_range=scan_max_range,
         vehicle_radius=vehicle_radius, collided=collided, title=title, active_waypoint=active_waypoint,
+        time=time,
     )  # fmt: skip
     fig.tight_layout()
     canvas.draw()

@@ -15,6 +15,7 @@ from flightsim.envs.nav_env import LidarNavEnv
 from flightsim.envs.raycast import REVOLUTION_S, LidarConfig, VLP16Raycaster
 from flightsim.worlds.families import DYNAMIC_FAMILIES
 from flightsim.worlds.moving import MovingObstacle, PathMotion
+from flightsim.worlds.render import render_rgb
 from flightsim.worlds.world import Box, Cylinder, World
 from tests.flightsim.test_batch_env import _run_side_by_side
 from training.config import load_train_config
@@ -155,3 +156,24 @@ def test_the_nav_env_names_a_dynamic_world_s_family() -> None:
     assert env.family == "office-dynamic"
     with pytest.raises(ValueError, match="not among"):
         LidarNavEnv(replace(config, families=("attic-dynamic",)))
+
+
+def _purple(img: np.ndarray) -> float:
+    """Share of pixels in the movers' colour (#8e44ad, its trail and outline)."""
+    return float((np.abs(img.astype(int) - (0x8E, 0x44, 0xAD)).max(axis=-1) <= 40).mean())
+
+
+def test_the_render_draws_each_mover_with_its_trail() -> None:
+    walker = _mover("cylinder", [(-6.0, -6.0), (6.0, 6.0)], 1.0, radius=0.25, height=1.8)
+    world = _room((walker,))
+    trajectory = np.array([[0.0, 0.0, 1.5]])
+    assert _purple(render_rgb(_room(), trajectory, time=5.0)) == 0.0
+    start = _purple(render_rgb(world, trajectory, time=0.0))
+    later = _purple(render_rgb(world, trajectory, time=12.0))
+    assert start > 0.0 and later > 3.0 * start  # the outline, then the outline and 12 m of trail
+    env = LidarAvoidEnv(render_mode="rgb_array")
+    env.reset(seed=0, options={"world": replace(world, start_position=(4.0, -4.0, 1.5))})
+    first = _purple(env.render())
+    for _ in range(30):
+        env.step(np.zeros(2, dtype=np.float32))
+    assert _purple(env.render()) > 1.5 * first

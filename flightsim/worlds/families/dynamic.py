@@ -91,6 +91,7 @@ class _Placer:
     ) -> None:
         self.world, self.rng, self.stops, self.r = world, rng, stops, vehicle_radius
         self.hx, self.hy = world.room_size[0] / 2.0, world.room_size[1] / 2.0
+        self.lanes: list[tuple[np.ndarray, float]] = []  # forklift tracks (points along, footprint)
 
     def _clear(self, a: np.ndarray, b: np.ndarray, footprint: float) -> bool:
         """Whether a footprint moving along a-b stays clear of the geometry and the stops."""
@@ -204,12 +205,22 @@ class _Placer:
         sx, sy, height = FORKLIFT_SIZE
         footprint = 0.5 * math.hypot(sx, sy)
         axis = int(self.rng.integers(2))
-        seg = self._segment(footprint, (4.0, 10.0), axis=axis)
-        if seg is None:
-            seg = self._segment(footprint, (4.0, 10.0), axis=1 - axis)
-            axis = 1 - axis
-        if seg is None:
+        for _ in range(20):  # two forklifts never share a lane: they would drive through each other
+            seg = self._segment(footprint, (4.0, 10.0), axis=axis)
+            if seg is None:
+                axis = 1 - axis
+                continue
+            along = seg[0] + np.linspace(0.0, 1.0, 50)[:, None] * (seg[1] - seg[0])
+            if all(_distance(along, lane) >= footprint + other for lane, other in self.lanes):
+                self.lanes.append((along, footprint))
+                break
+        else:
             return None
         motion = self._path(*seg, self.rng.uniform(1.0, 2.0))
         yaw = 0.0 if axis == 0 else 90.0
         return MovingObstacle("box", motion, height, size=(sx, sy), yaw_deg=yaw, kind="forklift")
+
+
+def _distance(a: np.ndarray, b: np.ndarray) -> float:
+    """Smallest distance between two sets of points ``(N, 2)`` and ``(M, 2)``."""
+    return float(np.min(np.hypot(a[:, None, 0] - b[None, :, 0], a[:, None, 1] - b[None, :, 1])))
