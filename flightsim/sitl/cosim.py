@@ -8,6 +8,10 @@ accepts only turns a real VLP-16 can make), which are then sent spread over the 
 where the azimuth wraps, so a revolution is complete when the next one's first packet arrives,
 right after its own last packet: the send time of each revolution's last packet is recorded so
 the harness can measure latency from "scan complete" to "setpoint received".
+
+A world with moving obstacles is cast at the world's time (``world_time``, seconds since the flight's
+clock zero) that the revolution ends at, each column with the obstacles where they are when it fires
+(:meth:`flightsim.envs.raycast.VLP16Raycaster.cast`).
 """
 
 from __future__ import annotations
@@ -74,6 +78,8 @@ class LidarCosim:
     :param lidar: ray-caster settings (0.2° columns like the real sensor, or 1° to save CPU)
     :param scan: the companion's scan config; its mount transform places the sensor on the body
     :param clock: monotonic clock shared with the harness (for latency figures)
+    :param world_time: seconds since the world's start (where its moving obstacles are); None: a
+        static world's 0
     """
 
     def __init__(
@@ -85,8 +91,10 @@ class LidarCosim:
         lidar: LidarConfig | None = None,
         scan: ScanConfig | None = None,
         clock: Callable[[], float] = time.monotonic,
+        world_time: Callable[[], float] | None = None,
     ) -> None:
         self.world = world
+        self.world_time = world_time
         self.pose = pose
         self.target = target
         self.caster = VLP16Raycaster(lidar or LidarConfig(azimuth_step_deg=0.2))
@@ -103,11 +111,14 @@ class LidarCosim:
         self._thread: threading.Thread | None = None
         self.error: BaseException | None = None
 
-    def revolution_packets(self, state: Any) -> list[bytes]:
-        """Cast one revolution from ``state`` and encode it (pure apart from the caster's cache)."""
+    def revolution_packets(self, state: Any, world_time: float = 0.0) -> list[bytes]:
+        """Cast one revolution from ``state`` and encode it (pure apart from the caster's cache).
+
+        :param world_time: when the revolution ends, seconds since the world's start
+        """
         rotation = state.rotation()
         position = np.asarray(state.position, dtype=float) + rotation @ self.mount_xyz
-        grid = self.caster.cast(self.world, position, rotation @ self.mount_rotation)
+        grid = self.caster.cast(self.world, position, rotation @ self.mount_rotation, time=world_time)
         past_hour_us = (time.time() % 3600.0) * 1e6
         azimuth, ranges = as_sensor_firings(grid.azimuth_deg, grid.ranges)
         return encode_packets(azimuth, ranges, start_timestamp_us=past_hour_us)
@@ -142,7 +153,9 @@ class LidarCosim:
                 start = self.clock()
                 continue
             t0 = self.clock()
-            packets = self.revolution_packets(self.pose())
+            # the revolution is sent over the next 100 ms: it ends then
+            ends = self.world_time() + REVOLUTION_S if self.world_time is not None else 0.0
+            packets = self.revolution_packets(self.pose(), ends)
             cast = self.clock() - t0
             self.stats.cast_seconds_max = max(self.stats.cast_seconds_max, cast)
             n = len(packets)

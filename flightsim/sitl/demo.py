@@ -15,6 +15,8 @@ as the model's metadata says); a scan-only model flies no missions, each world f
 
 ``--worlds validation`` flies instead every world family twice, at validation seeds (difficulties
 0.35 and 0.75): the SITL check of a policy or shield change before the test worlds are flown.
+``--worlds dynamic`` flies each dynamic family (people, forklifts and other drones moving) once, at
+a validation seed: the lidar stream shows them moving, and collisions are judged against them.
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ from flightsim.envs import seeds
 from flightsim.sitl.flight_report import INTERRUPTED, FlightReport
 from flightsim.sitl.fly_cli import default_policy, model_overrides, time_limit
 from flightsim.sitl.harness import FlightOptions, run_flight
-from flightsim.worlds.families import FAMILIES, generate_family_world
+from flightsim.worlds.families import DYNAMIC_FAMILIES, FAMILIES, generate_family_world
 from flightsim.worlds.world import World, load_world
 
 #: (family, seed, difficulty) of the generated worlds: held-out test seeds, never trained on
@@ -76,6 +78,13 @@ def validation_worlds() -> list[World]:
     ]
 
 
+def dynamic_worlds() -> list[World]:
+    """Each of :data:`~flightsim.worlds.families.DYNAMIC_FAMILIES` once, at difficulty 0.5 and its
+    own validation seed."""
+    first = seeds.VALIDATION.start
+    return [generate_family_world(family, first + i, 0.5) for i, family in enumerate(DYNAMIC_FAMILIES)]
+
+
 def lane_schedule(durations: list[float], lanes: int = LANES) -> float:
     """When the last of ``durations`` ends, each started in order on the first lane free (s): how
     :class:`~concurrent.futures.ProcessPoolExecutor` hands out the flights."""
@@ -94,9 +103,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "from the world's shortest safe path)",
     )
     parser.add_argument(
-        "--worlds", choices=("demo", "validation"), default="demo",
+        "--worlds", choices=("demo", "validation", "dynamic"), default="demo",
         help="demo: the generated and example worlds (under 3 minutes); validation: every family at "
-        "two validation seeds and difficulties (18 flights, about 8 minutes)",
+        "two validation seeds and difficulties (18 flights, about 8 minutes); dynamic: each family "
+        "with moving obstacles once (4 flights)",
     )
     parser.add_argument("--out", default="avoid-sim-demo", help="directory for PNGs, logs and summary.json")
     parser.add_argument(
@@ -128,7 +138,7 @@ def command(args: argparse.Namespace) -> int:
         logging.getLogger("flightsim").setLevel(logging.WARNING)
     overrides = model_overrides(policy)
     missions = overrides["policy"]["observation"] == "goal"
-    worlds = validation_worlds() if args.worlds == "validation" else demo_worlds()
+    worlds = {"validation": validation_worlds, "dynamic": dynamic_worlds}.get(args.worlds, demo_worlds)()
     kind = "mission flights" if missions else "flights (a scan-only model: no missions)"
     print(f"avoid-sim demo: {len(worlds)} {kind}, {LANES} at a time, policy {policy}, {args.autopilot}")
     start = time.monotonic()

@@ -47,7 +47,7 @@ class Recorder:
                 self.items_reached.append(int(msg.seq))
 
     def on_pose(self, t_mono: float, position: np.ndarray, yaw: float, speed: float, world: World) -> None:
-        clearance = world.clearance(position) if position[2] > 0.3 else math.inf
+        clearance = world.clearance_at(position, t_mono - self.t0) if position[2] > 0.3 else math.inf
         with self.lock:
             self.trajectory.append((t_mono, *map(float, position), float(yaw), float(speed)))
             if position[2] > 0.3:

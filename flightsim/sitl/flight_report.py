@@ -134,11 +134,14 @@ def plot_flight(
     collision_at: float | None,
     path: Path,
     title: str,
+    world_t0: float | None = None,
 ) -> Any:
     """A top-down PNG (:func:`flightsim.worlds.render.draw_top_down`): the take-off and the companion's path,
     with a legend; returns the figure.
 
     :param traj: ``(N, 6)`` rows of (time, x, y, z, yaw, speed)
+    :param world_t0: the time the world started at (its moving obstacles are drawn where they were
+        at the last pose, with their trails); None: where they start
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -149,6 +152,7 @@ def plot_flight(
         traj = traj[traj[:, 0] <= collision_at]
     parts: list[np.ndarray] = [np.zeros((0, 2))]
     pose = None
+    at = float(traj[-1, 0]) - world_t0 if world_t0 is not None and len(traj) else None
     if len(traj):
         flying = traj[:, 0] >= engaged_at if engaged_at is not None else np.zeros(len(traj), bool)
         parts = [traj[~flying, 1:3], traj[flying, 1:3]]  # take-off and hold first, then the companion
@@ -165,6 +169,7 @@ def plot_flight(
         collided=collision_at is not None,
         title=title,
         labels=("take-off and hold (ground station)", "companion flying"),
+        time=at,
     )
     fig.savefig(path, dpi=90)
     return fig

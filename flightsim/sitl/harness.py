@@ -128,6 +128,7 @@ class SitlFlight:
         self.position_wait_s = 0.0  # external: how long the autopilot took to report a position
         self.recorder = Recorder(t0=time.monotonic())
         self.recording = FlightRecording(self.workdir, self.world, options.lidar_step_deg)  # MCAP + truth
+        self.recording.t0 = self.recorder.t0
         self.lidar_port = free_udp_port()
         self.companion_port = free_udp_port()
         self.config_path = self.workdir / "companion.toml"
@@ -161,8 +162,9 @@ class SitlFlight:
         scan = ScanConfig()
         lidar = LidarConfig(azimuth_step_deg=self.options.lidar_step_deg, max_range=scan.max_range)
         self.cosim = LidarCosim(
-            self.world, self._pose, ("127.0.0.1", self.lidar_port), lidar=lidar, scan=scan
-        )
+            self.world, self._pose, ("127.0.0.1", self.lidar_port), lidar=lidar, scan=scan,
+            world_time=self.world_time,
+        )  # fmt: skip
         # cast once before anything runs in real time: the first cast compiles the numba kernel,
         # which holds the interpreter lock for seconds and would stall the autopilot's loop
         self.cosim.revolution_packets(self._start_state())
@@ -192,6 +194,11 @@ class SitlFlight:
         )
         self.config_path.write_text(toml_dumps(to_dict(cfg)))
         self.start_companion()
+
+    def world_time(self) -> float:
+        """Seconds since the flight's clock zero (the simulated autopilot's start): where the world's
+        moving obstacles are, for the lidar and for judging collisions alike."""
+        return time.monotonic() - self.recorder.t0
 
     def _pose(self) -> Any:
         """The vehicle state the lidar is cast from (simulated vehicle or mirrored external SITL)."""
@@ -235,7 +242,7 @@ class SitlFlight:
             response=not self.options.ideal_response,
             altitude_drift=self.options.altitude_drift,
         )
-        self.recorder.t0 = self.server.t0
+        self.recorder.t0 = self.recording.t0 = self.server.t0
         self.server.message_hooks.append(self._on_autopilot_message)
         self.server.step_hooks.append(self._on_step)
         self.server.start()
@@ -551,7 +558,10 @@ class SitlFlight:
         if plot is not None:
             with rec.lock:
                 full = np.array(rec.trajectory)
-            plot_flight(self.world, full, self.engaged_at, rec.collision_time, plot, title=result.title())
+            plot_flight(
+                self.world, full, self.engaged_at, rec.collision_time, plot,
+                title=result.title(), world_t0=rec.t0,
+            )  # fmt: skip
             result.plot = str(plot)
         return result
 

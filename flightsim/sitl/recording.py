@@ -63,6 +63,8 @@ class FlightRecording:
         self.truth_dir = Path(workdir) / "truth"
         self.path = Path(workdir) / "flight.mcap"
         self.world = world
+        #: monotonic time of the world's start (where its moving obstacles are); the harness sets it
+        self.t0 = 0.0
         self._last = -math.inf
         self._merged: Path | None = None
         self.cloud_decimation = max(1, math.ceil(16 * 360 / lidar_step_deg / CLOUD_POINTS))
@@ -84,7 +86,7 @@ class FlightRecording:
             return
         self._last = t
         position = np.asarray(state.position, dtype=float)
-        clearance = self.world.clearance(position)
+        clearance = self.world.clearance_at(position, t - self.t0)
         q = m.quaternion_from_rpy(float(state.roll), float(state.pitch), float(state.yaw))
         pose = m.identity_pose(tuple(position), q)
         self.sink.submit(s.TRUTH_POSE, t, _pose_in_frame, pose)
