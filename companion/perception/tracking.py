@@ -1,0 +1,283 @@
+"""Tracking what moves, from the scans alone: segment each scan into objects, follow them across
+revolutions with a constant-velocity Kalman filter each, and say which of them move.
+
+The drift estimate, the route map and the shield's obstacle memory assume that returns do not
+move. :class:`ScanTracker` tells them which do: :attr:`TrackerOutput.moving_bins` marks the scan
+bins whose returns belong to a moving track. No ground truth goes in: the scan and the vehicle's own
+pose (the autopilot's estimate, in any frame fixed to the ground) only.
+
+- Segments: consecutive scan bins with returns, each within ``join_distance`` of the previous
+  (one empty bin may lie between), in the ground frame. Segments wider than ``max_extent`` (walls,
+  racks) are never tracked: a person, a drone or a forklift is narrower. A round object seen from one
+  side shows its near arc, whose centroid lies about 0.64 of its radius in front of its centre; the
+  segment's centre is put that far behind the centroid, seen from the sensor, so that a pillar the
+  vehicle flies past stays still. A segment that may go on beyond the range, or whose end is hidden
+  behind something nearer, is not measured in that scan (its seen centre is not its centre).
+- Association: each track's predicted position against each segment's centre, the cheapest
+  one-to-one assignment within ``gate`` metres (``scipy.optimize.linear_sum_assignment``).
+- Filter: state (x, y, vx, vy), white-noise acceleration of ``accel_std``, centre measured to
+  ``measurement_std``. A segment no track takes starts a tentative track; ``confirm_hits`` hits
+  confirm it; ``max_misses`` revolutions in a row without one end it.
+- Moving: a confirmed track whose speed exceeds ``moving_speed``.
+
+Pure: arrays and times in, no I/O.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from companion.perception.scan import N_BINS
+
+#: a round object's visible-arc centroid lies this share of its seen width in front of its centre
+_ARC_OFFSET = 2.0 / math.pi / 2.0
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """How scans become tracks.
+
+    :param join_distance: consecutive returns at most this far apart are one object, metres
+    :param max_extent: wider segments (walls) are not tracked, metres
+    :param min_points: fewer returns are noise, not an object
+    :param gate: a track takes a segment at most this far from its prediction, metres
+    :param accel_std: the filter's process noise: how hard a target accelerates, m/s²
+    :param measurement_std: how well a segment's centre is measured, metres
+    :param confirm_hits: hits before a track counts
+    :param max_misses: revolutions in a row without a hit before a track ends
+    :param moving_speed: a confirmed track faster than this moves, m/s
+    :param edge_margin: a segment with an end within this of the maximum range may go on beyond
+        it (a wall cut off by the range slides along with the vehicle): not tracked, metres
+    """
+
+    join_distance: float = 0.35
+    max_extent: float = 1.6
+    min_points: int = 2
+    gate: float = 1.0
+    accel_std: float = 3.0
+    measurement_std: float = 0.08
+    confirm_hits: int = 3
+    max_misses: int = 3
+    moving_speed: float = 0.35
+    edge_margin: float = 1.0
+
+
+@dataclass
+class Segment:
+    """One object in one scan.
+
+    :param centre: (x, y) in the ground frame, metres
+    :param extent: its width as seen, metres
+    :param bins: the scan bins its returns are in
+    """
+
+    centre: np.ndarray
+    extent: float
+    bins: np.ndarray
+
+
+@dataclass
+class Track:
+    """One object followed across revolutions.
+
+    :param track_id: unique while the tracker lives
+    :param state: (x, y, vx, vy) in the ground frame, metres and m/s
+    :param covariance: the state's 4 × 4 covariance
+    :param first_seen: time of its first segment, seconds
+    :param hits: segments it took
+    :param misses: revolutions in a row it took none
+    :param bins: the scan bins of its last segment
+    """
+
+    track_id: int
+    state: np.ndarray
+    covariance: np.ndarray
+    first_seen: float
+    hits: int = 1
+    misses: int = 0
+    bins: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+
+    @property
+    def position(self) -> np.ndarray:
+        return self.state[:2]
+
+    @property
+    def velocity(self) -> np.ndarray:
+        return self.state[2:]
+
+    @property
+    def speed(self) -> float:
+        return float(np.hypot(*self.state[2:]))
+
+
+@dataclass
+class TrackerOutput:
+    """What one scan's update says.
+
+    :param tracks: the confirmed tracks
+    :param moving: the confirmed tracks that move
+    :param moving_bins: ``(360,)`` bool: bins whose return this scan belongs to a moving track
+    """
+
+    tracks: list[Track]
+    moving: list[Track]
+    moving_bins: np.ndarray
+
+
+class ScanTracker:
+    """Tracks objects across scans (one instance per flight).
+
+    :param config: the tracker's settings
+    :param max_range: metres a scan value of 1.0 stands for (nothing returned)
+    """
+
+    def __init__(self, config: TrackerConfig | None = None, max_range: float = 10.0) -> None:
+        self.config = config or TrackerConfig()
+        self.max_range = float(max_range)
+        self.tracks: list[Track] = []
+        self._next_id = 0
+        self._time: float | None = None
+        angles = np.radians(np.arange(N_BINS) + 0.5)  # bin centres, counter-clockwise from the nose
+        self._cos, self._sin = np.cos(angles), np.sin(angles)
+
+    def update(self, scan: np.ndarray, pose: tuple[float, float, float], time: float) -> TrackerOutput:
+        """Take one scan.
+
+        :param scan: ``(360,)`` normalised ranges (:func:`companion.perception.scan.scan_from_points`)
+        :param pose: the vehicle's (x, y, yaw) in a frame fixed to the ground, metres and radians CCW
+        :param time: the scan's time, seconds (any clock that only goes forward)
+        """
+        cfg = self.config
+        dt = 0.0 if self._time is None else max(float(time) - self._time, 0.0)
+        self._time = float(time)
+        for track in self.tracks:
+            _predict(track, dt, cfg.accel_std)
+        segments = self.segments(scan, pose)
+        taken = self._associate(segments)
+        for track in self.tracks:
+            if track.track_id not in taken:
+                track.misses += 1
+        self.tracks = [t for t in self.tracks if t.misses <= cfg.max_misses]
+        confirmed = [t for t in self.tracks if t.hits >= cfg.confirm_hits]
+        moving = [t for t in confirmed if t.misses == 0 and t.speed > cfg.moving_speed]
+        mask = np.zeros(N_BINS, dtype=bool)
+        for track in moving:
+            mask[track.bins] = True
+        return TrackerOutput(confirmed, moving, mask)
+
+    def segments(self, scan: np.ndarray, pose: tuple[float, float, float]) -> list[Segment]:
+        """The scan's objects narrow enough to track, in the ground frame."""
+        cfg = self.config
+        values = np.asarray(scan, dtype=np.float64).reshape(N_BINS)
+        hit = values < 1.0
+        if not hit.any():
+            return []
+        r = values * self.max_range
+        x, y, yaw = pose
+        c, s = math.cos(yaw), math.sin(yaw)
+        bx, by = r * self._cos, r * self._sin
+        wx, wy = x + c * bx - s * by, y + s * bx + c * by
+        # start the walk after an empty bin, so that no segment is cut where the bins wrap
+        empty = np.flatnonzero(~hit)
+        order = np.roll(np.arange(N_BINS), -int(empty[0]) - 1) if empty.size else np.arange(N_BINS)
+        runs: list[list[int]] = []
+        gap = 0
+        for i in order:
+            if not hit[i]:
+                gap += 1
+                continue
+            if (
+                runs
+                and gap <= 1
+                and math.hypot(wx[i] - wx[runs[-1][-1]], wy[i] - wy[runs[-1][-1]]) <= cfg.join_distance
+            ):
+                runs[-1].append(int(i))
+            else:
+                runs.append([int(i)])
+            gap = 0
+        out = []
+        for run in runs:
+            idx = np.asarray(run)
+            if idx.size < cfg.min_points:
+                continue
+            px, py = wx[idx], wy[idx]
+            extent = math.hypot(px[-1] - px[0], py[-1] - py[0])
+            if extent > cfg.max_extent or max(r[idx[0]], r[idx[-1]]) > self.max_range - cfg.edge_margin:
+                continue
+            if self._occluded(hit, r, idx[0], -1) or self._occluded(hit, r, idx[-1], 1):
+                continue
+            cx, cy = float(px.mean()), float(py.mean())
+            away = np.array([cx - x, cy - y])
+            away /= max(float(np.hypot(*away)), 1e-9)
+            centre = np.array([cx, cy]) + away * _ARC_OFFSET * extent
+            out.append(Segment(centre, extent, idx))
+        return out
+
+    def _occluded(self, hit: np.ndarray, r: np.ndarray, end: int, side: int) -> bool:
+        """Whether a segment's end bin has a nearer return next to it: something in front hides
+        part of it, so its seen centre is not where it is."""
+        for step in (1, 2):
+            k = (end + side * step) % N_BINS
+            if hit[k]:
+                return bool(r[k] < r[end] - self.config.join_distance)
+        return False
+
+    def _associate(self, segments: list[Segment]) -> set[int]:
+        """Update the tracks with the segments they take; new tracks for the rest. Returns the ids
+        of the tracks that took one."""
+        cfg = self.config
+        taken: set[int] = set()
+        used = np.zeros(len(segments), dtype=bool)
+        if self.tracks and segments:
+            predicted = np.array([t.position for t in self.tracks])
+            centres = np.array([seg.centre for seg in segments])
+            cost = np.hypot(
+                predicted[:, None, 0] - centres[None, :, 0], predicted[:, None, 1] - centres[None, :, 1]
+            )
+            rows, cols = linear_sum_assignment(np.where(cost <= cfg.gate, cost, 1e6))
+            for i, j in zip(rows, cols, strict=True):
+                if cost[i, j] > cfg.gate:
+                    continue
+                track = self.tracks[i]
+                _correct(track, segments[j].centre, cfg.measurement_std)
+                track.hits += 1
+                track.misses = 0
+                track.bins = segments[j].bins
+                taken.add(track.track_id)
+                used[j] = True
+        for seg, was_used in zip(segments, used, strict=True):
+            if not was_used:
+                self.tracks.append(self._new_track(seg))
+        return taken
+
+    def _new_track(self, seg: Segment) -> Track:
+        self._next_id += 1
+        state = np.array([seg.centre[0], seg.centre[1], 0.0, 0.0])
+        covariance = np.diag([self.config.measurement_std**2] * 2 + [2.0**2] * 2)
+        return Track(self._next_id, state, covariance, self._time or 0.0, bins=seg.bins)
+
+
+def _predict(track: Track, dt: float, accel_std: float) -> None:
+    """Constant velocity over ``dt``, white-noise acceleration."""
+    if dt <= 0.0:
+        return
+    f = np.eye(4)
+    f[0, 2] = f[1, 3] = dt
+    g = np.array([[dt * dt / 2.0, 0.0], [0.0, dt * dt / 2.0], [dt, 0.0], [0.0, dt]])
+    track.state = f @ track.state
+    track.covariance = f @ track.covariance @ f.T + accel_std**2 * (g @ g.T)
+
+
+def _correct(track: Track, centre: np.ndarray, measurement_std: float) -> None:
+    """The Kalman update with a measured position."""
+    h = np.zeros((2, 4))
+    h[0, 0] = h[1, 1] = 1.0
+    innovation = centre - h @ track.state
+    s = h @ track.covariance @ h.T + measurement_std**2 * np.eye(2)
+    gain = track.covariance @ h.T @ np.linalg.inv(s)
+    track.state = track.state + gain @ innovation
+    track.covariance = (np.eye(4) - gain @ h) @ track.covariance
