@@ -11,8 +11,10 @@ pose (the autopilot's estimate, in any frame fixed to the ground) only.
   racks) are never tracked: a person, a drone or a forklift is narrower. A round object seen from one
   side shows its near arc, whose centroid lies about 0.64 of its radius in front of its centre; the
   segment's centre is put that far behind the centroid, seen from the sensor, so that a pillar the
-  vehicle flies past stays still. A segment that may go on beyond the range, or whose end is hidden
-  behind something nearer, is not measured in that scan (its seen centre is not its centre).
+  vehicle flies past stays still. A segment that may go on beyond the range, or whose end may not
+  be the object's (a nearer return beside it hides part of it, or one not clearly behind it
+  continues the surface), is not measured in that scan: its seen centre is not its centre. So an
+  object within ``background_gap`` of a wall is not tracked while it is there.
 - Association: each track's predicted position against each segment's centre, the cheapest
   one-to-one assignment within ``gate`` metres (``scipy.optimize.linear_sum_assignment``).
 - Filter: state (x, y, vx, vy), white-noise acceleration of ``accel_std``, centre measured to
@@ -52,6 +54,8 @@ class TrackerConfig:
     :param moving_speed: a confirmed track faster than this moves, m/s
     :param edge_margin: a segment with an end within this of the maximum range may go on beyond
         it (a wall cut off by the range slides along with the vehicle): not tracked, metres
+    :param background_gap: a segment is an object only where the returns beside it are at least
+        this much farther (or none): else its end may be the sampling's, not the object's, metres
     """
 
     join_distance: float = 0.35
@@ -62,8 +66,9 @@ class TrackerConfig:
     measurement_std: float = 0.08
     confirm_hits: int = 3
     max_misses: int = 3
-    moving_speed: float = 0.35
+    moving_speed: float = 0.45
     edge_margin: float = 1.0
+    background_gap: float = 1.0
 
 
 @dataclass
@@ -218,12 +223,13 @@ class ScanTracker:
         return out
 
     def _occluded(self, hit: np.ndarray, r: np.ndarray, end: int, side: int) -> bool:
-        """Whether a segment's end bin has a nearer return next to it: something in front hides
-        part of it, so its seen centre is not where it is."""
+        """Whether a segment's end may not be the object's: next to it is a nearer return
+        (something in front hides part of it) or one not clearly behind it (the surface goes on,
+        its points only too far apart at a grazing angle, as along a wall)."""
         for step in (1, 2):
             k = (end + side * step) % N_BINS
             if hit[k]:
-                return bool(r[k] < r[end] - self.config.join_distance)
+                return bool(r[k] < r[end] + self.config.background_gap)
         return False
 
     def _associate(self, segments: list[Segment]) -> set[int]:
