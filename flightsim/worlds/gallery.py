@@ -15,7 +15,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from companion.common.errors import UserError
-from flightsim.worlds.families import FAMILIES, generate_family_world
+from flightsim.worlds.families import ALL_FAMILIES, FAMILIES, generate_family_world
 from flightsim.worlds.planner import shortest_safe_path
 from flightsim.worlds.render import draw_top_down
 from flightsim.worlds.world import DEFAULT_VEHICLE_RADIUS, World, save_world
@@ -25,8 +25,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--gallery", metavar="PNG", help="write one top-down panel per family to this PNG")
     parser.add_argument("--save", metavar="DIR", help="write each world as DIR/<name>.json")
     parser.add_argument(
-        "--family", action="append", choices=FAMILIES, help="only this family (repeatable; default: all)"
-    )
+        "--family", action="append", choices=ALL_FAMILIES,
+        help="only this family (repeatable; default: every static family; the -dynamic ones have "
+        "moving obstacles)",
+    )  # fmt: skip
     parser.add_argument("--seed", type=int, default=0, help="generator seed (0)")
     parser.add_argument("--difficulty", type=float, default=0.5, help="0 (easy) … 1 (hard) (0.5)")
     parser.add_argument(
@@ -48,8 +50,9 @@ def command(args: argparse.Namespace) -> int:
         generate_family_world(f, args.seed, args.difficulty, vehicle_radius=args.radius) for f in families
     ]
     for world in worlds:
+        moving = f"  {len(world.moving)} moving" if world.moving else ""
         print(f"{world.name:<22} {len(world.obstacles):>3} obstacles  {len(world.waypoints)} waypoints  "
-              f"shortest safe path {world.shortest_path_m:.1f} m")  # fmt: skip
+              f"shortest safe path {world.shortest_path_m:.1f} m{moving}")  # fmt: skip
     if args.save:
         out = Path(args.save)
         try:

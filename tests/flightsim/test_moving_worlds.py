@@ -271,3 +271,12 @@ def test_space_time_search_rejects_a_corridor_blocked_for_good() -> None:
     pacing = MovingObstacle("box", PathMotion(((-1.5, 0.0), (2.5, 0.0)), 1.0), 2.0, size=(1.2, 1.6))
     assert wait_and_go_time(_corridor((pacing,)), 0.25, 60.0) is None
     assert wait_and_go_time(_corridor(()), 0.25, 60.0) is not None
+
+
+def test_avoid_sim_worlds_saves_dynamic_worlds_that_load_back(tmp_path, capsys) -> None:
+    from flightsim.__main__ import main
+
+    assert main(["worlds", "--save", str(tmp_path), "--family", "rooms-dynamic", "--seed", "500020"]) == 0
+    assert "moving" in capsys.readouterr().out
+    saved = load_world(tmp_path / "rooms-dynamic-500020-d0.50.json")
+    assert saved == generate_family_world("rooms-dynamic", 500020, 0.5) and saved.moving
