@@ -437,24 +437,53 @@ def _cast_moving_kernel(
     ox, oy, oz = origin[0], origin[1], origin[2]
     zx, zy, zz = rot[0, 2], rot[1, 2], rot[2, 2]
     n_el = cos_el.shape[0]
+    n_box, n_cyl = boxes.shape[1], cylinders.shape[1]
+    # as _cast_kernel culls: a column tests only the obstacles its lasers' headings can reach
+    sin_tilt = math.sqrt(max(0.0, 1.0 - zz * zz))
+    spread_s = math.sin(0.2618) * sin_tilt
+    spread_c = math.cos(0.2618) * abs(zz) - spread_s
+    spread = math.atan2(spread_s, spread_c) if spread_c > 0.0 else math.pi
+    near = np.empty(n_box + n_cyl, dtype=np.bool_)
     for j in range(columns.shape[0]):
         sx, sy = columns[j, 0], columns[j, 1]
         ux = rot[0, 0] * sx + rot[0, 1] * sy
         uy = rot[1, 0] * sx + rot[1, 1] * sy
         uz = rot[2, 0] * sx + rot[2, 1] * sy
+        uh = math.sqrt(ux * ux + uy * uy)
+        any_near = False
+        for k in range(n_box + n_cyl):
+            if k < n_box:
+                b = boxes[j, k]
+                fx, fy, fr = b[0], b[1], math.sqrt(b[3] * b[3] + b[4] * b[4]) + 1e-6
+            else:
+                c = cylinders[j, k - n_box]
+                fx, fy, fr = c[0], c[1], c[2] + 1e-6
+            vx, vy = fx - ox, fy - oy
+            dist = math.sqrt(vx * vx + vy * vy)
+            if dist - fr > max_range:
+                near[k] = False
+            elif dist <= fr or uh <= 1e-9:
+                near[k] = True
+            else:
+                half = math.asin(fr / dist) + spread + 1e-6
+                near[k] = half >= math.pi or (ux * vx + uy * vy) >= math.cos(half) * uh * dist
+            any_near = any_near or near[k]
+        if not any_near:
+            continue
         for i in range(n_el):
             dx = cos_el[i] * ux + sin_el[i] * zx
             dy = cos_el[i] * uy + sin_el[i] * zy
             dz = cos_el[i] * uz + sin_el[i] * zz
             t = np.inf
-            for k in range(boxes.shape[1]):
-                b = boxes[j, k]
-                t = min(t, _hit_box(ox - b[0], oy - b[1], oz - b[2], dx, dy, dz, b))
-            for k in range(cylinders.shape[1]):
-                c = cylinders[j, k]
-                t = min(
-                    t, _hit_lifted_cylinder(ox - c[0], oy - c[1], oz - c[3], dx, dy, dz, c[2], c[4] - c[3])
-                )
+            for k in range(n_box):
+                if near[k]:
+                    b = boxes[j, k]
+                    t = min(t, _hit_box(ox - b[0], oy - b[1], oz - b[2], dx, dy, dz, b))
+            for k in range(n_cyl):
+                if near[n_box + k]:
+                    c = cylinders[j, k]
+                    h = c[4] - c[3]
+                    t = min(t, _hit_lifted_cylinder(ox - c[0], oy - c[1], oz - c[3], dx, dy, dz, c[2], h))
             if (t >= min_range) & (t <= max_range):
                 r = out[j, i]
                 if (r == 0.0) | (t < r):

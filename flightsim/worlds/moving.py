@@ -113,21 +113,27 @@ class MovingObstacle:
             s = np.where(s > total, 2.0 * total - s, s)  # on the way back
         return np.column_stack([np.interp(s, cumulative, pts[:, 0]), np.interp(s, cumulative, pts[:, 1])])
 
-    def packed(self, times: np.ndarray) -> np.ndarray:
+    def packed(self, times: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """Its pose at each of ``times`` as the ray caster's rows, ``(T, 8)`` for a box (centre xyz,
         half sizes, cos yaw, sin yaw, as ``World.packed``) or ``(T, 5)`` for a cylinder (centre xy,
-        radius, bottom z, top z)."""
-        xy = self.positions(times)
-        n = xy.shape[0]
+        radius, bottom z, top z).
+
+        :param out: write the rows here (a ``(T, 8)`` or ``(T, 5)`` view) instead of a new array
+        """
+        if out is None:
+            out = np.empty((np.size(times), 5 if self.shape == "cylinder" else 8))
+        out[:, :2] = self.positions(times)
+        out[:, 2:] = self._rest
+        return out
+
+    @cached_property
+    def _rest(self) -> np.ndarray:
+        """The row's columns after the centre xy, the same at every time."""
         if self.shape == "cylinder":
-            rest = np.array([self.radius, self.base, self.base + self.height])
-            return np.column_stack([xy, np.broadcast_to(rest, (n, 3))])
+            return np.array([self.radius, self.base, self.base + self.height])
         c, s = math.cos(math.radians(self.yaw_deg)), math.sin(math.radians(self.yaw_deg))
-        rest = np.array(
-            [self.base + self.height / 2.0, self.size[0] / 2.0, self.size[1] / 2.0, self.height / 2.0]
-        )
-        return np.column_stack([xy, np.broadcast_to(rest[:1], (n, 1)), np.broadcast_to(rest[1:], (n, 3)),
-                                np.full(n, c), np.full(n, s)])  # fmt: skip
+        h = self.height / 2.0
+        return np.array([self.base + h, self.size[0] / 2.0, self.size[1] / 2.0, h, c, s])
 
     def clearance(self, points: np.ndarray, time: float) -> np.ndarray:
         """Signed distance from each of ``points`` ``(N, 3)`` to the shape at ``time`` (negative inside)."""
@@ -155,9 +161,12 @@ class MovingObstacle:
 def pack_moving(moving: tuple[MovingObstacle, ...], times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Every moving obstacle's pose at each of ``times``: boxes ``(T, B, 8)``, cylinders ``(T, C, 5)``."""
     t = np.asarray(times, dtype=np.float64)
-    boxes = [m.packed(t) for m in moving if m.shape == "box"]
-    cylinders = [m.packed(t) for m in moving if m.shape == "cylinder"]
-    return (
-        np.ascontiguousarray(np.stack(boxes, axis=1)) if boxes else np.zeros((t.size, 0, 8)),
-        np.ascontiguousarray(np.stack(cylinders, axis=1)) if cylinders else np.zeros((t.size, 0, 5)),
-    )
+    boxes = [m for m in moving if m.shape == "box"]
+    cylinders = [m for m in moving if m.shape == "cylinder"]
+    packed_boxes = np.empty((t.size, len(boxes), 8))
+    packed_cylinders = np.empty((t.size, len(cylinders), 5))
+    for k, m in enumerate(boxes):
+        m.packed(t, packed_boxes[:, k])
+    for k, m in enumerate(cylinders):
+        m.packed(t, packed_cylinders[:, k])
+    return packed_boxes, packed_cylinders

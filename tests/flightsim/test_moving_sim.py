@@ -32,15 +32,24 @@ def _mover(shape: str, points, speed: float, **kw) -> MovingObstacle:
     return MovingObstacle(shape, PathMotion(tuple(points), speed), kw.pop("height", 2.0), **kw)
 
 
+def _tilted(roll_deg: float, pitch_deg: float) -> np.ndarray:
+    r, p = np.radians(roll_deg), np.radians(pitch_deg)
+    rx = np.array([[1, 0, 0], [0, np.cos(r), -np.sin(r)], [0, np.sin(r), np.cos(r)]])
+    ry = np.array([[np.cos(p), 0, np.sin(p)], [0, 1, 0], [-np.sin(p), 0, np.cos(p)]])
+    return ry @ rx
+
+
+@pytest.mark.parametrize("rotation", [LEVEL, _tilted(20.0, -12.0)], ids=["level", "tilted"])
 @pytest.mark.parametrize("shape", ["cylinder", "box"])
-def test_each_column_sees_the_obstacle_where_it_is_when_it_fires(shape: str) -> None:
+def test_each_column_sees_the_obstacle_where_it_is_when_it_fires(shape: str, rotation: np.ndarray) -> None:
     """The moving cast equals, column by column, a static cast with the obstacle placed where it is
-    at that column's firing time (exactly: the same hit arithmetic)."""
+    at that column's firing time (exactly: the same hit arithmetic, and the columns culled alike
+    however the sensor is tilted)."""
     kw = {"radius": 0.4} if shape == "cylinder" else {"size": (1.2, 0.8), "yaw_deg": 20.0}
     mover = _mover(shape, [(3.0, 4.0), (3.0, -4.0)], 8.0, **kw)  # fast, so the skew is large
     caster = VLP16Raycaster(LidarConfig(azimuth_step_deg=1.0))
     time = 0.55
-    ranges = caster.cast(_room((mover,)), ORIGIN, LEVEL, time=time).ranges
+    ranges = caster.cast(_room((mover,)), ORIGIN, rotation, time=time).ranges
     firing = caster.firing_times(time)
     assert firing[-1] == pytest.approx(time - REVOLUTION_S / 720.0) and firing[0] > time - REVOLUTION_S
     columns_hit = 0
@@ -49,7 +58,7 @@ def test_each_column_sees_the_obstacle_where_it_is_when_it_fires(shape: str) -> 
         placed = (
             Cylinder((x, y), 0.4, 2.0) if shape == "cylinder" else Box((x, y, 1.0), (1.2, 0.8, 2.0), 20.0)
         )
-        expected = caster.cast(_room(obstacles=(placed,)), ORIGIN, LEVEL).ranges[j]
+        expected = caster.cast(_room(obstacles=(placed,)), ORIGIN, rotation).ranges[j]
         np.testing.assert_array_equal(ranges[j], expected, err_msg=f"column {j}")
         columns_hit += bool(np.any(np.abs(expected - ranges[j - 1]) > 0.5)) if j else 0
     assert columns_hit >= 1
