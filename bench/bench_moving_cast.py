@@ -3,6 +3,8 @@ its movers, from the same poses, in the same run (single caster and the batched 
 
 Each dynamic family's world (validation seed, difficulty 0.6) is cast from 200 poses along its start's
 first leg, at the env's 1° columns; the figure is the ratio of the times, absolute times beside.
+Last, a whole LidarNav-v0 step (vehicle, lidar, scan, reward) in the dynamic world against the
+static family's same world (the same seed: the same room), the goal follower flying.
 
     python bench/bench_moving_cast.py [--repeats 5]
 """
@@ -25,8 +27,10 @@ from companion.perception.scan import ScanConfig  # noqa: E402
 from flightsim.envs import seeds  # noqa: E402
 from flightsim.envs.batch_lidar import BatchLidar  # noqa: E402
 from flightsim.envs.env import slice_band  # noqa: E402
+from flightsim.envs.nav_env import LidarNavEnv, NavEnvConfig  # noqa: E402
 from flightsim.envs.raycast import LidarConfig, VLP16Raycaster  # noqa: E402
 from flightsim.worlds.families import DYNAMIC_FAMILIES, generate_family_world  # noqa: E402
+from training.baselines import GoalFollower  # noqa: E402
 
 POSES = 200
 
@@ -69,6 +73,27 @@ def time_batch(world, at, repeats: int, n: int = 8) -> float:
     return best / len(at) / n * 1e3
 
 
+def time_env(family: str, seed: int, steps: int = 200) -> float:
+    """Milliseconds per LidarNav-v0 step, the goal follower flying (resets where an episode ends)."""
+    env = LidarNavEnv(NavEnvConfig(families=DYNAMIC_FAMILIES))
+    options = {"family": family, "world_seed": seed, "difficulty": 0.6}
+    obs, _ = env.reset(seed=0, options=options)
+    follower = GoalFollower(env.layout)
+    action = follower.reset(obs)
+    env.step(action)  # compile
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        obs, _, terminated, truncated, _ = env.step(action)
+        if terminated or truncated:
+            t_reset = time.perf_counter()
+            obs, _ = env.reset(seed=0, options=options)
+            t0 += time.perf_counter() - t_reset  # the reset's world generation is not a step
+            action = follower.reset(obs)
+        else:
+            action = follower.act(obs)
+    return (time.perf_counter() - t0) / steps * 1e3
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=5, help="best of this many passes (5)")
@@ -84,6 +109,11 @@ def main() -> int:
         bs, bm = time_batch(still, at, args.repeats), time_batch(world, at, args.repeats)
         print(f"{family:<18} {len(world.moving):>6} {s:>10.3f} {m:>10.3f} {m / s:>5.2f}x "
               f"{bs:>13.3f} {bm:>13.3f} {bm / bs:>5.2f}x")  # fmt: skip
+    print(f"{'env step':<18} {'static ms':>10} {'moving ms':>10} {'ratio':>6}")
+    for i, family in enumerate(DYNAMIC_FAMILIES):
+        seed = seeds.VALIDATION.start + 300 + i
+        s, m = time_env(family.removesuffix("-dynamic"), seed), time_env(family, seed)
+        print(f"{family:<18} {s:>10.3f} {m:>10.3f} {m / s:>5.2f}x")
     return 0
 
 
