@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from flightsim.envs.env import LidarAvoidEnv
-from flightsim.envs.nav_env import LidarNavEnv
+from flightsim.envs.nav_env import LidarNavEnv, NavEnvConfig
 from flightsim.envs.raycast import REVOLUTION_S, LidarConfig, VLP16Raycaster
 from flightsim.worlds.families import DYNAMIC_FAMILIES
 from flightsim.worlds.moving import MovingObstacle, PathMotion
@@ -122,13 +122,16 @@ def test_the_scan_sees_the_walker_coming() -> None:
     assert ahead[0] == pytest.approx(0.875, abs=0.01) and ahead[20] == pytest.approx(0.675, abs=0.01)
 
 
-# the hash of two nav.toml episodes (warehouse and forest, validation seed 500123, difficulty 0.6,
-# a fixed action sequence) as the simulator flew them before moving obstacles existed
-STATIC_EPISODES_HASH = "98b5fd19f67ffbfd"
+# the hash of two episodes (warehouse and forest, validation seed 500123, difficulty 0.6, range noise
+# and dropout, a fixed action sequence) as the simulator flew them before moving obstacles existed.
+# It pins the static simulator's output: an intended change to the vehicle, the lidar or the env
+# changes it too (then set it anew from that change's own commit); the batched env's tests still
+# hold the batch to the single env.
+STATIC_EPISODES_HASH = "4e0642fb6388dcd7"
 
 
 def test_a_static_world_flies_exactly_as_before() -> None:
-    config = load_train_config("training/configs/nav.toml").env_config()
+    config = NavEnvConfig(lidar=LidarConfig(noise_std=0.02, dropout=0.01))
     h = hashlib.sha256()
     for family in ("warehouse", "forest"):
         env = LidarNavEnv(config)
@@ -136,7 +139,7 @@ def test_a_static_world_flies_exactly_as_before() -> None:
         assert not env.world.moving
         h.update(obs.tobytes())
         for t in range(80):
-            action = np.array([0.3, 0.3 * np.sin(t / 7.0), 0.2 * np.cos(t / 5.0)], dtype=np.float32)
+            action = np.array([0.3, 0.3 * np.sin(t / 7.0)], dtype=np.float32)
             obs, reward, terminated, truncated, info = env.step(action)
             h.update(obs.tobytes())
             h.update(np.float64(reward).tobytes())
