@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Install the lidar-avoid companion as a systemd service (see README.md, "On the drone").
+# Install the lidar-avoid companion as a systemd service (see docs/companion.md, "4. The service").
 #
 #   sudo systemd/install.sh [--model policy.onnx] [--ort-wheel onnxruntime_gpu-....whl] [--now]
 #

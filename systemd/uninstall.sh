@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Remove the lidar-avoid companion service installed by systemd/install.sh (see README.md, "On the drone").
+# Remove the lidar-avoid companion service installed by systemd/install.sh (see docs/companion.md, "4. The service").
 #
 #   sudo systemd/uninstall.sh [--purge]
 #

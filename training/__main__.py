@@ -39,7 +39,7 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(
             f"avoid-train: error: {exc.name} is not installed; avoid-train needs the training extra: "
-            "pip install -e '.[train]' (see README, Training)",
+            "pip install -e '.[train]' (see docs/training.md)",
             file=sys.stderr,
         )
         return 2

@@ -73,7 +73,7 @@ class RayExecutor(Executor):
                 "(its ray_client_server*.err logs say why)"
                 if server_died_at_start(exc)
                 else "a cluster with token authentication needs RAY_AUTH_MODE=token and its token here "
-                "too: README, Evaluation on Ray"
+                "too: docs/training.md, On a Ray cluster"
             )
             message = f"--address {address}: cannot join the Ray cluster: {one_line(exc)} ({hint})"
             raise UserError(message) from None
