@@ -53,8 +53,9 @@ def noise_cloud(seed: int, n: int = 4000) -> np.ndarray:
 def tiny_tmpfs(path: Path, size_kb: int) -> Iterator[Path]:
     """A real, small filesystem that fills up (needs root to mount)."""
     path.mkdir(parents=True, exist_ok=True)
-    done = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size_kb}k", "tmpfs", str(path)],
-                          capture_output=True, text=True)
+    done = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", f"size={size_kb}k", "tmpfs", str(path)], capture_output=True, text=True
+    )
     if done.returncode != 0:
         pytest.skip(f"cannot mount a tmpfs here ({done.stderr.strip() or 'not root'})")
     try:
@@ -161,15 +162,19 @@ def test_the_companion_flies_on_when_its_recording_directory_cannot_be_made(tmp_
     blocker.write_text("")
     lidar_port, mavlink_port = free_udp_port(), free_udp_port()
     model = write_policy(tmp_path / "forward.onnx", kind="forward")
-    config = write_config(tmp_path, model, lidar_port, mavlink_port,
-                          extra=f'[recorder]\nenabled = true\ndirectory = "{blocker}/flights"\n')
+    config = write_config(
+        tmp_path,
+        model,
+        lidar_port,
+        mavlink_port,
+        extra=f'[recorder]\nenabled = true\ndirectory = "{blocker}/flights"\n',
+    )
     vehicle = SimulatedAutopilot(f"udpout:127.0.0.1:{mavlink_port}")
     proc = start_companion(config)
     lidar = LidarSender(lidar_port)
     try:
         lidar.on = True
-        text = vehicle.wait_for("STATUSTEXT", timeout=40,
-                                condition=lambda msg: "recording off" in msg.text)
+        text = vehicle.wait_for("STATUSTEXT", timeout=40, condition=lambda msg: "recording off" in msg.text)
         assert text is not None and "Not a directory" in text.text
         assert vehicle.wait_for(SETPOINT, timeout=10) is not None
         t = time.monotonic()
@@ -182,9 +187,16 @@ def test_the_companion_flies_on_when_its_recording_directory_cannot_be_made(tmp_
     assert code == 0, err[-3000:]
 
 
-def _record_companion(tmp_path: Path, setpoints: int = 25, recorder: str = "", parts: int = 1,
-                      extra: str = "", kind: str = "steer", room_m: float | None = None,
-                      params: dict[str, float] | None = None) -> list[Path]:
+def _record_companion(
+    tmp_path: Path,
+    setpoints: int = 25,
+    recorder: str = "",
+    parts: int = 1,
+    extra: str = "",
+    kind: str = "steer",
+    room_m: float | None = None,
+    params: dict[str, float] | None = None,
+) -> list[Path]:
     """A short recording of the real companion process (constant lidar, the ``kind`` policy, config
     ``extra``), ended once the autopilot has had ``setpoints`` setpoints and the recorder has begun
     ``parts`` files (how fast a part fills depends on how well the cloud compresses); its files,
@@ -206,8 +218,9 @@ def _record_companion(tmp_path: Path, setpoints: int = 25, recorder: str = "", p
     try:
         lidar.on = True
         deadline = time.monotonic() + 40
-        while (len(vehicle.times(SETPOINT)) < setpoints
-               or len(list((tmp_path / "rec").glob(FILE_GLOB))) < parts):
+        while (
+            len(vehicle.times(SETPOINT)) < setpoints or len(list((tmp_path / "rec").glob(FILE_GLOB))) < parts
+        ):
             assert time.monotonic() < deadline, "too few setpoints or recording parts from the companion"
             time.sleep(0.1)
     finally:
@@ -220,6 +233,7 @@ def _record_companion(tmp_path: Path, setpoints: int = 25, recorder: str = "", p
 
 def _with_one_action_changed(src: Path, dst: Path, index: int) -> None:
     """Copy a recording, the ``index``-th policy action moved by one float32 ulp."""
+
     def change(topic: str, data: bytes, n: int) -> bytes:
         if topic != s.POLICY.topic or n != index:
             return data
@@ -233,6 +247,7 @@ def _with_one_action_changed(src: Path, dst: Path, index: int) -> None:
 def _as_before_the_vertical_speed(src: Path, dst: Path) -> None:
     """Copy a recording as the recorder wrote it before setpoints had ``vertical``: without the
     field, under the schema of then."""
+
     def old_schema(name: str, data: bytes) -> bytes:
         if name != "lidar_avoid.Setpoint":
             return data
@@ -253,6 +268,7 @@ def _as_before_the_vertical_speed(src: Path, dst: Path) -> None:
 
 def _with_one_lateral_changed(src: Path, dst: Path, index: int) -> None:
     """Copy a recording, the ``index``-th shield output's sideways part moved by one float64 ulp."""
+
     def change(topic: str, data: bytes, n: int) -> bytes:
         if topic != s.SHIELD.topic or n != index:
             return data
@@ -266,6 +282,7 @@ def _with_one_lateral_changed(src: Path, dst: Path, index: int) -> None:
 def _as_before_the_lateral(src: Path, dst: Path) -> None:
     """Copy a recording as the recorder wrote it before /shield had ``lateral``: the requested and
     output commands without it, under the schema of then."""
+
     def old_schema(name: str, data: bytes) -> bytes:
         if name != "lidar_avoid.ShieldStep":
             return data
@@ -288,14 +305,16 @@ def _as_before_the_lateral(src: Path, dst: Path) -> None:
 
 def _as_before_the_yaw_cap(src: Path, dst: Path) -> None:
     """Copy a recording as the recorder wrote it before the metadata had the yaw cap read."""
+
     def old_metadata(name: str, metadata: dict[str, str]) -> dict[str, str]:
         return {k: v for k, v in metadata.items() if name != s.METADATA_NAME or k != "autopilot_yaw_rate"}
 
     _copy_recording(src, dst, lambda _topic, data, _n: data, metadata=old_metadata)
 
 
-def _copy_recording(src: Path, dst: Path, message, schema=lambda _name, data: data,
-                    metadata=lambda _name, md: md) -> None:
+def _copy_recording(
+    src: Path, dst: Path, message, schema=lambda _name, data: data, metadata=lambda _name, md: md
+) -> None:
     """Copy an MCAP file record by record: ``message(topic, data, n)`` (n: the topic's n-th message,
     from 1), ``schema(name, data)`` and ``metadata(name, map)`` give what is written."""
     with open(src, "rb") as f, open(dst, "wb") as out:
@@ -308,8 +327,9 @@ def _copy_recording(src: Path, dst: Path, message, schema=lambda _name, data: da
         counts: dict[str, int] = {}
         for mcap_schema, channel, msg in reader.iter_messages():
             if channel.topic not in ids:
-                sid = writer.register_schema(mcap_schema.name, mcap_schema.encoding,
-                                             schema(mcap_schema.name, mcap_schema.data))
+                sid = writer.register_schema(
+                    mcap_schema.name, mcap_schema.encoding, schema(mcap_schema.name, mcap_schema.data)
+                )
                 ids[channel.topic] = writer.register_channel(channel.topic, channel.message_encoding, sid)
             counts[channel.topic] = counts.get(channel.topic, 0) + 1
             data = message(channel.topic, msg.data, counts[channel.topic])
@@ -318,8 +338,13 @@ def _copy_recording(src: Path, dst: Path, message, schema=lambda _name, data: da
 
 
 def _replay(path: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "companion", "replay", str(path), *args], cwd=REPO,
-                          capture_output=True, text=True, timeout=120)
+    return subprocess.run(
+        [sys.executable, "-m", "companion", "replay", str(path), *args],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
 
 
 def test_replay_matches_bit_for_bit_and_finds_a_one_ulp_difference(tmp_path):
@@ -354,8 +379,14 @@ def test_replay_builds_the_shield_for_the_recorded_autopilot_and_the_yaw_cap_rea
     was recorded) the replay assumes the firmware default, as the companion does when it reads none."""
     (tmp_path / "copter.parm").write_text("ATC_RATE_WPY_MAX 86\n")
     check = '[params_check]\nmode = "warn"\nfile = "copter.parm"\ntimeout = 5.0\n'
-    (path,) = _record_companion(tmp_path, setpoints=30, extra=check, kind="forward_left", room_m=2.0,
-                                params={"ATC_RATE_WPY_MAX": 45.0})
+    (path,) = _record_companion(
+        tmp_path,
+        setpoints=30,
+        extra=check,
+        kind="forward_left",
+        room_m=2.0,
+        params={"ATC_RATE_WPY_MAX": 45.0},
+    )
     rec = read_recording(path)
     assert json.loads(rec.metadata[s.METADATA_NAME]["config"])["autopilot"]["type"] == "ardupilot"
     assert float(rec.metadata[s.METADATA_NAME]["autopilot_yaw_rate"]) == math.radians(45.0)
@@ -436,8 +467,13 @@ def test_setpoints_record_the_vertical_speed_and_older_recordings_read_as_before
 def test_replay_of_a_file_that_is_not_a_recording_is_one_line_and_exit_2(tmp_path):
     junk = tmp_path / "junk.mcap"
     junk.write_bytes(b"not an mcap file at all")
-    done = subprocess.run([sys.executable, "-m", "companion", "replay", str(junk)], cwd=REPO,
-                          capture_output=True, text=True, timeout=60)
+    done = subprocess.run(
+        [sys.executable, "-m", "companion", "replay", str(junk)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert done.returncode == 2
     assert done.stderr.strip().count("\n") == 0 and "junk.mcap" in done.stderr
 
@@ -451,8 +487,9 @@ def test_recorder_config_is_checked_and_its_directory_is_relative_to_the_config(
     path.write_text(f'[policy]\nmodel = "{model}"\n[recorder]\nenabled = true\n')
     assert load_config(path).recorder.directory == str(default_recording_directory())
     with pytest.raises(UserError, match=r"recorder.*file_mb"):
-        load_config(path, ['recorder.directory="flights"', "recorder.file_mb=500.0",
-                           "recorder.budget_mb=100.0"])
+        load_config(
+            path, ['recorder.directory="flights"', "recorder.file_mb=500.0", "recorder.budget_mb=100.0"]
+        )
     path.write_text(f'[policy]\nmodel = "{model}"\n[recorder]\nenabled = true\ndirectory = "flights"\n')
     monkeypatch.chdir(tmp_path.parent)
     assert load_config(path).recorder.directory == str(tmp_path / "flights")
@@ -479,8 +516,9 @@ def test_a_later_part_of_a_rotated_recording_replays_on_its_own(tmp_path):
     """A part that starts mid-flight: the frame stack is taken from its first observation, and
     shield steps are checked from the shield's first reset in the part on (its state before the
     part is not in it)."""
-    parts = _record_companion(tmp_path, setpoints=60, recorder="file_mb = 1.0\ncloud_decimation = 1\n",
-                              parts=4)
+    parts = _record_companion(
+        tmp_path, setpoints=60, recorder="file_mb = 1.0\ncloud_decimation = 1\n", parts=4
+    )
 
     def starts_mid_flight(path: Path) -> bool:
         steps = read_recording(path).topic(s.POLICY.topic)
@@ -524,3 +562,126 @@ def test_the_recorded_yaw_cap_reads_back_exactly_and_is_none_when_not_read_or_no
     assert recorded_autopilot_yaw_rate(recording()) is None  # recorded before the key existed
     with pytest.raises(UserError, match=r"f\.mcap: recorded autopilot_yaw_rate 'fast'"):
         recorded_autopilot_yaw_rate(recording(autopilot_yaw_rate="fast"))
+
+
+# ---- what-if with shield settings changed (--set) ----------------------------------------------
+
+#: the real ArduPilot/PX4 SITL flights with ground truth (``../shared`` beside the repository), as
+#: tests/companion/test_envelope.py finds them
+FLIGHTS = Path(os.environ.get("LIDAR_AVOID_SHARED", Path(__file__).resolve().parents[3] / "shared")) / (
+    "fixtures/real-sitl-flights"
+)
+#: one of the four flights that ended in contact (flights.csv: collision True)
+COLLISION_FLIGHT = "ardupilot-project-nav-narrow-gap.mcap"
+#: the model the shared flights were flown with
+FLOWN_MODEL = REPO / "models" / "policy.onnx"
+
+
+def test_replay_set_takes_shield_keys_through_the_config_checks_and_names_a_bad_one():
+    from companion.common.errors import UserError
+    from companion.config import CompanionConfig
+    from companion.replay import with_settings
+
+    config = CompanionConfig()
+    assert with_settings(config, []) == config  # the round trip through the loader changes nothing
+    gated = with_settings(config, ["shield.backup_gate=true", "shield.max_speed = 1.5"])
+    assert gated.shield.backup_gate is True and gated.shield.max_speed == 1.5
+    assert config.shield.backup_gate is False and gated.policy == config.policy
+    refused = {
+        "shield.backup_gat=true": r"^--set shield\.backup_gat: unknown config key$",
+        "shield.backup_gate=maybe": r"^--set shield\.backup_gate: expected true or false, got 'maybe'$",
+        "shield.max_speed=fast": r"^--set shield\.max_speed: expected a number",
+        "shield.max_speed=-1.0": r"^--set shield\.max_speed: -1\.0 is below the minimum",
+        "policy.stack=2": r"^--set policy\.stack=2: expected shield\.KEY=VALUE",
+        "shield.backup_gate": r"^--set shield\.backup_gate: expected shield\.KEY=VALUE",
+    }
+    for item, message in refused.items():
+        with pytest.raises(UserError, match=message):
+            with_settings(config, [item])
+
+
+def test_the_contact_and_the_approach_figures_follow_the_harness_rule_and_the_last_seconds():
+    from companion.replay import (
+        CONTACT_RADIUS_M,
+        TRUTH_STATE_TOPIC,
+        Contact,
+        Step,
+        approach_figures,
+        first_contact,
+        least_clearance,
+    )
+    from flightsim.sitl.recording import TRUTH_STATE
+    from flightsim.worlds.world import DEFAULT_VEHICLE_RADIUS
+
+    assert CONTACT_RADIUS_M == DEFAULT_VEHICLE_RADIUS and TRUTH_STATE.topic == TRUTH_STATE_TOPIC
+
+    def truth(t: float, clearance: float | None, z: float = 1.5) -> tuple[float, dict]:
+        return t, {"clearance": clearance, "position": {"x": 0.0, "y": 0.0, "z": z}}
+
+    # on the ground (the floor is near) and unknown do not count; the first in the air below 0.25 m does
+    samples = [truth(1.0, 0.1, z=0.2), truth(2.0, None), truth(3.0, 0.26), truth(4.0, 0.24), truth(5.0, 0.2)]
+    assert first_contact(samples) == Contact(4.0, 0.24)
+    assert first_contact(samples[:3]) is None and least_clearance(samples[:3]) == 0.26
+
+    def step(t: float, recorded: tuple[float, float], new: tuple[float, float]) -> Step:
+        return Step(t, (recorded[0], 0.3, recorded[1]), (new[0], 0.3, new[1]), 1.0, [], [])
+
+    steps = [
+        step(1.0, (1.0, 0.0), (0.5, 0.0)),  # less, long before: the first
+        step(7.5, (1.0, 0.0), (1.0, 0.0)),  # before the last 2 s
+        step(8.5, (0.6, 0.8), (0.0, 0.6)),  # speed 1.0 vs 0.6: less
+        step(9.0, (2.0, float("nan")), (2.0, 0.0)),  # lateral not recorded: 2.0 vs 2.0
+        step(9.5, (-0.3, 0.4), (-0.3, 0.4)),  # 0.5 vs 0.5
+        step(10.5, (3.0, 0.0), (0.0, 0.0)),  # after the contact: not counted
+    ]
+    a = approach_figures(steps, contact_t=10.0, window=2.0)
+    assert a.first_less_s == pytest.approx(9.0) and a.last_less_s == pytest.approx(1.5)
+    assert (a.less_in_window, a.in_window) == (1, 3)
+    assert a.recorded_mean == pytest.approx((1.0 + 2.0 + 0.5) / 3) and a.recorded_max == 2.0
+    assert a.new_mean == pytest.approx((0.6 + 2.0 + 0.5) / 3) and a.new_max == 2.0
+    same = approach_figures([step(9.0, (1.0, 0.0), (1.0 - 1e-9, 0.0))], contact_t=10.0)
+    assert same.first_less_s is None and same.less_in_window == 0  # float noise is not less
+
+
+def test_replay_with_the_backup_gate_on_a_real_collision_flight_asks_less_before_the_contact(tmp_path):
+    """The shared ArduPilot SITL flight that hit the narrow gap's wall: replayed as flown it matches
+    bit for bit; with ``--set shield.backup_gate=true`` the gate asks for less speed on the way in
+    (open loop: on the recorded path); with the gate as recorded (off) nothing differs; a bad key is
+    one line naming it."""
+    if not FLIGHTS.is_dir():
+        pytest.skip(f"the real SITL recordings are not here: {FLIGHTS}")
+    import re
+
+    from companion.recording.recorder import file_digest
+
+    flight = FLIGHTS / COLLISION_FLIGHT
+    assert file_digest(FLOWN_MODEL) == read_recording(flight).metadata[s.METADATA_NAME]["model_sha256"]
+    model = ("--policy", str(FLOWN_MODEL))
+
+    same = _replay(flight, *model)
+    assert same.returncode == 0 and "matches bit for bit" in same.stdout, same.stdout + same.stderr
+
+    gated = _replay(flight, *model, "--set", "shield.backup_gate=true", "--plot", str(tmp_path / "gate.png"))
+    assert gated.returncode == 0, gated.stdout + gated.stderr
+    out = gated.stdout
+    assert "what-if: shield.backup_gate=true" in out and "gate_slowed" in out
+    assert "heading: not in the recording" in out  # neither /shield nor /vehicle/status holds it
+    line = re.search(
+        r"contact at t=([\d.]+) s .*first asked for less speed ([\d.]+) s before it .* on (\d+) of (\d+) "
+        r"setpoints; .*mean ([\d.]+) vs ([\d.]+) m/s, max ([\d.]+) vs ([\d.]+) m/s",
+        out,
+    )
+    assert line, out
+    contact, first, less, count, rec_mean, new_mean, rec_max, new_max = map(float, line.groups())
+    assert contact == pytest.approx(16.27, abs=0.05)  # the truth's first sample inside 0.25 m
+    assert first > 3.0 and less >= count / 2
+    assert new_mean < 0.6 * rec_mean and new_max <= rec_max
+
+    ungated = _replay(flight, *model, "--set", "shield.backup_gate=false", "--plot", str(tmp_path / "no.png"))
+    assert ungated.returncode == 0, ungated.stdout + ungated.stderr
+    assert "|Δ forward| mean 0.000 max 0.000 m/s" in ungated.stdout
+    assert "never asked for less speed" in ungated.stdout and "heading:" not in ungated.stdout
+
+    bad = _replay(flight, *model, "--set", "shield.backup_gat=true")
+    assert bad.returncode == 2 and bad.stdout == ""
+    assert bad.stderr.strip().splitlines()[-1].endswith("--set shield.backup_gat: unknown config key")
