@@ -9,6 +9,15 @@ seeds in the same run. Prints per attacker and shield: episodes, collisions, the
     python bench/bench_shield_attack.py [--seeds 4] [--first-seed 599000] [--max-steps 400]
         [--workers 2] [--policy models/policy.onnx]
 
+With ``--search``, instead the search-based attacker (:mod:`training.attack_search`: a command
+sequence optimised by the cross-entropy method, each candidate flown) attacks one world of each
+family in ``--worlds`` (seed ``--first-seed``, difficulty ``--difficulty``) behind the rules and
+behind the gate; per world it prints the least clearance and whether the worst sequence collided,
+then the episodes flown:
+
+    python bench/bench_shield_attack.py --search [--worlds forest,gaps,warehouse] [--generations 3]
+        [--population 8] [--max-steps 150] [--difficulty 0.9] [--workers 2]
+
 The worlds are validation seeds (599,000 on by default), which no shield rule was tuned on.
 """
 
@@ -19,10 +28,11 @@ import time
 from pathlib import Path
 
 from companion.safety.shield import ShieldConfig
+from training.attack_search import SearchConfig, search_attack
 from training.attackers import ATTACKERS
 from training.config import load_train_config
 from training.episodes import NAV_ENV_ID, goal_worlds
-from training.evaluate import evaluate
+from training.evaluate import evaluate, make_executor
 
 CONFIG = Path(__file__).resolve().parents[1] / "training" / "configs" / "nav.toml"
 
@@ -34,7 +44,16 @@ def main() -> None:
     parser.add_argument("--max-steps", type=int, default=400, help="steps per episode (10 a second)")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--policy", type=Path, default=None, help="also fly this policy")
+    search = parser.add_argument_group("search", "the search-based attacker (--search)")
+    search.add_argument("--search", action="store_true", help="fly the search-based attacker instead")
+    search.add_argument("--worlds", default="forest,gaps,warehouse", help="families, one world each")
+    search.add_argument("--difficulty", type=float, default=0.9, help="the worlds' difficulty")
+    search.add_argument("--generations", type=int, default=3)
+    search.add_argument("--population", type=int, default=8, help="candidates (episodes) per generation")
     args = parser.parse_args()
+    if args.search:
+        search_bench(args)
+        return
     config = load_train_config(CONFIG, [f"env.max_steps={args.max_steps}"])
     env_config = config.env_config()
     worlds = goal_worlds(env_config.families, args.first_seed, args.seeds, env_config.difficulty_range)
@@ -54,6 +73,30 @@ def main() -> None:
                 f"({worst.response.get('name', '?') if worst.response else 'ideal'}, step {worst.steps})"
             )
         print(f"  ({time.perf_counter() - start:.0f} s wall)")
+
+
+def search_bench(args: argparse.Namespace) -> None:
+    """The search-based attacker behind the rules and behind the gate, world by world."""
+    config = load_train_config(CONFIG, [f"env.max_steps={args.max_steps}"])
+    families = [f.strip() for f in args.worlds.split(",") if f.strip()]
+    worlds = goal_worlds(families, args.first_seed, 1, (args.difficulty, args.difficulty))
+    budget = SearchConfig(generations=args.generations, population=args.population)
+    print(f"search: {budget.generations} generations x {budget.population}, {args.max_steps} steps each")
+    print(f"{'world':22} {'shield':6} {'least m':>8} {'collided':>8} {'per generation (least m)'}")
+    total, start = 0, time.perf_counter()
+    with make_executor(args.workers) as executor:
+        for world in worlds:
+            for gate in (False, True):
+                found = search_attack(
+                    world, config.env, True, ShieldConfig(backup_gate=gate), budget, executor, NAV_ENV_ID
+                )
+                total += found.episodes
+                history = " ".join(f"{h:.3f}" for h in found.history)
+                print(
+                    f"{world.name:22} {'gate' if gate else 'rules':6} {found.min_clearance:8.3f} "
+                    f"{'yes' if found.collision else 'no':>8} {history}"
+                )
+    print(f"  ({total} episodes, {time.perf_counter() - start:.0f} s wall)")
 
 
 if __name__ == "__main__":

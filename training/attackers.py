@@ -6,11 +6,16 @@ each reads only the scan (as a policy would) and steers into what it sees. Flown
 
 Each turns a frame (its first 360 values the normalised scan) into an action in ``[-1, 1]`` of the
 env's action size: 2 (forward, yaw) or 3 (forward, yaw, left).
+
+:class:`ReplayAttacker` is the odd one: blind, it replays a sequence of actions found beforehand by
+flying candidates on one world and seed (:mod:`training.attack_search`). It is not among
+:data:`ATTACKERS`, which fly without a sequence; :data:`REPLAY` names it.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -18,6 +23,8 @@ from companion.perception.scan import N_BINS
 
 #: the attackers by name
 ATTACKERS = ("ram", "dash", "held_random")
+#: the sequence replayer's name (:class:`ReplayAttacker`), for a ``ControllerSpec`` carrying ``actions``
+REPLAY = "replay"
 
 
 class RamAttacker:
@@ -95,6 +102,31 @@ class HeldRandomAttacker(_Held):
 
     def _draw(self) -> np.ndarray:
         return self._rng.uniform(-1.0, 1.0, self._size).astype(np.float32)
+
+
+class ReplayAttacker:
+    """A fixed action per step, whatever the scans show: an open-loop sequence, so that a search
+    over sequences (:mod:`training.attack_search`) scores each candidate by flying exactly it.
+    Past its end it holds its last action (keeps pushing where it was going).
+
+    :param actions: one action per step, the first for the reset; each of ``action_size`` values,
+        clipped to ``[-1, 1]``
+    :param action_size: 2 or 3
+    """
+
+    def __init__(self, actions: Sequence[Sequence[float]], action_size: int) -> None:
+        steps = np.asarray(actions, dtype=np.float32).reshape(-1, action_size)
+        self._actions = np.clip(steps, -1.0, 1.0) if len(steps) else np.zeros((1, action_size), np.float32)
+        self._step = 0
+
+    def reset(self, scan: np.ndarray) -> np.ndarray:
+        self._step = 0
+        return self.act(scan)
+
+    def act(self, scan: np.ndarray) -> np.ndarray:
+        action = self._actions[min(self._step, len(self._actions) - 1)]
+        self._step += 1
+        return action.copy()
 
 
 def make_attacker(kind: str, seed: int, action_size: int) -> RamAttacker | DashAttacker | HeldRandomAttacker:

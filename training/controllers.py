@@ -21,7 +21,7 @@ from companion.common.errors import UserError
 from companion.perception.framestack import FrameStack
 from companion.perception.scan import N_BINS
 from companion.safety.shield import Command, SafetyShield, ShieldConfig, command_from_action
-from training.attackers import ATTACKERS, make_attacker
+from training.attackers import ATTACKERS, REPLAY, ReplayAttacker, make_attacker
 from training.config import STEP_SECONDS, observation_layout, sideways_scale
 from training.path_expert import ExpertController, PathExpert
 from training.predictive_expert import PredictiveExpert, robust_expert, smooth_expert
@@ -175,7 +175,8 @@ def sb3_controller(model: Any, n_stack: int, frame_size: int = N_BINS) -> Stacke
 @dataclass(frozen=True)
 class ControllerSpec:
     """What to build in a worker: ``kind`` is ``policy`` (``path``) or one of :data:`BASELINES` /
-    :data:`GOAL_BASELINES` / :data:`PRIVILEGED_GOAL_CONTROLLERS` / :data:`~training.attackers.ATTACKERS`;
+    :data:`GOAL_BASELINES` / :data:`PRIVILEGED_GOAL_CONTROLLERS` / :data:`~training.attackers.ATTACKERS`,
+    or :data:`~training.attackers.REPLAY` (replaying ``actions``, one per step);
     ``shield``: behind the
     companion's safety shield, with ``shield_config``'s limits (None: the defaults)."""
 
@@ -184,6 +185,8 @@ class ControllerSpec:
     name: str = ""
     shield: bool = False
     shield_config: ShieldConfig | None = None
+    #: what a :data:`~training.attackers.REPLAY` controller replays (a tuple: the spec stays hashable)
+    actions: tuple[tuple[float, ...], ...] = ()
 
     @property
     def label(self) -> str:
@@ -234,6 +237,8 @@ def _bare_controller(
     """The controller itself (policies are loaded once per process)."""
     if spec.kind in ATTACKERS:
         return make_attacker(spec.kind, seed, 3 if sideways_scale(env_config) else 2)
+    if spec.kind == REPLAY:
+        return ReplayAttacker(spec.actions, 3 if sideways_scale(env_config) else 2)
     baseline = _baseline(spec, env_config, seed)
     if baseline is not None:
         return NoSidewaysController(baseline) if sideways_scale(env_config) else baseline
