@@ -21,6 +21,11 @@ Each model is ``Gemm(obs, W, b)`` (optionally followed by ``Clip`` to [-1, 1]) b
 - ``big``: a = (5, −5) without the Clip node (the companion must clip)
 - ``nan`` / ``inf``: non-finite output (an inference fault)
 - ``error``: raises inside ONNX Runtime at inference (a Reshape that cannot fit)
+- ``ram`` / ``ram_strafe``: an attacker, not a ``Gemm``: ``ArgMin`` over the newest scan finds the
+  nearest return and a ``Gather`` looks up that bin's action: full speed along its bearing (the
+  forward and sideways parts scaled so the larger is 1; a two-value action flies full forward) and,
+  for ``ram``, full yaw rate towards it (proportional within 30°); ``ram_strafe`` keeps the nose
+  (:func:`ram_table`)
 """
 
 from __future__ import annotations
@@ -41,9 +46,29 @@ COMPANION_SPEC = policy_spec(CompanionConfig())
 #: A scan-only model's spec (LidarAvoid-v0), for tests of scan-only behaviour
 SCAN_SPEC = PolicySpec()
 
-KINDS = ("forward", "stop", "turn_left", "turn_right", "forward_left", "slide_left", "steer", "echo",
-         "echo_goal", "echo_velocity", "echo_drift", "echo_command", "echo_firmware", "big", "nan", "inf",
-         "error")
+KINDS = (
+    "forward",
+    "stop",
+    "turn_left",
+    "turn_right",
+    "forward_left",
+    "slide_left",
+    "steer",
+    "echo",
+    "echo_goal",
+    "echo_velocity",
+    "echo_drift",
+    "echo_command",
+    "echo_firmware",
+    "big",
+    "nan",
+    "inf",
+    "error",
+    "ram",
+    "ram_strafe",
+)
+#: the attackers' yaw: full rate beyond this bearing of the nearest return, proportional within, rad
+RAM_YAW_FULL_RAD = np.radians(30.0)
 OPSET = 17
 IR_VERSION = 8  # accepted by every onnxruntime the project supports
 
@@ -108,6 +133,51 @@ def _weights(kind: str, spec: PolicySpec, input_size: int, output_size: int) -> 
     return w, b
 
 
+def ram_table(spec: PolicySpec, output_size: int, turn: bool = True) -> np.ndarray:
+    """``(n_bins, output_size)``: the action the ``ram`` (``turn``) and ``ram_strafe`` models answer
+    when bin ``i`` holds the nearest return.
+
+    The bin's centre bearing θ (counter-clockwise from forward) is the course: the velocity
+    (max_speed·a0, max_sideways_speed·a2) points along (cos θ, sin θ) at the highest speed the
+    action's [-1, 1] box allows (one of a0, a2 is ±1). A two-value action cannot fly sideways: it
+    flies full forward (a0 = 1), turning towards the return. ``turn``: a1 = θ / 30°, clipped to
+    [-1, 1] (θ wrapped into (-180°, 180°]): full yaw rate towards the return until it is within 30°.
+    """
+    bearing = np.radians(np.arange(spec.n_bins) + 0.5) * (360.0 / spec.n_bins)
+    bearing = np.arctan2(np.sin(bearing), np.cos(bearing))  # (-π, π]
+    table = np.zeros((spec.n_bins, output_size), dtype=np.float32)
+    if output_size >= 3:
+        # the speed along (cos θ, sin θ) at which the larger of a0, a2 reaches 1
+        scale = 1.0 / np.maximum(
+            np.abs(np.cos(bearing)) / spec.max_speed, np.abs(np.sin(bearing)) / spec.max_sideways_speed
+        )
+        table[:, 0] = np.cos(bearing) * scale / spec.max_speed
+        table[:, 2] = np.sin(bearing) * scale / spec.max_sideways_speed
+    else:
+        table[:, 0] = 1.0
+    if turn:
+        table[:, 1] = np.clip(bearing / RAM_YAW_FULL_RAD, -1.0, 1.0)
+    return np.clip(table, -1.0, 1.0)
+
+
+def _ram_graph(kind: str, spec: PolicySpec, n_in: int, output_size: int) -> tuple[list, list]:
+    """Nodes and initialisers of the ``ram`` models: Slice (the newest scan) → ArgMin → Gather."""
+    newest = n_in - spec.layout.frame_size
+    scan = spec.layout.slices()["scan"]
+    nodes = [
+        helper.make_node("Slice", ["obs", "scan_start", "scan_end", "scan_axis"], ["scan"]),
+        helper.make_node("ArgMin", ["scan"], ["nearest"], axis=1, keepdims=0),
+        helper.make_node("Gather", ["table", "nearest"], ["action"], axis=0),
+    ]
+    inits = [
+        numpy_helper.from_array(np.array([newest + scan.start], dtype=np.int64), "scan_start"),
+        numpy_helper.from_array(np.array([newest + scan.stop], dtype=np.int64), "scan_end"),
+        numpy_helper.from_array(np.array([1], dtype=np.int64), "scan_axis"),
+        numpy_helper.from_array(ram_table(spec, output_size, turn=kind == "ram"), "table"),
+    ]
+    return nodes, inits
+
+
 def write_policy(
     path: str | Path,
     *,
@@ -130,10 +200,13 @@ def write_policy(
     path = Path(path)
     n_in = spec.obs_size if input_size is None else input_size
     output_size = spec.action_size if output_size is None else output_size
-    w, b = _weights(kind, spec, n_in, output_size)
-    clipped = kind not in ("big", "inf")
-    nodes = [helper.make_node("Gemm", ["obs", "W", "B"], ["raw" if clipped else "action"])]
-    inits = [numpy_helper.from_array(w, "W"), numpy_helper.from_array(b, "B")]
+    clipped = kind not in ("big", "inf", "ram", "ram_strafe")  # (a ram's table is within [-1, 1])
+    if kind in ("ram", "ram_strafe"):
+        nodes, inits = _ram_graph(kind, spec, n_in, output_size)
+    else:
+        w, b = _weights(kind, spec, n_in, output_size)
+        nodes = [helper.make_node("Gemm", ["obs", "W", "B"], ["raw" if clipped else "action"])]
+        inits = [numpy_helper.from_array(w, "W"), numpy_helper.from_array(b, "B")]
     if clipped:
         clip_out = "clipped" if kind == "error" else "action"
         nodes.append(helper.make_node("Clip", ["raw", "lo", "hi"], [clip_out]))

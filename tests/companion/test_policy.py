@@ -26,7 +26,7 @@ from companion.guidance.policy import (
 )
 from companion.perception.observation import ObservationLayout
 from companion.perception.scan import BIN_CONVENTION
-from tests.onnx_models import write_policy
+from tests.onnx_models import COMPANION_SPEC, write_policy
 
 SPEC = PolicySpec()
 
@@ -97,6 +97,30 @@ def test_steer_policy_slows_for_obstacles_and_turns_to_open_side(tmp_path: Path)
     assert a[0] < 0.0 and a[1] > 0.5
 
 
+@pytest.mark.parametrize(
+    ("nearest", "course_deg", "yaw"),
+    [(0, 0.5, 0.5 / 30), (90, 90.5, 1.0), (200, -159.5, -1.0), (350, -9.5, -9.5 / 30)],
+)
+def test_the_ram_model_asks_full_speed_at_the_nearest_return(
+    tmp_path: Path, nearest: int, course_deg: float, yaw: float
+) -> None:
+    spec = COMPANION_SPEC  # the goal layout, a three-value action (forward, yaw, left)
+    policy = OnnxPolicy(write_policy(tmp_path / "ram.onnx", kind="ram"), spec)
+    frame = spec.layout.frame_size
+    obs = np.full(spec.obs_size, 0.5, np.float32)
+    obs[:-frame] = 0.0  # older frames closer everywhere: only the newest scan counts
+    obs[-frame + nearest] = 0.1
+    a0, a1, a2 = policy.act(obs)
+    vx, vy = a0 * spec.max_speed, a2 * spec.max_sideways_speed
+    assert np.degrees(np.arctan2(vy, vx)) == pytest.approx(course_deg, abs=1e-3)
+    assert max(abs(a0), abs(a2)) == pytest.approx(1.0)  # full scale along that course
+    assert a1 == pytest.approx(yaw, abs=1e-5)
+    strafe = OnnxPolicy(write_policy(tmp_path / "strafe.onnx", kind="ram_strafe"), spec)
+    assert strafe.act(obs).tolist() == pytest.approx([a0, 0.0, a2])
+    two = OnnxPolicy(write_policy(tmp_path / "two.onnx", kind="ram", spec=SPEC), SPEC)  # no sideways part
+    assert two.act(stacked(obs[-frame:][:360])).tolist() == pytest.approx([1.0, yaw], abs=1e-5)
+
+
 def test_actions_are_clipped(tmp_path: Path) -> None:
     policy = OnnxPolicy(write_policy(tmp_path / "p.onnx", spec=SPEC, kind="big"), SPEC)
     out = policy.act(np.zeros(1440, np.float32))
@@ -141,8 +165,11 @@ def test_input_size_mismatch_names_both(tmp_path: Path) -> None:
 
 
 def test_output_size_mismatch(tmp_path: Path) -> None:
-    with pytest.raises(UserError, match=r"model output \(N, 4\) does not match config \(1, 2\) float32 "
-                                        r"\(policy.max_sideways_speed 0\)$"):
+    with pytest.raises(
+        UserError,
+        match=r"model output \(N, 4\) does not match config \(1, 2\) float32 "
+        r"\(policy.max_sideways_speed 0\)$",
+    ):
         OnnxPolicy(write_policy(tmp_path / "p.onnx", spec=SPEC, output_size=4), SPEC)
 
 
@@ -167,12 +194,23 @@ def test_a_sideways_model_loads_under_a_sideways_config_and_acts_with_three_valu
 @pytest.mark.parametrize(
     ("model_spec", "config_spec", "message"),
     [
-        (SIDEWAYS_SPEC, SPEC, "model output (N, 3) does not match config (1, 2) float32 (policy.max_sideways_"
-                              f"speed 0; set policy.max_sideways_speed = 1{AS_THE_MODEL_SAYS})"),
-        (SPEC, SIDEWAYS_SPEC, "model output (N, 2) does not match config (1, 3) float32 (policy.max_sideways_"
-                              f"speed 1; set policy.max_sideways_speed = 0{AS_THE_MODEL_SAYS})"),
-        (dataclasses.replace(SPEC, max_sideways_speed=0.5), SIDEWAYS_SPEC,
-         "model max_sideways_speed 0.5 does not match config policy.max_sideways_speed 1.0"),
+        (
+            SIDEWAYS_SPEC,
+            SPEC,
+            "model output (N, 3) does not match config (1, 2) float32 (policy.max_sideways_"
+            f"speed 0; set policy.max_sideways_speed = 1{AS_THE_MODEL_SAYS})",
+        ),
+        (
+            SPEC,
+            SIDEWAYS_SPEC,
+            "model output (N, 2) does not match config (1, 3) float32 (policy.max_sideways_"
+            f"speed 1; set policy.max_sideways_speed = 0{AS_THE_MODEL_SAYS})",
+        ),
+        (
+            dataclasses.replace(SPEC, max_sideways_speed=0.5),
+            SIDEWAYS_SPEC,
+            "model max_sideways_speed 0.5 does not match config policy.max_sideways_speed 1.0",
+        ),
     ],
 )
 def test_a_model_of_another_action_is_refused_naming_the_fix(
