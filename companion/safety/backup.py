@@ -63,6 +63,8 @@ _DIR_UNIT = np.stack([np.cos(_DIR_RAD), np.sin(_DIR_RAD)], axis=1)
 MAX_HORIZON_S = 8.0
 #: returns searched at once in :func:`separation`
 _CHUNK = 64
+#: returns sorted before the search starts (the rest only if it gets that far)
+_HEAD = 4 * _CHUNK
 #: fractions of the asked velocity tried when it does not pass, fastest first
 _SCALES = np.linspace(1.0, 0.0, 11)
 
@@ -83,9 +85,14 @@ def separation(points: np.ndarray, inflation: np.ndarray, displacement: np.ndarr
     # never lifts the bound over the room it bounds): take the returns in that order, and leave a
     # candidate where the bound cannot go below what the nearer ones left it
     bound = np.hypot(pts[:, 0], pts[:, 1]) * math.cos(math.pi / N_DIRECTIONS) - grown - 1e-9
-    order = np.argsort(bound)
+    # sorted lazily: the nearest few chunks first (usually all it takes), the rest only if reached
+    head = min(len(bound), _HEAD)
+    part = np.argpartition(bound, head - 1) if len(bound) > head else np.arange(len(bound))
+    order = part[:head][np.argsort(bound[part[:head]])]
     farthest = displacement.max(axis=1, initial=-math.inf)
-    for start in range(0, len(order), _CHUNK):
+    for start in range(0, len(bound), _CHUNK):
+        if start >= len(order):  # every one left bounds no lower than those taken
+            order = np.concatenate([order, part[head:][np.argsort(bound[part[head:]])]])
         chunk = order[start : start + _CHUNK]
         open_ = np.flatnonzero(~(bound[chunk[0]] - farthest >= least))  # a NaN reach stays open
         if len(open_) == 0:
