@@ -33,6 +33,17 @@ horizon, every reachable position ``d`` has ``d·m <= X_m`` for all ``m``; so fo
 separates it: ``max_m (o·m - X_m) >= body_radius + margin`` (:func:`separation`). The worst case is
 bounded towards 72 directions; a wall beside the course is separated by its normal, a return ahead
 by its bearing.
+
+*Cost* (``bench/bench_shield.py``; the budget is 5 % of the scan period at the 99th percentile).
+Every shortcut gives the rooms of the plain computation (``tests/companion/test_backup_gate.py``
+holds it to them). While the gate passes, :meth:`BackupGate.choose` judges the asked command alone
+first; once it refuses, the asked and its candidates share one worst case (the asked still judged
+on its own horizon). A (candidate, direction) pair whose targets the candidate never raises above
+the history's and the backup's shares their worst case. The integration stops where every
+direction has stopped (a guess, checked, else the whole horizon). :func:`separation` takes the
+returns by a lower bound of their room and leaves a candidate once no further return can go below
+it. Slower is not always safer (of a command away from a return, the slower one raises the worst
+case towards it more), so every candidate is judged, none found by bisection.
 """
 
 from __future__ import annotations
@@ -52,6 +63,8 @@ _DIR_UNIT = np.stack([np.cos(_DIR_RAD), np.sin(_DIR_RAD)], axis=1)
 MAX_HORIZON_S = 8.0
 #: returns searched at once in :func:`separation`
 _CHUNK = 64
+#: returns sorted before the search starts (the rest only if it gets that far)
+_HEAD = 4 * _CHUNK
 #: fractions of the asked velocity tried when it does not pass, fastest first
 _SCALES = np.linspace(1.0, 0.0, 11)
 
@@ -67,20 +80,26 @@ def separation(points: np.ndarray, inflation: np.ndarray, displacement: np.ndarr
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     grown = np.asarray(inflation, dtype=np.float64)
     least = np.full(len(displacement), math.inf)
-    if len(pts) == 0:
-        return least
     # each return's own bearing (within half a sector of a direction) separates it by at least
-    # |o| cos(half a sector) - inflation - the farthest reach: take the returns in that order, and
-    # stop where that bound cannot go below what the nearer ones left
-    reach = float(displacement.max())
-    bound = np.hypot(pts[:, 0], pts[:, 1]) * math.cos(math.pi / N_DIRECTIONS) - grown - reach
-    order = np.argsort(bound)
-    for start in range(0, len(order), _CHUNK):
+    # |o| cos(half a sector) - inflation - the candidate's farthest reach (less a hair, so rounding
+    # never lifts the bound over the room it bounds): take the returns in that order, and leave a
+    # candidate where the bound cannot go below what the nearer ones left it
+    bound = np.hypot(pts[:, 0], pts[:, 1]) * math.cos(math.pi / N_DIRECTIONS) - grown - 1e-9
+    # sorted lazily: the nearest few chunks first (usually all it takes), the rest only if reached
+    head = min(len(bound), _HEAD)
+    part = np.argpartition(bound, head - 1) if len(bound) > head else np.arange(len(bound))
+    order = part[:head][np.argsort(bound[part[:head]])]
+    farthest = displacement.max(axis=1, initial=-math.inf)
+    for start in range(0, len(bound), _CHUNK):
+        if start >= len(order):  # every one left bounds no lower than those taken
+            order = np.concatenate([order, part[head:][np.argsort(bound[part[head:]])]])
         chunk = order[start : start + _CHUNK]
-        if bound[chunk[0]] >= least.max():
+        open_ = np.flatnonzero(~(bound[chunk[0]] - farthest >= least))  # a NaN reach stays open
+        if len(open_) == 0:
             break
         along = pts[chunk] @ _DIR_UNIT.T - grown[chunk][:, None]  # (c, 72)
-        least = np.minimum(least, (along[None, :, :] - displacement[:, None, :]).max(axis=2).min(axis=1))
+        room = (along[None, :, :] - displacement[open_, None, :]).max(axis=2).min(axis=1)
+        least[open_] = np.minimum(least[open_], room)
     return least
 
 
@@ -90,6 +109,27 @@ class _Sent:
 
     times: list[float]
     vectors: list[np.ndarray]
+
+
+@dataclass
+class _WorstCase:
+    """A batch's worst case: what :meth:`BackupGate.passes` would find with any horizon up to ``steps``.
+
+    Integrated per column: the 72 directions without the candidates (the history and the backup
+    alone), then each (candidate, direction) pair the candidate raises above them."""
+
+    reached: np.ndarray  # (n + 1, c) the farthest displacement so far at each step, per column
+    settled: np.ndarray  # (c,) the step each column stops at (``steps`` when it does not)
+    column: np.ndarray  # (m, 72) each pair's column
+    steps: int  # the horizon's steps for the whole batch
+    now_peak: float  # the highest closing speed now
+    cand_peak: np.ndarray  # (m,) each candidate's highest target
+
+    def reach(self, steps: int, rows: np.ndarray | slice = slice(None)) -> np.ndarray:
+        """``(m, 72)`` the worst displacement towards each direction up to the stop, with the horizon cut
+        at ``steps`` (the stop a shorter horizon never reaches is its end), for the candidates ``rows``."""
+        column = self.column[rows]
+        return self.reached[np.minimum(self.settled[column], steps), column]
 
 
 class BackupGate:
@@ -111,10 +151,14 @@ class BackupGate:
         self._sent = _Sent([], [])
         self._time = 0.0
         self._heading = 0.0
+        # whether the last command was refused: then the next likely is too, and the asked is judged
+        # with its candidates in one batch rather than alone first (the same choice, sooner)
+        self._intervening = False
 
     def reset(self) -> None:
         """Forget the setpoints sent (a new engagement starts from a zero setpoint held long)."""
         self._sent = _Sent([], [])
+        self._intervening = False
 
     def advance(self, dt: float, heading: float | None, yaw_rate: float) -> None:
         """Move the gate's clock by ``dt`` and its heading to ``heading`` (rad, counter-clockwise),
@@ -152,57 +196,100 @@ class BackupGate:
         :param inflation: ``(p,)`` their inflation, m
         :return: ``(m,)`` bools and ``(m,)`` the least room left, m
         """
+        worst = self._worst_case(np.atleast_2d(np.asarray(candidates, dtype=np.float64)), velocity)
+        least = separation(points, inflation, worst.reach(worst.steps)) - self.clearance
+        return least >= 0.0, least
+
+    def _worst_case(self, cand: np.ndarray, velocity: tuple[float, float] | None) -> _WorstCase:
+        """The worst case of every candidate in ``cand`` (``(m, 2)``, body), integrated once for all."""
         env = self.envelope
         heading = self._heading
         c, s = math.cos(heading), math.sin(heading)
         units_world = _DIR_UNIT @ np.array([[c, s], [-s, c]])  # body directions turned into the world
-        cand = np.atleast_2d(np.asarray(candidates, dtype=np.float64))
         cand_world = np.stack([c * cand[:, 0] - s * cand[:, 1], s * cand[:, 0] + c * cand[:, 1]], axis=1)
         cand_comp = cand_world @ units_world.T  # (m, 72)
         if velocity is None:
             closing = np.full(N_DIRECTIONS, self.unknown_speed)
         else:
             closing = _DIR_UNIT @ np.asarray(velocity, dtype=np.float64)
+        now_peak = float(np.max(closing)) + env.estimate_error
+        cand_peak = env.target(cand_comp).max(axis=1)  # (m,): each candidate's own horizon
+        steps = self._steps(max(now_peak, float(cand_peak.max())))
+        times = STEP_S * np.arange(steps)
         # the history's highest component in force at each future time, and the candidate's window
-        peak = max(float(np.max(closing)) + env.estimate_error, float(np.max(env.target(cand_comp))))
-        horizon = min(self.period + env.max_delay + max(peak, 0.0) / env.decel + STEP_S, MAX_HORIZON_S)
-        times = STEP_S * np.arange(math.ceil(horizon / STEP_S))
         history = self._history_components(units_world, times)  # (k, 72), -inf where none in force
         # a setpoint counts over every step its span touches (see envelope.window_targets)
         cand_on = (times + STEP_S > env.min_delay) & (times <= self.period + env.max_delay)
         backup_on = times + STEP_S > self.period + env.min_delay
-        highest = np.where(
-            cand_on[:, None, None], np.maximum(history[:, None, :], cand_comp[None]), history[:, None, :]
-        )
-        highest = np.where(backup_on[:, None, None], np.maximum(highest, 0.0), highest)
-        targets = env.target(highest)
-        closing_bound, displacement = worst_closing(np.broadcast_to(closing, cand_comp.shape), targets, env)
+        # the targets without the candidate (the history and the backup), and with it in its window
+        shared = env.target(np.where(backup_on[:, None], np.maximum(history, 0.0), history))  # (k, 72)
+        own = np.maximum(history[cand_on][:, None, :], cand_comp[None])
+        own = env.target(np.where(backup_on[cand_on][:, None, None], np.maximum(own, 0.0), own))  # (w, m, 72)
+        # a pair whose targets the candidate never raises has the shared worst case: integrate the
+        # 72 shared columns and the raised pairs only (each column's arithmetic is the same as alone)
+        raised = np.flatnonzero((own != shared[cand_on][:, None, :]).any(axis=0))  # into (m * 72)
+        direction = raised % N_DIRECTIONS
+        column = np.tile(np.arange(N_DIRECTIONS), (len(cand), 1))
+        column.flat[raised] = N_DIRECTIONS + np.arange(len(raised))
+        targets = np.concatenate([shared, shared[:, direction]], axis=1)  # (k, c)
+        targets[cand_on, N_DIRECTIONS:] = own.reshape(len(own), -1)[:, raised]
+        closing_now = np.concatenate([closing, closing[direction]])
+        floor = float(env.target(np.zeros(())))
+        busy = np.flatnonzero(cand_on | (shared > floor).any(axis=1))  # steps beyond the backup's alone
+        guess = self._settling_steps(targets, int(busy[-1]) + 1 if len(busy) else 0, now_peak, floor)
         # up to the stop: once only the backup is flown and the worst case has come down to its
         # creep, the gate's promise is kept (what creeps on is the keep-out's, see the module doc)
-        stopped = (np.append(0.0, times + STEP_S) >= self.period + env.max_delay)[:, None, None] & (
-            closing_bound <= env.target(np.zeros(())) + 1e-9
-        )
-        settled = np.where(stopped.any(axis=0), stopped.argmax(axis=0), len(times))
-        upto = np.arange(len(times) + 1)[:, None, None] <= settled[None]
-        reach = np.where(upto, displacement, -np.inf).max(axis=0)
-        least = separation(points, inflation, reach) - self.clearance
-        return least >= 0.0, least
+        first = int(np.searchsorted(np.append(0.0, times + STEP_S) >= self.period + env.max_delay, True))
+        # integrate as far as the worst case settles by the estimate, and the whole horizon only
+        # when some column has not settled by then (each column's result is the same either way)
+        for length in (guess, steps) if guess < steps else (steps,):
+            closing_bound, displacement = worst_closing(closing_now, targets[:length], env)
+            stopped = closing_bound[first:] <= floor + 1e-9
+            done = stopped.any(axis=0)
+            if length == steps or done.all():
+                break
+        settled = np.where(done, first + stopped.argmax(axis=0), steps)
+        # the farthest so far: the displacement itself where the bound never goes below 0 (each
+        # step then adds a non-negative length), a running maximum in the few other columns
+        back = np.flatnonzero((closing_bound[: int(settled.max()) + 1] < 0.0).any(axis=0))
+        if len(back):
+            displacement[:, back] = np.maximum.accumulate(displacement[:, back], axis=0)
+        return _WorstCase(displacement, settled, column, steps, now_peak, cand_peak)
+
+    def _settling_steps(self, targets: np.ndarray, end: int, now_peak: float, floor: float) -> int:
+        """A guess of the step by which every column has stopped (after the step ``end`` the targets
+        are the backup's alone): the closing speed is at most the highest target or what braking
+        leaves of the one now, and then falls at ``decel`` once braking is built up. Only the time
+        depends on it, not the result: :meth:`_worst_case` integrates further when it falls short."""
+        env = self.envelope
+        peak = float(targets[:end].max()) if end else -math.inf
+        if math.isinf(env.jerk):  # braking at decel from the start
+            peak = max(peak, now_peak - env.decel * STEP_S * end)
+        else:
+            peak = max(peak, now_peak)
+            end += math.ceil(env.decel / (env.jerk * STEP_S))
+        if not math.isfinite(peak):  # an undefined target (a setpoint not yet in force): no guess
+            return len(targets)
+        return min(len(targets), end + math.ceil(max(peak - floor, 0.0) / (env.decel * STEP_S)) + 2)
+
+    def _steps(self, peak: float) -> int:
+        """The integration steps of the horizon for a worst case whose highest closing speed is ``peak``."""
+        env = self.envelope
+        horizon = min(self.period + env.max_delay + max(peak, 0.0) / env.decel + STEP_S, MAX_HORIZON_S)
+        return math.ceil(horizon / STEP_S)
 
     def _history_components(self, units_world: np.ndarray, times: np.ndarray) -> np.ndarray:
         """``(k, 72)``: the highest component of the setpoints sent before now that may still be
         flown at each future time (``-inf`` when none: only the candidate and the backup)."""
         env = self.envelope
-        out = np.full((len(times), N_DIRECTIONS), -np.inf)
         sent_times = np.asarray(self._sent.times) - self._time  # <= 0
         if len(sent_times) == 0:
-            return np.maximum(out, 0.0)  # a fresh gate: the vehicle was held still
+            return np.zeros((len(times), N_DIRECTIONS))  # a fresh gate: the vehicle was held still
         comps = np.stack(self._sent.vectors) @ units_world.T
         # setpoint j is flown over [t_j + min_delay, t_{j+1} + max_delay]; the newest until the candidate
         ends = np.append(sent_times[1:], 0.0) + env.max_delay
-        for j, (start, end) in enumerate(zip(sent_times + env.min_delay, ends, strict=True)):
-            on = (times + STEP_S > start) & (times <= end)
-            out[on] = np.maximum(out[on], comps[j])
-        return out
+        on = (times + STEP_S > (sent_times + env.min_delay)[:, None]) & (times <= ends[:, None])  # (j, k)
+        return np.where(on[:, :, None], comps[:, None, :], -np.inf).max(axis=0)
 
     def choose(
         self,
@@ -217,14 +304,32 @@ class BackupGate:
         whichever of them leaves the most room, the stop and ``asked`` included. The reason is None,
         ``"gate_slowed"``, ``"gate_backup"`` (the stop) or ``"gate_best_effort"``."""
         want = np.asarray(asked, dtype=np.float64)
-        ok, _ = self.passes(want[None], velocity, points, inflation)
-        if ok[0]:
-            return (float(want[0]), float(want[1])), None
+        if not self._intervening or len(points) == 0:  # passing as the last did: the asked alone first
+            ok, _ = self.passes(want[None], velocity, points, inflation)
+            if ok[0]:
+                self._intervening = False
+                return (float(want[0]), float(want[1])), None
         nearest = points[int(np.argmin(np.hypot(points[:, 0], points[:, 1]) - inflation))]
         towards = nearest / max(float(np.hypot(*nearest)), 1e-9)
         slide = want - max(float(want @ towards), 0.0) * towards
         candidates = np.concatenate([want[None], _SCALES[1:, None] * want, _SCALES[:-1, None] * slide])
-        ok, room = self.passes(candidates, velocity, points, inflation)
+        # one worst case for every candidate (the slide is the asked itself when it does not close
+        # on the nearest return: then the scaled ones only)
+        index = np.arange(len(candidates))
+        if np.array_equal(slide, want):
+            index[len(_SCALES) :] = np.arange(len(_SCALES) - 1)
+        worst = self._worst_case(candidates[: index.max() + 1], velocity)
+        reach = worst.reach(worst.steps)
+        if self._intervening:  # the asked not judged yet: on its own horizon, as if alone
+            alone = worst.reach(self._steps(max(worst.now_peak, float(worst.cand_peak[0]))), slice(0, 1))
+            reach = np.concatenate([reach, alone])
+        least = separation(points, inflation, reach) - self.clearance
+        if self._intervening and least[-1] >= 0.0:
+            self._intervening = False
+            return (float(want[0]), float(want[1])), None
+        self._intervening = True
+        room = least[index]
+        ok = room >= 0.0
         if ok.any():
             distance = np.where(ok, np.hypot(*(candidates - want).T), np.inf)
             pick = int(np.argmin(distance))
