@@ -214,7 +214,7 @@ class BackupGate:
             closing = _DIR_UNIT @ np.asarray(velocity, dtype=np.float64)
         now_peak = float(np.max(closing)) + env.estimate_error
         cand_peak = env.target(cand_comp).max(axis=1)  # (m,): each candidate's own horizon
-        steps = self._steps(max(now_peak, float(cand_peak.max())))
+        steps = self._steps(max(now_peak, float(cand_peak.max()), self._history_peak()))
         times = STEP_S * np.arange(steps)
         # the history's highest component in force at each future time, and the candidate's window
         history = self._history_components(units_world, times)  # (k, 72), -inf where none in force
@@ -272,6 +272,12 @@ class BackupGate:
             return len(targets)
         return min(len(targets), end + math.ceil(max(peak - floor, 0.0) / (env.decel * STEP_S)) + 2)
 
+    def _history_peak(self) -> float:
+        """The highest target the setpoints sent may still set, m/s (from their speed: no component
+        is larger): the horizon must cover braking from them, not only from the candidate."""
+        speeds = [float(np.hypot(*v)) for v in self._sent.vectors]
+        return float(self.envelope.target(np.array(max(speeds)))) if speeds else -math.inf
+
     def _steps(self, peak: float) -> int:
         """The integration steps of the horizon for a worst case whose highest closing speed is ``peak``."""
         env = self.envelope
@@ -289,7 +295,13 @@ class BackupGate:
         # setpoint j is flown over [t_j + min_delay, t_{j+1} + max_delay]; the newest until the candidate
         ends = np.append(sent_times[1:], 0.0) + env.max_delay
         on = (times + STEP_S > (sent_times + env.min_delay)[:, None]) & (times <= ends[:, None])  # (j, k)
-        return np.where(on[:, :, None], comps[:, None, :], -np.inf).max(axis=0)
+        out = np.where(on[:, :, None], comps[:, None, :], -np.inf).max(axis=0)
+        # what came before the first one kept (the hold before the engagement's first setpoint, or
+        # one dropped by advance) may be flown until max_delay after it: a zero at most there (a
+        # dropped one's span has ended by then), so no step is left with nothing in force
+        before = times <= sent_times[0] + env.max_delay
+        out[before] = np.maximum(out[before], 0.0)
+        return out
 
     def choose(
         self,
@@ -321,7 +333,8 @@ class BackupGate:
         worst = self._worst_case(candidates[: index.max() + 1], velocity)
         reach = worst.reach(worst.steps)
         if self._intervening:  # the asked not judged yet: on its own horizon, as if alone
-            alone = worst.reach(self._steps(max(worst.now_peak, float(worst.cand_peak[0]))), slice(0, 1))
+            alone_peak = max(worst.now_peak, float(worst.cand_peak[0]), self._history_peak())
+            alone = worst.reach(self._steps(alone_peak), slice(0, 1))
             reach = np.concatenate([reach, alone])
         least = separation(points, inflation, reach) - self.clearance
         if self._intervening and least[-1] >= 0.0:

@@ -174,9 +174,11 @@ def _reference_passes(
     velocity: tuple[float, float] | None,
     points: np.ndarray,
     inflation: np.ndarray,
+    horizon: float | None = None,
 ) -> np.ndarray:
     """The gate's room, written plainly: the whole horizon for every candidate and direction at once,
-    a loop over the setpoints sent, and the separation without pruning (every return, every direction)."""
+    a loop over the setpoints sent, and the separation without pruning (every return, every direction).
+    ``horizon`` (s) replaces the gate's own."""
     env = gate.envelope
     c, s = math.cos(gate._heading), math.sin(gate._heading)
     angles = np.radians(np.arange(N_DIRECTIONS) * 5.0)
@@ -185,11 +187,15 @@ def _reference_passes(
     forward, left = candidates[:, 0], candidates[:, 1]
     comp = np.stack([c * forward - s * left, s * forward + c * left], 1) @ units_world.T
     closing = np.full(N_DIRECTIONS, gate.unknown_speed) if velocity is None else units @ np.asarray(velocity)
-    peak = max(float(closing.max()) + env.estimate_error, float(env.target(comp).max()))
-    horizon = min(gate.period + env.max_delay + max(peak, 0.0) / env.decel + STEP_S, MAX_HORIZON_S)
+    braking = [float(env.target(np.hypot(*v))) for v in gate._sent.vectors]  # from what was sent
+    peak = max(float(closing.max()) + env.estimate_error, float(env.target(comp).max()), *braking)
+    if horizon is None:
+        horizon = min(gate.period + env.max_delay + max(peak, 0.0) / env.decel + STEP_S, MAX_HORIZON_S)
     times = STEP_S * np.arange(math.ceil(horizon / STEP_S))
     history = np.full((len(times), N_DIRECTIONS), -np.inf if gate._sent.times else 0.0)
     sent = np.asarray(gate._sent.times) - gate._time
+    if len(sent):  # the hold before the first setpoint kept
+        history[times <= sent[0] + env.max_delay] = 0.0
     for j, vector in enumerate(gate._sent.vectors):
         end = (sent[j + 1] if j + 1 < len(sent) else 0.0) + env.max_delay
         on = (times + STEP_S > sent[j] + env.min_delay) & (times <= end)
@@ -284,6 +290,34 @@ def test_the_gate_agrees_with_a_plain_reference(seed: int) -> None:
             assert gate.choose(tuple(asked), velocity, points, grown) == _reference_choose(
                 gate, asked, velocity, points, grown
             )
+
+
+def test_the_horizon_covers_braking_from_the_setpoints_still_in_force() -> None:
+    """Just after 2 m/s was sent, the vehicle has not sped up yet, but the firmware may still fly
+    those setpoints for ``max_delay`` and then brake from them: the gate must count that whole
+    stop, never claiming more room than the worst case integrated for as long as it can last."""
+    gate = BackupGate(ARDUPILOT, 0.3)
+    for _ in range(5):
+        gate.advance(0.1, 0.0, 0.0)
+        gate.record((2.0, 0.0))
+    gate.advance(0.1, 0.0, 0.0)
+    stop, still = np.zeros((1, 2)), (0.0, 0.0)
+    points, inflation = np.array([[6.0, 0.0]]), np.zeros(1)
+    _, room = gate.passes(stop, still, points, inflation)
+    whole = _reference_passes(gate, stop, still, points, inflation, horizon=MAX_HORIZON_S)
+    assert room[0] <= whole[0] + 1e-9
+
+
+def test_a_second_call_at_the_same_instant_still_judges_the_command() -> None:
+    """At ``dt = 0`` after the first setpoint, the hold before it is still in force: the room is a
+    number (it was NaN, and the asked went out unjudged) and a command towards a near return fails."""
+    gate = BackupGate(ARDUPILOT, 0.3)
+    gate.advance(0.1, 0.0, 0.0)
+    gate.record((1.0, 0.0))
+    gate.advance(0.0, 0.0, 0.0)
+    points, inflation = np.array([[1.0, 0.0]]), np.zeros(1)
+    ok, room = gate.passes(np.array([[1.0, 0.0]]), (0.5, 0.0), points, inflation)
+    assert np.isfinite(room[0]) and not ok[0]
 
 
 def test_the_whole_horizon_is_integrated_when_the_guess_falls_short(monkeypatch: pytest.MonkeyPatch) -> None:
