@@ -68,8 +68,6 @@ _CHUNK = 64
 _HEAD = 4 * _CHUNK
 #: fractions of the asked velocity tried when it does not pass, fastest first
 _SCALES = np.linspace(1.0, 0.0, 11)
-#: body setpoints tried when not even the stop keeps clear: 0.3 and 0.6 m/s towards 12 bearings, m/s
-_RETREATS = np.concatenate([v * _DIR_UNIT[::6] for v in (0.3, 0.6)])
 
 
 def separation(points: np.ndarray, inflation: np.ndarray, displacement: np.ndarray) -> np.ndarray:
@@ -317,8 +315,7 @@ class BackupGate:
         (scaled down, or with its part towards the nearest return removed, then scaled); else, when
         none passes (the assumptions were left: a return seen late, or closer than the creep allows),
         whichever of them leaves the most room, the stop and ``asked`` included. The reason is None,
-        ``"gate_slowed"``, ``"gate_backup"`` (the stop), ``"gate_best_effort"`` or, when backing away
-        gains more room than any of them, ``"gate_retreat"`` (one of :data:`_RETREATS`)."""
+        ``"gate_slowed"``, ``"gate_backup"`` (the stop) or ``"gate_best_effort"``."""
         want = np.asarray(asked, dtype=np.float64)
         if not self._intervening or len(points) == 0:  # passing as the last did: the asked alone first
             ok, _ = self.passes(want[None], velocity, points, inflation)
@@ -354,12 +351,5 @@ class BackupGate:
         else:
             pick = int(np.argmax(room))
             reason = "gate_best_effort"
-            # out of the assumptions (no stop keeps clear): backing away may still gain room that
-            # none of the asked's variants has, and regain a state a stop keeps clear
-            worst = self._worst_case(_RETREATS, velocity)
-            away = separation(points, inflation, worst.reach(worst.steps)) - self.clearance
-            if away.max() > room[pick]:
-                best = _RETREATS[int(np.argmax(away))]
-                return (float(best[0]), float(best[1])), "gate_retreat"
         best = candidates[pick]
         return (float(best[0]), float(best[1])), reason

@@ -320,20 +320,6 @@ def test_a_second_call_at_the_same_instant_still_judges_the_command() -> None:
     assert np.isfinite(room[0]) and not ok[0]
 
 
-def test_out_of_its_assumptions_the_gate_backs_away() -> None:
-    """Where not even the stop keeps clear (a return closer than the creep allows), the gate backs
-    away from it rather than sending the asked command's best variant."""
-    gate = BackupGate(ENVELOPES["random"], 0.3)
-    for _ in range(15):  # backing off at 0.5 m/s
-        gate.advance(0.1, 0.0, 0.0)
-        gate.record((-0.5, 0.0))
-    gate.advance(0.1, 0.0, 0.0)
-    points, inflation = np.array([[0.8, 0.0]]), np.zeros(1)  # 0.8 m ahead, inside 0.65 m/s x 1.2 s + 0.3
-    assert not gate.passes(np.zeros((1, 2)), (-0.5, 0.0), points, inflation)[0][0]  # not even the stop
-    (forward, _), reason = gate.choose((0.5, 0.0), (-0.5, 0.0), points, inflation)
-    assert reason == "gate_retreat" and forward < 0.0
-
-
 def test_the_whole_horizon_is_integrated_when_the_guess_falls_short(monkeypatch: pytest.MonkeyPatch) -> None:
     """The shortened integration only saves time: with a guess of one step, the same room."""
     monkeypatch.setattr(BackupGate, "_settling_steps", lambda *_: 1)

