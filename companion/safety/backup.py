@@ -26,7 +26,7 @@ S holds at every step and no verified worst case touches a remembered return.
 *Not covered.* Obstacles the scans never saw (below or above the beams, hidden, outside the memory
 horizon), anything that moves, an envelope the firmware leaves (a gust, a motor failure, a wrong
 heading), the creep once stopped, and a start where S does not hold (closer to a return than the
-creep allows): there the gate backs away if that gains room, and says so (``gate_retreat``).
+creep allows): there the gate sends whichever candidate leaves the most room (``gate_best_effort``).
 
 Separation makes it cheap: with ``X_m`` the worst displacement towards direction ``m`` over the
 horizon, every reachable position ``d`` has ``d·m <= X_m`` for all ``m``; so for a return ``o``,
