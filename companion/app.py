@@ -347,8 +347,10 @@ class Companion:
 
     def _start_recorder(self, autopilot_yaw_rate: float | None) -> FlightRecorder | None:
         """The flight recorder (``[recorder]``): its taps wrap the parts, so the loop stays as it is.
-        The yaw cap read from the autopilot goes into its metadata: replay builds the same shield."""
-        recorder = open_recorder(self.config, to_dict(self.config), self._clock, autopilot_yaw_rate)
+        The yaw cap read from the autopilot and the shield's stopping model go into its metadata:
+        replay builds the same shield."""
+        stopping = (self.shield.max_decel, self.shield.reaction_time)
+        recorder = open_recorder(self.config, to_dict(self.config), self._clock, autopilot_yaw_rate, stopping)
         if recorder is not None:
             recorder.watch_counters(companion=self.counters, supervisor=self.supervisor.counters,
                                     shield=self.shield.interventions, link=self.link.counters)

@@ -5,8 +5,10 @@ The recorded inputs go through the companion's own code, with the recorded confi
 clouds (when recorded whole, ``recorder.cloud_decimation = 1``) through :func:`scan_from_points`,
 otherwise the recorded scans; then the frame stack, the policy and the shield, with the recorded
 time steps and resets. The shield is built as the companion built it: the recorded autopilot type's
-limits and the yaw cap the companion read from the autopilot (in the metadata; recordings made before
-it was recorded: the firmware default, as when nothing was read).
+limits, with the stopping model the shield assumed (in the metadata; recordings made before it was
+recorded: the limits then in force, :data:`STOPPING_BEFORE_RECORDED`), and the yaw cap the companion
+read from the autopilot (in the metadata; recordings made before it was recorded: the firmware
+default, as when nothing was read).
 
 - Same model (the file's sha256 matches the recording's): every scan, observation, action,
   requested command and shield output must match the recording bit for bit; the first one that
@@ -94,9 +96,38 @@ def recorded_config(rec: Recording) -> tuple[CompanionConfig, dict[str, str]]:
         data["policy"].setdefault("drift", False)
         # and before policy.command existed, no command features
         data["policy"].setdefault("command", False)
+        # the shield's stopping model as flown: [shield] left at 0 took the autopilot's limits of
+        # the version that flew, which this one may have changed
+        shield = data.setdefault("shield", {})
+        decel, reaction_time = recorded_stopping(meta, data.get("autopilot", {}).get("type", "ardupilot"))
+        if not shield.get("max_decel") and decel is not None:
+            shield["max_decel"] = decel
+        if not shield.get("reaction_time") and reaction_time is not None:
+            shield["reaction_time"] = reaction_time
         return from_dict(CompanionConfig, data, "recorded config: "), meta
     except (KeyError, ValueError) as exc:
         raise UserError(f"{rec.path}: recorded config unreadable: {exc}") from None
+
+
+#: the autopilot limits' (deceleration m/s², reaction time s) the shield assumed in recordings made
+#: before ``shield_stopping`` was recorded (ArduPilot's were then tuned, not the firmware envelope's)
+STOPPING_BEFORE_RECORDED: dict[str, tuple[float, float]] = {"ardupilot": (2.5, 0.7), "px4": (1.2, 0.8)}
+
+
+def recorded_stopping(meta: dict[str, str], autopilot: str) -> tuple[float | None, float | None]:
+    """The shield's stopping model (deceleration m/s², reaction time s) a recording was flown with:
+    its ``shield_stopping`` metadata, or for recordings made before it was recorded the limits then in
+    force (:data:`STOPPING_BEFORE_RECORDED`); (None, None) when not known (this version's limits)."""
+    text = meta.get("shield_stopping")
+    if text is None:
+        return STOPPING_BEFORE_RECORDED.get(autopilot, (None, None))
+    if not text:
+        return None, None
+    try:
+        decel, reaction_time = (float(v) for v in text.split())
+    except ValueError:
+        raise UserError(f"recorded shield_stopping {text!r} is not two numbers") from None
+    return decel, reaction_time
 
 
 def recorded_autopilot_yaw_rate(rec: Recording) -> float | None:

@@ -273,6 +273,7 @@ def file_digest(path: str | Path) -> str:
 def open_recorder(
     config: Any, config_dict: dict[str, Any], clock: Callable[[], float],
     autopilot_yaw_rate: float | None = None,
+    shield_stopping: tuple[float, float] | None = None,
 ) -> FlightRecorder | None:
     """The recorder for ``config`` (a :class:`companion.config.CompanionConfig`), or None when off.
 
@@ -281,6 +282,9 @@ def open_recorder(
 
     :param autopilot_yaw_rate: the yaw cap the start-up check read from the autopilot, rad/s (None:
         not read); the config does not hold it, and the replay's shield needs it
+    :param shield_stopping: the shield's stopping model, (deceleration m/s², reaction time s): the
+        config's ``max_decel`` and ``reaction_time``, or where they are 0 the autopilot's limits of
+        this version (:data:`companion.safety.shield.AUTOPILOT_LIMITS`), which a later one may change
     """
     rc = config.recorder
     if not rc.enabled:
@@ -295,6 +299,8 @@ def open_recorder(
         "cloud_decimation": str(rc.cloud_decimation),
         # exact (repr); "": not read, the shield assumed the firmware default
         "autopilot_yaw_rate": "" if autopilot_yaw_rate is None else repr(float(autopilot_yaw_rate)),
+        # exact (repr), "decel reaction_time"; "": not given
+        "shield_stopping": " ".join(repr(float(v)) for v in shield_stopping) if shield_stopping else "",
         "clock": "time.monotonic",
         "clock_at_start": repr(clock()),
         "wall_time_at_start": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),

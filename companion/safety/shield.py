@@ -73,18 +73,28 @@ class AutopilotLimits:
 
 
 #: Per autopilot, from the real-firmware recordings (``../shared/fixtures/autopilot-response``):
-#: - ``ardupilot`` (ArduCopter 4.8-dev): 2 → 0 m/s stops in 1.30 s over 1.68 m (true); 10 % delay
-#:   0.4-0.5 s, peak decel 3.0 m/s². 0.7 s + 2.5 m/s² gives 2.2 m from 2 m/s. Yaw is capped at
-#:   ATC_RATE_WPY_MAX, 60°/s by default (1.05 rad/s flown for 1.5 asked); firmware_params raises it.
+#: - ``ardupilot`` (ArduCopter 4.8-dev): the firmware envelope's (:data:`companion.safety.envelope.ARDUPILOT`,
+#:   fitted to the companion's real SITL flights): a setpoint may still be flown 1.1 s after the next
+#:   (``max_delay``), then it brakes at 3 m/s², so 1.1 s + 3 m/s² gives 2.9 m from 2 m/s (the step
+#:   response alone, 2 → 0 m/s in 1.30 s over 1.68 m, is shorter than what the companion's own
+#:   flights show; tests/sitl/test_ram_attack.py rams a box through it).
+#:   Yaw is capped at ATC_RATE_WPY_MAX, 60°/s by default (1.05 rad/s flown for 1.5 asked);
+#:   firmware_params raises it.
 #: - ``px4`` (SIH, main May 2026): 1.8 → 0 m/s takes 1.2 m to reach 0.5 m/s and then creeps at
 #:   0.3-0.45 m/s for seconds (2.7 m after 4.9 s); 2 → −1 m/s stops in 0.66 m. 0.8 s + 1.2 m/s²
 #:   gives 2.8 m from 1.8 m/s, and the shield brakes with a reverse setpoint. Yaw: MC_YAWRATE_MAX,
 #:   200°/s (PX4 flies 94 % of any rate asked).
 #: - ``ideal``: the project's own simulated quad (the shield's original tuning).
-#: - ``random``: the env's randomised response: the worst of both.
+#: - ``random``: the env's randomised response: the worst of both step responses (PX4's 1.2 m/s²
+#:   after 0.8 s, ArduPilot's yaw cap); not ArduPilot's envelope-backed 1.1 s, which would change
+#:   what the training env's shield lets through (only the companion flies ``ardupilot``).
 AUTOPILOT_LIMITS: dict[str, AutopilotLimits] = {
     "ideal": AutopilotLimits(decel=2.0, reaction_time=0.8, max_yaw_rate=math.inf),
-    "ardupilot": AutopilotLimits(decel=2.5, reaction_time=0.7, max_yaw_rate=math.radians(60.0)),
+    "ardupilot": AutopilotLimits(
+        decel=ENVELOPES["ardupilot"].decel,
+        reaction_time=ENVELOPES["ardupilot"].max_delay,
+        max_yaw_rate=ENVELOPES["ardupilot"].max_yaw_rate,
+    ),
     "px4": AutopilotLimits(decel=1.2, reaction_time=0.8, max_yaw_rate=math.radians(200.0)),
     "random": AutopilotLimits(decel=1.2, reaction_time=0.8, max_yaw_rate=math.radians(60.0)),
 }

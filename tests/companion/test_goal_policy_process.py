@@ -20,6 +20,7 @@ from companion.app import policy_spec
 from companion.autopilot.mavlink_adapter import mavlink
 from companion.config import CompanionConfig, PolicyConfig
 from companion.perception.drift import DriftHoldConfig
+from companion.safety.shield import AUTOPILOT_LIMITS, stopping_speed
 from tests.companion.companion_process import (
     WEST_AND_UP,
     Flight,
@@ -188,16 +189,22 @@ def _wall_ahead(azimuth_deg: np.ndarray) -> np.ndarray:
 def test_the_shield_judges_the_motion_the_scans_show_not_the_estimate(tmp_path):
     """A model asking full speed ahead, a wall 0.7 m ahead, and an autopilot that reports 0.6 m/s
     north while the scans stand still: the drift estimate takes up the 0.6, so the shield judges a
-    hovering vehicle and lets through the true speed that stops before the wall (0.5 m/s for
-    ArduPilot's braking), as a setpoint 0.6 faster, since the autopilot flies it on an estimate that
-    reads 0.6 fast: 1.1 m/s. Judged by the estimate alone, that 0.6 m/s could not stop in 0.4 m: the
-    shield braked against a motion the scans did not show (0.1 m/s once the brake carried the drift);
-    capping the setpoint rather than the true motion, it sent 0.5 m/s, which truly hovers."""
+    hovering vehicle and lets through the true speed that stops before the wall (0.35 m/s for
+    ArduPilot's braking, the firmware envelope's 3 m/s² after 1.1 s; 0.5 m/s with the 2.5 m/s² after
+    0.7 s it assumed before issue 66), as a setpoint 0.6 faster, since the autopilot flies it on an
+    estimate that reads 0.6 fast: 0.95 m/s. Judged by the estimate alone, that 0.6 m/s could not stop
+    in 0.4 m: the shield braked against a motion the scans did not show (0.1 m/s once the brake
+    carried the drift); capping the setpoint rather than the true motion, it sent the true speed
+    alone, which with the 0.6 truly hovers."""
+    ap = AUTOPILOT_LIMITS["ardupilot"]
+    true_speed = stopping_speed(0.7 - 0.3, ap.decel, ap.reaction_time)  # the wall less estop_distance
+    assert true_speed == pytest.approx(0.35, abs=0.01)
     f = Flight.with_model(tmp_path, "forward")
     f.lidar.scene = _wall_ahead
     f.vehicle.velocity_ned = (0.6, 0.0)
     try:
-        f.settled(lambda m: abs(m.vx - 1.1) < 0.1 and abs(m.vy) < 0.05, "1.1 m/s ahead")
+        ahead = 0.6 + true_speed
+        f.settled(lambda m: abs(m.vx - ahead) < 0.1 and abs(m.vy) < 0.05, f"{ahead:.2f} m/s ahead")
     finally:
         f.close()
 

@@ -564,6 +564,31 @@ def test_the_recorded_yaw_cap_reads_back_exactly_and_is_none_when_not_read_or_no
         recorded_autopilot_yaw_rate(recording(autopilot_yaw_rate="fast"))
 
 
+def test_the_recorded_stopping_model_is_the_replays_and_older_recordings_get_the_limits_they_flew(tmp_path):
+    """A recording replays with the stopping model its shield assumed, whatever this version's
+    AUTOPILOT_LIMITS say (ArduPilot's changed from 0.7 s and 2.5 m/s² to the envelope's, issue 66)."""
+    from types import SimpleNamespace
+
+    from companion.common.errors import UserError
+    from companion.replay import STOPPING_BEFORE_RECORDED, recorded_config
+    from companion.safety.shield import AUTOPILOT_LIMITS
+
+    def shield(autopilot: str, shield: dict | None = None, **meta: str):
+        config = {"policy": {"model": "m.onnx"}, "autopilot": {"type": autopilot}, "shield": shield or {}}
+        meta = {"format": s.FORMAT_VERSION, "config": json.dumps(config), **meta}
+        rec = SimpleNamespace(path=tmp_path / "f.mcap", metadata={s.METADATA_NAME: meta})
+        got = recorded_config(rec)[0].shield
+        return got.max_decel, got.reaction_time
+
+    assert shield("ardupilot", shield_stopping="3.0 1.1") == (3.0, 1.1)
+    assert shield("ardupilot") == STOPPING_BEFORE_RECORDED["ardupilot"] == (2.5, 0.7)  # before the key
+    assert shield("px4") == (AUTOPILOT_LIMITS["px4"].decel, AUTOPILOT_LIMITS["px4"].reaction_time)
+    assert shield("ardupilot", shield_stopping="") == (0.0, 0.0)  # not given: this version's limits
+    assert shield("px4", {"max_decel": 2.0}, shield_stopping="1.2 0.8") == (2.0, 0.8)  # the config's wins
+    with pytest.raises(UserError, match="shield_stopping 'fast'"):
+        shield("ardupilot", shield_stopping="fast")
+
+
 # ---- what-if with shield settings changed (--set) ----------------------------------------------
 
 #: the real ArduPilot/PX4 SITL flights with ground truth (``../shared`` beside the repository), as

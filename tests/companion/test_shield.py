@@ -523,6 +523,18 @@ def test_braking_figures_per_autopilot() -> None:
     assert (shield.max_decel, shield.reaction_time) == (3.0, px4.reaction_time)  # config wins
 
 
+def test_ardupilot_stopping_model_is_the_firmware_envelopes() -> None:
+    """Issue 66: ArduPilot's limits are the envelope fitted to the real SITL flights (a setpoint still
+    flown 1.1 s after the next, then 3 m/s²), not a tuned 0.7 s and 2.5 m/s² that let the ram model
+    strike a box (tests/sitl/test_ram_attack.py)."""
+    from companion.safety.envelope import ENVELOPES
+
+    ap, envelope = AUTOPILOT_LIMITS["ardupilot"], ENVELOPES["ardupilot"]
+    assert (ap.decel, ap.reaction_time) == (envelope.decel, envelope.max_delay) == (3.0, 1.1)
+    # the stop from 0.9 m/s the rules allowed 0.9 m off the box: 0.63 + 0.16 = 0.77 m of the 0.6 m left
+    assert stopping_distance(0.9, ap.decel, ap.reaction_time) > 0.9 - BASE.estop_distance
+
+
 def test_yaw_rate_never_above_what_the_autopilot_flies() -> None:
     cfg = BASE
     ardupilot = SafetyShield(cfg, MAX_RANGE, "ardupilot")

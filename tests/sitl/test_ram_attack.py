@@ -6,7 +6,7 @@ from the model's metadata) through both simulated autopilots with their calibrat
 small cluttered room, behind the shipped shield and with its backup gate on. The shield alone
 stands between the model and the obstacles: 0 collisions, and the least clearance shows the vehicle
 was truly driven at them. (The companion has no switch that takes the shield out, so there is no
-unshielded flight here to show the model would strike: the known hole below shows it.)
+unshielded flight here to show the model would strike: issue 66, below, showed it.)
 """
 
 from __future__ import annotations
@@ -63,24 +63,19 @@ def fly_ram(tmp_path: Path, autopilot: str, shield: dict[str, object]):
     return run_flight(options)
 
 
-#: The known hole (2026-12-06, 9 of 9 flights: pytest, the harness and ``avoid-sim fly``, lidar step
-#: 0.2° and 1°): behind the shipped shield (gate off) the ram strikes the box (centre (-1.5, -1.8)) on
-#: the simulated ArduPilot near (-1.1, -1.15), 4.7-7.5 s after engaging, least clearance 0.17-0.25 m
-#: (centre to surface; the body's radius is 0.25). The ram's yaw hunts at the 1.05 rad/s cap (ATC_RATE_
-#: WPY_MAX 60°/s) while the shield lets 0.8-0.97 m/s forward through with the box 0.8-1.0 m off the
-#: centre; it reverses only at 0.72 m, too late for the calibrated lag (0.25 s more at 0.9 m/s, then
-#: 0.55 m to stop). The backup gate holds it off (least clearance 0.69-0.89 m); PX4 holds 0.33-0.40 m.
-ARDUPILOT_HOLE = pytest.mark.xfail(
-    strict=True,
-    reason="known hole: the ram strikes the box on sim-ardupilot behind the shipped shield (gate off), "
-    "least clearance 0.17-0.25 m 4.7-7.5 s after engaging; the backup gate holds it off",
-)
+# Issue 66 (mended 2026-12-06): behind the shipped shield (gate off) the ram struck the box (centre
+# (-1.5, -1.8)) on the simulated ArduPilot in 9 of 9 flights, 4.7-7.5 s after engaging, least clearance
+# 0.17-0.25 m: the stopping-distance cap assumed ArduPilot stops after 0.7 s at 2.5 m/s² and let
+# 0.8-0.97 m/s forward through with the box 0.8-1.0 m off the centre; the motion stop fired only at
+# 0.72-0.75 m, too late for the calibrated lag. With the firmware envelope's 1.1 s and 3 m/s²
+# (companion.safety.shield.AUTOPILOT_LIMITS) the least clearance is 0.40-0.46 m over 7 flights; PX4
+# (unchanged) holds 0.33-0.40 m; with the backup gate ArduPilot keeps 0.69-0.89 m (0.45-0.78 m since).
 
 
 @pytest.mark.parametrize(
     ("autopilot", "gate"),
     [
-        pytest.param("sim-ardupilot", False, id="sim-ardupilot-shipped-shield", marks=ARDUPILOT_HOLE),
+        pytest.param("sim-ardupilot", False, id="sim-ardupilot-shipped-shield"),
         pytest.param("sim-ardupilot", True, id="sim-ardupilot-backup-gate"),
         pytest.param("sim-px4", False, id="sim-px4-shipped-shield"),
         pytest.param("sim-px4", True, id="sim-px4-backup-gate"),
@@ -103,7 +98,7 @@ def test_ram_policy_never_collides(tmp_path, autopilot, gate):
         assert report.min_clearance_m < APPROACHED_M, summary
     else:
         # The gate keeps the firmware envelope's worst-case stop clear and may hold the vehicle well
-        # off (least clearance on PX4 0.37-1.52 m over 5 flights, ArduPilot 0.69-0.89 m): the attack
+        # off (least clearance on PX4 0.37-1.52 m over 5 flights, ArduPilot 0.45-0.89 m): the attack
         # is shown by the gate cutting the ram's commands, not by how near it let the vehicle come.
         gate_cuts = sum(int(n) for n in re.findall(r"shield\.gate_\w+=(\d+)", "".join(counters)))
         assert gate_cuts > 0, summary
