@@ -123,7 +123,7 @@ class _WorstCase:
     settled: np.ndarray  # (c,) the step each column stops at (``steps`` when it does not)
     column: np.ndarray  # (m, 72) each pair's column
     steps: int  # the horizon's steps for the whole batch
-    now_peak: float  # the highest closing speed now
+    base_peak: float  # the highest closing speed without the candidates: now, or set by what was sent
     cand_peak: np.ndarray  # (m,) each candidate's highest target
 
     def reach(self, steps: int, rows: np.ndarray | slice = slice(None)) -> np.ndarray:
@@ -214,8 +214,9 @@ class BackupGate:
         else:
             closing = _DIR_UNIT @ np.asarray(velocity, dtype=np.float64)
         now_peak = float(np.max(closing)) + env.estimate_error
+        base_peak = max(now_peak, self._history_peak())
         cand_peak = env.target(cand_comp).max(axis=1)  # (m,): each candidate's own horizon
-        steps = self._steps(max(now_peak, float(cand_peak.max()), self._history_peak()))
+        steps = self._steps(max(base_peak, float(cand_peak.max())))
         times = STEP_S * np.arange(steps)
         # the history's highest component in force at each future time, and the candidate's window
         history = self._history_components(units_world, times)  # (k, 72), -inf where none in force
@@ -255,7 +256,7 @@ class BackupGate:
         back = np.flatnonzero((closing_bound[: int(settled.max()) + 1] < 0.0).any(axis=0))
         if len(back):
             displacement[:, back] = np.maximum.accumulate(displacement[:, back], axis=0)
-        return _WorstCase(displacement, settled, column, steps, now_peak, cand_peak)
+        return _WorstCase(displacement, settled, column, steps, base_peak, cand_peak)
 
     def _settling_steps(self, targets: np.ndarray, end: int, now_peak: float, floor: float) -> int:
         """A guess of the step by which every column has stopped (after the step ``end`` the targets
@@ -334,8 +335,7 @@ class BackupGate:
         worst = self._worst_case(candidates[: index.max() + 1], velocity)
         reach = worst.reach(worst.steps)
         if self._intervening:  # the asked not judged yet: on its own horizon, as if alone
-            alone_peak = max(worst.now_peak, float(worst.cand_peak[0]), self._history_peak())
-            alone = worst.reach(self._steps(alone_peak), slice(0, 1))
+            alone = worst.reach(self._steps(max(worst.base_peak, float(worst.cand_peak[0]))), slice(0, 1))
             reach = np.concatenate([reach, alone])
         least = separation(points, inflation, reach) - self.clearance
         if self._intervening and least[-1] >= 0.0:
