@@ -3,8 +3,6 @@ flight's time, and the flight recorder judges collisions against them there."""
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 
@@ -16,7 +14,7 @@ from flightsim.sitl.cosim import LidarCosim
 from flightsim.sitl.flight_recorder import Recorder
 from flightsim.worlds.moving import MovingObstacle, PathMotion
 from flightsim.worlds.world import World
-from tests.flightsim.test_sim_autopilot_harness import hover_state
+from tests.flightsim.test_sim_autopilot_harness import hover_state, stream_clouds
 
 #: a walker coming down the room's x axis at 1 m/s toward a vehicle hovering at x = -5 facing +x
 WALKER = MovingObstacle("cylinder", PathMotion(((5.0, 0.0), (-5.0, 0.0)), 1.0), 1.8, radius=0.25)
@@ -34,16 +32,7 @@ def _ahead_over_udp(world_time: float) -> float:
         world_time=lambda: world_time,
     )  # fmt: skip
     cosim.revolution_packets(state, world_time)  # compile before streaming
-    clouds = []
-    try:
-        cosim.start()
-        end = time.monotonic() + 0.6
-        while time.monotonic() < end:
-            clouds += source.read_available()
-            time.sleep(0.005)
-    finally:
-        cosim.stop()
-        source.close()
+    clouds = stream_clouds(cosim, source, 0.6)
     assert clouds, "no revolution decoded"
     scan = scan_from_points(clouds[-1], ScanConfig())
     return float(scan[[358, 359, 0, 1]].min()) * 10.0

@@ -83,6 +83,22 @@ def hover_state(x: float, y: float, yaw_deg: float) -> VehicleState:
     )
 
 
+def stream_clouds(cosim: LidarCosim, source: VelodyneUdpSource, seconds: float) -> list[np.ndarray]:
+    """Run ``cosim`` for ``seconds`` of wall time and return the clouds ``source`` decoded from its
+    UDP packets; both are closed after."""
+    clouds = []
+    try:
+        cosim.start()
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            clouds += source.read_available()
+            time.sleep(0.005)
+    finally:
+        cosim.stop()
+        source.close()
+    return clouds
+
+
 def test_free_ports_are_outside_the_ephemeral_range_and_never_repeat():
     """The harness's ports for the companion's listeners: outside the range the kernel gives
     unbound senders (a port from it was once handed to the flight's own relay between the probe
@@ -116,16 +132,7 @@ def test_cosim_streams_revolutions_the_companion_decodes_into_the_right_scan(ste
     # the companion drops turns no VLP-16 makes: a 1° cast is sent as the 0.2° firings of 600 rpm
     cosim = LidarCosim(world, lambda: state, ("127.0.0.1", port), lidar=LidarConfig(azimuth_step_deg=step))
     cosim.revolution_packets(state)  # compile before timing anything
-    clouds = []
-    try:
-        cosim.start()
-        end = time.monotonic() + 1.05
-        while time.monotonic() < end:
-            clouds += source.read_available()
-            time.sleep(0.005)
-    finally:
-        cosim.stop()
-        source.close()
+    clouds = stream_clouds(cosim, source, 1.05)
     assert 8 <= cosim.stats.revolutions <= 11  # 10 Hz, real time
     assert cosim.stats.packets == 75 * cosim.stats.revolutions  # 1800 firings / 24 per packet
     assert len(clouds) >= cosim.stats.revolutions - 2
