@@ -99,7 +99,10 @@ def recorded_config(rec: Recording) -> tuple[CompanionConfig, dict[str, str]]:
         # the shield's stopping model as flown: [shield] left at 0 took the autopilot's limits of
         # the version that flew, which this one may have changed
         shield = data.setdefault("shield", {})
-        decel, reaction_time = recorded_stopping(meta, data.get("autopilot", {}).get("type", "ardupilot"))
+        try:
+            decel, reaction_time = recorded_stopping(meta, data.get("autopilot", {}).get("type", "ardupilot"))
+        except UserError as exc:
+            raise UserError(f"{rec.path}: {exc}") from None
         if not shield.get("max_decel") and decel is not None:
             shield["max_decel"] = decel
         if not shield.get("reaction_time") and reaction_time is not None:
