@@ -585,7 +585,7 @@ def test_the_recorded_stopping_model_is_the_replays_and_older_recordings_get_the
     assert shield("px4") == (AUTOPILOT_LIMITS["px4"].decel, AUTOPILOT_LIMITS["px4"].reaction_time)
     assert shield("ardupilot", shield_stopping="") == (0.0, 0.0)  # not given: this version's limits
     assert shield("px4", {"max_decel": 2.0}, shield_stopping="1.2 0.8") == (2.0, 0.8)  # the config's wins
-    with pytest.raises(UserError, match="f.mcap: recorded shield_stopping 'fast'"):
+    with pytest.raises(UserError, match=r"f\.mcap: recorded shield_stopping 'fast'"):
         shield("ardupilot", shield_stopping="fast")
 
 
