@@ -119,6 +119,20 @@ class Track:
         return float(np.hypot(*self.state[2:]))
 
 
+@dataclass(frozen=True)
+class Mover:
+    """A moving object as the shield judges it, in the vehicle's body axes at the scan's time.
+
+    :param position: its centre from the vehicle (forward, left), m
+    :param velocity: its ground velocity along the body axes (forward, left), m/s
+    :param radius: how far its surface may lie from ``position``, m
+    """
+
+    position: tuple[float, float]
+    velocity: tuple[float, float]
+    radius: float
+
+
 @dataclass
 class TrackerOutput:
     """What one scan's update says.
