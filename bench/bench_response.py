@@ -8,6 +8,11 @@ ground speed (m/s), yaw rate (rad/s) and sideslip (deg, where both move faster t
 against the recording's ground truth, beside the run-to-run spread of two real recordings of the
 same sequence (the floor no model can beat).
 
+Then the real flights (the companion flying real ArduCopter SITL and PX4 SITL, the shared
+recordings in ../shared/fixtures/real-sitl-flights or $LIDAR_AVOID_SHARED; skipped where absent):
+each flight's setpoints flown through the calibrated response, per flight the RMS error of ground
+speed (m/s), its mean (negative: the model slower) and the RMS course error (deg).
+
 Then "never easier": the figures of the recordings' analysis (t90 of a 1 m/s step, steady speed
 after 4 s, yaw rate held at a 1.5 rad/s command, speed and median |sideslip| in the 2 m/s 1 rad/s
 turn) for both real recordings, the model and the ideal vehicle; the velocity-estimate error
@@ -21,7 +26,9 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -36,6 +43,11 @@ from flightsim.vehicle.response_replay import (
     load_recording,
     recording_path,
     replay,
+    replay_flight,
+)
+
+FLIGHTS = Path(os.environ.get("LIDAR_AVOID_SHARED", Path(__file__).resolve().parents[2] / "shared")) / (
+    "fixtures/real-sitl-flights"
 )
 
 
@@ -67,6 +79,24 @@ def error_table(vehicle: Vehicle, firmware: str) -> None:
             rep2 = load_recording(recording_path(firmware, sequence + "-rep2"))
             spread = _fmt(compare(rep2.truth, rec.truth, duration))
         print(f"{sequence:<14} {_fmt(before):>16}   {_fmt(after):>18}   {spread:>16}")
+
+
+def flight_table(vehicle: Vehicle, firmware: str) -> None:
+    from flightsim.vehicle.envelope_check import load_flight
+
+    paths = sorted(FLIGHTS.glob(f"{firmware}-*.mcap")) if FLIGHTS.is_dir() else []
+    if not paths:
+        print(f"\n{firmware}: no real flights in {FLIGHTS}")
+        return
+    print(f"\n{firmware}: the real flights' setpoints through the calibrated response, against truth")
+    print(f"{'flight':<50} {'speed RMS':>9} {'mean':>7} {'course RMS':>10}")
+    speeds = []
+    for path in paths:
+        e = replay_flight(vehicle, PRESETS[firmware], load_flight(path))
+        speeds.append(e.speed)
+        print(f"{path.stem:<50} {e.speed:9.3f} {e.bias:+7.3f} {e.course_deg:9.1f}°")
+    above = sum(s > 0.15 for s in speeds)
+    print(f"{'all ' + str(len(speeds)):<50} {min(speeds):.3f}-{max(speeds):.3f} m/s, {above} above 0.15")
 
 
 def hardness_table(vehicle: Vehicle, firmware: str) -> None:
@@ -137,6 +167,8 @@ def main() -> None:
     vehicle = Vehicle()
     for firmware in FIRMWARES:
         error_table(vehicle, firmware)
+    for firmware in FIRMWARES:
+        flight_table(vehicle, firmware)
     for firmware in FIRMWARES:
         hardness_table(vehicle, firmware)
     estimate_table()

@@ -27,10 +27,13 @@ from numba import njit
 from flightsim.vehicle.autopilot_response import (
     _INNER_DT,
     _N_STATE,
+    _P_NAMES,
     _S_AX,
     _S_AY,
     _S_BX,
     _S_BY,
+    _S_MX,
+    _S_MY,
     _S_R,
     _S_VX,
     _S_VY,
@@ -87,7 +90,7 @@ class VehicleBatch:
         # the response models (a row per vehicle; has_response False = the ideal autopilot)
         self.has_response = np.zeros(n, dtype=np.bool_)
         self.x = np.zeros((n, _N_STATE))
-        self.p = np.zeros((n, 14))
+        self.p = np.zeros((n, len(_P_NAMES)))
         self._queue = np.zeros((n, _QUEUE, 4))
         self._queue_len = np.zeros(n, dtype=np.int64)
         self._time = np.zeros(n)
@@ -287,6 +290,7 @@ def _physics_step(
                 x[i, _S_BX] = x[i, _S_BX] * decay[i] + kick[i] * noise[i, chunk, 0]
                 x[i, _S_BY] = x[i, _S_BY] * decay[i] + kick[i] * noise[i, chunk, 1]
             yaw = wrap_angle(half_pi - r[6])
+            x[i, _S_MX], x[i, _S_MY] = r[1] * _FT, r[2] * _FT  # as AutopilotResponse.setpoint
             _response_chunk(x, p, queue, queue_len, time, cmd, yaw, inner, h, i)
             sp = setpoints[i]
             sp[0], sp[1], sp[2], sp[3] = x[i, _S_VX], x[i, _S_VY], nan, altitude[i]

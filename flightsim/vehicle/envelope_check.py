@@ -34,6 +34,7 @@ class RecordedFlight:
     :param step_time: ``(k,)`` shield step times
     :param measured: ``(k, 2)`` the body velocity each step's shield judged (forward, left), m/s
     :param output: ``(k, 2)`` the body setpoint each step let through (forward, left), m/s
+    :param truth_velocity: ``(n, 2)`` true horizontal velocity (East, North), m/s (None: not read)
     """
 
     truth_time: np.ndarray
@@ -42,6 +43,7 @@ class RecordedFlight:
     step_time: np.ndarray
     measured: np.ndarray
     output: np.ndarray
+    truth_velocity: np.ndarray | None = None
 
 
 def load_flight(path: str | Path) -> RecordedFlight:
@@ -58,10 +60,12 @@ def load_flight(path: str | Path) -> RecordedFlight:
         step_time=np.array([t for t, _ in steps]),
         measured=np.array([m["extra"]["arg3"] for _, m in steps], dtype=float),
         output=np.array([[m["output"]["forward"], m["output"]["lateral"]] for _, m in steps], dtype=float),
+        truth_velocity=np.array([[m["velocity"]["x"], m["velocity"]["y"]] for _, m in truth], dtype=float),
     )
 
 
-def _to_world(body: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+def to_world(body: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """``(k, 2)`` body (forward, left) vectors rotated into the world (East, North) by ``(k,)`` headings."""
     c, s = np.cos(yaw), np.sin(yaw)
     return np.stack([c * body[:, 0] - s * body[:, 1], s * body[:, 0] + c * body[:, 1]], axis=1)
 
@@ -75,8 +79,8 @@ def containment_margins(
     or the last shield step, or across a gap of more than :data:`MAX_GAP_S` between steps (the
     autopilot held its own position there)."""
     yaw_at_steps = np.interp(flight.step_time, flight.truth_time, flight.truth_yaw)
-    components = _to_world(flight.output, yaw_at_steps) @ _UNITS.T  # (k, 36)
-    measured = _to_world(flight.measured, yaw_at_steps) @ _UNITS.T
+    components = to_world(flight.output, yaw_at_steps) @ _UNITS.T  # (k, 36)
+    measured = to_world(flight.measured, yaw_at_steps) @ _UNITS.T
     n_steps = round(horizon / STEP_S)
     gaps = np.flatnonzero(np.diff(flight.step_time) > MAX_GAP_S)
     # each step's commanded span ends at the next gap or the last step

@@ -4,6 +4,9 @@ The recordings (``tests/fixtures/autopilot-response/``, made from real PX4 SIH a
 see its README) hold the 10 Hz command in force and the true motion. :func:`replay` flies the same
 commands on the JSBSim vehicle through a response model (or the ideal autopilot), :func:`compare`
 gives the RMS error of ground speed, yaw rate and sideslip against the recording's ground truth.
+:func:`replay_flight` does the same with a whole recorded flight of the companion on a real SITL
+(``../shared/fixtures/real-sitl-flights``, read by :func:`flightsim.vehicle.envelope_check.load_flight`):
+the setpoints its shield let through, flown per commanded segment.
 Used by ``bench/bench_response.py`` and ``tests/flightsim/test_autopilot_response.py``.
 """
 
@@ -17,6 +20,7 @@ import numpy as np
 
 from flightsim.vehicle.autopilot_response import CHUNK_S, AutopilotResponse, ResponseParams
 from flightsim.vehicle.control import Setpoint
+from flightsim.vehicle.envelope_check import MAX_GAP_S, RecordedFlight, to_world
 from flightsim.vehicle.quadrotor import Vehicle
 
 FIXTURES = Path(__file__).resolve().parents[2] / "tests" / "fixtures" / "autopilot-response"
@@ -193,4 +197,77 @@ def hardness(forward: Trajectory, yaw: Trajectory, turn: Trajectory) -> Hardness
         yaw_cap=yaw_cap,
         turn_speed=float(np.median(g.speed)),
         turn_slip_deg=float(np.degrees(np.median(np.abs(g.slip[moving])))),
+    )
+
+
+@dataclass(frozen=True)
+class FlightErrors:
+    """How a response flew a recorded flight's setpoints, against the flight's ground truth.
+
+    :param speed: RMS ground-speed error, m/s
+    :param bias: mean ground-speed error (simulated minus real; negative: slower), m/s
+    :param course_deg: RMS course error where both move faster than :data:`SLIP_MIN_SPEED`, degrees
+    :param samples: the 0.1 s samples scored
+    """
+
+    speed: float
+    bias: float
+    course_deg: float
+    samples: int
+
+
+def replay_flight(
+    vehicle: Vehicle, params: ResponseParams, flight: RecordedFlight, min_steps: int = 20
+) -> FlightErrors:
+    """Fly a recorded flight's setpoints through ``params`` on the vehicle and score its speed and
+    course against the flight's ground truth, every 0.1 s.
+
+    Each commanded segment (shield steps no more than :data:`MAX_GAP_S` apart; shorter than
+    ``min_steps`` steps: skipped) starts at rest where the real vehicle was, heading as it did; each
+    setpoint is rotated into the world by the real heading when it was sent (the recordings hold
+    the shield's body setpoints, not the autopilot's yaw) and takes effect from then on, with no yaw
+    rate. The estimate error is left out, as in :func:`replay`.
+
+    :param vehicle: the JSBSim vehicle (reset per segment)
+    :param params: the response flown
+    :param flight: the recording (its ``truth_velocity`` is required)
+    :param min_steps: shortest segment scored, shield steps
+    """
+    if flight.truth_velocity is None:
+        raise ValueError("the flight has no ground-truth velocity")
+    tt, tv = flight.truth_time, flight.truth_velocity
+    yaw = np.interp(flight.step_time, tt, flight.truth_yaw)
+    setpoints = to_world(flight.output, yaw)
+    gaps = np.flatnonzero(np.diff(flight.step_time) > MAX_GAP_S) + 1
+    speed_errors: list[float] = []
+    course_errors: list[float] = []
+    for a, b in zip(np.append(0, gaps), np.append(gaps, len(flight.step_time)), strict=True):
+        if b - a < min_steps:
+            continue
+        steps = flight.step_time[a:b]
+        start = float(steps[0])
+        x0, y0 = (float(np.interp(start, tt, flight.truth_xy[:, k])) for k in range(2))
+        state = vehicle.reset((x0, y0, _ALTITUDE), float(yaw[a]))
+        response = AutopilotResponse(params.without_estimate_error())
+        response.reset(state.yaw)
+        sent = -1
+        for t in np.arange(start, min(float(steps[-1]) + 0.1, float(tt[-1])), 0.1):
+            j = a + int(np.searchsorted(steps, t + 1e-9)) - 1
+            if j != sent:
+                response.command_world(float(setpoints[j, 0]), float(setpoints[j, 1]), 0.0)
+                sent = j
+            for _ in range(4):
+                state = vehicle.step(response.setpoint(state, altitude=_ALTITUDE), CHUNK_S)
+            sim = np.asarray(state.velocity[:2], dtype=float)
+            real = np.array([np.interp(t + 0.1, tt, tv[:, k]) for k in range(2)])
+            speed_errors.append(float(np.hypot(*sim) - np.hypot(*real)))
+            if np.hypot(*sim) > SLIP_MIN_SPEED and np.hypot(*real) > SLIP_MIN_SPEED:
+                course = math.atan2(sim[1], sim[0]) - math.atan2(real[1], real[0])
+                course_errors.append(math.remainder(course, 2.0 * math.pi))
+    if not speed_errors:
+        raise ValueError(f"no commanded segment of {min_steps} steps or more")
+    e = np.array(speed_errors)
+    course = float(np.degrees(np.sqrt(np.mean(np.square(course_errors))))) if course_errors else math.nan
+    return FlightErrors(
+        speed=float(np.sqrt(np.mean(e**2))), bias=float(np.mean(e)), course_deg=course, samples=len(e)
     )
