@@ -43,6 +43,10 @@ Structure per firmware (parameters named after the firmware's own):
   position target, and PSC_NE_POS_P (``pos_p``, through ``sqrt_controller`` limited by WP_ACC)
   adds a correction towards it, closing on the flown vehicle's own position (``_pos_estimate``),
   so a vehicle that lags catches up and overshoots (1.9 m/s for 1.6 asked in the real flights).
+  Its limits are the firmware's: the position error is held within what asks :data:`WP_SPD` of the
+  correction (``AC_P_2D``, GUIDED's correction limits), and while the velocity loop's acceleration is
+  at its limit neither the position target nor the shaped velocity moves on along it
+  (``update_pos_vel_accel_xy``), so a vehicle held back finds no target run far ahead.
   The point mass's velocity and acceleration are the reference the JSBSim vehicle tracks.
 * yaw: the commanded rate is scaled by ``yaw_rate_gain`` (PX4's steady 94 %), capped at
   ``yaw_rate_max`` (ArduPilot: ATC_RATE_WPY_MAX), shaped by a first-order input filter
@@ -70,6 +74,9 @@ CHUNK_S = 3 / 120
 _INNER_DT = 0.005
 """Internal integration step of the model, s: several per chunk keeps the lags and the jerk limit stable."""
 _CHUNK_STEPS = round(CHUNK_S / _INNER_DT)
+WP_SPD = 10.0
+"""ArduPilot's WP_SPD, m/s (the SITL's default): GUIDED limits its position correction to it
+(``set_correction_speed_accel_NE``), so the position error is held within what asks that speed."""
 NAMES = ("ideal", "px4", "ardupilot", "random")
 """The values of ``EnvConfig.autopilot_response`` and of the sim autopilots' response option."""
 
@@ -206,6 +213,9 @@ _HARDER_UP = ("command_delay_s", "tilt_lag_s", "drag_per_s", "yaw_input_tc", "ya
 _HARDER_DOWN = ("yaw_rate_gain", "yaw_rate_max", "yaw_accel_max", "accel_max")
 #: a firmware's structure: it shapes its input, or holds a heading, or it does not
 _STRUCTURAL = ("shape_accel_max", "shape_jerk_max", "pos_p", "yaw_angle_p", "yaw_input_tc")
+#: structural fields :func:`random_params` gives no draw: one would move every later number of the
+#: episode's generator (every episode, PX4-like ones too) for a value the base firmware sets anyway
+_UNDRAWN = ("pos_p",)
 
 
 def random_ranges(margin: float = 0.25) -> dict[str, tuple[float, float]]:
@@ -256,7 +266,8 @@ def random_params(rng: np.random.Generator, margin: float = 0.25) -> ResponsePar
     base = PX4 if rng.uniform() < 0.5 else ARDUPILOT
     values: dict[str, Any] = {"name": f"random-{base.name}"}
     for name, (low, high) in random_ranges(margin).items():
-        values[name] = float(rng.uniform(low, high))
+        if name not in _UNDRAWN:
+            values[name] = float(rng.uniform(low, high))
     for structural in _STRUCTURAL:
         values[structural] = getattr(base, structural)  # a firmware shapes, or it does not
     return ResponseParams(**values)
@@ -281,6 +292,16 @@ def _sqrt_controller(error: float, p: float, second_order_limit: float, dt: floa
     return correction
 
 
+@njit(cache=True)
+def _inv_sqrt_controller(output: float, p: float, second_order_limit: float) -> float:
+    """ArduPilot's ``inv_sqrt_controller``: the error :func:`_sqrt_controller` answers with ``output``."""
+    if second_order_limit <= 0.0:
+        return output / p
+    if output < second_order_limit / p:
+        return output / p
+    return 0.5 * second_order_limit / (p * p) + output * output / (2.0 * second_order_limit)
+
+
 # Layout of the parameter vector _advance reads and of the model's state vector.
 _P_NAMES = ("shape_accel_max", "shape_jerk_max", "pos_p", "vel_p", "vel_i", "vel_d", "accel_max",
             "tilt_lag_s", "drag_per_s", "yaw_rate_gain", "yaw_rate_max", "yaw_accel_max", "yaw_input_tc",
@@ -289,10 +310,12 @@ _SHAPE_A, _SHAPE_J, _PP, _VP, _VI, _VD, _AMAX, _TILT, _DRAG = range(9)
 _YGAIN, _YMAX, _YACC, _YTC, _YANG, _YLAG = range(9, 15)
 _S_SVX, _S_SVY, _S_SAX, _S_SAY, _S_VX, _S_VY, _S_AX, _S_AY, _S_IX, _S_IY = range(10)
 _S_EX, _S_EY, _S_HAS_E, _S_BX, _S_BY, _S_RT, _S_YT, _S_R, _S_PX, _S_PY, _S_MX, _S_MY = range(10, 22)
-_N_STATE = 22
+_S_LX, _S_LY = 22, 23
+_N_STATE = 24
 # _S_PX/_S_PY: the position target minus the flown vehicle's position (ArduPilot's position error);
 # _S_MX/_S_MY: the flown vehicle's true velocity, which that error integrates (set by the caller: the
-# JSBSim vehicle's in setpoint and the batch vehicle, the point mass's own in predict)
+# JSBSim vehicle's in setpoint and the batch vehicle, the point mass's own in predict);
+# _S_LX/_S_LY: the velocity loop's acceleration demand when the limit cut it, else 0
 
 
 @njit(cache=True)
@@ -326,16 +349,33 @@ def _advance(
                 dx, dy = dx * jerk / step, dy * jerk / step
             x[_S_SAX] += dx
             x[_S_SAY] += dy
-            x[_S_SVX] += x[_S_SAX] * h
-            x[_S_SVY] += x[_S_SAY] * h
+            # update_pos_vel_accel_xy: while the last step's acceleration was limited (_S_LX/_S_LY,
+            # AC_PosControl's _limit_vector), neither the position target nor the shaped velocity
+            # moves further along the limit where its error already points that way
+            lx, ly = x[_S_LX], x[_S_LY]
+            limited = lx != 0.0 or ly != 0.0
+            move_x = (x[_S_SVX] + 0.5 * x[_S_SAX] * h) * h  # the position target's step
+            move_y = (x[_S_SVY] + 0.5 * x[_S_SAY] * h) * h
+            if limited and move_x * lx + move_y * ly > 0.0 and x[_S_PX] * lx + x[_S_PY] * ly > 0.0:
+                move_x = move_y = 0.0
+            gain_x, gain_y = x[_S_SAX] * h, x[_S_SAY] * h  # the shaped velocity's step
+            along = x[_S_SVX] * lx + x[_S_SVY] * ly >= 0.0  # a slowing target is never held
+            if limited and along and gain_x * lx + gain_y * ly > 0.0 and x[_S_EX] * lx + x[_S_EY] * ly > 0.0:
+                gain_x = gain_y = 0.0
+            x[_S_SVX] += gain_x
+            x[_S_SVY] += gain_y
             tx, ty, fx, fy = x[_S_SVX], x[_S_SVY], x[_S_SAX], x[_S_SAY]
             if p[_PP] > 0.0:
                 # the position target the shaped velocity drags along, against the flown vehicle's
                 # position as the firmware estimates it (AC_PosControl closes on _pos_estimate, not on
-                # a model of itself), and its P loop (AC_P_2D: sqrt_controller limited by WP_ACC)
-                x[_S_PX] += (x[_S_SVX] - (x[_S_MX] + x[_S_BX])) * h
-                x[_S_PY] += (x[_S_SVY] - (x[_S_MY] + x[_S_BY])) * h
+                # a model of itself), and its P loop (AC_P_2D: sqrt_controller limited by WP_ACC; the
+                # error, and so the target, held within what asks WP_SPD of it)
+                x[_S_PX] += move_x - (x[_S_MX] + x[_S_BX]) * h
+                x[_S_PY] += move_y - (x[_S_MY] + x[_S_BY]) * h
                 e = math.sqrt(x[_S_PX] * x[_S_PX] + x[_S_PY] * x[_S_PY])
+                e_max = _inv_sqrt_controller(WP_SPD, p[_PP], p[_SHAPE_A])
+                if e > e_max:
+                    x[_S_PX], x[_S_PY], e = x[_S_PX] * e_max / e, x[_S_PY] * e_max / e, e_max
                 if e > 0.0:
                     size = _sqrt_controller(e, p[_PP], p[_SHAPE_A], h)
                     tx += x[_S_PX] / e * size
@@ -349,8 +389,10 @@ def _advance(
         x[_S_EX], x[_S_EY] = ex, ey
         norm = math.sqrt(dx * dx + dy * dy)
         if norm > p[_AMAX]:
+            x[_S_LX], x[_S_LY] = dx, dy
             dx, dy = dx * p[_AMAX] / norm, dy * p[_AMAX] / norm
         else:  # integrate only while unsaturated, as both firmwares do
+            x[_S_LX] = x[_S_LY] = 0.0
             x[_S_IX] += p[_VI] * ex * h
             x[_S_IY] += p[_VI] * ey * h
         x[_S_AX] += tilt * (dx - x[_S_AX])
