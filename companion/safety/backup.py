@@ -50,11 +50,16 @@ case towards it more), so every candidate is judged, none found by bisection.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from companion.safety.envelope import STEP_S, ResponseEnvelope, worst_closing
+
+if TYPE_CHECKING:
+    from companion.perception.tracking import Mover
 
 #: the directions the worst case is bounded towards, every 5 degrees
 N_DIRECTIONS = 72
@@ -133,22 +138,45 @@ class _WorstCase:
         return self.reached[np.minimum(self.settled[column], steps), column]
 
 
+@dataclass(frozen=True)
+class MoverModel:
+    """What the gate assumes of a mover's motion (the module doc, "Movers").
+
+    :param speed: the highest ground speed of a mover, m/s: any motion up to it stays inside the
+        disc ``radius + speed·t`` round where it was seen
+    :param accel: how fast a mover's velocity may change, m/s²
+    :param velocity_error: how far a mover's true velocity may be from the tracked one when seen, m/s
+    """
+
+    speed: float = 1.5
+    accel: float = 3.0
+    velocity_error: float = 0.3
+
+
 class BackupGate:
     """Passes the command closest to the asked one whose backup stays clear (see the module doc).
 
     :param envelope: the firmware envelope
     :param clearance: how far the vehicle centre must stay from every return: body radius + margin, m
-    :param period: the control period: how long a command is flown before the next can be the backup, s
+    :param period: the control period: how long a command is flown before the next can be the backup,
+        and how old a scan may be when its command is sent, s
     :param unknown_speed: the speed assumed in every direction when the velocity is not known, m/s
+    :param movers: what the gate assumes of the movers' motion
     """
 
     def __init__(
-        self, envelope: ResponseEnvelope, clearance: float, period: float = 0.1, unknown_speed: float = 2.0
+        self,
+        envelope: ResponseEnvelope,
+        clearance: float,
+        period: float = 0.1,
+        unknown_speed: float = 2.0,
+        movers: MoverModel | None = None,
     ) -> None:
         self.envelope = envelope
         self.clearance = float(clearance)
         self.period = float(period)
         self.unknown_speed = float(unknown_speed)
+        self.movers = movers if movers is not None else MoverModel()
         self._sent = _Sent([], [])
         self._time = 0.0
         self._heading = 0.0
@@ -188,6 +216,7 @@ class BackupGate:
         velocity: tuple[float, float] | None,
         points: np.ndarray,
         inflation: np.ndarray,
+        movers: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Which candidate body setpoints keep their backup clear, and by how much.
 
@@ -195,11 +224,87 @@ class BackupGate:
         :param velocity: the measured body velocity less the drift estimate, m/s (None: not known)
         :param points: ``(p, 2)`` the remembered returns, body frame, m
         :param inflation: ``(p,)`` their inflation, m
-        :return: ``(m,)`` bools and ``(m,)`` the least room left, m
+        :param movers: ``(k, 5)`` the movers (:func:`mover_rows`); None: none
+        :return: ``(m,)`` bools and ``(m,)`` the least room left (from the returns and the movers), m
         """
         worst = self._worst_case(np.atleast_2d(np.asarray(candidates, dtype=np.float64)), velocity)
         least = separation(points, inflation, worst.reach(worst.steps)) - self.clearance
+        if movers is not None and len(movers):
+            rows = np.arange(len(worst.column))
+            least = np.minimum(least, self._mover_room(worst, rows, worst.steps, np.asarray(movers)))
         return least >= 0.0, least
+
+    def mover_caps(self, movers: np.ndarray) -> np.ndarray:
+        """``(k,)`` the speed each mover is assumed to keep within, m/s: the model's, or for a mover
+        tracked faster than that (outside the promise), its tracked speed plus the velocity error."""
+        model = self.movers
+        speed = np.hypot(movers[:, 2], movers[:, 3])
+        return np.where(speed > model.speed, speed + model.velocity_error, model.speed)
+
+    def _mover_bounds(self, movers: np.ndarray, steps: int) -> np.ndarray:
+        """``(k, steps, 72)``: for each mover and each step ``[t_j, t_j+1]`` of the worst case, a lower
+        bound of ``o·n`` over every point ``o`` of the mover's body then, towards each direction ``n``, m.
+
+        The mover was seen up to a period before now, so at ``t`` it has moved for ``τ = period + t``.
+        Its velocity towards ``-n`` (towards the vehicle, for the returns beyond it along ``n``) is at
+        most its speed cap and at most the tracked one's plus ``e + a·τ`` (the velocity error when
+        seen, then the acceleration): its body lies at least ``o·n >= p·n - radius - H(τ)`` with ``H``
+        the integral of the lower of the two. ``H`` is convex (its rate only grows), so the higher of
+        a step's two ends bounds the step.
+        """
+        model = self.movers
+        tau = self.period + STEP_S * np.arange(steps + 1)  # (steps + 1,)
+        closing = -(movers[:, 2:4] @ _DIR_UNIT.T) + model.velocity_error  # (k, 72): the rate at τ = 0
+        cap = self.mover_caps(movers)[:, None]
+        # the rate meets the cap at τ = (cap - closing) / a: H is closing·τ + a·τ²/2 before, cap·τ after
+        if model.accel > 0.0:
+            meet = np.maximum(cap - closing, 0.0) / model.accel
+        else:
+            meet = np.where(closing < cap, math.inf, 0.0)
+        ramp = np.minimum(meet[:, None, :], tau[None, :, None])  # (k, steps + 1, 72)
+        extent = closing[:, None, :] * ramp + 0.5 * model.accel * ramp * ramp
+        extent += cap[:, :, None] * (tau[None, :, None] - ramp)
+        reach = np.maximum(extent[:, :-1], extent[:, 1:])
+        return (movers[:, :2] @ _DIR_UNIT.T - movers[:, 4:5])[:, None, :] - reach
+
+    def _mover_room(
+        self, worst: _WorstCase, rows: np.ndarray, steps: np.ndarray | int, movers: np.ndarray
+    ) -> np.ndarray:
+        """``(len(rows),)`` per candidate, the least room to any mover over every step up to its stop
+        less the clearance, m: exact where it is below 0 (where it decides), a lower bound above.
+
+        Each step's vehicle bound is the farthest displacement so far towards each direction (up to
+        that direction's stop: beyond it, what moves is the creep, as for the returns), separated
+        from the mover's bound over that step by the best direction, as :func:`separation` does.
+        A (mover, candidate) pair is first bounded by distances alone: the vehicle stays within its
+        farthest reach over ``cos(half a sector)``, the mover within its speed cap of where it was seen.
+
+        :param rows: the candidates (rows of ``worst.column``)
+        :param steps: the horizon cut per candidate (or one for all), as :meth:`_WorstCase.reach` takes it
+        :param movers: ``(k, 5)`` :func:`mover_rows`
+        """
+        column = worst.column[rows]  # (m, 72)
+        stop = np.minimum(worst.settled[column], np.reshape(steps, (-1, 1)))  # (m, 72)
+        last = stop.max(axis=1)  # the step by which every direction has stopped
+        farthest = worst.reached[stop, column].max(axis=1) / math.cos(math.pi / N_DIRECTIONS)  # (m,)
+        seen = np.hypot(movers[:, 0], movers[:, 1]) - movers[:, 4]  # (k,)
+        tau = self.period + STEP_S * last  # (m,)
+        room = seen[:, None] - self.mover_caps(movers)[:, None] * tau[None] - farthest[None] - self.clearance
+        near = np.flatnonzero((room < 0.0).any(axis=1))  # movers some candidate must be searched for
+        open_ = np.flatnonzero((room[near] < 0.0).any(axis=0))  # and those candidates
+        if len(open_) == 0:
+            return room.min(axis=0)
+        n = int(last[open_].max())
+        j = np.arange(1, n + 1)
+        cols = column[open_]
+        # the farthest so far up to each direction's stop: the columns only grow until every one has
+        # stopped, so the lower of the step's and the stop's
+        reach = np.minimum(worst.reached[1 : n + 1][:, cols], worst.reached[stop[open_], cols])  # (n, m', 72)
+        bounds = self._mover_bounds(movers[near], n)  # (k', n, 72)
+        exact = (bounds[:, :, None] - reach[None]).max(axis=3)  # (k', n, m')
+        exact = np.where(j[None, :, None] <= last[open_], exact, math.inf).min(axis=1)
+        room[np.ix_(near, open_)] = exact - self.clearance
+        return room.min(axis=0)
 
     def _worst_case(self, cand: np.ndarray, velocity: tuple[float, float] | None) -> _WorstCase:
         """The worst case of every candidate in ``cand`` (``(m, 2)``, body), integrated once for all."""
@@ -311,19 +416,29 @@ class BackupGate:
         velocity: tuple[float, float] | None,
         points: np.ndarray,
         inflation: np.ndarray,
+        movers: np.ndarray | None = None,
     ) -> tuple[tuple[float, float], str | None]:
         """The setpoint to send: ``asked`` when it passes; else the passing candidate closest to it
-        (scaled down, or with its part towards the nearest return removed, then scaled); else, when
-        none passes (the assumptions were left: a return seen late, or closer than the creep allows),
-        whichever of them leaves the most room, the stop and ``asked`` included. The reason is None,
-        ``"gate_slowed"``, ``"gate_backup"`` (the stop) or ``"gate_best_effort"``."""
+        (scaled down, or with its part towards the nearest return or mover removed, then scaled);
+        else, when none passes (the assumptions were left: a return seen late, or closer than the
+        creep allows; a mover seen late, or outside its model), of those that keep clear of the
+        returns the one that leaves a mover the most room, and when none does, whichever of them
+        leaves the most room, the stop and ``asked`` included. The reason is None,
+        ``"gate_slowed"``, ``"gate_backup"`` (the stop), ``"gate_mover_best_effort"`` or
+        ``"gate_best_effort"``.
+
+        :param movers: ``(k, 5)`` :func:`mover_rows`; None: none
+        """
         want = np.asarray(asked, dtype=np.float64)
-        if not self._intervening or len(points) == 0:  # passing as the last did: the asked alone first
-            ok, _ = self.passes(want[None], velocity, points, inflation)
+        moving = np.zeros((0, 5)) if movers is None else np.asarray(movers, dtype=np.float64)
+        if not self._intervening or len(points) + len(moving) == 0:  # passing as the last did: alone first
+            ok, _ = self.passes(want[None], velocity, points, inflation, moving)
             if ok[0]:
                 self._intervening = False
                 return (float(want[0]), float(want[1])), None
-        nearest = points[int(np.argmin(np.hypot(points[:, 0], points[:, 1]) - inflation))]
+        centres = np.concatenate([points, moving[:, :2]])
+        gaps = np.hypot(centres[:, 0], centres[:, 1]) - np.concatenate([inflation, moving[:, 4]])
+        nearest = centres[int(np.argmin(gaps))]
         towards = nearest / max(float(np.hypot(*nearest)), 1e-9)
         slide = want - max(float(want @ towards), 0.0) * towards
         candidates = np.concatenate([want[None], _SCALES[1:, None] * want, _SCALES[:-1, None] * slide])
@@ -334,22 +449,34 @@ class BackupGate:
             index[len(_SCALES) :] = np.arange(len(_SCALES) - 1)
         worst = self._worst_case(candidates[: index.max() + 1], velocity)
         reach = worst.reach(worst.steps)
+        rows, horizons = np.arange(len(reach)), np.full(len(reach), worst.steps)
         if self._intervening:  # the asked not judged yet: on its own horizon, as if alone
-            alone = worst.reach(self._steps(max(worst.base_peak, float(worst.cand_peak[0]))), slice(0, 1))
-            reach = np.concatenate([reach, alone])
+            own = self._steps(max(worst.base_peak, float(worst.cand_peak[0])))
+            reach = np.concatenate([reach, worst.reach(own, slice(0, 1))])
+            rows, horizons = np.append(rows, 0), np.append(horizons, own)
         least = separation(points, inflation, reach) - self.clearance
-        if self._intervening and least[-1] >= 0.0:
+        clear = self._mover_room(worst, rows, horizons, moving) if len(moving) else np.full(len(rows), np.inf)
+        if self._intervening and min(least[-1], clear[-1]) >= 0.0:
             self._intervening = False
             return (float(want[0]), float(want[1])), None
         self._intervening = True
-        room = least[index]
-        ok = room >= 0.0
+        room, mover_room = least[index], clear[index]
+        ok = (room >= 0.0) & (mover_room >= 0.0)
         if ok.any():
             distance = np.where(ok, np.hypot(*(candidates - want).T), np.inf)
             pick = int(np.argmin(distance))
             reason = "gate_slowed" if np.any(candidates[pick]) else "gate_backup"
+        elif (room >= 0.0).any():
+            pick = int(np.argmax(np.where(room >= 0.0, mover_room, -np.inf)))
+            reason = "gate_mover_best_effort"
         else:
-            pick = int(np.argmax(room))
+            pick = int(np.argmax(np.minimum(room, mover_room)))
             reason = "gate_best_effort"
         best = candidates[pick]
         return (float(best[0]), float(best[1])), reason
+
+
+def mover_rows(movers: Sequence[Mover]) -> np.ndarray:
+    """``(k, 5)`` the movers as the gate takes them: position (forward, left), velocity (forward,
+    left) and radius, body axes at the scan's time, m and m/s."""
+    return np.array([(*m.position, *m.velocity, m.radius) for m in movers], dtype=np.float64).reshape(-1, 5)

@@ -41,6 +41,12 @@ def scan_points(ranges_m: np.ndarray, max_range: float) -> np.ndarray:
     return np.stack([r[hit] * np.cos(_BIN_RAD[hit]), r[hit] * np.sin(_BIN_RAD[hit])], axis=1)
 
 
+def return_spans(points: np.ndarray) -> np.ndarray:
+    """``(p,)`` how far each return of a scan may truly lie from its point, m: half its bin across
+    and the range accuracy (the module doc)."""
+    return np.hypot(points[:, 0], points[:, 1]) * _HALF_BIN_SIN + RANGE_ACCURACY_M
+
+
 class ObstacleMemory:
     """The returns of the scans of the last ``memory_time`` seconds, in the current body frame.
 
@@ -101,7 +107,7 @@ class ObstacleMemory:
         self._scans.append(
             (self._time, np.stack([x + c * pts[:, 0] - s * pts[:, 1], y + s * pts[:, 0] + c * pts[:, 1]], 1))
         )
-        self._spans.append(np.hypot(pts[:, 0], pts[:, 1]) * _HALF_BIN_SIN + RANGE_ACCURACY_M)
+        self._spans.append(return_spans(pts))
         while len(self._spans) > len(self._scans):
             self._spans.popleft()
         stored = [p for _, p in self._scans]

@@ -30,14 +30,19 @@ from __future__ import annotations
 
 import collections
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from companion.perception.scan import N_BINS
-from companion.safety.backup import BackupGate
+from companion.safety.backup import BackupGate, MoverModel, mover_rows
 from companion.safety.envelope import ENVELOPES, ResponseEnvelope
-from companion.safety.obstacle_memory import ObstacleMemory, scan_points
+from companion.safety.obstacle_memory import ObstacleMemory, return_spans, scan_points
+
+if TYPE_CHECKING:
+    from companion.perception.tracking import Mover
 
 
 @dataclass(frozen=True)
@@ -175,6 +180,12 @@ class ShieldConfig:
     :param body_radius: the vehicle's radius the gate keeps clear, m
     :param margin: room the gate keeps beyond ``body_radius``, m
     :param memory_time: how long the gate remembers a return, s (:mod:`companion.safety.obstacle_memory`)
+    :param mover_speed: the gate keeps clear of movers (:meth:`SafetyShield.filter`'s ``movers``)
+        that move at up to this, m/s (1.5: a walker); one tracked faster is counted
+        (``mover_too_fast``) and judged at its tracked speed, outside the promise
+    :param mover_accel: how fast a mover's velocity may change from the tracked one, m/s² (3: a
+        walker stopping or starting hard): what lets a mover's own course narrow where it may be
+    :param mover_velocity_error: how far a mover's true velocity may be from the tracked one, m/s
     """
 
     max_speed: float = field(default=2.0, metadata={"min": 0.0, "max": 20.0})
@@ -199,6 +210,9 @@ class ShieldConfig:
     body_radius: float = field(default=0.25, metadata={"min": 0.0, "max": 5.0})
     margin: float = field(default=0.05, metadata={"min": 0.0, "max": 5.0})
     memory_time: float = field(default=0.5, metadata={"min": 0.0, "max": 5.0})
+    mover_speed: float = field(default=1.5, metadata={"min": 0.0, "max": 20.0})
+    mover_accel: float = field(default=3.0, metadata={"min": 0.0, "max": 1000.0})
+    mover_velocity_error: float = field(default=0.3, metadata={"min": 0.0, "max": 5.0})
 
 
 def sector_bins(centre_deg: float, half_width_deg: float) -> np.ndarray:
@@ -335,6 +349,19 @@ def _finite_scan(scan: np.ndarray) -> tuple[np.ndarray, bool]:
     return np.nan_to_num(values, nan=0.0, posinf=1.0, neginf=0.0), True
 
 
+def _moving_bins(moving_bins: np.ndarray | None) -> np.ndarray | None:
+    """``moving_bins`` as ``(360,)`` bool (None stays None).
+
+    :raises ValueError: when it does not have 360 bins
+    """
+    if moving_bins is None:
+        return None
+    moving = np.asarray(moving_bins, dtype=bool).reshape(-1)
+    if moving.shape[0] != N_BINS:
+        raise ValueError(f"moving_bins must have {N_BINS} bins, got {moving.shape[0]}")
+    return moving
+
+
 def _finite_pair(pair: tuple[float, float] | None) -> bool:
     """Whether ``pair`` is given and both its values are finite."""
     return pair is not None and math.isfinite(float(pair[0])) and math.isfinite(float(pair[1]))
@@ -413,7 +440,8 @@ class SafetyShield:
         #: the firmware envelope the gate assumes
         self.envelope: ResponseEnvelope = ENVELOPES[autopilot if isinstance(autopilot, str) else "random"]
         clearance = config.body_radius + config.margin
-        self._gate = BackupGate(self.envelope, clearance) if config.backup_gate else None
+        movers = MoverModel(config.mover_speed, config.mover_accel, config.mover_velocity_error)
+        self._gate = BackupGate(self.envelope, clearance, movers=movers) if config.backup_gate else None
         self._memory = ObstacleMemory(config.memory_time, self.envelope.estimate_error)
         self._gated_yaw_rate = 0.0  # the yaw rate last sent, flown until the next scan
 
@@ -467,6 +495,9 @@ class SafetyShield:
         velocity: tuple[float, float] | None = None,
         drift: tuple[float, float] | None = None,
         heading: float | None = None,
+        *,
+        moving_bins: np.ndarray | None = None,
+        movers: Sequence[Mover] = (),
     ) -> Command:
         """Return the command that is safe to send.
 
@@ -486,11 +517,17 @@ class SafetyShield:
             (``drift_compensation``); None or not finite: none
         :param heading: the vehicle's heading, rad counter-clockwise (any fixed origin), for the
             gate's memory and setpoint history; None: the yaw rates sent, integrated
+        :param moving_bins: ``(360,)`` bool, the scan bins whose return belongs to something moving
+            (:class:`~companion.perception.tracking.ScanTracker`): the gate's memory never keeps
+            them (a walker leaves no trail of returns); None: none moves
+        :param movers: what moves, as the tracker gives it: the gate keeps clear of each along its
+            motion (:mod:`companion.safety.backup`, "Movers"). The rules before it judge every
+            return of the scan, moving or not, as standing where it is seen
         """
         out = self._rules(requested, scan, dt, velocity, drift)
         if self._gate is None:
             return out
-        return self._gated(out, scan, dt, velocity, heading)
+        return self._gated(out, scan, dt, velocity, heading, moving_bins, movers)
 
     def _gated(
         self,
@@ -499,16 +536,39 @@ class SafetyShield:
         dt: float,
         velocity: tuple[float, float] | None,
         heading: float | None,
+        moving_bins: np.ndarray | None,
+        movers: Sequence[Mover],
     ) -> Command:
-        """``out`` through the backup gate (:mod:`companion.safety.backup`)."""
+        """``out`` through the backup gate (:mod:`companion.safety.backup`).
+
+        A moving return is never remembered. In the scan it came in, it is replaced by the mover
+        that covers it (within the mover's radius and the return's own span); one that no mover
+        covers still counts there, as a return standing where it is seen, for that scan alone."""
         values, _ = _finite_scan(scan)
+        ranges = values * self.max_range
         known = velocity if _finite_pair(velocity) else None
         yaw_rate = self._gated_yaw_rate
+        moving = _moving_bins(moving_bins)
+        still = ranges if moving is None else np.where(moving, self.max_range, ranges)
         points, inflation = self._memory.update(
-            scan_points(values * self.max_range, self.max_range), dt, known, heading, yaw_rate
+            scan_points(still, self.max_range), dt, known, heading, yaw_rate
         )
+        rows = mover_rows(movers)
+        if moving is not None and moving.any():
+            seen = scan_points(np.where(moving, ranges, self.max_range), self.max_range)
+            spans = return_spans(seen)
+            gaps = np.hypot(seen[:, None, 0] - rows[None, :, 0], seen[:, None, 1] - rows[None, :, 1])
+            alone = ~(gaps <= rows[None, :, 4] + spans[:, None]).any(axis=1)
+            points = np.concatenate([points, seen[alone]])
+            inflation = np.concatenate([inflation, spans[alone]])
+        if len(rows):
+            self.interventions["mover_too_fast"] += int(
+                np.count_nonzero(np.hypot(rows[:, 2], rows[:, 3]) > self.config.mover_speed)
+            )
         self._gate.advance(dt, heading, yaw_rate)
-        (forward, lateral), reason = self._gate.choose((out.forward, out.lateral), known, points, inflation)
+        (forward, lateral), reason = self._gate.choose(
+            (out.forward, out.lateral), known, points, inflation, rows if len(rows) else None
+        )
         if reason is not None:
             self.interventions[reason] += 1
             out = Command(forward, out.yaw_rate, lateral)

@@ -235,8 +235,11 @@ class Supervisor:
                 self.counters["transitions_not_announced"] += 1
         if self._not_announced and self._announce_tokens >= 1.0:
             self._announce_tokens -= 1.0
-            out.append(Transition(now, self._announced_state, self.state,
-                                  f"{self._not_announced} transitions not announced"))
+            out.append(
+                Transition(
+                    now, self._announced_state, self.state, f"{self._not_announced} transitions not announced"
+                )
+            )
             self._announced_state = self.state
             self._not_announced = 0
         return out
