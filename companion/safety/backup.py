@@ -24,9 +24,35 @@ inside that worst case). By induction, from a first state where S holds (standst
 S holds at every step and no verified worst case touches a remembered return.
 
 *Not covered.* Obstacles the scans never saw (below or above the beams, hidden, outside the memory
-horizon), anything that moves, an envelope the firmware leaves (a gust, a motor failure, a wrong
-heading), the creep once stopped, and a start where S does not hold (closer to a return than the
-creep allows): there the gate sends whichever candidate leaves the most room (``gate_best_effort``).
+horizon), anything that moves but is not given as a mover (below), an envelope the firmware leaves
+(a gust, a motor failure, a wrong heading), the creep once stopped, and a start where S does not
+hold (closer to a return than the creep allows): there the gate sends whichever candidate leaves
+the most room (``gate_best_effort``).
+
+*Movers.* The tracker's moving objects (:class:`~companion.perception.tracking.Mover`: centre,
+ground velocity and radius in the body axes at the scan's time; :func:`mover_rows`) are not
+returns: their returns stay out of the memory (the shield's doing), and each is judged along its
+motion. The model (:class:`MoverModel`, ``[shield] mover_*``): a mover moves at up to ``speed``
+(``mover_speed``, 1.5 m/s, a walker); when seen, its true velocity is within ``velocity_error`` of
+the tracked one, and it changes at up to ``accel`` from then on. So ``τ`` after it was seen (a
+scan is at most a period old when its command is sent), its speed towards any direction ``-n`` is
+at most ``min(c_n + velocity_error + accel·τ, speed)``, ``c_n`` the tracked one's, and every point
+``o`` of its body has ``o·n >= p·n - radius - H_n(τ)``, ``H_n`` the integral of that speed: within
+``radius + speed·τ`` of where it was seen in any case, less towards the vehicle when it walks away.
+A candidate passes only if, in addition, at every step of its worst case up to its stop, some
+direction separates the farthest displacement so far from that bound over the step, by ``body_radius
++ margin``, as for a return. The promise then reads: with movers that keep within the model and are
+seen, every command sent keeps a backup whose worst case stays clear of them until the vehicle is
+stopped (to within the creep). The vehicle never closes on a mover while it moves; a contact can
+only come once it is stopped, by the mover's own motion (passive safety). The induction needs each
+scan's mover set to lie within the one judged a period before: true of the speed bound alone (a
+mover that moved at up to ``speed`` stays in the disc grown from where it was seen), and of the
+tracked velocity's narrowing while successive tracked velocities differ by at most ``accel`` times
+the period. Not covered: a mover faster than ``speed`` (counted, ``mover_too_fast``, and judged at
+its tracked speed plus the velocity error), one that keeps coming after the stop (pursuit), one
+never seen or never tracked, and one first seen inside the reach; where no command keeps clear of
+a mover, the gate sends, of those clear of the returns, the one that leaves the movers the most
+room (``gate_mover_best_effort``).
 
 Separation makes it cheap: with ``X_m`` the worst displacement towards direction ``m`` over the
 horizon, every reachable position ``d`` has ``d·m <= X_m`` for all ``m``; so for a return ``o``,
@@ -44,7 +70,10 @@ the history's and the backup's shares their worst case. The integration stops wh
 direction has stopped (a guess, checked, else the whole horizon). :func:`separation` takes the
 returns by a lower bound of their room and leaves a candidate once no further return can go below
 it. Slower is not always safer (of a command away from a return, the slower one raises the worst
-case towards it more), so every candidate is judged, none found by bisection.
+case towards it more), so every candidate is judged, none found by bisection. A mover is first
+bounded by distances alone (the vehicle within its farthest reach, the mover within its speed of
+where it was seen); only a (mover, candidate) pair that bound leaves short is searched step by
+step, so its room is exact where it decides (below the clearance) and a lower bound above.
 """
 
 from __future__ import annotations

@@ -81,6 +81,7 @@ def test_defaults_and_overrides(tmp_path):
     ("text", "message"),
     [
         ("[shield]\nmax_sped = 1.0\n", r"shield\.max_sped: unknown config key"),
+        ("[shield]\nmover_speed = -1.5\n", r"^shield\.mover_speed: -1\.5 is below the minimum 0\.0$"),
         ("[supervisor]\nrecover_scans = 2.5\n", r"supervisor\.recover_scans: expected an integer"),
         ("[lidar.velodyne]\nport = 70000\n", r"lidar\.velodyne\.port: 70000 is above the maximum 65535"),
         ("[autopilot]\ntype = \"betaflight\"\n", r"autopilot\.type: must be one of 'ardupilot', 'px4'"),
