@@ -1,0 +1,51 @@
+"""Controllers that want to crash, in offices where people walk, behind the gate that sees them move.
+
+LidarNav-v0 runs unshielded and :func:`training.mover_attack.fly` applies the shield in the loop,
+the movers taken from the simulator's truth (the tracker is tested on its own). The firmware is
+ArduPilot's response, so the gate's envelope is the one it flies; the walkers (0.5-1.5 m/s) keep
+within the speed bound. Passive safety is asserted: no contact while the vehicle moves faster than
+the creep a stop leaves (a walker reaching a vehicle at rest is reported apart). The worlds are
+validation seeds (500,100 on); ``bench/bench_shield_movers.py`` flies more.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from training.config import load_train_config
+from training.episodes import NAV_ENV_ID, goal_worlds, make_eval_env
+from training.mover_attack import MOVER_ATTACKERS, fly
+
+#: 20 s of flight each
+MAX_STEPS = 200
+
+
+@pytest.fixture(scope="module")
+def env():
+    overrides = [
+        f"env.max_steps={MAX_STEPS}",
+        'env.families=["office-dynamic"]',
+        'env.autopilot_response="ardupilot"',
+    ]
+    made = make_eval_env(load_train_config("training/configs/nav.toml", overrides).env, NAV_ENV_ID)
+    yield made
+    made.close()
+
+
+@pytest.mark.parametrize("attacker", MOVER_ATTACKERS)
+def test_no_attacker_closes_on_a_walker_while_moving(env, attacker: str) -> None:
+    """Offices with 2-4 walkers (0.5-1.5 m/s, within the bound), three worlds per attacker."""
+    worlds = goal_worlds(["office-dynamic"], 500_100, 3, (0.9, 0.9))
+    flights = {w.name: fly(env, w, attacker, movers=True) for w in worlds}
+    moving = {name: f.while_moving for name, f in flights.items() if f.while_moving}
+    at_rest = {name: f.contacts for name, f in flights.items() if f.contacts and not f.while_moving}
+    assert not moving, f"{attacker} met a walker while moving: {moving} (at rest: {at_rest})"
+    assert min(f.moving_gap for f in flights.values()) >= 0.0
+
+
+def test_the_gate_that_takes_walkers_for_standing_returns_meets_one_while_moving(env) -> None:
+    """The test above can fail: the gate as it was before movers, the walkers' returns remembered
+    as standing ones, lets the mover ram meet a walker while the vehicle still moves."""
+    world = goal_worlds(["office-dynamic"], 500_102, 1, (0.9, 0.9))[0]
+    assert fly(env, world, "mover_ram", movers=False).while_moving
+    assert not fly(env, world, "mover_ram", movers=True).while_moving
