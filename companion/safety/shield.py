@@ -543,7 +543,8 @@ class SafetyShield:
 
         A moving return is never remembered. In the scan it came in, it is replaced by the mover
         that covers it (within the mover's radius and the return's own span); one that no mover
-        covers still counts there, as a return standing where it is seen, for that scan alone."""
+        covers still counts there, as a return standing where it is seen, for that scan alone.
+        A mover that is not finite is dropped and counted (``mover_nan``)."""
         values, _ = _finite_scan(scan)
         ranges = values * self.max_range
         known = velocity if _finite_pair(velocity) else None
@@ -554,6 +555,10 @@ class SafetyShield:
             scan_points(still, self.max_range), dt, known, heading, yaw_rate
         )
         rows = mover_rows(movers)
+        broken = ~np.isfinite(rows).all(axis=1)
+        if broken.any():  # dropped: its returns count as standing ones below, as no mover covers them
+            self.interventions["mover_nan"] += int(np.count_nonzero(broken))
+            rows = rows[~broken]
         if moving is not None and moving.any():
             seen = scan_points(np.where(moving, ranges, self.max_range), self.max_range)
             spans = return_spans(seen)
@@ -561,10 +566,9 @@ class SafetyShield:
             alone = ~(gaps <= rows[None, :, 4] + spans[:, None]).any(axis=1)
             points = np.concatenate([points, seen[alone]])
             inflation = np.concatenate([inflation, spans[alone]])
-        if len(rows):
-            self.interventions["mover_too_fast"] += int(
-                np.count_nonzero(np.hypot(rows[:, 2], rows[:, 3]) > self.config.mover_speed)
-            )
+        too_fast = int(np.count_nonzero(np.hypot(rows[:, 2], rows[:, 3]) > self.config.mover_speed))
+        if too_fast:
+            self.interventions["mover_too_fast"] += too_fast
         self._gate.advance(dt, heading, yaw_rate)
         (forward, lateral), reason = self._gate.choose(
             (out.forward, out.lateral), known, points, inflation, rows if len(rows) else None

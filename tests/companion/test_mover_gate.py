@@ -141,6 +141,25 @@ def test_a_moving_return_no_mover_covers_still_counts_in_its_own_scan() -> None:
     assert sent[True] == sent[False] and sent[True].forward < 0.5
 
 
+def test_a_mover_that_is_not_finite_is_counted_and_its_returns_stand() -> None:
+    """A broken track (NaN velocity) is dropped and counted; its returns, marked moving, are then
+    covered by no mover and judged as standing ones, as if not marked."""
+    ahead = np.arange(-5, 6) % N_BINS
+    moving = np.zeros(N_BINS, dtype=bool)
+    moving[ahead] = True
+    scan = _scan_with_return(ahead, 1.0)
+    config = ShieldConfig(backup_gate=True, keepout_distance=0.0, estop_distance=0.0, lane_half_width=0.0)
+    broken = SafetyShield(config, MAX_RANGE, "ardupilot")
+    sent = broken.filter(
+        Command(1.0, 0.0), scan, 0.1, (0.0, 0.0), heading=0.0, moving_bins=moving,
+        movers=[Mover((1.25, 0.0), (math.nan, 0.0), RADIUS)],
+    )  # fmt: skip
+    unmarked = SafetyShield(config, MAX_RANGE, "ardupilot").filter(
+        Command(1.0, 0.0), scan, 0.1, (0.0, 0.0), heading=0.0
+    )
+    assert broken.interventions["mover_nan"] == 1 and sent == unmarked
+
+
 def test_no_movers_given_changes_nothing() -> None:
     """The tracker's arguments with nothing moving give what the call without them gives, bit for bit."""
     rng = np.random.default_rng(3)
