@@ -39,9 +39,10 @@ scan is at most a period old when its command is sent), its speed towards any di
 at most ``min(c_n + velocity_error + accel·τ, speed)``, ``c_n`` the tracked one's, and every point
 ``o`` of its body has ``o·n >= p·n - radius - H_n(τ)``, ``H_n`` the integral of that speed: within
 ``radius + speed·τ`` of where it was seen in any case, less towards the vehicle when it walks away.
-A candidate passes only if, in addition, at every step of its worst case up to its stop, some
-direction separates the farthest displacement so far from that bound over the step, by ``body_radius
-+ margin``, as for a return. The promise then reads: with movers that keep within the model and are
+A candidate passes only if, in addition, at every step of its worst case up to its stop where the
+vehicle may move faster than the creep (standing still, it closes on nothing), some direction
+separates the farthest displacement so far from that bound over the step, by ``body_radius +
+margin``, as for a return. The promise then reads: with movers that keep within the model and are
 seen, every command sent keeps a backup whose worst case stays clear of them until the vehicle is
 stopped (to within the creep). The vehicle never closes on a mover while it moves; a contact can
 only come once it is stopped, by the mover's own motion (passive safety). The induction needs each
@@ -159,6 +160,7 @@ class _WorstCase:
     steps: int  # the horizon's steps for the whole batch
     base_peak: float  # the highest closing speed without the candidates: now, or set by what was sent
     cand_peak: np.ndarray  # (m,) each candidate's highest target
+    fast: np.ndarray  # (n + 1, c) where the closing speed may exceed the creep, per column
 
     def reach(self, steps: int, rows: np.ndarray | slice = slice(None)) -> np.ndarray:
         """``(m, 72)`` the worst displacement towards each direction up to the stop, with the horizon cut
@@ -300,7 +302,8 @@ class BackupGate:
         self, worst: _WorstCase, rows: np.ndarray, steps: np.ndarray | int, movers: np.ndarray
     ) -> np.ndarray:
         """``(len(rows),)`` per candidate, the least room to any mover over every step up to its stop
-        less the clearance, m: exact where it is below 0 (where it decides), a lower bound above.
+        where the vehicle may move faster than the creep, less the clearance, m: exact where it is
+        below 0 (where it decides), a lower bound above.
 
         Each step's vehicle bound is the farthest displacement so far towards each direction (up to
         that direction's stop: beyond it, what moves is the creep, as for the returns), separated
@@ -331,7 +334,11 @@ class BackupGate:
         reach = np.minimum(worst.reached[1 : n + 1][:, cols], worst.reached[stop[open_], cols])  # (n, m', 72)
         bounds = self._mover_bounds(movers[near], n)  # (k', n, 72)
         exact = (bounds[:, :, None] - reach[None]).max(axis=3)  # (k', n, m')
-        exact = np.where(j[None, :, None] <= last[open_], exact, math.inf).min(axis=1)
+        # the steps up to the stop where the vehicle may move faster than the creep at either end
+        # (the closing bound changes linearly within a step): at rest, a contact is the mover's
+        fast = worst.fast[: n + 1][:, cols].any(axis=2)  # (n + 1, m')
+        judged = (j[:, None] <= last[open_]) & (fast[:-1] | fast[1:])
+        exact = np.where(judged[None], exact, math.inf).min(axis=1)
         room[np.ix_(near, open_)] = exact - self.clearance
         return room.min(axis=0)
 
@@ -390,7 +397,8 @@ class BackupGate:
         back = np.flatnonzero((closing_bound[: int(settled.max()) + 1] < 0.0).any(axis=0))
         if len(back):
             displacement[:, back] = np.maximum.accumulate(displacement[:, back], axis=0)
-        return _WorstCase(displacement, settled, column, steps, base_peak, cand_peak)
+        fast = closing_bound > floor + 1e-9
+        return _WorstCase(displacement, settled, column, steps, base_peak, cand_peak, fast)
 
     def _settling_steps(self, targets: np.ndarray, end: int, now_peak: float, floor: float) -> int:
         """A guess of the step by which every column has stopped (after the step ``end`` the targets

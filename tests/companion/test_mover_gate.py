@@ -72,16 +72,24 @@ def test_a_far_walker_does_not_restrict() -> None:
 
 
 def test_no_command_keeps_clear_of_a_walker_inside_the_reach_and_the_most_room_is_sent() -> None:
-    """A walker first seen 1 m ahead, coming at 1.5 m/s (outside the promise): nothing keeps clear;
-    the gate sends the candidate leaving it the most room and says so."""
-    gate = _gate()
-    walker = _walker(1.0, 0.0, -1.5, 0.0)
-    (forward, lateral), reason = gate.choose((1.0, 0.0), (0.0, 0.0), NONE, NO_INFLATION, walker)
+    """At 1.5 m/s, a walker first seen 1.5 m ahead, coming at 1.5 m/s (outside the promise): not
+    even the stop keeps clear while the vehicle still moves; the gate sends the candidate leaving
+    it the most room and says so."""
+    walker = _walker(1.5, 0.0, -1.5, 0.0)
+    (forward, lateral), reason = _gate().choose((1.0, 0.0), (1.5, 0.0), NONE, NO_INFLATION, walker)
     assert reason == "gate_mover_best_effort"
     candidates = np.array([[1.0, 0.0], [0.5, 0.0], [0.0, 0.0]])
-    _, rooms = _gate().passes(candidates, (0.0, 0.0), NONE, NO_INFLATION, walker)
-    _, sent = _gate().passes(np.array([[forward, lateral]]), (0.0, 0.0), NONE, NO_INFLATION, walker)
-    assert sent[0] >= rooms.max() - 1e-9
+    _, rooms = _gate().passes(candidates, (1.5, 0.0), NONE, NO_INFLATION, walker)
+    _, sent = _gate().passes(np.array([[forward, lateral]]), (1.5, 0.0), NONE, NO_INFLATION, walker)
+    assert rooms.max() < 0.0 and sent[0] >= rooms.max() - 1e-9
+
+
+def test_a_vehicle_at_rest_may_stay_at_rest_whatever_walks_at_it() -> None:
+    """Standing still (to within the creep), the vehicle closes on nothing: the stop passes with a
+    walker 1 m ahead coming at it (the contact, if it comes, is the walker's), and going at it does not."""
+    walker = _walker(1.0, 0.0, -1.5, 0.0)
+    ok, _ = _gate().passes(np.array([[0.0, 0.0], [0.5, 0.0]]), (0.0, 0.0), NONE, NO_INFLATION, walker)
+    assert ok.tolist() == [True, False]
 
 
 def test_a_mover_tracked_faster_than_the_bound_is_counted_and_judged_at_its_speed() -> None:
@@ -184,10 +192,11 @@ def test_moving_bins_of_the_wrong_size_are_refused() -> None:
 
 def _plain_worst_case(
     gate: BackupGate, command: np.ndarray, velocity: tuple[float, float]
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The worst case of ``command`` written plainly (a loop over the setpoints sent, the whole
     horizon): ``(k + 1, 72)`` the farthest displacement so far towards each direction at each step,
-    and ``(72,)`` the step each direction stops at (heading 0)."""
+    ``(72,)`` the step each direction stops at, and ``(k + 1,)`` whether the vehicle may move faster
+    than the creep at each step (heading 0)."""
     env = gate.envelope
     units = np.stack(
         [
@@ -217,8 +226,9 @@ def _plain_worst_case(
         targets[k] = env.target(highest)
     bound, displacement = worst_closing(closing, targets, env)
     late = np.append(0.0, times + STEP_S) >= gate.period + env.max_delay
-    stopped = late[:, None] & (bound <= env.target(0.0) + 1e-9)
-    return np.maximum.accumulate(displacement, axis=0), stopped.argmax(axis=0)
+    creep = bound <= env.target(0.0) + 1e-9
+    stopped = late[:, None] & creep
+    return np.maximum.accumulate(displacement, axis=0), stopped.argmax(axis=0), ~creep.all(axis=1)
 
 
 def _true_mover(
@@ -255,7 +265,8 @@ def test_every_command_sent_keeps_its_worst_case_clear_of_movers_within_the_mode
     a mover of a random model tracked somewhere within 2-10 m, its true motion simulated inside the
     model (up to a period old when seen; half of them pursuing the vehicle). Whatever the gate sends
     but its best effort, its worst case (integrated plainly, up to each direction's stop) stays
-    clear of the true mover over every step, by the separating bound. 3 x 80 decisions."""
+    clear of the true mover over every step where the vehicle may move faster than the creep, by
+    the separating bound. 3 x 80 decisions."""
     rng = np.random.default_rng(100 + seed)
     envelopes = [*ENVELOPES.values(), dataclasses.replace(ARDUPILOT, jerk=8.0)]
     units = np.stack(
@@ -287,10 +298,12 @@ def test_every_command_sent_keeps_its_worst_case_clear_of_movers_within_the_mode
         if reason in ("gate_mover_best_effort", "gate_best_effort"):
             continue
         judged += 1
-        reach, stop = _plain_worst_case(gate, np.asarray(sent), velocity)
+        reach, stop, fast = _plain_worst_case(gate, np.asarray(sent), velocity)
         age = rng.uniform(0.0, gate.period)  # seen this long before now
         path = _true_mover(rng, tracked, model, age + STEP_S * int(stop.max()) + 0.02)
         for j in range(1, int(stop.max()) + 1):
+            if not (fast[j - 1] or fast[j]):  # at rest (to within the creep): a contact is the mover's
+                continue
             bound = reach[np.minimum(j, stop), np.arange(N_DIRECTIONS)]  # (72,)
             # the mover over the step [t_j-1, t_j], 0.01 s apart, from when it was seen
             during = path[round((age + STEP_S * (j - 1)) / 0.01) : round((age + STEP_S * j) / 0.01) + 1]
