@@ -56,6 +56,10 @@ class TrackerConfig:
         it (a wall cut off by the range slides along with the vehicle): not tracked, metres
     :param background_gap: a segment is an object only where the returns beside it are at least
         this much farther (or none): else its end may be the sampling's, not the object's, metres
+    :param extent_jump: a segment this much wider or narrower than the track's last one shows
+        another part of the object (a box's second face comes into view, a part goes behind
+        something): its centre moved with what is seen, not with the object, so it places the track
+        without changing its velocity, metres
     """
 
     join_distance: float = 0.35
@@ -64,11 +68,12 @@ class TrackerConfig:
     gate: float = 1.0
     accel_std: float = 3.0
     measurement_std: float = 0.08
-    confirm_hits: int = 3
+    confirm_hits: int = 4
     max_misses: int = 3
     moving_speed: float = 0.45
     edge_margin: float = 1.0
     background_gap: float = 1.0
+    extent_jump: float = 0.2
 
 
 @dataclass
@@ -96,6 +101,8 @@ class Track:
     :param hits: segments it took
     :param misses: revolutions in a row it took none
     :param bins: the scan bins of its last segment
+    :param extent: the width of its last segment, metres
+    :param widest: the widest it was seen, metres: a round object shows up to its diameter
     """
 
     track_id: int
@@ -105,6 +112,8 @@ class Track:
     hits: int = 1
     misses: int = 0
     bins: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    extent: float = 0.0
+    widest: float = 0.0
 
     @property
     def position(self) -> np.ndarray:
@@ -157,19 +166,34 @@ class ScanTracker:
     def __init__(self, config: TrackerConfig | None = None, max_range: float = 10.0) -> None:
         self.config = config or TrackerConfig()
         self.max_range = float(max_range)
+        angles = np.radians(np.arange(N_BINS) + 0.5)  # bin centres, counter-clockwise from the nose
+        self._cos, self._sin = np.cos(angles), np.sin(angles)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget every track (a new flight, or a scan without a pose: the next cannot be placed
+        against the last)."""
         self.tracks: list[Track] = []
         self._next_id = 0
         self._time: float | None = None
-        angles = np.radians(np.arange(N_BINS) + 0.5)  # bin centres, counter-clockwise from the nose
-        self._cos, self._sin = np.cos(angles), np.sin(angles)
 
-    def update(self, scan: np.ndarray, pose: tuple[float, float, float], time: float) -> TrackerOutput:
+    @property
+    def fresh(self) -> bool:
+        """No scan taken since it was made or reset: the next update depends on nothing before it
+        (a replay can check the updates from here on)."""
+        return self._time is None
+
+    def update(self, scan: np.ndarray, pose: tuple[float, float, float] | None, time: float) -> TrackerOutput:
         """Take one scan.
 
         :param scan: ``(360,)`` normalised ranges (:func:`companion.perception.scan.scan_from_points`)
-        :param pose: the vehicle's (x, y, yaw) in a frame fixed to the ground, metres and radians CCW
+        :param pose: the vehicle's (x, y, yaw) in a frame fixed to the ground, metres and radians CCW;
+            None (not known): the tracker resets and says nothing moves
         :param time: the scan's time, seconds (any clock that only goes forward)
         """
+        if pose is None:
+            self.reset()
+            return TrackerOutput([], [], np.zeros(N_BINS, dtype=bool))
         cfg = self.config
         dt = 0.0 if self._time is None else max(float(time) - self._time, 0.0)
         self._time = float(time)
@@ -224,7 +248,11 @@ class ScanTracker:
             if idx.size < cfg.min_points:
                 continue
             px, py = wx[idx], wy[idx]
-            extent = math.hypot(px[-1] - px[0], py[-1] - py[0])
+            # its width: the farthest any return lies from either end (not the ends' distance alone,
+            # which a run curling round the vehicle, a room's walls, brings close together)
+            extent = float(
+                max(np.hypot(px - px[0], py - py[0]).max(), np.hypot(px - px[-1], py - py[-1]).max())
+            )
             if extent > cfg.max_extent or max(r[idx[0]], r[idx[-1]]) > self.max_range - cfg.edge_margin:
                 continue
             if self._occluded(hit, r, idx[0], -1) or self._occluded(hit, r, idx[-1], 1):
@@ -262,11 +290,16 @@ class ScanTracker:
             for i, j in zip(rows, cols, strict=True):
                 if cost[i, j] > cfg.gate:
                     continue
-                track = self.tracks[i]
-                _correct(track, segments[j].centre, cfg.measurement_std)
+                track, seg = self.tracks[i], segments[j]
+                if abs(seg.extent - track.extent) > cfg.extent_jump:
+                    _place(track, seg.centre, cfg.measurement_std)
+                else:
+                    _correct(track, seg.centre, cfg.measurement_std)
                 track.hits += 1
                 track.misses = 0
-                track.bins = segments[j].bins
+                track.bins = seg.bins
+                track.extent = seg.extent
+                track.widest = max(track.widest, seg.extent)
                 taken.add(track.track_id)
                 used[j] = True
         for seg, was_used in zip(segments, used, strict=True):
@@ -278,7 +311,15 @@ class ScanTracker:
         self._next_id += 1
         state = np.array([seg.centre[0], seg.centre[1], 0.0, 0.0])
         covariance = np.diag([self.config.measurement_std**2] * 2 + [2.0**2] * 2)
-        return Track(self._next_id, state, covariance, self._time or 0.0, bins=seg.bins)
+        return Track(
+            self._next_id,
+            state,
+            covariance,
+            self._time or 0.0,
+            bins=seg.bins,
+            extent=seg.extent,
+            widest=seg.extent,
+        )
 
 
 def _predict(track: Track, dt: float, accel_std: float) -> None:
@@ -301,3 +342,49 @@ def _correct(track: Track, centre: np.ndarray, measurement_std: float) -> None:
     gain = track.covariance @ h.T @ np.linalg.inv(s)
     track.state = track.state + gain @ innovation
     track.covariance = (np.eye(4) - gain @ h) @ track.covariance
+
+
+def _place(track: Track, centre: np.ndarray, measurement_std: float) -> None:
+    """The track put at a measured position that says nothing of its motion: the velocity and its
+    uncertainty stay, the position is the measurement's."""
+    track.state = np.concatenate([centre, track.state[2:]])
+    covariance = track.covariance.copy()
+    covariance[:2, :] = 0.0
+    covariance[:, :2] = 0.0
+    covariance[:2, :2] = measurement_std**2 * np.eye(2)
+    track.covariance = covariance
+
+
+def without_movers(scan: np.ndarray, moving_bins: np.ndarray) -> np.ndarray:
+    """``scan`` with the bins of moving returns read as nothing returned (1.0): what the drift
+    estimate matches, so that a mover's motion is not taken for the vehicle's own.
+
+    :param scan: ``(360,)`` normalised ranges
+    :param moving_bins: ``(360,)`` bool, :attr:`TrackerOutput.moving_bins`
+    :returns: a copy (``scan`` itself when nothing moves)
+    """
+    if not moving_bins.any():
+        return scan
+    return np.where(moving_bins, np.asarray(1.0, dtype=scan.dtype), scan)
+
+
+def movers_in_body(tracks: list[Track], pose: tuple[float, float, float]) -> list[Mover]:
+    """The moving tracks as the shield takes them: in the body axes of the vehicle at ``pose``
+    (the pose the scan was tracked at), the velocity turned into those axes, the radius half the
+    widest the track was seen.
+
+    :param tracks: :attr:`TrackerOutput.moving`
+    :param pose: the vehicle's (x, y, yaw) in the tracker's ground frame, metres and radians CCW
+    """
+    x, y, yaw = pose
+    c, s = math.cos(yaw), math.sin(yaw)
+    out = []
+    for track in tracks:
+        dx, dy = float(track.state[0]) - x, float(track.state[1]) - y
+        vx, vy = float(track.state[2]), float(track.state[3])
+        out.append(
+            Mover(
+                (c * dx + s * dy, -s * dx + c * dy), (c * vx + s * vy, -s * vx + c * vy), track.widest / 2.0
+            )
+        )
+    return out
