@@ -145,10 +145,15 @@ class RoutePlanner:
         return self._evidence > 0.0
 
     # ------------------------------------------------------------------ the map
-    def observe(self, scan: np.ndarray, x: float, y: float, heading: float) -> None:
+    def observe(
+        self, scan: np.ndarray, x: float, y: float, heading: float, moving: np.ndarray | None = None
+    ) -> None:
         """Add one scan taken at ``(x, y)`` facing ``heading`` (rad, CCW from +x).
 
         :param scan: the normalised scan (bin i covers [i°, i+1°) CCW from the nose; 1.0 = nothing)
+        :param moving: ``(n,)`` bool, bins whose return is a moving object
+            (:attr:`companion.perception.tracking.TrackerOutput.moving_bins`): the ray up to it is
+            free, the return is not stamped, and what lies behind it stays as it was (it was not seen)
         :raises ValueError: a non-finite pose or scan (the map must not take a false picture)
         """
         scan = np.asarray(scan, dtype=np.float64).reshape(-1)
@@ -171,6 +176,8 @@ class RoutePlanner:
         fi, fj, inside = self._cells(fx, fy)
         fi, fj = fi[inside], fj[inside]
         self._evidence[fi, fj] -= cfg.miss
+        if moving is not None:
+            hit = hit & ~np.asarray(moving, dtype=bool).reshape(-1)
         hx = x + ranges[hit] * np.cos(angles[hit])
         hy = y + ranges[hit] * np.sin(angles[hit])
         hi, hj, inside = self._cells(hx, hy)

@@ -186,3 +186,26 @@ def test_a_new_goal_is_planned_afresh_whatever_the_margin():
     route.observe(segment_scan(0.0, 0.5, 0.0, wall), 0.0, 0.5, 0.0)
     assert _side(route.subgoal(0.0, 0.5, 0.0, 6.0, 0.0)) == 1
     assert _side(route.subgoal(0.0, 0.5, 0.0, 6.0, -2.0)) == -1
+
+
+def test_a_moving_return_is_not_stamped_and_what_it_hides_is_kept():
+    """A wall 6 m ahead is on the map; then a walker 2 m ahead hides part of it for many scans. Its
+    bins, marked moving, clear the ray up to it but stamp nothing, and the wall behind it keeps its
+    evidence (read as nothing returned, the ray would have been cleared through the wall)."""
+    route = planner()
+    far_wall = [((6.0, -3.0), (6.0, 3.0))]
+    route.observe(segment_scan(0.0, 0.0, 0.0, far_wall), 0.0, 0.0, 0.0)
+    wall_cell = route._cells(np.array([6.05]), np.array([0.0]))[:2]
+    walker_cell = route._cells(np.array([2.05]), np.array([0.0]))[:2]
+    walker = [((2.0, -0.3), (2.0, 0.3))]
+    hidden = segment_scan(0.0, 0.0, 0.0, far_wall + walker)
+    moving = np.abs(hidden * MAX_RANGE - 2.0) < 0.1
+    assert moving.sum() >= 10
+    for _ in range(20):
+        route.observe(hidden, 0.0, 0.0, 0.0, moving)
+    assert route.occupied[wall_cell].all() and not route.occupied[walker_cell].any()
+    masked = hidden.copy()
+    masked[moving] = 1.0
+    for _ in range(20):
+        route.observe(masked, 0.0, 0.0, 0.0)
+    assert not route.occupied[wall_cell].any()  # what the mask alone would have done
