@@ -224,9 +224,15 @@ class ScanTracker:
         c, s = math.cos(yaw), math.sin(yaw)
         bx, by = r * self._cos, r * self._sin
         wx, wy = x + c * bx - s * by, y + s * bx + c * by
-        # start the walk after an empty bin, so that no segment is cut where the bins wrap
-        empty = np.flatnonzero(~hit)
-        order = np.roll(np.arange(N_BINS), -int(empty[0]) - 1) if empty.size else np.arange(N_BINS)
+        # start the walk where a run starts (no return within two bins before, or one too far), so
+        # that no segment is cut where the bins wrap: not after an empty bin, as a room's walls all
+        # round leave none
+        index = np.arange(N_BINS)
+        one, two = np.roll(index, 1), np.roll(index, 2)
+        before = np.where(hit[one], one, two)
+        joined = (hit[one] | hit[two]) & (np.hypot(wx - wx[before], wy - wy[before]) <= cfg.join_distance)
+        starts = np.flatnonzero(hit & ~joined)
+        order = np.roll(index, -int(starts[0])) if starts.size else index
         runs: list[list[int]] = []
         gap = 0
         for i in order:

@@ -125,6 +125,16 @@ def test_segments_leave_walls_out_and_join_across_the_wrap() -> None:
     assert segments[0].centre[0] > 5.0 and abs(segments[0].centre[1]) < 0.05
 
 
+def test_an_object_across_the_nose_is_one_in_a_room_with_walls_all_round() -> None:
+    """No empty bin to start the walk after: it starts where a run starts, not at bin 0 (which cut
+    the object in two halves, each hidden by the other)."""
+    scan = np.full(360, 0.8, dtype=np.float32)  # walls all round, 8 m
+    scan[[355, 356, 357, 358, 359, 0, 1, 2, 3, 4]] = 0.3  # something 3 m ahead, 0.5 m wide
+    (segment,) = ScanTracker(max_range=10.0).segments(scan, (0.0, 0.0, 0.0))
+    assert sorted(segment.bins.tolist()) == [0, 1, 2, 3, 4, 355, 356, 357, 358, 359]
+    assert abs(segment.centre[1]) < 0.05
+
+
 @pytest.mark.parametrize("yaw", [0.0, 1.0, -2.5])
 def test_the_pose_puts_a_segment_in_the_ground_frame(yaw: float) -> None:
     tracker = ScanTracker(max_range=10.0)
