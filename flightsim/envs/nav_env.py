@@ -20,6 +20,7 @@ from companion.perception.observation import (
     goal_features,
     goal_in_body,
 )
+from companion.perception.tracking import ScanTracker, TrackerOutput, without_movers
 from flightsim.envs import seeds
 from flightsim.envs.env import CONTROL_HZ, EnvConfig, LidarAvoidEnv, StepCommand, clip_unit
 from flightsim.envs.reward import GoalRewardConfig, GoalStep, StepOutcome, goal_reward
@@ -74,6 +75,10 @@ class NavEnvConfig(EnvConfig):
         shield judges such a command along its course; ``overspeed_penalty`` charges the forward
         part only
     :param max_sideways_speed: m/s that a sideways action of 1 stands for
+    :param tracking: track what moves in every scan (:class:`companion.perception.tracking.ScanTracker`,
+        on the true pose, as the route is), and keep the moving returns out of the drift estimate and
+        the route's map, as the companion's ``[tracking]`` does in flight: a mover's motion is not the
+        vehicle's, and where it stood is not an obstacle. Changes nothing where nothing moves
     """
 
     reward: Literal["goal"] = "goal"
@@ -95,6 +100,7 @@ class NavEnvConfig(EnvConfig):
     route_planner: RouteConfig = field(default_factory=RouteConfig)
     sideways: bool = False
     max_sideways_speed: float = field(default=1.0, metadata={"min": 0.1, "max": 5.0})
+    tracking: bool = True
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -215,7 +221,9 @@ class LidarNavEnv(LidarAvoidEnv):
       limit). ``drift`` (off by default, so earlier configs keep their 365-float frame) adds the
       drift features; ``command`` (off by default too) adds the command features; ``firmware`` (off
       by default) adds the firmware feature; ``route`` (off by default) points the goal features
-      along a route on the map of the scans so far, the same layout.
+      along a route on the map of the scans so far, the same layout; ``tracking`` (on by default)
+      keeps the returns of what moves out of the drift estimate and the route's map (where nothing
+      is taken for moving, an episode is the same as without it).
     """
 
     def __init__(self, config: NavEnvConfig | None = None, render_mode: str | None = None) -> None:
@@ -240,6 +248,8 @@ class LidarNavEnv(LidarAvoidEnv):
         self._drift = DriftEstimator(DriftConfig(max_range=config.scan.max_range))
         self._flown = np.zeros(2, np.float32)  # the action the last step flew (command features)
         self._route = RoutePlanner(config.route_planner, config.scan.max_range) if config.route else None
+        self._tracker = ScanTracker(max_range=config.scan.max_range) if config.tracking else None
+        self.tracked: TrackerOutput | None = None  # the newest frame's tracks (None: tracking off)
 
     # ------------------------------------------------------------------ gymnasium API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
@@ -255,6 +265,8 @@ class LidarNavEnv(LidarAvoidEnv):
         self._flown = np.zeros(2, np.float32)
         if self._route is not None:
             self._route.reset()
+        if self._tracker is not None:
+            self._tracker.reset()
         return self._frame(scan, info["measured_velocity_body"]), self._nav_info(info)
 
     def _split_action(self, action: np.ndarray) -> tuple[float, float, float]:
@@ -394,20 +406,25 @@ class LidarNavEnv(LidarAvoidEnv):
         """
         n = len(self.world.waypoints)
         x, y, _ = self._state.position.tolist()
+        yaw = float(self._state.yaw)
+        moving = None
+        if self._tracker is not None:  # as the companion: the scan, the pose, the time
+            self.tracked = self._tracker.update(scan, (x, y, yaw), self.sim_time)
+            moving = self.tracked.moving_bins
         goal = self.world.waypoints[min(self._waypoint, n - 1)]
-        forward, left = goal_in_body(goal[0] - x, goal[1] - y, float(self._state.yaw))
+        forward, left = goal_in_body(goal[0] - x, goal[1] - y, yaw)
         if self._waypoint >= n:  # done: the goal is where the vehicle is
             forward = left = 0.0
         toward = (forward, left)
         if self._route is not None:
-            yaw = float(self._state.yaw)
-            self._route.observe(scan, x, y, yaw)
+            self._route.observe(scan, x, y, yaw, moving)
             if self._waypoint < n:
                 subgoal = self._route.subgoal(x, y, yaw, goal[0], goal[1])
                 toward = (subgoal.forward, subgoal.left)
         features = goal_features(*toward, *velocity.tolist(), self.layout)
         if self.layout.drift:
-            bias = self._drift.observe(scan, velocity, forward, left, 1.0 / CONTROL_HZ)
+            static = scan if moving is None else without_movers(scan, moving)
+            bias = self._drift.observe(static, velocity, forward, left, 1.0 / CONTROL_HZ)
             features = np.concatenate([features, drift_features(bias, self.layout)])
         if self.layout.command:
             forward, yaw_rate = self._flown.tolist()
