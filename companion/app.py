@@ -6,9 +6,10 @@ the optional autopilot parameter check, then the autopilot link; READY=1 to syst
 The loop (one thread, ``select()`` on the lidar socket with a short timeout so the link is
 serviced even when the lidar is silent):
 
-- the newest finished revolution of the iteration: scan → frame (the scan; for a goal policy also
-  the goal and the measured velocity, none while the goal holds or the velocity is stale) → frame
-  stack → policy → supervisor.on_scan
+- the newest finished revolution of the iteration: scan → tracker (``[tracking]``: what moves, at
+  the autopilot's pose) → frame (the scan; for a goal policy also the goal and the measured
+  velocity, none while the goal holds or the velocity is stale; the moving returns kept out of the
+  drift estimate and the route's map) → frame stack → policy → supervisor.on_scan
   (older ones that arrived in the same read are counted as skipped: the work per iteration stays
   one scan, however much arrived; the lidar source bounds its own reading in time and count). A
   source that saw more revolutions than the sensor can make reports ``implausible``: a fault for
@@ -47,7 +48,7 @@ from companion.autopilot.obstacle_distance import obstacle_distance_allowed, obs
 from companion.common.errors import UserError
 from companion.common.tomlconfig import to_dict
 from companion.config import CompanionConfig, load_config
-from companion.guidance.goal import GoalOutput
+from companion.guidance.goal import GoalOutput, NavInputs
 from companion.guidance.goal_source import (
     GOAL_STREAMS,
     GoalSource,
@@ -68,6 +69,7 @@ from companion.perception.observation import (
     goal_features,
 )
 from companion.perception.scan import BIN_CONVENTION, N_BINS, scan_from_points
+from companion.perception.tracking import ScanTracker, TrackerOutput, without_movers
 from companion.recording.recorder import FlightRecorder, open_recorder
 from companion.recording.taps import tap_parts
 from companion.safety.shield import Command, SafetyShield, command_from_action
@@ -142,6 +144,16 @@ def companion_shield(config: CompanionConfig, autopilot_yaw_rate: float | None) 
     from it when known (None: the firmware default). ``avoid-companion replay`` builds its shield
     here too, from the recording, so a replay runs the very limits the flight ran."""
     return SafetyShield(config.shield, config.scan.max_range, config.autopilot.type, autopilot_yaw_rate)
+
+
+def tracking_pose(nav: NavInputs, now: float) -> tuple[float, float, float] | None:
+    """Where the tracker places a scan taken ``now``: the autopilot's local position and heading as
+    the route's ENU pose (:func:`enu_pose`), the frame LidarNav-v0 tracks in; None while either is
+    unknown or the position is stale (without a goal source no position is asked for), and then
+    nothing is tracked."""
+    if nav.heading is None or nav.position is None or not nav.position_fresh(now):
+        return None
+    return enu_pose(nav.position[0], nav.position[1], nav.heading)
 
 
 def open_lidar(config: CompanionConfig, clock: Callable[[], float]) -> LidarSource:
@@ -342,6 +354,11 @@ class Companion:
         # goal.route: a map of the scans and a route on it (needs the goal source's position)
         route = config.goal.route and self.goal is not None and self.layout.goal
         self._route = RoutePlanner(config.goal.route_planner, config.scan.max_range) if route else None
+        # [tracking]: what moves, each scan; its output stays here for the shield
+        self.tracker = ScanTracker(max_range=config.scan.max_range) if config.tracking.enabled else None
+        self.tracked: TrackerOutput | None = None
+        if self.tracker is not None and self.goal is None:
+            log.info("tracking: no goal source, so no position from the autopilot: nothing is tracked")
         self._completion_requested = False
         self.recorder = self._start_recorder(autopilot_yaw_rate)
 
@@ -355,7 +372,8 @@ class Companion:
             recorder.watch_counters(companion=self.counters, supervisor=self.supervisor.counters,
                                     shield=self.shield.interventions, link=self.link.counters)
             parts = tap_parts(recorder, lidar=self.lidar, stack=self.stack, policy=self.policy,
-                              shield=self.shield, link=self.link, supervisor=self.supervisor)
+                              shield=self.shield, link=self.link, supervisor=self.supervisor,
+                              **({"tracker": self.tracker} if self.tracker is not None else {}))
             for name, tapped in parts.items():
                 setattr(self, name, tapped)
         return recorder
@@ -426,6 +444,7 @@ class Companion:
             self.goal.observe_cloud(cloud, self.config.scan)
         self.counters["scans"] += 1
         self._unsent_scan = scan
+        self._track(scan)
         frame = self._frame(scan)
         if isinstance(frame, str):  # no frame: the policy does not run, the stack starts over
             self._latest = (scan, Command(0.0, 0.0))
@@ -453,6 +472,20 @@ class Companion:
         self._latest = (scan, command_from_action(action, cfg.max_speed, cfg.max_yaw_rate,
                                                             cfg.sideways_speed))
 
+    def _track(self, scan: np.ndarray) -> None:
+        """What moves in ``scan``, at the autopilot's pose now (:func:`tracking_pose`), as LidarNav-v0
+        tracks it; kept in :attr:`tracked`."""
+        if self.tracker is None:
+            return
+        now = self._clock()
+        pose = tracking_pose(self.goal.nav, now) if self.goal is not None else None
+        self.tracked = self.tracker.update(scan, pose, now)
+
+    @property
+    def moving_bins(self) -> np.ndarray | None:
+        """``(360,)`` bool: the newest scan's bins whose return moves (None: tracking off)."""
+        return None if self.tracked is None else self.tracked.moving_bins
+
     def _frame(self, scan: np.ndarray) -> np.ndarray | str:
         """The policy's frame for ``scan`` (LidarNav-v0's, built by the same functions), or why
         there is none: the goal says hold, or the measured velocity is stale (a false picture)."""
@@ -471,7 +504,9 @@ class Companion:
         if self.layout.drift:
             now = self._clock()
             dt, self._drift_time = now - self._drift_time, now
-            bias = self._drift.observe(scan, np.asarray(status.velocity_body), forward, left, dt)
+            moving = self.moving_bins
+            static = scan if moving is None else without_movers(scan, moving)
+            bias = self._drift.observe(static, np.asarray(status.velocity_body), forward, left, dt)
             features = np.concatenate([features, drift_features(bias, self.layout)])
         if self.layout.command:  # what the autopilot is still answering (LidarNav-v0's command)
             sent = self._last_command
@@ -490,7 +525,7 @@ class Companion:
         if nav.position is None or nav.heading is None or tracker.index >= len(tracker.waypoints):
             return forward, left
         x, y, heading = enu_pose(nav.position[0], nav.position[1], nav.heading)
-        self._route.observe(scan, x, y, heading)
+        self._route.observe(scan, x, y, heading, self.moving_bins)
         waypoint = tracker.waypoints[tracker.index]
         goal_x, goal_y, _ = enu_pose(waypoint.north, waypoint.east, 0.0)
         subgoal = self._route.subgoal(x, y, heading, goal_x, goal_y)

@@ -328,6 +328,21 @@ class GoalConfig:
 
 
 @dataclass(frozen=True)
+class TrackingConfig:
+    """Tracking what moves, from the scans (``[tracking]``):
+    :class:`companion.perception.tracking.ScanTracker` on every scan, at the autopilot's local
+    position and heading (LidarNav-v0's ``tracking``).
+
+    :param enabled: track; the returns of what moves are kept out of the drift estimate and the
+        route's map (a mover's motion is not the vehicle's, and where it stood is not an obstacle).
+        Needs the autopilot's position, which only a goal source asks for: with ``goal.source =
+        "none"`` nothing is tracked and nothing is kept out
+    """
+
+    enabled: bool = True
+
+
+@dataclass(frozen=True)
 class CompanionConfig:
     """Everything ``avoid-companion run`` needs; one table per field."""
 
@@ -342,6 +357,7 @@ class CompanionConfig:
     recorder: RecorderConfig = field(default_factory=RecorderConfig)
     goal: GoalConfig = field(default_factory=GoalConfig)
     drift_hold: DriftHoldConfig = field(default_factory=DriftHoldConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
 
     def __post_init__(self) -> None:
         if self.goal.source != "none" and self.policy.observation == "scan":

@@ -11,8 +11,10 @@ read from the autopilot (in the metadata; recordings made before it was recorded
 default, as when nothing was read).
 
 - Same model (the file's sha256 matches the recording's): every scan, observation, action,
-  requested command and shield output must match the recording bit for bit; the first one that
-  does not is reported (exit status 1).
+  requested command and shield output must match the recording bit for bit, and so must every
+  tracker update (``/tracks``: the tracker run again on its recorded scan, pose and time, from the
+  first update with no state before it in the file); the first one that does not is reported
+  (exit status 1).
 - Another model, or other shield settings (``--set shield.backup_gate=true``): what it would have
   asked for and what the shield would have let through, scan by scan on the recorded scans (open
   loop: the vehicle's path stays the recorded one), as a table and a plot. When the recording holds
@@ -39,10 +41,11 @@ from companion.config import CompanionConfig
 from companion.guidance.policy import InferenceFault, OnnxPolicy
 from companion.perception.framestack import FrameStack
 from companion.perception.scan import N_BINS, scan_from_points
+from companion.perception.tracking import ScanTracker
 from companion.recording import schemas
-from companion.recording.messages import unpack_f32
+from companion.recording.messages import TRACK_FIELDS, unpack_f32
 from companion.recording.reader import Recording, read_recording
-from companion.recording.recorder import file_digest
+from companion.recording.recorder import file_digest, track_rows
 from companion.safety.shield import Command, command_from_action, sector_bins
 
 log = logging.getLogger(__name__)
@@ -74,6 +77,8 @@ class ReplayResult:
     shield_steps: int = 0
     skipped_shield: int = 0
     first_difference: str = ""
+    track_steps: int = 0
+    skipped_tracks: int = 0
     steps: list[Step] = field(default_factory=list)
     first_event_t: float = 0.0  # the recording's clock at the first scan or shield step (steps' t = 0), s
 
@@ -322,6 +327,8 @@ def replay(rec: Recording, config: CompanionConfig, policy: OnnxPolicy, *, compa
     requested: dict[int, Command] = {}
     seeded_stack = False
     seeded_shield = False
+    tracker = ScanTracker(max_range=config.scan.max_range)
+    seeded_tracker = False
     cfg = config.policy
 
     def differ(what: str) -> None:
@@ -330,6 +337,8 @@ def replay(rec: Recording, config: CompanionConfig, policy: OnnxPolicy, *, compa
 
     events = [(t, 0, msg) for t, msg in rec.topic(schemas.POLICY.topic)]
     events += [(t, 1, msg) for t, msg in rec.topic(schemas.SHIELD.topic)]
+    if compare:  # the tracks depend on neither the model nor the shield
+        events += [(t, 2, msg) for t, msg in rec.topic(schemas.TRACKS.topic)]
     events.sort(key=lambda e: (e[0], e[1]))
     t0 = result.first_event_t = events[0][0] if events else 0.0
     for t, kind, msg in events:
@@ -390,6 +399,22 @@ def replay(rec: Recording, config: CompanionConfig, policy: OnnxPolicy, *, compa
                 if action is not None
                 else Command(0.0, 0.0)
             )
+        elif kind == 2:
+            seeded_tracker = seeded_tracker or msg["fresh"]
+            if not seeded_tracker:  # the tracker's state before the file is unknown
+                result.skipped_tracks += 1
+                continue
+            result.track_steps += 1
+            where = msg["pose"]
+            pose = None if where is None else (where["x"], where["y"], where["yaw"])
+            scan = unpack_f32(msg["scan"]) if msg["scan"] is not None else np.ones(N_BINS, np.float32)
+            rows, bins = track_rows(tracker.update(scan, pose, msg["time"]))
+            recorded = [tuple(row[k] for k in TRACK_FIELDS) for row in msg["tracks"]]
+            if rows != recorded or bins != msg["moving_bins"]:
+                differ(
+                    f"{when}: tracks recorded {recorded} moving in bins {msg['moving_bins']}, "
+                    f"replayed {rows} moving in bins {bins}"
+                )
         else:
             seq = msg["scan_seq"]
             if msg["reset_before"]:
@@ -582,6 +607,12 @@ def command(args: argparse.Namespace) -> int:
         if result.skipped_shield
         else ""
     )
+    if result.track_steps or result.skipped_tracks:
+        counts += f", {result.track_steps} tracker updates" + (
+            f" ({result.skipped_tracks} before the file's first fresh tracker not checked)"
+            if result.skipped_tracks
+            else ""
+        )
     if same and not settings:
         if result.first_difference:
             print(f"replay of {path} from the recorded {result.source} with {model.name}: {counts}")
@@ -589,7 +620,7 @@ def command(args: argparse.Namespace) -> int:
             return 1
         print(
             f"replay of {path} from the recorded {result.source} with {model.name}: {counts}; "
-            "every scan, observation, action and shield output matches bit for bit"
+            "every scan, observation, action, shield output and track matches bit for bit"
         )
         return 0
     what = [] if same else [f"{model.name} instead of the recorded model"]

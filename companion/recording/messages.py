@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.recording.schemas import BODY_FRAME, FLOAT32
+from companion.recording.schemas import BODY_FRAME, DELETE_ALL, FLOAT32
 
 #: LaserScan bin i covers [i°, i+1°): its bearing is the bin centre.
 _BIN_CENTRE = math.radians(0.5)
@@ -138,3 +138,47 @@ def command(forward: float, yaw_rate: float, lateral: float) -> dict[str, float 
 def log(t: float, level: int, text: str, name: str = "companion") -> dict[str, Any]:
     """foxglove.Log."""
     return {"timestamp": stamp(t), "level": level, "message": text, "name": name, "file": "", "line": 0}
+
+
+#: a track as the recorder holds it: id, ground-frame x, y (m), vx, vy (m/s), seen width and widest
+#: width (m), moving; /tracks names them so
+TrackRow = tuple[int, float, float, float, float, float, float, bool]
+TRACK_FIELDS = ("id", "x", "y", "vx", "vy", "extent", "widest", "moving")
+_MOVING_COLOR = {"r": 0.95, "g": 0.25, "b": 0.2, "a": 0.85}
+_STILL_COLOR = {"r": 0.6, "g": 0.6, "b": 0.6, "a": 0.5}
+
+
+def scene_update(t: float, pose: tuple[float, float, float] | None, tracks: list[TrackRow]) -> dict[str, Any]:
+    """foxglove.SceneUpdate of one tracker update: every earlier entity deleted, then a cylinder per
+    confirmed track (its widest width, 1 m tall about the scan's plane; red when it moves, grey
+    when not) and an arrow along a mover's velocity, 1 s of it, in the body frame at ``pose``
+    (the vehicle's ground-frame x, y, yaw the tracks were placed from; None: nothing tracked)."""
+    entities = []
+    if pose is not None:
+        x0, y0, yaw = pose
+        c, s = math.cos(yaw), math.sin(yaw)
+        for track_id, x, y, vx, vy, _extent, widest, moving in tracks:
+            dx, dy = x - x0, y - y0
+            forward, left = c * dx + s * dy, -s * dx + c * dy
+            v_forward, v_left = c * vx + s * vy, -s * vx + c * vy
+            color = _MOVING_COLOR if moving else _STILL_COLOR
+            size = max(widest, 0.1)
+            at = identity_pose((forward, left, 0.0))
+            arrows = []
+            speed = math.hypot(v_forward, v_left)
+            if moving:
+                heading = quaternion_from_rpy(0.0, 0.0, math.atan2(v_left, v_forward))
+                arrows.append({"pose": identity_pose((forward, left, 0.0), heading), "shaft_length": speed,
+                               "shaft_diameter": 0.05, "head_length": 0.15, "head_diameter": 0.12,
+                               "color": color})
+            entities.append({
+                "timestamp": stamp(t), "frame_id": BODY_FRAME, "id": f"track-{track_id}",
+                "lifetime": {"sec": 0, "nsec": 0}, "frame_locked": False,
+                "metadata": [{"key": "moving", "value": str(moving).lower()},
+                             {"key": "speed", "value": f"{speed:.2f} m/s"}],
+                "arrows": arrows, "cubes": [], "spheres": [],
+                "cylinders": [{"pose": at, "size": {"x": size, "y": size, "z": 1.0}, "bottom_scale": 1.0,
+                               "top_scale": 1.0, "color": color}],
+                "lines": [], "triangles": [], "texts": [], "models": [],
+            })  # fmt: skip
+    return {"deletions": [{"timestamp": stamp(t), "type": DELETE_ALL, "id": ""}], "entities": entities}

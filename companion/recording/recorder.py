@@ -163,6 +163,20 @@ class FlightRecorder:
             self._hold(s.SHIELD, self._clock(), _shield_step, scan_seq, float(dt), reset, requested,
                        output, limits, extra)
 
+    def on_tracks(self, scan: np.ndarray, pose: tuple[float, float, float] | None, time: float, fresh: bool,
+                  output: Any) -> None:
+        """The tracker took ``scan`` at ``pose`` and ``time`` (``fresh``: with no state before) and said
+        ``output`` (:class:`~companion.perception.tracking.TrackerOutput`): its tracks are copied
+        now, as the tracker goes on changing them. Nothing is recorded for an update that changed
+        nothing (no pose, nothing to forget)."""
+        if not self.active or (pose is None and fresh):
+            return
+        rows, bins = track_rows(output)
+        where = None if pose is None else tuple(float(v) for v in pose)
+        t = float(time)
+        self._hold(s.TRACKS, t, _tracks, where, fresh, None if pose is None else scan, rows, bins)
+        self._hold(s.TRACK_SCENE, t, m.scene_update, where, rows)
+
     def on_setpoint(self, forward: float, yaw_rate: float, lateral: float = 0.0,
                     vertical: float = 0.0) -> None:
         if self.active:
@@ -220,6 +234,15 @@ class FlightRecorder:
 # ---- record builders (writer thread) ---------------------------------------------------------
 
 
+def track_rows(output: Any) -> tuple[list[m.TrackRow], list[int]]:
+    """A tracker update's output (:class:`~companion.perception.tracking.TrackerOutput`) as /tracks
+    holds it: a row per confirmed track, and the moving bins. Replay compares its own by these."""
+    moving = {track.track_id for track in output.moving}
+    rows = [(int(track.track_id), *(float(v) for v in track.state), float(track.extent), float(track.widest),
+             track.track_id in moving) for track in output.tracks]
+    return rows, np.flatnonzero(output.moving_bins).tolist()
+
+
 def _policy_step(t: float, seq: int, cloud_seq: int | None, reset: bool, obs: np.ndarray,
                  action: np.ndarray | None, fault: str | None) -> dict[str, Any]:
     return {"timestamp": m.stamp(t), "seq": seq, "cloud_seq": cloud_seq, "reset": reset,
@@ -234,6 +257,15 @@ def _shield_step(t: float, scan_seq: int | None, dt: float, reset: bool, request
             "requested": m.command(requested.forward, requested.yaw_rate, requested.lateral),
             "output": m.command(output.forward, output.yaw_rate, output.lateral), "limits": limits,
             "extra": None if not extra else m.plain(extra)}
+
+
+def _tracks(t: float, pose: tuple[float, float, float] | None, fresh: bool, scan: np.ndarray | None,
+            rows: list[m.TrackRow], bins: list[int]) -> dict[str, Any]:
+    return {"timestamp": m.stamp(t), "time": t, "fresh": fresh,
+            "pose": None if pose is None else dict(zip(("x", "y", "yaw"), pose, strict=True)),
+            "scan": None if scan is None else m.pack_f32(scan),
+            "tracks": [dict(zip(m.TRACK_FIELDS, row, strict=True)) for row in rows],
+            "moving_bins": bins}
 
 
 def _setpoint(t: float, forward: float, yaw_rate: float, lateral: float, vertical: float) -> dict[str, Any]:

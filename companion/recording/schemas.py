@@ -2,11 +2,12 @@
 
 Messages are JSON (MCAP message encoding ``json``, schema encoding ``jsonschema``), which
 Foxglove reads natively and the pure-Python ``mcap`` package writes without code generation.
-Where Foxglove has a standard message (LaserScan, PointCloud, PoseInFrame, FrameTransform, Log),
+Where Foxglove has a standard message (LaserScan, PointCloud, PoseInFrame, FrameTransform, Log,
+SceneUpdate),
 the channel uses it under its Foxglove name, so Foxglove's 3D, Plot and Log panels understand it;
 the field names and types follow Foxglove's definitions (``tests/companion/test_recorder_schemas.py``
 checks them against the protobuf descriptors the ``foxglove-sdk`` package ships). The companion's
-own records (policy step, shield, setpoint, supervisor, vehicle status, counters) have
+own records (policy step, shield, setpoint, supervisor, vehicle status, counters, tracks) have
 ``lidar_avoid.*`` schemas defined here.
 """
 
@@ -72,6 +73,34 @@ NUMERIC_TYPE = {"type": "integer", "minimum": 0, "maximum": 8}
 FLOAT32 = 7
 #: foxglove.LogLevel: INFO 2, WARNING 3, ERROR 4.
 LOG_LEVEL = {"type": "integer", "minimum": 0, "maximum": 5}
+#: google.protobuf.Duration as Foxglove's JSON has it (0: for ever)
+DURATION = _obj("duration", sec=_int(None), nsec={"type": "integer", "minimum": 0, "maximum": 999_999_999})
+COLOR = _obj("foxglove.Color", r=_num(), g=_num(), b=_num(), a=_num())
+POINT3 = _obj("foxglove.Point3", x=_num(), y=_num(), z=_num())
+#: foxglove.SceneEntityDeletion.Type: MATCHING_ID 0, ALL 1.
+DELETE_ALL = 1
+#: foxglove.LinePrimitive.Type: LINE_STRIP 0, LINE_LOOP 1, LINE_LIST 2.
+_LINE_TYPE = {"type": "integer", "minimum": 0, "maximum": 2}
+SCENE_ENTITY = _obj(
+    "foxglove.SceneEntity", timestamp=TIME, frame_id=_str(), id=_str(), lifetime=DURATION,
+    frame_locked=_bool(),
+    metadata=_array(_obj("foxglove.KeyValuePair", key=_str(), value=_str())),
+    arrows=_array(_obj("foxglove.ArrowPrimitive", pose=POSE, shaft_length=_num(), shaft_diameter=_num(),
+                       head_length=_num(), head_diameter=_num(), color=COLOR)),
+    cubes=_array(_obj("foxglove.CubePrimitive", pose=POSE, size=VECTOR3, color=COLOR)),
+    spheres=_array(_obj("foxglove.SpherePrimitive", pose=POSE, size=VECTOR3, color=COLOR)),
+    cylinders=_array(_obj("foxglove.CylinderPrimitive", pose=POSE, size=VECTOR3, bottom_scale=_num(),
+                          top_scale=_num(), color=COLOR)),
+    lines=_array(_obj("foxglove.LinePrimitive", type=_LINE_TYPE, pose=POSE, thickness=_num(),
+                      scale_invariant=_bool(), points=_array(POINT3), color=COLOR, colors=_array(COLOR),
+                      indices=_array(_int()))),
+    triangles=_array(_obj("foxglove.TriangleListPrimitive", pose=POSE, points=_array(POINT3), color=COLOR,
+                          colors=_array(COLOR), indices=_array(_int()))),
+    texts=_array(_obj("foxglove.TextPrimitive", pose=POSE, billboard=_bool(), font_size=_num(),
+                      scale_invariant=_bool(), color=COLOR, text=_str())),
+    models=_array(_obj("foxglove.ModelPrimitive", pose=POSE, scale=VECTOR3, color=COLOR,
+                       override_color=_bool(), url=_str(), media_type=_str(), data=_bytes())),
+)
 
 FOXGLOVE_SCHEMAS: dict[str, dict[str, Any]] = {
     "foxglove.LaserScan": _obj(
@@ -91,6 +120,12 @@ FOXGLOVE_SCHEMAS: dict[str, dict[str, Any]] = {
     "foxglove.Log": _obj(
         "foxglove.Log", timestamp=TIME, level=LOG_LEVEL, message=_str(), name=_str(), file=_str(),
         line=_int(),
+    ),
+    "foxglove.SceneUpdate": _obj(
+        "foxglove.SceneUpdate",
+        deletions=_array(_obj("foxglove.SceneEntityDeletion", timestamp=TIME,
+                              type={"type": "integer", "minimum": 0, "maximum": 1}, id=_str())),
+        entities=_array(SCENE_ENTITY),
     ),
 }
 
@@ -128,6 +163,18 @@ OWN_SCHEMAS: dict[str, dict[str, Any]] = {
         "lidar_avoid.Counters", timestamp=TIME, companion=_COUNTS, supervisor=_COUNTS, shield=_COUNTS,
         link=_COUNTS, recorder=_COUNTS,
     ),
+    # One per tracker update: its input (the time, the pose, or null when there was none and the
+    # tracker reset; the scan as float32, base64: exact) and its output, the confirmed tracks (ground
+    # frame, m and m/s; widths as seen, m) and the bins of moving returns. ``fresh``: the tracker had
+    # no state before this update, so a replay can check the updates from here on. An update without
+    # a pose on a tracker already fresh changes nothing and is not recorded.
+    "lidar_avoid.Tracks": _obj(
+        "lidar_avoid.Tracks", timestamp=TIME, time=_num(), fresh=_bool(),
+        pose=_obj(None, nullable=True, x=_num(), y=_num(), yaw=_num()), scan=_nullable(_bytes()),
+        tracks=_array(_obj("lidar_avoid.Track", id=_int(), x=_num(), y=_num(), vx=_num(), vy=_num(),
+                           extent=_num(), widest=_num(), moving=_bool())),
+        moving_bins=_array(_int()),
+    ),
 }
 
 
@@ -148,6 +195,9 @@ TRANSITION = Channel("/supervisor/transition", "lidar_avoid.Transition")
 VEHICLE = Channel("/vehicle/status", "lidar_avoid.VehicleStatus")
 COUNTERS = Channel("/counters", "lidar_avoid.Counters")
 LOG = Channel("/log", "foxglove.Log")
+TRACKS = Channel("/tracks", "lidar_avoid.Tracks")
+#: the same tracks to look at: a cylinder per track in the body frame, an arrow for a mover's velocity
+TRACK_SCENE = Channel("/tracks/scene", "foxglove.SceneUpdate")
 # Ground truth (flightsim only).
 TRUTH_POSE = Channel("/truth/pose", "foxglove.PoseInFrame")
 TRUTH_TF = Channel("/tf", "foxglove.FrameTransform")

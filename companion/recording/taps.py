@@ -105,6 +105,14 @@ class LinkTap(_Tap):
         self._recorder.on_statustext(text, severity)
 
 
+class TrackerTap(_Tap):
+    def update(self, scan: np.ndarray, pose: tuple[float, float, float] | None, time: float) -> Any:
+        fresh = self._inner.fresh
+        out = self._inner.update(scan, pose, time)
+        self._recorder.on_tracks(scan, pose, time, fresh, out)
+        return out
+
+
 class SupervisorTap(_Tap):
     def drain_transitions(self) -> list[Any]:
         transitions = self._inner.drain_transitions()
@@ -114,7 +122,7 @@ class SupervisorTap(_Tap):
 
 
 def tap_parts(recorder: FlightRecorder, **parts: Any) -> dict[str, Any]:
-    """Wrap the named parts (lidar, stack, policy, shield, link, supervisor) in their taps."""
+    """Wrap the named parts (lidar, stack, policy, shield, link, supervisor, tracker) in their taps."""
     kinds = {"lidar": LidarTap, "stack": FrameStackTap, "policy": PolicyTap, "shield": ShieldTap,
-             "link": LinkTap, "supervisor": SupervisorTap}
+             "link": LinkTap, "supervisor": SupervisorTap, "tracker": TrackerTap}
     return {name: kinds[name](part, recorder) for name, part in parts.items()}

@@ -196,6 +196,7 @@ def _record_companion(
     kind: str = "steer",
     room_m: float | None = None,
     params: dict[str, float] | None = None,
+    scene=None,
 ) -> list[Path]:
     """A short recording of the real companion process (constant lidar, the ``kind`` policy, config
     ``extra``), ended once the autopilot has had ``setpoints`` setpoints and the recorder has begun
@@ -204,6 +205,7 @@ def _record_companion(
 
     :param room_m: the lidar's round room's radius (default: the sender's 8 m)
     :param params: the autopilot's parameters (for a ``[params_check]`` in ``extra``)
+    :param scene: the lidar's scene instead (:func:`revolution_packets`), asked once a revolution
     """
     lidar_port, mavlink_port = free_udp_port(), free_udp_port()
     model = write_policy(tmp_path / f"{kind}.onnx", kind=kind)
@@ -215,6 +217,8 @@ def _record_companion(
     lidar = LidarSender(lidar_port)
     if room_m is not None:
         lidar.scene = lambda azimuth: np.full(azimuth.shape, room_m)
+    if scene is not None:
+        lidar.scene = scene
     try:
         lidar.on = True
         deadline = time.monotonic() + 40
@@ -710,3 +714,81 @@ def test_replay_with_the_backup_gate_on_a_real_collision_flight_asks_less_before
     bad = _replay(flight, *model, "--set", "shield.backup_gat=true")
     assert bad.returncode == 2 and bad.stdout == ""
     assert bad.stderr.strip().splitlines()[-1].endswith("--set shield.backup_gat: unknown config key")
+
+
+class _Walker:
+    """A walker 0.3 m in radius crossing 3 m ahead of a vehicle facing north, from 2 m west to 2 m
+    east at 1 m/s and round again, in a round room of 8 m: each call is the next revolution's ranges
+    (azimuth degrees clockwise from the front)."""
+
+    def __init__(self) -> None:
+        self.revolution = 0
+
+    def __call__(self, azimuth_deg: np.ndarray) -> np.ndarray:
+        east = -2.0 + (0.1 * self.revolution) % 4.0
+        self.revolution += 1
+        a = np.radians(azimuth_deg)
+        north_dir, east_dir = np.cos(a), np.sin(a)
+        along = 3.0 * north_dir + east * east_dir  # the ray's nearest approach to the walker's centre
+        miss = (3.0 * east_dir - east * north_dir) ** 2
+        inside = 0.3**2 - miss
+        hit = np.where((inside > 0.0) & (along > 0.0), along - np.sqrt(np.maximum(inside, 0.0)), np.inf)
+        return np.minimum(hit, 8.0)
+
+
+def _with_one_track_moved(src: Path, dst: Path) -> None:
+    """Copy a recording, the first moving track's x moved by one float64 ulp."""
+    done = False
+
+    def change(topic: str, data: bytes, _n: int) -> bytes:
+        nonlocal done
+        msg = json.loads(data)
+        if topic != s.TRACKS.topic or done or not any(track["moving"] for track in msg["tracks"]):
+            return data
+        track = next(track for track in msg["tracks"] if track["moving"])
+        track["x"] = float(np.nextafter(track["x"], math.inf))
+        done = True
+        return json.dumps(msg).encode()
+
+    _copy_recording(src, dst, change)
+
+
+def test_the_tracks_are_recorded_each_scan_and_replay_reproduces_them(tmp_path):
+    """A walker crosses in front of the companion's vehicle (a fixed goal: the autopilot's position
+    places the scans): every scan's tracker update goes to /tracks, with the walker moving and its
+    bins marked, and to /tracks/scene; the replay runs the tracker again on what /tracks holds and
+    matches it bit for bit, and finds a track moved by one ulp."""
+    (path,) = _record_companion(tmp_path, setpoints=40, extra=WEST_AND_UP, scene=_Walker())
+    rec = read_recording(path)
+    updates = [msg for _, msg in rec.topic(s.TRACKS.topic)]
+    assert len(updates) >= 30 and updates[0]["fresh"] and all(msg["pose"] for msg in updates)
+    movers = [track for msg in updates for track in msg["tracks"] if track["moving"]]
+    assert len(movers) >= 5, updates[-1]
+    # the walker crosses at 1 m/s to the east (ENU x), 3 m north of the origin (y)
+    assert np.median([t["vx"] for t in movers]) == pytest.approx(1.0, abs=0.3)
+    assert np.median([t["y"] for t in movers]) == pytest.approx(3.0, abs=0.3)
+    assert all(msg["moving_bins"] for msg in updates if any(t["moving"] for t in msg["tracks"]))
+    scenes = [msg for _, msg in rec.topic(s.TRACK_SCENE.topic)]
+    assert len(scenes) == len(updates) and any(e["arrows"] for msg in scenes for e in msg["entities"])
+    same = _replay(path)
+    assert same.returncode == 0, same.stdout + same.stderr
+    assert f"{len(updates)} tracker updates" in same.stdout and "track matches bit for bit" in same.stdout
+
+    tampered = tmp_path / "tampered.mcap"
+    _with_one_track_moved(path, tampered)
+    diff = _replay(tampered)
+    assert diff.returncode == 1, diff.stdout + diff.stderr
+    assert "first difference" in diff.stdout and "tracks recorded" in diff.stdout
+
+
+def test_without_tracking_or_a_position_no_tracks_are_recorded(tmp_path):
+    """``[tracking] enabled = false``; and the default without a goal source (no position asked
+    for): nothing tracked, no /tracks."""
+    for name in ("off", "no-goal"):
+        (tmp_path / name).mkdir()
+    (off,) = _record_companion(
+        tmp_path / "off", extra=WEST_AND_UP + "[tracking]\nenabled = false\n", scene=_Walker()
+    )
+    (no_goal,) = _record_companion(tmp_path / "no-goal", scene=_Walker())
+    for path in (off, no_goal):
+        assert read_recording(path).topic(s.TRACKS.topic) == []

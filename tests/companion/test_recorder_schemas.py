@@ -17,6 +17,7 @@ from companion.recording import schemas as s
 
 # protobuf FieldDescriptorProto types -> JSON Schema type
 _DOUBLE, _FLOAT, _INT32, _FIXED32, _UINT32, _STRING, _MESSAGE, _BYTES, _ENUM = 1, 2, 5, 7, 13, 9, 11, 12, 14
+_BOOL = 8
 _REPEATED = 3
 
 
@@ -35,7 +36,7 @@ def _descriptors(name: str) -> tuple[dict, dict]:
 
 
 def _check(ours: dict, proto, msgs: dict, enums: dict, where: str) -> None:
-    if proto.name == "Timestamp":  # Foxglove's JSON encoding of google.protobuf.Timestamp
+    if proto.name in ("Timestamp", "Duration"):  # Foxglove's JSON encoding of google.protobuf's
         assert set(ours["properties"]) == {"sec", "nsec"}, where
         return
     assert set(ours["properties"]) == {f.name for f in proto.field}, where
@@ -51,6 +52,8 @@ def _check(ours: dict, proto, msgs: dict, enums: dict, where: str) -> None:
             assert mine["type"] == "integer", here
         elif f.type == _STRING:
             assert mine["type"] == "string", here
+        elif f.type == _BOOL:
+            assert mine["type"] == "boolean", here
         elif f.type == _BYTES:
             assert mine == {"type": "string", "contentEncoding": "base64"}, here
         elif f.type == _ENUM:
@@ -104,3 +107,42 @@ def test_quaternion_from_rpy_is_a_unit_quaternion_with_the_right_yaw():
     assert (x, y) == (0.0, 0.0) and z == pytest.approx(np.sqrt(0.5)) and w == pytest.approx(np.sqrt(0.5))
     q = np.array(m.quaternion_from_rpy(0.3, -0.2, 2.0))
     assert np.linalg.norm(q) == pytest.approx(1.0)
+
+
+def test_the_tracks_and_their_scene_validate_against_their_channel_schemas():
+    """/tracks and /tracks/scene, as the recorder builds them from one tracker update: a mover ahead
+    of a vehicle heading north, a pillar still; and an update without a pose (the tracker reset)."""
+    from companion.perception.tracking import Track, TrackerOutput
+    from companion.recording.recorder import _tracks, track_rows
+
+    mover = Track(3, np.array([1.0, 4.0, 0.8, 0.0]), np.eye(4), 1.0, hits=5, extent=0.4, widest=0.5)
+    pillar = Track(4, np.array([-2.0, 3.0, 0.0, 0.0]), np.eye(4), 1.0, hits=9, extent=0.5, widest=0.6)
+    moving_bins = np.zeros(360, dtype=bool)
+    moving_bins[[1, 2, 3]] = True
+    rows, bins = track_rows(TrackerOutput([mover, pillar], [mover], moving_bins))
+    assert rows[0] == (3, 1.0, 4.0, 0.8, 0.0, 0.4, 0.5, True) and rows[1][-1] is False and bins == [1, 2, 3]
+    pose = (1.0, 2.0, np.pi / 2)
+    scan = np.full(360, 0.5, dtype=np.float32)
+    tracks = _tracks(12.5, pose, False, scan, rows, bins)
+    scene = m.scene_update(12.5, pose, rows)
+    for channel, msg in ((s.TRACKS, tracks), (s.TRACK_SCENE, scene)):
+        jsonschema.validate(json.loads(m.to_json(msg)), s.schema_json(channel.schema))
+    assert np.array_equal(m.unpack_f32(json.loads(m.to_json(tracks))["scan"]), scan)
+    first = scene["entities"][0]
+    assert first["frame_id"] == s.BODY_FRAME and first["id"] == "track-3"
+    # 2 m ahead of the vehicle, moving to its right at 0.8 m/s: the arrow points right, 0.8 m long
+    assert (
+        first["cylinders"][0]["pose"]["position"]["x"],
+        first["cylinders"][0]["pose"]["position"]["y"],
+    ) == (
+        pytest.approx(2.0),
+        pytest.approx(0.0, abs=1e-9),
+    )
+    (arrow,) = first["arrows"]
+    assert arrow["shaft_length"] == pytest.approx(0.8) and arrow["pose"]["orientation"]["z"] == pytest.approx(
+        -np.sqrt(0.5)
+    )
+    assert scene["entities"][1]["arrows"] == [] and scene["deletions"][0]["type"] == s.DELETE_ALL
+    reset = _tracks(12.6, None, False, None, [], [])
+    jsonschema.validate(json.loads(m.to_json(reset)), s.schema_json(s.TRACKS.schema))
+    assert m.scene_update(12.6, None, [])["entities"] == []

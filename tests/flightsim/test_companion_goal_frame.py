@@ -82,3 +82,36 @@ def test_the_companions_route_equals_the_envs() -> None:
         assert route.plans > 1
     finally:
         env.close()
+
+
+def test_the_companion_tracks_and_keeps_out_what_the_env_does() -> None:
+    """The companion's tracker, fed the same scans at the pose the autopilot reports
+    (LOCAL_POSITION_NED and ATTITUDE through :func:`tracking_pose`) and the same times, marks the
+    same bins moving as LidarNav-v0's, so the drift estimate and the route's map are given the same
+    scans; the walker crossing ahead is among them."""
+    from companion.app import tracking_pose
+    from companion.perception.tracking import ScanTracker
+    from tests.flightsim.test_nav_tracking import CROSSING
+
+    env = LidarNavEnv(NavEnvConfig(autopilot_response="ideal", drift=True, route=True))
+    tracker = ScanTracker(max_range=CompanionConfig().scan.max_range)
+    moving = 0
+    try:
+        obs, _ = env.reset(seed=0, options={"world": CROSSING})
+        for step in range(40):
+            state = env._state
+            x, y, z = map(float, state.position)
+            nav = NavInputs()
+            nav.on_message(mavlink.MAVLink_local_position_ned_message(0, y, x, -z, 0.0, 0.0, 0.0), now=1.0)
+            yaw_ned = math.pi / 2 - float(state.yaw)
+            nav.on_message(mavlink.MAVLink_attitude_message(0, 0.0, 0.0, yaw_ned, 0.0, 0.0, 0.0), now=1.0)
+            pose = tracking_pose(nav, now=1.0)
+            assert pose is not None and np.allclose(pose, (x, y, float(state.yaw)), atol=1e-5)
+            out = tracker.update(obs[:360], pose, env.sim_time)
+            assert np.array_equal(out.moving_bins, env.tracked.moving_bins), step
+            moving += bool(out.moving)
+            obs, *_ = env.step(np.array([0.25, 0.0], np.float32))
+        assert moving >= 20
+        assert tracking_pose(nav, now=3.0) is None  # the position a second and more old: no pose
+    finally:
+        env.close()
