@@ -7,20 +7,26 @@ bins whose returns belong to a moving track. No ground truth goes in: the scan a
 pose (the autopilot's estimate, in any frame fixed to the ground) only.
 
 - Segments: consecutive scan bins with returns, each within ``join_distance`` of the previous
-  (one empty bin may lie between), in the ground frame. Segments wider than ``max_extent`` (walls,
-  racks) are never tracked: a person, a drone or a forklift is narrower. A round object seen from one
-  side shows its near arc, whose centroid lies about 0.64 of its radius in front of its centre; the
-  segment's centre is put that far behind the centroid, seen from the sensor, so that a pillar the
-  vehicle flies past stays still. A segment that may go on beyond the range, or whose end may not
-  be the object's (a nearer return beside it hides part of it, or one not clearly behind it
-  continues the surface), is not measured in that scan: its seen centre is not its centre. So an
-  object within ``background_gap`` of a wall is not tracked while it is there.
+  (one empty bin may lie between), in the ground frame. A segment's width is the farthest any of
+  its returns lies from either end; segments wider than ``max_extent`` (walls, racks, a room's
+  walls all round) are never tracked: a person, a drone or a forklift is narrower. A round object
+  seen from one side shows its near arc, whose centroid lies about 0.64 of its radius in front of
+  its centre; the segment's centre is put that far behind the centroid, seen from the sensor, so
+  that a pillar the vehicle flies past stays still. A segment that may go on beyond the range, or
+  whose end may not be the object's (a nearer return beside it hides part of it, or one not
+  clearly behind it continues the surface), is not measured in that scan: its seen centre is not
+  its centre. So an object within ``background_gap`` of a wall is not tracked while it is there.
 - Association: each track's predicted position against each segment's centre, the cheapest
   one-to-one assignment within ``gate`` metres (``scipy.optimize.linear_sum_assignment``).
 - Filter: state (x, y, vx, vy), white-noise acceleration of ``accel_std``, centre measured to
-  ``measurement_std``. A segment no track takes starts a tentative track; ``confirm_hits`` hits
-  confirm it; ``max_misses`` revolutions in a row without one end it.
+  ``measurement_std``. A segment more than ``extent_jump`` wider or narrower than the track's last
+  shows another part of the object (a box's second face comes into view as the vehicle flies
+  past): it places the track without changing its velocity. A segment no track takes starts a
+  tentative track; ``confirm_hits`` hits confirm it (four: three left the speed of a pillar whose
+  edge bins flicker with the noise above ``moving_speed`` now and then); ``max_misses``
+  revolutions in a row without one end it.
 - Moving: a confirmed track whose speed exceeds ``moving_speed``.
+- No pose (the autopilot's position not known): the tracker forgets everything and nothing moves.
 
 Pure: arrays and times in, no I/O.
 """
