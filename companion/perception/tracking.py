@@ -22,10 +22,12 @@ pose (the autopilot's estimate, in any frame fixed to the ground) only.
   ``measurement_std``. A segment more than ``extent_jump`` wider or narrower than the track's last
   shows another part of the object (a box's second face comes into view as the vehicle flies
   past): it places the track without changing its velocity. A segment no track takes starts a
-  tentative track; ``confirm_hits`` hits confirm it (four: three left the speed of a pillar whose
-  edge bins flicker with the noise above ``moving_speed`` now and then); ``max_misses``
-  revolutions in a row without one end it.
-- Moving: a confirmed track whose speed exceeds ``moving_speed``.
+  tentative track; ``confirm_hits`` hits confirm it; ``max_misses`` revolutions in a row without
+  one end it.
+- Moving: a confirmed track, seen this revolution, faster than ``fast_speed``, or faster than
+  ``moving_speed`` after ``moving_hits`` hits. Three hits measure the speed only to about 0.5 m/s
+  (a pillar's edge bins flicker with the noise): a fast mover is told at once, a slow one a
+  revolution later, and a still pillar not at all.
 - No pose (the autopilot's position not known): the tracker forgets everything and nothing moves.
 
 Pure: arrays and times in, no I/O.
@@ -57,7 +59,9 @@ class TrackerConfig:
     :param measurement_std: how well a segment's centre is measured, metres
     :param confirm_hits: hits before a track counts
     :param max_misses: revolutions in a row without a hit before a track ends
-    :param moving_speed: a confirmed track faster than this moves, m/s
+    :param moving_speed: a confirmed track faster than this after ``moving_hits`` hits moves, m/s
+    :param moving_hits: hits before a speed above ``moving_speed`` says a track moves
+    :param fast_speed: a confirmed track faster than this moves whatever its hits, m/s
     :param edge_margin: a segment with an end within this of the maximum range may go on beyond
         it (a wall cut off by the range slides along with the vehicle): not tracked, metres
     :param background_gap: a segment is an object only where the returns beside it are at least
@@ -74,9 +78,11 @@ class TrackerConfig:
     gate: float = 1.0
     accel_std: float = 3.0
     measurement_std: float = 0.08
-    confirm_hits: int = 4
+    confirm_hits: int = 3
     max_misses: int = 3
     moving_speed: float = 0.45
+    moving_hits: int = 4
+    fast_speed: float = 1.0
     edge_margin: float = 1.0
     background_gap: float = 1.0
     extent_jump: float = 0.2
@@ -212,7 +218,12 @@ class ScanTracker:
                 track.misses += 1
         self.tracks = [t for t in self.tracks if t.misses <= cfg.max_misses]
         confirmed = [t for t in self.tracks if t.hits >= cfg.confirm_hits]
-        moving = [t for t in confirmed if t.misses == 0 and t.speed > cfg.moving_speed]
+        moving = [
+            t
+            for t in confirmed
+            if t.misses == 0
+            and (t.speed > cfg.fast_speed or (t.hits >= cfg.moving_hits and t.speed > cfg.moving_speed))
+        ]
         mask = np.zeros(N_BINS, dtype=bool)
         for track in moving:
             mask[track.bins] = True

@@ -222,8 +222,8 @@ def _static_flight_moving_scans(family: str, index: int, config: TrackerConfig) 
     [
         # a box whose second face comes into view: its seen centre slides with the vehicle
         ("rooms", 2, TrackerConfig(extent_jump=math.inf)),
-        # a pillar whose edge bins flicker with the noise: three hits say too little of the speed
-        ("pillars", 3, TrackerConfig(confirm_hits=3)),
+        # a pillar whose edge bins flicker with the noise: three hits say too little of a slow speed
+        ("pillars", 3, TrackerConfig(moving_hits=3)),
     ],
 )
 def test_static_worlds_flown_with_noise_read_nothing_moving(family: str, index: int, without) -> None:
