@@ -23,11 +23,16 @@ flight recorder's cost in the same run: four alternating blocks of ``--revolutio
 with ``[recorder]`` on (as shipped: no point cloud; ``--cloud-decimation N`` adds one), then the
 ratio of the two p99s; ``--shield compare`` the same for the shield's lane (the default) against
 its ±30° sectors (the vehicle hovers here, so the lane sweeps the nose alone, not a travel arc:
-``bench/bench_shield.py`` times both with motion).
+``bench/bench_shield.py`` times both with motion); ``--tracking compare`` the same for the scan
+tracker (``[tracking]``) off and on, in a scene with something to track (four pillars and a walker
+crossing 3 m ahead at 1 m/s, before the room's walls) and a fixed goal 30 m ahead, so that the
+tracker has the autopilot's position (without a goal source it tracks nothing) and the route's
+map runs in both.
 
     /work/venv/bin/python bench/bench_companion.py [--revolutions 1000] [--rate 10]
         [--pacing sensor|burst] [--decoder numpy|velodyne-decoder] [--realtime]
         [--recording off|on|compare] [--cloud-decimation N] [--shield lane|sectors|compare]
+        [--tracking compare]
 """
 
 from __future__ import annotations
@@ -59,10 +64,34 @@ FIRINGS = 1800  # 0.2° steps: 75 packets, 28,800 returns
 STEP_DEG = 0.2
 
 
-def revolution(index: int) -> list[bytes]:
-    """75 packets of one whole revolution; the wrap falls inside the last packet (its 13th firing)."""
+#: (forward, right) m of the pillars of ``--tracking compare``'s scene, and their radius
+PILLARS = ((2.0, 1.5), (-1.0, 2.5), (-2.5, -1.0), (1.5, -3.0))
+PILLAR_RADIUS = 0.3
+
+
+def _circle(azimuth: np.ndarray, forward: float, right: float, radius: float) -> np.ndarray:
+    """Range along each azimuth (degrees clockwise from the front) to a circle centred (forward,
+    right) m from the sensor, inf where the ray misses it."""
+    a = np.radians(azimuth)
+    along = forward * np.cos(a) + right * np.sin(a)
+    inside = radius**2 - (right * np.cos(a) - forward * np.sin(a)) ** 2
+    return np.where((inside > 0.0) & (along > 0.0), along - np.sqrt(np.maximum(inside, 0.0)), np.inf)
+
+
+def revolution(index: int, objects: bool = False) -> list[bytes]:
+    """75 packets of one whole revolution; the wrap falls inside the last packet (its 13th firing).
+
+    :param objects: pillars and a walker crossing 3 m ahead at 1 m/s (4 m and round again) before
+        the walls
+    """
     azimuth = (STEP_DEG * 12 + STEP_DEG * np.arange(FIRINGS)) % 360.0
-    ranges = np.repeat((5.0 + 3.0 * np.sin(np.radians(azimuth)))[:, None], 16, axis=1)
+    per_azimuth = 5.0 + 3.0 * np.sin(np.radians(azimuth))
+    if objects:
+        for forward, right in PILLARS:
+            per_azimuth = np.minimum(per_azimuth, _circle(azimuth, forward, right, PILLAR_RADIUS))
+        walker = -2.0 + (0.1 * index) % 4.0
+        per_azimuth = np.minimum(per_azimuth, _circle(azimuth, 3.0, walker, 0.3))
+    ranges = np.repeat(per_azimuth[:, None], 16, axis=1)
     return encode_packets(azimuth, ranges, start_timestamp_us=index * 75 * PACKET_DURATION_US)
 
 
@@ -166,14 +195,24 @@ def main() -> int:
         help="the shield's forward cap over its lane ([shield] lane_half_width, the default) or the "
              "±30° sectors (lane_half_width = 0), or compare: alternate blocks of both in this run",
     )
+    parser.add_argument(
+        "--tracking", default="default", choices=("default", "compare"),
+        help="compare: alternate blocks with [tracking] off and on in this run, in a scene with "
+             "pillars and a walker and a fixed goal (the tracker needs the autopilot's position)",
+    )
     args = parser.parse_args()
-    if args.recording == "compare" and args.shield == "compare":
-        parser.error("compare one thing at a time: --recording compare or --shield compare")
+    compared = [args.recording == "compare", args.shield == "compare", args.tracking == "compare"]
+    if sum(compared) > 1:
+        parser.error("compare one thing at a time: --recording, --shield or --tracking compare")
     if args.recording == "compare":
         variants = {"recording off": Variant(False, args.shield), "recording on": Variant(True, args.shield)}
     elif args.shield == "compare":
         on = args.recording == "on"
         variants = {"shield sectors": Variant(on, "sectors"), "shield lane": Variant(on, "lane")}
+    elif args.tracking == "compare":
+        on = args.recording == "on"
+        variants = {"tracking off": Variant(on, args.shield, tracking=False),
+                    "tracking on": Variant(on, args.shield, tracking=True)}
     else:
         variant = Variant(args.recording == "on", args.shield)
         print_result(args, run_companion(args, args.revolutions, variant), f", {variant}")
@@ -196,14 +235,18 @@ def main() -> int:
 
 @dataclass(frozen=True)
 class Variant:
-    """What one companion run is configured with: the flight recorder on or off, and the shield's
-    forward cap (``lane``: the default; ``sectors``: ``[shield] lane_half_width = 0``)."""
+    """What one companion run is configured with: the flight recorder on or off, the shield's
+    forward cap (``lane``: the default; ``sectors``: ``[shield] lane_half_width = 0``), and the
+    scan tracker (None: the default config, without a goal source and the scene without objects;
+    False/True: ``[tracking] enabled``, with a fixed goal and the scene with pillars and a walker)."""
 
     recording: bool
     shield: str
+    tracking: bool | None = None
 
     def __str__(self) -> str:
-        return f"recording {'on' if self.recording else 'off'}, shield {self.shield}"
+        tracking = "" if self.tracking is None else f", tracking {'on' if self.tracking else 'off'}"
+        return f"recording {'on' if self.recording else 'off'}, shield {self.shield}{tracking}"
 
 
 @dataclass
@@ -235,12 +278,16 @@ def run_companion(args: argparse.Namespace, revolutions: int, variant: Variant) 
     recorder = (f'[recorder]\nenabled = true\ndirectory = "{tmp / "flights"}"\n'
                 f"cloud_decimation = {args.cloud_decimation}\n" if variant.recording else "")
     shield = "[shield]\nlane_half_width = 0.0\n" if variant.shield == "sectors" else ""
+    tracking = ""
+    if variant.tracking is not None:  # a fixed goal 30 m north: the autopilot's position is asked for
+        tracking = (f"[tracking]\nenabled = {str(variant.tracking).lower()}\n"
+                    "[goal]\nsource = \"fixed\"\n[[goal.waypoints]]\nnorth = 30.0\ndown = -1.5\n")
     config.write_text(
         f'[lidar.velodyne]\nhost = "127.0.0.1"\nport = {lidar_port}\ndecoder = "{args.decoder}"\n'
         f'[policy]\nmodel = "{model}"\n'
         "[supervisor]\nclimb_settled_time = 0.3\n"
         f'[autopilot]\nconnect = "udpin:127.0.0.1:{mavlink_port}"\n'
-        "[runtime]\nlog_interval = 3600.0\n" + recorder + shield
+        "[runtime]\nlog_interval = 3600.0\n" + recorder + shield + tracking
     )
     autopilot = Autopilot(mavlink_port)
     command = [sys.executable, "-m", "companion", "run", "--config", str(config)]
@@ -265,7 +312,7 @@ def run_companion(args: argparse.Namespace, revolutions: int, variant: Variant) 
         while len(from_last) < revolutions:
             if proc.poll() is not None:
                 raise SystemExit(f"companion exited: {proc.communicate()[1][-2000:]}")
-            packets = revolution(index)
+            packets = revolution(index, objects=variant.tracking is not None)
             index += 1
             autopilot.status()
             autopilot.drain()  # heartbeats, OBSTACLE_DISTANCE, ... of the previous revolution

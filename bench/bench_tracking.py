@@ -11,7 +11,13 @@ and the world's moving obstacles, where they were in the middle of the scan's sw
   for moving, or a track left behind);
 - the tracker's time per scan, as a share of the scan period.
 
-    python bench/bench_tracking.py [--worlds 5] [--steps 300]
+Then the same follower in the static families (``--static`` worlds each, validation seeds too):
+every moving track there is a static return taken for moving while the vehicle flies. By default
+the env is LidarNav-v0's own (an exact lidar, the ideal response); ``--train-env`` flies training's
+(``training/configs/nav.toml``: range noise and dropout, a random autopilot response, the drift
+estimate and the route, kept clear of what the env's own tracker says moves).
+
+    python bench/bench_tracking.py [--worlds 5] [--static 4] [--steps 300] [--train-env]
 """
 
 from __future__ import annotations
@@ -20,6 +26,7 @@ import argparse
 import os
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -31,15 +38,16 @@ from companion.perception.tracking import ScanTracker  # noqa: E402
 from flightsim.envs import seeds  # noqa: E402
 from flightsim.envs.nav_env import LidarNavEnv, NavEnvConfig  # noqa: E402
 from flightsim.envs.raycast import REVOLUTION_S  # noqa: E402
-from flightsim.worlds.families import DYNAMIC_FAMILIES  # noqa: E402
+from flightsim.worlds.families import ALL_FAMILIES, DYNAMIC_FAMILIES, FAMILIES  # noqa: E402
 from training.baselines import GoalFollower  # noqa: E402
+from training.config import load_train_config  # noqa: E402
 
 SCAN_PERIOD_S = 0.1
 
 
-def episode(family: str, seed: int, steps: int) -> dict[str, list[float]]:
+def episode(config: NavEnvConfig, family: str, seed: int, steps: int) -> dict[str, list[float]]:
     """One goal-follower episode: the tracker's errors and events against the truth."""
-    env = LidarNavEnv(NavEnvConfig(families=DYNAMIC_FAMILIES))
+    env = LidarNavEnv(config)
     obs, _ = env.reset(seed=0, options={"family": family, "world_seed": seed, "difficulty": 0.6})
     follower = GoalFollower(env.layout)
     action = follower.reset(obs)
@@ -67,7 +75,7 @@ def episode(family: str, seed: int, steps: int) -> dict[str, list[float]]:
                 out["position"].append(float(np.hypot(*(best.position - truth[k]))))
                 out["velocity"].append(float(np.hypot(*(best.velocity - velocity[k]))))
                 tracked.setdefault(k, t)
-        stray = [tr for tr in result.moving if np.min(np.hypot(*(truth - tr.position).T)) > 1.0]
+        stray = [tr for tr in result.moving if not movers or np.min(np.hypot(*(truth - tr.position).T)) > 1.0]
         out["false"].append(float(bool(stray)))
         obs, _, terminated, truncated, _ = env.step(action)
         if terminated or truncated:
@@ -82,29 +90,45 @@ def episode(family: str, seed: int, steps: int) -> dict[str, list[float]]:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--worlds", type=int, default=5, help="validation worlds per family (5)")
+    parser.add_argument("--static", type=int, default=4, help="validation worlds per static family (4)")
     parser.add_argument("--steps", type=int, default=300, help="steps per episode at most (300)")
+    parser.add_argument(
+        "--train-env", action="store_true", help="fly training's env (nav.toml), not the default"
+    )
     args = parser.parse_args()
+    config = NavEnvConfig(families=ALL_FAMILIES)
+    if args.train_env:  # the follower asks no sideways speed
+        train = load_train_config(REPO / "training/configs/nav.toml").env_config()
+        config = replace(train, families=ALL_FAMILIES, sideways=False)
     print(f"load average {os.getloadavg()[0]:.2f} (the time figure is comparable only on an idle machine)")
+    print(f"env: {'training/configs/nav.toml' if args.train_env else 'LidarNav-v0 defaults'}")
     print(f"{'family':<18} {'scans':>6} {'pos err m':>10} {'p95':>6} {'vel err m/s':>12} {'p95':>6} "
           f"{'tracked<=0.5s':>14} {'false scans':>12} {'p99/period':>11}")  # fmt: skip
-    total: dict[str, list[float]] = {}
-    for i, family in enumerate(DYNAMIC_FAMILIES):
-        first = seeds.VALIDATION.start + 200 + 10 * i
-        runs = [episode(family, first + j, args.steps) for j in range(args.worlds)]
-        f = {key: [v for r in runs for v in r[key]] for key in runs[0]}
-        for key, values in f.items():
-            total.setdefault(key, []).extend(values)
-        print(_row(family, f))
-    print(_row("all", total))
+    for families, worlds, offset in ((DYNAMIC_FAMILIES, args.worlds, 200), (FAMILIES, args.static, 300)):
+        total: dict[str, list[float]] = {}
+        for i, family in enumerate(families):
+            first = seeds.VALIDATION.start + offset + 10 * i
+            runs = [episode(config, family, first + j, args.steps) for j in range(worlds)]
+            f = {key: [v for r in runs for v in r[key]] for key in runs[0]}
+            for key, values in f.items():
+                total.setdefault(key, []).extend(values)
+            print(_row(family, f))
+        if total:
+            print(_row("all dynamic" if families == DYNAMIC_FAMILIES else "all static", total))
     return 0
 
 
 def _row(name: str, f: dict[str, list[float]]) -> str:
     pos, vel, ms = np.array(f["position"]), np.array(f["velocity"]), np.array(f["ms"])
     quick = f"{sum(f['quick']):.0f}/{sum(f['seen']):.0f}"
+    errors = (
+        f"{pos.mean():>10.3f} {np.percentile(pos, 95):>6.3f} "
+        f"{vel.mean():>12.3f} {np.percentile(vel, 95):>6.3f}"
+        if len(pos)
+        else f"{'-':>10} {'-':>6} {'-':>12} {'-':>6}"
+    )
     return (
-        f"{name:<18} {len(ms):>6} {pos.mean():>10.3f} {np.percentile(pos, 95):>6.3f} {vel.mean():>12.3f} "
-        f"{np.percentile(vel, 95):>6.3f} {quick:>14} {np.mean(f['false']):>11.1%} "
+        f"{name:<18} {len(ms):>6} {errors} {quick:>14} {np.mean(f['false']):>11.2%} "
         f"{np.percentile(ms, 99) / (SCAN_PERIOD_S * 1e3):>10.1%}"
     )
 
