@@ -147,13 +147,21 @@ def companion_shield(config: CompanionConfig, autopilot_yaw_rate: float | None) 
 
 
 def tracking_pose(nav: NavInputs, now: float) -> tuple[float, float, float] | None:
-    """Where the tracker places a scan taken ``now``: the autopilot's local position and heading as
-    the route's ENU pose (:func:`enu_pose`), the frame LidarNav-v0 tracks in; None while either is
-    unknown or the position is stale (without a goal source no position is asked for), and then
-    nothing is tracked."""
+    """Where the tracker places a scan taken ``now``: the autopilot's local position, carried on to
+    ``now`` at its velocity, and heading, as the route's ENU pose (:func:`enu_pose`), the frame
+    LidarNav-v0 tracks in; None while either is unknown or the position is stale (without a goal
+    source no position is asked for), and then nothing is tracked.
+
+    Carried on, because the position streams at about the scans' rate but not in step with them:
+    its age at a scan wanders over a period, and a pose that jumps back by that period's travel
+    (0.15 m at 1.5 m/s) would move every static object at once."""
     if nav.heading is None or nav.position is None or not nav.position_fresh(now):
         return None
-    return enu_pose(nav.position[0], nav.position[1], nav.heading)
+    north, east = nav.position[0], nav.position[1]
+    if nav.velocity is not None:
+        age = max(now - nav.position_time, 0.0)
+        north, east = north + nav.velocity[0] * age, east + nav.velocity[1] * age
+    return enu_pose(north, east, nav.heading)
 
 
 def open_lidar(config: CompanionConfig, clock: Callable[[], float]) -> LidarSource:

@@ -65,6 +65,7 @@ class NavInputs:
 
     position: tuple[float, float, float] | None = None
     position_time: float = -math.inf
+    velocity: tuple[float, float] | None = None  # LOCAL_POSITION_NED's (north, east), m/s
     heading: float | None = None
     roll: float = 0.0  # ATTITUDE roll (FRD), rad
     pitch: float = 0.0  # ATTITUDE pitch (nose up), rad
@@ -81,6 +82,8 @@ class NavInputs:
             values = (float(msg.x), float(msg.y), float(msg.z))
             if all(math.isfinite(v) for v in values):
                 self.position, self.position_time = values, now
+                velocity = (float(msg.vx), float(msg.vy))
+                self.velocity = velocity if all(math.isfinite(v) for v in velocity) else None
                 self._pair_origin(now)
         elif kind == "ATTITUDE":
             if math.isfinite(msg.yaw):

@@ -113,5 +113,8 @@ def test_the_companion_tracks_and_keeps_out_what_the_env_does() -> None:
             obs, *_ = env.step(np.array([0.25, 0.0], np.float32))
         assert moving >= 20
         assert tracking_pose(nav, now=3.0) is None  # the position a second and more old: no pose
+        # a position 0.05 s old, the vehicle flying 2 m/s north: the scan is placed 0.1 m farther north
+        nav.on_message(mavlink.MAVLink_local_position_ned_message(0, 1.0, 4.0, -1.5, 2.0, 0.0, 0.0), now=5.0)
+        assert tracking_pose(nav, now=5.05)[:2] == pytest.approx((4.0, 1.1))
     finally:
         env.close()
