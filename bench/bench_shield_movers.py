@@ -1,8 +1,10 @@
-"""Figures: attackers in worlds with movers, behind the gate as it was (movers unseen, their returns
-remembered as standing ones) and behind the gate that sees them move, on the same episodes.
+"""Figures: attackers in worlds with movers, behind the gate as it was (``none``: movers unseen, their
+returns remembered as standing ones) and behind the gate that sees them move, on the same episodes:
+the movers and their scan bins from the simulator's truth (``truth``), or from the env's scan tracker
+as the companion tracks them in flight (``tracker``).
 
-LidarNav-v0 runs unshielded and :func:`training.mover_attack.fly` applies the shield in the loop
-with the movers and their scan bins from the simulator's truth; one firmware response for all
+LidarNav-v0 runs unshielded and :func:`training.mover_attack.fly` applies the shield in the loop;
+one firmware response for all
 (``--autopilot``), so the gate's envelope is the one flown. Prints per attacker and gate: episodes,
 contacts with a mover while the vehicle moved faster than the creep and at rest, the least gap to a
 mover while moving and to the static world (m, from the vehicle's surface), and the counts of
@@ -61,7 +63,7 @@ def main() -> None:
     )
     print(f"{header[0]:10} {header[1]:7} " + " ".join(f"{h:>12}" for h in header[2:]))
     for attacker in MOVER_ATTACKERS:
-        for movers in (False, True):
+        for movers in ("none", "truth", "tracker"):
             start = time.perf_counter()
             flights = [fly(env, world, attacker, movers, config) for world in worlds]
             moving = sum(len(f.while_moving) for f in flights)
@@ -70,7 +72,7 @@ def main() -> None:
                 sum(f.interventions[k] for f in flights) for k in ("mover_too_fast", "gate_mover_best_effort")
             ]
             print(
-                f"{attacker:10} {'movers' if movers else 'before':7} "
+                f"{attacker:10} {movers:7} "
                 f"{len(flights):12d} {moving:12d} {at_rest:12d} "
                 f"{min(f.moving_gap for f in flights):12.2f} {min(f.static_gap for f in flights):12.2f} "
                 f"{counts[0]:12d} {counts[1]:12d}  ({time.perf_counter() - start:.0f} s)",

@@ -489,6 +489,13 @@ class Companion:
         pose = tracking_pose(self.goal.nav, now) if self.goal is not None else None
         self.tracked = self.tracker.update(scan, pose, now)
 
+    def _shield_movers(self) -> dict[str, Any]:
+        """What moves in the newest scan, for the shield (its ``moving_bins`` and ``movers``): the
+        tracker's output; nothing with tracking off."""
+        if self.tracked is None:
+            return {}
+        return {"moving_bins": self.tracked.moving_bins, "movers": self.tracked.movers()}
+
     @property
     def moving_bins(self) -> np.ndarray | None:
         """``(360,)`` bool: the newest scan's bins whose return moves (None: tracking off)."""
@@ -566,7 +573,8 @@ class Companion:
                 dt = min(max(now - last, 1e-3), 0.5) if last is not None else 0.1
                 # the supervisor only commands while the measured velocity is fresh
                 velocity, drift, held = self._shield_motion()
-                command = self.shield.filter(requested, scan, dt, velocity, drift=drift)
+                moving = self._shield_movers()
+                command = self.shield.filter(requested, scan, dt, velocity, drift=drift, **moving)
                 self._last_filter = now
                 self._send_policy_setpoint(command, held)
                 self._last_setpoint, self._last_command, self._last_held = now, command, held

@@ -41,7 +41,7 @@ from companion.config import CompanionConfig
 from companion.guidance.policy import InferenceFault, OnnxPolicy
 from companion.perception.framestack import FrameStack
 from companion.perception.scan import N_BINS, scan_from_points
-from companion.perception.tracking import ScanTracker
+from companion.perception.tracking import Mover, ScanTracker
 from companion.recording import schemas
 from companion.recording.messages import TRACK_FIELDS, unpack_f32
 from companion.recording.reader import Recording, read_recording
@@ -455,7 +455,27 @@ def _extra_args(extra: dict[str, Any] | None) -> list[Any]:
 
 
 def _extra_kwargs(extra: dict[str, Any] | None) -> dict[str, Any]:
-    return {k: v for k, v in (extra or {}).items() if not k.startswith("arg")}
+    """The keywords the shield was called with, as it takes them (the tracker's bins and movers
+    come back from JSON as lists and objects, a non-finite number as null)."""
+    kwargs = {k: v for k, v in (extra or {}).items() if not k.startswith("arg")}
+    if kwargs.get("moving_bins") is not None:
+        kwargs["moving_bins"] = np.asarray(kwargs["moving_bins"], dtype=bool)
+    if "movers" in kwargs:
+        kwargs["movers"] = [_mover(m) for m in kwargs["movers"]]
+    return kwargs
+
+
+def _mover(plain: dict[str, Any]) -> Mover:
+    """A recorded :class:`Mover` (its null numbers not finite)."""
+    return Mover(_pair(plain["position"]), _pair(plain["velocity"]), _number(plain["radius"]))
+
+
+def _pair(values: list[float | None]) -> tuple[float, float]:
+    return _number(values[0]), _number(values[1])
+
+
+def _number(value: float | None) -> float:
+    return math.nan if value is None else float(value)
 
 
 # ---- what-if output ----------------------------------------------------------------------------

@@ -94,6 +94,9 @@ class ShieldedController:
         with its brake, and the action returned asks none
     :param heading: the heading now, rad counter-clockwise (the env's
         :meth:`~flightsim.envs.env.LidarAvoidEnv.shield_heading`), for the shield's memory and gate
+    :param movers: what moves in the scan now, as the companion's tracker gives it (the env's
+        :meth:`~flightsim.envs.env.LidarAvoidEnv.shield_movers`): the shield's ``moving_bins`` and
+        ``movers`` keywords
     """
 
     def __init__(
@@ -107,6 +110,7 @@ class ShieldedController:
         drift: Callable[[], tuple[float, float] | None] | None = None,
         max_sideways_speed: float = 0.0,
         heading: Callable[[], float] | None = None,
+        movers: Callable[[], dict[str, Any]] | None = None,
     ) -> None:
         self._inner = inner
         self.shield = shield
@@ -116,6 +120,7 @@ class ShieldedController:
         self._lateral = lateral
         self._drift = drift
         self._heading = heading
+        self._movers = movers
         #: the last (requested, sent) commands, for a trace (``avoid-train trace``)
         self.last: tuple[Command, Command] | None = None
 
@@ -136,7 +141,8 @@ class ShieldedController:
         drift = self._drift() if self._drift is not None else None
         requested = command_from_action(action, max_speed, max_yaw_rate, self._sideways)
         heading = self._heading() if self._heading is not None else None
-        safe = self.shield.filter(requested, scan, STEP_SECONDS, measured, drift, heading)
+        moving = self._movers() if self._movers is not None else {}
+        safe = self.shield.filter(requested, scan, STEP_SECONDS, measured, drift, heading, **moving)
         self.last = (requested, safe)
         if self._lateral is not None:
             self._lateral(safe.lateral)
@@ -207,6 +213,7 @@ def build_controller(
     env: Any = None,
     drift: Callable[[], tuple[float, float] | None] | None = None,
     heading: Callable[[], float] | None = None,
+    movers: Callable[[], dict[str, Any]] | None = None,
 ) -> Controller:
     """Build the controller ``spec`` describes, behind the shield if it says so (the shield braking
     and capping yaw as the env's autopilot response does, watching ``velocity`` and carrying
@@ -222,7 +229,7 @@ def build_controller(
     shield = SafetyShield(limits, float(env_config.scan.max_range), env_config.autopilot_response)
     return ShieldedController(
         controller, shield, float(env_config.max_speed), float(env_config.max_yaw_rate), velocity, lateral,
-        drift, sideways_scale(env_config), heading,
+        drift, sideways_scale(env_config), heading, movers,
     )  # fmt: skip
 
 

@@ -192,7 +192,7 @@ def run_task(task: EpisodeTask, wrap: Callable[[Controller, Any], Controller] | 
     controller: Controller = build_controller(
         task.controller, unwrapped.config, task.seed,
         velocity=unwrapped.shield_velocity, lateral=unwrapped.command_lateral, env=unwrapped,
-        drift=unwrapped.shield_drift, heading=unwrapped.shield_heading,
+        drift=unwrapped.shield_drift, heading=unwrapped.shield_heading, movers=unwrapped.shield_movers,
     )  # fmt: skip
     if wrap is not None:
         controller = wrap(controller, unwrapped)

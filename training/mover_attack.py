@@ -1,9 +1,10 @@
-"""Attacks on the gated shield in worlds with movers, the movers taken from the simulator's truth.
+"""Attacks on the gated shield in worlds with movers, the movers taken from the simulator's truth
+or from the env's scan tracker.
 
 LidarNav-v0 runs unshielded; :func:`fly` applies the shield in the loop, as the companion does,
-with the movers and their scan bins from the simulator (the tracker that gives them in flight is
-tested on its own). What it measures is passive safety: contacts with a mover while the vehicle
-moves faster than the creep a stop leaves, apart from those at rest.
+with the movers and their scan bins from the simulator, or from the tracker as in flight. What it
+measures is passive safety: contacts with a mover while the vehicle moves faster than the creep a
+stop leaves, apart from those at rest.
 ``tests/training/test_shield_movers.py`` and ``bench/bench_shield_movers.py`` fly it.
 """
 
@@ -12,7 +13,7 @@ from __future__ import annotations
 import math
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -25,6 +26,8 @@ from training.episodes import NAV_ENV_ID, WorldSpec, episode_seed
 
 #: the attackers :func:`fly` knows: :data:`training.attackers.ATTACKERS`' ram and dash, and :class:`MoverRam`
 MOVER_ATTACKERS = ("ram", "dash", "mover_ram")
+#: where :func:`fly`'s shield learns what moves
+MoverSource = Literal["truth", "tracker", "none"]
 #: a return this close to a mover's surface is the mover's, m (the lidar's mount error, its noise)
 ON_A_MOVER = 0.2
 _BEARING = np.radians(np.arange(N_BINS) + 0.5)
@@ -118,29 +121,34 @@ class Flight:
 
 
 def fly(
-    env: Any, world: WorldSpec, attacker: str, movers: bool, config: ShieldConfig | None = None
+    env: Any, world: WorldSpec, attacker: str, movers: MoverSource, config: ShieldConfig | None = None
 ) -> Flight:
     """``attacker`` (one of :data:`MOVER_ATTACKERS`) on ``world`` until the episode ends, the shield
-    between it and the autopilot; ``movers``: the shield is given the movers and their bins, else
-    it is called as before movers existed.
+    between it and the autopilot; ``movers``: where the shield's movers and their bins come from:
+    the simulator's truth, the env's tracker (as in flight:
+    :meth:`~flightsim.envs.nav_env.LidarNavEnv.shield_movers`), or nowhere (the shield called as
+    before movers existed).
 
     :param env: an unshielded LidarNav-v0 with ``sideways`` (three-part actions)
     :param config: the shield's (default: the gate on, the rest as shipped)
     """
     sim = env.unwrapped
+    limits = config if config is not None else ShieldConfig(backup_gate=True)
     config = sim.config
     seed = episode_seed(world, 0, NAV_ENV_ID)
     obs, _ = env.reset(seed=seed, options=world.reset_options())
-    shield = SafetyShield(
-        ShieldConfig(backup_gate=True), float(config.scan.max_range), config.autopilot_response
-    )
+    shield = SafetyShield(limits, float(config.scan.max_range), config.autopilot_response)
     controller = MoverRam(env) if attacker == "mover_ram" else make_attacker(attacker, seed, 3)
     action = controller.reset(obs)
     flight = Flight(shield.envelope.estimate_error)
     for _ in range(config.max_steps):
         scan = obs[:N_BINS]
         velocity = sim.shield_velocity()
-        tracked = {"moving_bins": truth_moving_bins(env, scan), "movers": truth_movers(env)} if movers else {}
+        tracked = (
+            {"moving_bins": truth_moving_bins(env, scan), "movers": truth_movers(env)}
+            if movers == "truth"
+            else sim.shield_movers() if movers == "tracker" else {}
+        )
         safe = shield.filter(
             command_from_action(action, config.max_speed, config.max_yaw_rate, config.max_sideways_speed),
             scan, 1.0 / CONTROL_HZ, (float(velocity[0]), float(velocity[1])), sim.shield_drift(),

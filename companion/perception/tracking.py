@@ -25,9 +25,11 @@ pose (the autopilot's estimate, in any frame fixed to the ground) only.
   tentative track; ``confirm_hits`` hits confirm it; ``max_misses`` revolutions in a row without
   one end it.
 - Moving: a confirmed track, seen this revolution, faster than ``fast_speed``, or faster than
-  ``moving_speed`` after ``moving_hits`` hits. Three hits measure the speed only to about 0.5 m/s
-  (a pillar's edge bins flicker with the noise): a fast mover is told at once, a slow one a
-  revolution later, and a still pillar not at all.
+  ``moving_speed`` after ``moving_hits`` hits and in each of its last ``moving_streak``
+  revolutions. Three hits measure the speed only to about 0.5 m/s (a pillar's edge bins flicker
+  with the noise): a fast mover is told at once, a slow one a revolution later, and a still pillar
+  not at all; a large still object whose seen centre slides as the vehicle passes may read above
+  ``moving_speed`` for a revolution, not for ``moving_streak`` in a row.
 - No pose (the autopilot's position not known): the tracker forgets everything and nothing moves.
 
 Pure: arrays and times in, no I/O.
@@ -59,8 +61,10 @@ class TrackerConfig:
     :param measurement_std: how well a segment's centre is measured, metres
     :param confirm_hits: hits before a track counts
     :param max_misses: revolutions in a row without a hit before a track ends
-    :param moving_speed: a confirmed track faster than this after ``moving_hits`` hits moves, m/s
+    :param moving_speed: a confirmed track faster than this after ``moving_hits`` hits, and for
+        ``moving_streak`` revolutions in a row, moves, m/s
     :param moving_hits: hits before a speed above ``moving_speed`` says a track moves
+    :param moving_streak: revolutions in a row above ``moving_speed`` before a track moves
     :param fast_speed: a confirmed track faster than this moves whatever its hits, m/s
     :param edge_margin: a segment with an end within this of the maximum range may go on beyond
         it (a wall cut off by the range slides along with the vehicle): not tracked, metres
@@ -82,6 +86,7 @@ class TrackerConfig:
     max_misses: int = 3
     moving_speed: float = 0.45
     moving_hits: int = 4
+    moving_streak: int = 2
     fast_speed: float = 1.0
     edge_margin: float = 1.0
     background_gap: float = 1.0
@@ -115,6 +120,7 @@ class Track:
     :param bins: the scan bins of its last segment
     :param extent: the width of its last segment, metres
     :param widest: the widest it was seen, metres: a round object shows up to its diameter
+    :param streak: revolutions in a row it was seen faster than ``moving_speed``
     """
 
     track_id: int
@@ -126,6 +132,7 @@ class Track:
     bins: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     extent: float = 0.0
     widest: float = 0.0
+    streak: int = 0
 
     @property
     def position(self) -> np.ndarray:
@@ -161,11 +168,17 @@ class TrackerOutput:
     :param tracks: the confirmed tracks
     :param moving: the confirmed tracks that move
     :param moving_bins: ``(360,)`` bool: bins whose return this scan belongs to a moving track
+    :param pose: the vehicle's (x, y, yaw) the scan was tracked at (None: not known, nothing tracked)
     """
 
     tracks: list[Track]
     moving: list[Track]
     moving_bins: np.ndarray
+    pose: tuple[float, float, float] | None = None
+
+    def movers(self) -> list[Mover]:
+        """The moving tracks as the shield takes them (:func:`movers_in_body`); none without a pose."""
+        return [] if self.pose is None else movers_in_body(self.moving, self.pose)
 
 
 class ScanTracker:
@@ -216,18 +229,24 @@ class ScanTracker:
         for track in self.tracks:
             if track.track_id not in taken:
                 track.misses += 1
+            fast = track.track_id in taken and track.speed > cfg.moving_speed
+            track.streak = track.streak + 1 if fast else 0
         self.tracks = [t for t in self.tracks if t.misses <= cfg.max_misses]
         confirmed = [t for t in self.tracks if t.hits >= cfg.confirm_hits]
         moving = [
             t
             for t in confirmed
             if t.misses == 0
-            and (t.speed > cfg.fast_speed or (t.hits >= cfg.moving_hits and t.speed > cfg.moving_speed))
+            and (t.speed > cfg.fast_speed or (t.speed > cfg.moving_speed and self._settled(t)))
         ]
         mask = np.zeros(N_BINS, dtype=bool)
         for track in moving:
             mask[track.bins] = True
-        return TrackerOutput(confirmed, moving, mask)
+        return TrackerOutput(confirmed, moving, mask, tuple(pose))
+
+    def _settled(self, track: Track) -> bool:
+        """Whether a slow track's speed says it moves: enough hits, and fast for long enough in a row."""
+        return track.hits >= self.config.moving_hits and track.streak >= self.config.moving_streak
 
     def segments(self, scan: np.ndarray, pose: tuple[float, float, float]) -> list[Segment]:
         """The scan's objects narrow enough to track, in the ground frame."""

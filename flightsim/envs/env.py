@@ -313,6 +313,7 @@ class LidarAvoidEnv(gym.Env):
                 velocity=velocity,
                 drift=self.shield_drift(),
                 heading=self.shield_heading(),
+                **self.shield_movers(),
             )
             a0, a1 = safe.forward / cfg.max_speed, safe.yaw_rate / cfg.max_yaw_rate
             lateral = safe.lateral
@@ -337,6 +338,12 @@ class LidarAvoidEnv(gym.Env):
         """The drift estimate a shield's ``drift_compensation`` carries (body forward, left, m/s),
         for this env's own shield and evaluation's; None: this env keeps none."""
         return None
+
+    def shield_movers(self) -> dict[str, Any]:
+        """What moves in the newest frame's scan, as the companion gives its shield (the ``moving_bins``
+        and ``movers`` keywords of :meth:`~companion.safety.shield.SafetyShield.filter`); empty: this
+        env tracks nothing."""
+        return {}
 
     def drift_held(self) -> tuple[float, float]:
         """What the next setpoint carries of the drift estimate on top of its command (body forward,

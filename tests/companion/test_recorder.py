@@ -23,6 +23,7 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
+from companion.perception.scan import N_BINS
 from companion.recording import schemas as s
 from companion.recording.messages import point_cloud
 from companion.recording.reader import read_recording, setpoints
@@ -779,6 +780,23 @@ def test_the_tracks_are_recorded_each_scan_and_replay_reproduces_them(tmp_path):
     diff = _replay(tampered)
     assert diff.returncode == 1, diff.stdout + diff.stderr
     assert "first difference" in diff.stdout and "tracks recorded" in diff.stdout
+
+
+def test_the_gated_shield_is_given_the_walker_and_replay_gives_it_again(tmp_path):
+    """With the backup gate on, every shield call carries the tracker's moving bins and movers (the
+    walker among them, in the body axes), and replay hands the recorded ones back to the shield as it
+    took them: its outputs match bit for bit."""
+    gate = WEST_AND_UP + "[shield]\nbackup_gate = true\n"
+    (path,) = _record_companion(tmp_path, setpoints=40, extra=gate, scene=_Walker())
+    steps = [msg for _, msg in read_recording(path).topic(s.SHIELD.topic)]
+    assert steps and all(len(msg["extra"]["moving_bins"]) == N_BINS for msg in steps)
+    movers = [m for msg in steps for m in msg["extra"]["movers"]]
+    assert len(movers) >= 5, steps[-1]["extra"]
+    # the walker crosses at 1 m/s: in the body axes, whichever way the vehicle faces
+    assert np.median([np.hypot(*m["velocity"]) for m in movers]) == pytest.approx(1.0, abs=0.3)
+    same = _replay(path)
+    assert same.returncode == 0, same.stdout + same.stderr
+    assert "shield output" in same.stdout and "matches bit for bit" in same.stdout, same.stdout
 
 
 def test_without_tracking_or_a_position_no_tracks_are_recorded(tmp_path):
