@@ -146,18 +146,16 @@ def test_the_pose_puts_a_segment_in_the_ground_frame(yaw: float) -> None:
     assert np.hypot(*(segment.centre - expected)) < 0.1
 
 
-def _office_flight_moving_scans(config: TrackerConfig) -> int:
-    """Scans with a moving track while the goal follower flies a static office (thin walls, doorways)."""
-    from flightsim.envs.nav_env import LidarNavEnv, NavEnvConfig
+def _follower_moving_scans(env, options: dict, config: TrackerConfig, steps: int, seed: int = 0) -> int:
+    """Scans with a moving track while the goal follower flies ``env`` (reset with ``options``)."""
     from training.baselines import GoalFollower
 
-    env = LidarNavEnv(NavEnvConfig())
-    obs, _ = env.reset(seed=0, options={"family": "office", "world_seed": 500210, "difficulty": 0.6})
+    obs, _ = env.reset(seed=seed, options=options)
     follower = GoalFollower(env.layout)
     action = follower.reset(obs)
     tracker = ScanTracker(config, max_range=env.config.scan.max_range)
     moving = 0
-    for _ in range(200):
+    for _ in range(steps):
         state = env._state
         out = tracker.update(obs[:360], (state.position[0], state.position[1], state.yaw), env.sim_time)
         moving += bool(out.moving)
@@ -165,7 +163,16 @@ def _office_flight_moving_scans(config: TrackerConfig) -> int:
         if terminated or truncated:
             break
         action = follower.act(obs)
+    env.close()
     return moving
+
+
+def _office_flight_moving_scans(config: TrackerConfig) -> int:
+    """Scans with a moving track while the goal follower flies a static office (thin walls, doorways)."""
+    from flightsim.envs.nav_env import LidarNavEnv, NavEnvConfig
+
+    options = {"family": "office", "world_seed": 500210, "difficulty": 0.6}
+    return _follower_moving_scans(LidarNavEnv(NavEnvConfig()), options, config, 200)
 
 
 def test_walls_seen_at_a_grazing_angle_are_not_taken_for_moving() -> None:
@@ -194,27 +201,13 @@ def _static_flight_moving_scans(family: str, index: int, config: TrackerConfig) 
 
     from flightsim.envs.nav_env import LidarNavEnv
     from flightsim.worlds.families import FAMILIES
-    from training.baselines import GoalFollower
     from training.config import load_train_config
 
     env_config = load_train_config("training/configs/nav.toml").env_config()
     env = LidarNavEnv(replace(env_config, sideways=False, tracking=False))
     seed = 500_300 + 10 * FAMILIES.index(family) + index
-    obs, _ = env.reset(seed=index, options={"family": family, "world_seed": seed, "difficulty": 0.6})
-    follower = GoalFollower(env.layout)
-    action = follower.reset(obs)
-    tracker = ScanTracker(config, max_range=env.config.scan.max_range)
-    moving = 0
-    for _ in range(300):
-        state = env._state
-        out = tracker.update(obs[:360], (state.position[0], state.position[1], state.yaw), env.sim_time)
-        moving += bool(out.moving)
-        obs, _, terminated, truncated, _ = env.step(action)
-        if terminated or truncated:
-            break
-        action = follower.act(obs)
-    env.close()
-    return moving
+    options = {"family": family, "world_seed": seed, "difficulty": 0.6}
+    return _follower_moving_scans(env, options, config, 300, seed=index)
 
 
 @pytest.mark.parametrize(
