@@ -59,6 +59,20 @@ def test_returns_are_discounted_within_each_episode_only():
 
 
 def test_fitted_policy_imitates_the_goal_follower(tmp_path):
+    """The fit as training runs it: one torch thread (``train.py`` sets it; a test before may too, so
+    it is set here and put back), and epochs enough to converge on 400 samples: at 30 the final
+    loss wandered 0.03-0.12 with the seed and the thread count."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        _fit_and_check(tmp_path)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _fit_and_check(tmp_path) -> None:
     path = tmp_path / "bc.toml"
     path.write_text(NAV)
     config = load_train_config(path, [f"run_root={tmp_path}"])
@@ -77,7 +91,7 @@ def test_fitted_policy_imitates_the_goal_follower(tmp_path):
         return float(np.mean((predicted - data.actions) ** 2))
 
     before = error()
-    losses = fit(model.policy, data, epochs=30, batch_size=64, learning_rate=1e-3, seed=0)
+    losses = fit(model.policy, data, epochs=100, batch_size=64, learning_rate=1e-3, seed=0)
     assert error() < 0.25 * before and losses["action_mse"] < 0.05
     assert np.array_equal(model.policy.log_std.detach(), log_std)  # exploration noise as configured
 
