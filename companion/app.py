@@ -492,9 +492,7 @@ class Companion:
     def _shield_movers(self) -> dict[str, Any]:
         """What moves in the newest scan, for the shield (its ``moving_bins`` and ``movers``): the
         tracker's output; nothing with tracking off."""
-        if self.tracked is None:
-            return {}
-        return {"moving_bins": self.tracked.moving_bins, "movers": self.tracked.movers()}
+        return {} if self.tracked is None else self.tracked.shield_inputs()
 
     @property
     def moving_bins(self) -> np.ndarray | None:

@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -179,6 +180,11 @@ class TrackerOutput:
     def movers(self) -> list[Mover]:
         """The moving tracks as the shield takes them (:func:`movers_in_body`); none without a pose."""
         return [] if self.pose is None else movers_in_body(self.moving, self.pose)
+
+    def shield_inputs(self) -> dict[str, Any]:
+        """What :meth:`companion.safety.shield.SafetyShield.filter` takes of this update: its
+        ``moving_bins`` and ``movers`` keywords."""
+        return {"moving_bins": self.moving_bins, "movers": self.movers()}
 
 
 class ScanTracker:

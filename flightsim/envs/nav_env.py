@@ -303,9 +303,7 @@ class LidarNavEnv(LidarAvoidEnv):
     def shield_movers(self) -> dict[str, Any]:
         """The tracker's output for the newest frame (``tracking``), as the companion gives its shield:
         the moving bins and the movers in the body axes; empty with tracking off."""
-        if self.tracked is None:
-            return {}
-        return {"moving_bins": self.tracked.moving_bins, "movers": self.tracked.movers()}
+        return {} if self.tracked is None else self.tracked.shield_inputs()
 
     def shield_drift(self) -> tuple[float, float] | None:
         """The newest frame's drift estimate less what the setpoint holds of it, as the companion
