@@ -13,7 +13,10 @@ stop (a zero setpoint), after which the envelope's worst-case displacement towar
 direction stays below the clearance of the remembered returns that way less ``body_radius +
 margin``. So the true vehicle centre stays at least ``body_radius + margin`` from every remembered
 return until the vehicle is stopped (to within the estimate error's creep, ``estimate_error`` m/s,
-which the shield's keep-out answers from the scans; the gate does not cover that creep).
+which the shield's keep-out answers from the scans; the gate does not cover that creep). With a
+position loop (ArduPilot, the envelope's finite ``position_error``) there is no creep to leave out:
+the stop comes no sooner than ``period + max_delay``, and by then the estimate error's share of the
+worst case has reached its cap, which holds for as long as the position target is held.
 
 *Proof sketch.* Let S(x) say "from state x, the backup keeps the worst case clear". A command u
 passes only if, starting now, u for one period then the backup keeps the worst case clear, i.e.

@@ -82,7 +82,8 @@ class WorstVehicle:
     """A 1-D vehicle that flies the envelope's worst case towards +x: every setpoint flown for the
     longest delay, the most overshoot, the estimate reading ``estimate_error`` slow, rising as fast
     and braking as late as the envelope allows, until it is stopped: the creep a zero setpoint
-    leaves is the keep-out's to answer, not the gate's (the gate's module doc). The gate sees
+    leaves is the keep-out's to answer, not the gate's (the gate's module doc). With a position
+    loop (``position_error``), the creep adds up to no more than that in all. The gate sees
     ``measured``."""
 
     def __init__(self, envelope: ResponseEnvelope, v: float = 0.0) -> None:
@@ -90,6 +91,7 @@ class WorstVehicle:
         self.v = v
         self.x = 0.0
         self.t = 0.0
+        self.crept = 0.0  # how far the estimate error has carried it beyond the setpoints, m
         self.sent: list[tuple[float, float]] = [(-math.inf, 0.0)]
 
     @property
@@ -106,7 +108,8 @@ class WorstVehicle:
             window = [c for i, (t, c) in enumerate(self.sent) if t <= self.t - env.min_delay and (
                 i + 1 == len(self.sent) or self.sent[i + 1][0] >= self.t - env.max_delay)]  # fmt: skip
             flown = max(window) if window else 0.0
-            creep = env.estimate_error if flown != 0.0 else 0.0
+            creep = env.estimate_error if flown != 0.0 and self.crept < env.position_error else 0.0
+            self.crept += creep * step
             goal = flown + env.overshoot * max(flown, 0.0) - env.undershoot * min(flown, 0.0) + creep
             v_next = (
                 min(self.v + env.accel * step, goal)

@@ -58,7 +58,7 @@ def test_a_walker_walking_away_lets_through_what_one_standing_or_coming_does_not
     gate = _gate()
     full = np.array([[2.0, 0.0]])
     rooms = {
-        vx: gate.passes(full, (0.0, 0.0), NONE, NO_INFLATION, _walker(8.0, 0.0, vx, 0.0))[1][0]
+        vx: gate.passes(full, (0.0, 0.0), NONE, NO_INFLATION, _walker(7.5, 0.0, vx, 0.0))[1][0]
         for vx in (1.5, 0.0, -1.5)
     }
     assert rooms[1.5] >= 0.0 > rooms[0.0] > rooms[-1.5]
