@@ -291,6 +291,7 @@ class GoalStep:
 
     :param speed: forward action along ``heading`` (its fraction of the velocity scale)
     :param heading: direction to travel, rad CCW from the nose
+    :param bearing: the goal's direction, rad CCW from the nose
     :param ranges: ``(360,)`` the scan in metres (``inf``: nothing seen)
     :param clear: ``(360,)`` corridor clearance per heading, metres (:func:`corridor_clearance`)
     :param velocity: true body velocity (forward, left), m/s: measured less the estimate's error
@@ -298,6 +299,7 @@ class GoalStep:
 
     speed: float
     heading: float
+    bearing: float
     ranges: np.ndarray
     clear: np.ndarray
     velocity: np.ndarray
@@ -416,7 +418,7 @@ class GoalFollower:
         speed = min(speed, self._stoppable(float(clear[k])))
         if self._cannot_stop_along_course(clear, *velocity):
             speed = 0.0
-        return GoalStep(speed, heading, ranges, clear, velocity)
+        return GoalStep(speed, heading, bearing, ranges, clear, velocity)
 
     def _heading(self, ranges: np.ndarray, clear: np.ndarray, bearing: float, distance: float) -> float:
         """The heading to fly (rad CCW from the nose): along the boundary while escaping, else
@@ -599,7 +601,8 @@ class GoalFollowerTracks(GoalFollower):
     whose predicted path crosses its intended course, and steps aside from one that would meet it
     where it waits. The movers are the tracker's (as the shield gets them), never the simulator's.
 
-    While it waits or steps aside, the stall clock stands: waiting for a walker is no trap to escape.
+    While it waits (facing the goal) or steps aside (the nose held), the stall clock stands: waiting
+    for a walker is no trap to escape.
 
     :param layout: the frame layout (a goal layout)
     :param movers: the tracker's movers for the newest frame (body axes at the scan's time)
@@ -642,19 +645,18 @@ class GoalFollowerTracks(GoalFollower):
         else:
             self._since_progress = 0
             if decision.mode == "wait":
-                action = self._command(0.0, step.heading)
+                action = self._command(0.0, step.bearing)
             else:
-                action, left = self._sidestep(np.asarray(decision.velocity), step.heading)
+                action, left = self._sidestep(np.asarray(decision.velocity))
         action[0] = np.clip(action[0] + self._push_off(step.ranges), -1.0, 1.0)
         return np.append(action, np.float32(left)) if self._sideways else action
 
-    def _sidestep(self, velocity: np.ndarray, heading: float) -> tuple[np.ndarray, float]:
-        """The action (two parts) and the sideways part that fly ``velocity`` (body, m/s) while the
-        nose keeps to ``heading``: the estimate's error made up as :meth:`GoalFollower._command` does."""
-        c = self.config
+    def _sidestep(self, velocity: np.ndarray) -> tuple[np.ndarray, float]:
+        """The action (two parts) and the sideways part that fly ``velocity`` (body, m/s) with the
+        nose held (a turning body would turn the step with it): the estimate's error made up as
+        :meth:`GoalFollower._command` does."""
         command = velocity + self._bias - self._held
         forward = float(np.clip(command[0] / self.layout.velocity_scale, -1.0, 1.0))
         self._commands.append(forward * self.layout.velocity_scale)
         left = float(np.clip(command[1] / self._sideways, -1.0, 1.0)) if self._sideways else 0.0
-        yaw = float(np.clip(c.turn_gain * heading, -1.0, 1.0))
-        return np.array([forward, yaw], dtype=np.float32), left
+        return np.array([forward, 0.0], dtype=np.float32), left

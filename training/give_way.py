@@ -11,12 +11,14 @@ passed.
 Every frame, the first of these that holds:
 
 1. go: the goal follower's intended velocity is clear for ``course_time`` (after a wait or a
-   sidestep, clear ``resume_steps`` frames in a row, so that a wait does not flicker into a go);
+   sidestep, clear ``resume_steps`` frames in a row, so that a wait does not flicker into a go,
+   and a sidestep goes on meanwhile: a close mover may drop out of the tracks for a scan or two);
 2. wait: a stop is clear for ``wait_time`` (the vehicle keeps facing where it was going);
 3. step aside: of the velocities of ``sidestep_speed`` in ``directions`` directions that the action
    can fly and the static scan leaves room for, one clear for ``wait_time``, nearest the intended
-   direction; with none clear, the one that keeps farthest from every mover (a head-on drone, a
-   walker whose path runs through the waiting vehicle). With no room anywhere: wait.
+   direction (the sidestep's own, once stepping); with none clear, the one that keeps farthest
+   from every mover (a head-on drone, a walker whose path runs through the waiting vehicle). With
+   no room anywhere: wait.
 
 Pure logic: velocities, movers and the scan's clearances in, a decision out.
 """
@@ -90,6 +92,7 @@ class GiveWay:
     def reset(self) -> None:
         """A new flight: nothing waited for."""
         self._clear_run = self.config.resume_steps
+        self._stepping: tuple[float, float] | None = None  # the sidestep being flown
 
     def decide(
         self,
@@ -110,16 +113,19 @@ class GiveWay:
         """
         c = self.config
         go = (float(intended[0]), float(intended[1]))
-        if not movers:
-            self._clear_run = c.resume_steps
-            return Decision("go", go)
         course_clear = self.closest(go, velocity, movers, c.course_time) >= 0.0
         self._clear_run = self._clear_run + 1 if course_clear else 0
         if self._clear_run >= c.resume_steps:
+            self._stepping = None
             return Decision("go", go)
+        if course_clear and self._stepping is not None:  # a mover lost from sight: finish the step
+            return Decision("step", self._stepping)
         if self.closest((0.0, 0.0), velocity, movers, c.wait_time) >= 0.0:
+            self._stepping = None
             return Decision("wait", (0.0, 0.0))
-        return self._sidestep(go, velocity, movers, clear, max_left)
+        decision = self._sidestep(go, velocity, movers, clear, max_left)
+        self._stepping = decision.velocity if decision.mode == "step" else None
+        return decision
 
     def closest(
         self, command: Sequence[float], velocity: Sequence[float], movers: Sequence[Mover], horizon: float
@@ -155,7 +161,8 @@ class GiveWay:
     ) -> Decision:
         """The sidestep of the module docstring's third rule."""
         c = self.config
-        want = math.atan2(go[1], go[0]) if go != (0.0, 0.0) else 0.0
+        toward = self._stepping or go  # a sidestep keeps its direction while it stays clear
+        want = math.atan2(toward[1], toward[0]) if toward != (0.0, 0.0) else 0.0
         best: tuple[float, float, tuple[float, float]] | None = None
         for k in range(c.directions):
             angle = 2.0 * math.pi * k / c.directions
