@@ -16,8 +16,8 @@ Every frame, the first of these that holds:
 2. wait: a stop is clear for ``wait_time`` (the vehicle keeps facing where it was going);
 3. step aside: of the velocities of ``sidestep_speed`` in ``directions`` directions that the action
    can fly and the static scan leaves room for, one clear for ``wait_time``, nearest the intended
-   direction (the sidestep's own, once stepping); with none clear, the one that keeps farthest
-   from every mover (a head-on drone, a walker whose path runs through the waiting vehicle). With
+   direction (the sidestep's own, once stepping); with none clear, the one that meets a mover
+   latest, then least deep (a head-on drone, a walker whose path runs through the waiting vehicle). With
    no room anywhere: wait.
 
 Pure logic: velocities, movers and the scan's clearances in, a decision out.
@@ -137,19 +137,27 @@ class GiveWay:
         :param command: body velocity commanded from now on, m/s
         :param velocity: the true body velocity now, m/s
         """
+        return self._encounter(command, velocity, movers, horizon)[0]
+
+    def _encounter(
+        self, command: Sequence[float], velocity: Sequence[float], movers: Sequence[Mover], horizon: float
+    ) -> tuple[float, float]:
+        """(:meth:`closest`'s distance, seconds until the first conflict: ``inf`` with none)."""
         c = self.config
         t = self._times[self._times <= horizon + 1e-9]
         cmd, now = np.asarray(command, dtype=np.float64), np.asarray(velocity, dtype=np.float64)
         lag = c.response_time * (1.0 - np.exp(-t / c.response_time))
         path = t[:, None] * cmd[None, :] + lag[:, None] * (now - cmd)[None, :]  # (T, 2)
-        nearest = math.inf
+        nearest, first = math.inf, math.inf
         for m in movers:
             rel = np.asarray(m.position) + t[:, None] * np.asarray(m.velocity) - path
             gap = np.hypot(rel[:, 0], rel[:, 1]) - (c.vehicle_radius + m.radius + c.margin)
             k = int(np.argmin(gap))
             if k > 0:  # closing at some time ahead; drawing apart from now on is no conflict
                 nearest = min(nearest, float(gap[k]))
-        return nearest
+                if gap[k] < 0.0:
+                    first = min(first, float(t[int(np.argmax(gap < 0.0))]))
+        return nearest, first
 
     def _sidestep(
         self,
@@ -163,7 +171,7 @@ class GiveWay:
         c = self.config
         toward = self._stepping or go  # a sidestep keeps its direction while it stays clear
         want = math.atan2(toward[1], toward[0]) if toward != (0.0, 0.0) else 0.0
-        best: tuple[float, float, tuple[float, float]] | None = None
+        best: tuple[float, float, float, tuple[float, float]] | None = None
         for k in range(c.directions):
             angle = 2.0 * math.pi * k / c.directions
             v = (c.sidestep_speed * math.cos(angle), c.sidestep_speed * math.sin(angle))
@@ -172,11 +180,12 @@ class GiveWay:
             room = float(clear[int(math.degrees(angle)) % N_BINS])
             if room < c.sidestep_speed * c.course_time + c.room:
                 continue
-            gap = min(self.closest(v, velocity, movers, c.wait_time), 0.0)  # any clear one is as good
+            gap, first = self._encounter(v, velocity, movers, c.wait_time)
             turn = abs((angle - want + math.pi) % (2.0 * math.pi) - math.pi)
-            key = (gap, -turn, v)
-            if best is None or key[:2] > best[:2]:
+            # any clear one is as good; of the others, the latest to conflict, then the shallowest
+            key = (first, min(gap, 0.0), -turn, v)
+            if best is None or key[:3] > best[:3]:
                 best = key
         if best is None:
             return Decision("wait", (0.0, 0.0))
-        return Decision("step", best[2])
+        return Decision("step", best[3])
