@@ -35,6 +35,7 @@ LAYERS: dict[str, dict[str, int]] = {
 TRAINING_BASE = {
     "config",
     "baselines",
+    "give_way",
     "path_expert",
     "predictive_expert",
     "mirror",

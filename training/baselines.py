@@ -13,6 +13,8 @@ Goal task (LidarNav-v0, the scan + goal bearing/distance + measured velocity fra
 
 * :class:`StraightLine` — turn to the goal and fly at it, no avoidance: how hard a world is.
 * :class:`GoalFollower` — the classical goal-directed controller (see its docstring).
+* :class:`GoalFollowerTracks` — the goal follower giving way to the tracker's movers
+  (:mod:`training.give_way`).
 
 All implement the controller interface the evaluator uses: ``reset(obs)`` at an episode start,
 then ``act(obs) -> (2,)`` per step, actions in ``[-1, 1]`` (a0 forward speed, a1 yaw rate,
@@ -23,6 +25,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -31,6 +34,8 @@ from numba import njit
 from companion.perception.drift import DriftConfig, DriftEstimator, DriftHoldConfig, held_drift
 from companion.perception.observation import ObservationLayout
 from companion.perception.scan import N_BINS
+from companion.perception.tracking import Mover
+from training.give_way import GiveWay, GiveWayConfig
 
 _ANGLES = np.deg2rad(np.arange(N_BINS) + 0.5)  # bin centres, counter-clockwise from straight ahead
 _SIGNED = np.where(np.pi < _ANGLES, _ANGLES - 2 * np.pi, _ANGLES)  # in (-pi, pi]
@@ -280,6 +285,26 @@ class GoalFollowerConfig:
     gain_time: float = 2.0
 
 
+@dataclass(frozen=True)
+class GoalStep:
+    """What :class:`GoalFollower` decided for one frame, before its command.
+
+    :param speed: forward action along ``heading`` (its fraction of the velocity scale)
+    :param heading: direction to travel, rad CCW from the nose
+    :param bearing: the goal's direction, rad CCW from the nose
+    :param ranges: ``(360,)`` the scan in metres (``inf``: nothing seen)
+    :param clear: ``(360,)`` corridor clearance per heading, metres (:func:`corridor_clearance`)
+    :param velocity: true body velocity (forward, left), m/s: measured less the estimate's error
+    """
+
+    speed: float
+    heading: float
+    bearing: float
+    ranges: np.ndarray
+    clear: np.ndarray
+    velocity: np.ndarray
+
+
 class GoalFollower:
     """Tangent Bug on the scan: steer for the goal or the obstacle edge that promises the shortest way,
     through the admissible heading nearest to it, with hysteresis and a boundary-following escape.
@@ -362,6 +387,14 @@ class GoalFollower:
         return self.act(obs)
 
     def act(self, obs: np.ndarray) -> np.ndarray:
+        step = self._plan(obs)
+        action = self._command(step.speed, step.heading)
+        action[0] = np.clip(action[0] + self._push_off(step.ranges), -1.0, 1.0)
+        return action
+
+    def _plan(self, obs: np.ndarray) -> GoalStep:
+        """This frame's heading and speed (and what they were judged on), before the command that
+        makes the autopilot fly them."""
         c = self.config
         scan, bearing, distance = _goal(obs, self.layout)
         ranges = np.where(scan >= 1.0, np.inf, scan * c.max_range)
@@ -385,9 +418,7 @@ class GoalFollower:
         speed = min(speed, self._stoppable(float(clear[k])))
         if self._cannot_stop_along_course(clear, *velocity):
             speed = 0.0
-        action = self._command(speed, heading)
-        action[0] = np.clip(action[0] + self._push_off(ranges), -1.0, 1.0)
-        return action
+        return GoalStep(speed, heading, bearing, ranges, clear, velocity)
 
     def _heading(self, ranges: np.ndarray, clear: np.ndarray, bearing: float, distance: float) -> float:
         """The heading to fly (rad CCW from the nose): along the boundary while escaping, else
@@ -563,3 +594,69 @@ class GoalFollower:
         if not free.any():
             return float(_wrap(np.radians(wall) + side * np.pi / 2))
         return float(_wrap(np.radians(sweep[int(np.argmax(free))])))
+
+
+class GoalFollowerTracks(GoalFollower):
+    """The goal follower giving way to what moves (:mod:`training.give_way`): it waits for a mover
+    whose predicted path crosses its intended course, and steps aside from one that would meet it
+    where it waits. The movers are the tracker's (as the shield gets them), never the simulator's.
+
+    While it waits (facing the goal) or steps aside (the nose held), the stall clock stands: waiting
+    for a walker is no trap to escape.
+
+    :param layout: the frame layout (a goal layout)
+    :param movers: the tracker's movers for the newest frame (body axes at the scan's time)
+    :param config: the goal follower's tuning
+    :param hold: as :class:`GoalFollower`'s
+    :param give_way: the rule's tuning
+    :param max_sideways_speed: m/s a third action part stands for (the env's ``sideways``): a
+        sidestep flies it, and every action has three parts; 0: two parts, sidesteps along the nose
+    """
+
+    def __init__(
+        self,
+        layout: ObservationLayout,
+        movers: Callable[[], Sequence[Mover]],
+        config: GoalFollowerConfig | None = None,
+        hold: DriftHoldConfig | None = None,
+        give_way: GiveWayConfig | None = None,
+        max_sideways_speed: float = 0.0,
+    ) -> None:
+        super().__init__(layout, config, hold)
+        self.rule = GiveWay(give_way)
+        self._movers = movers
+        self._sideways = float(max_sideways_speed)
+        #: the last frame's decision (``go``, ``wait`` or ``step``)
+        self.mode = "go"
+
+    def reset(self, obs: np.ndarray) -> np.ndarray:
+        self.rule.reset()
+        return super().reset(obs)
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        step = self._plan(obs)
+        scale = self.layout.velocity_scale
+        intended = step.speed * scale * np.array([math.cos(step.heading), math.sin(step.heading)])
+        decision = self.rule.decide(intended, step.velocity, self._movers(), step.clear, self._sideways)
+        self.mode = decision.mode
+        left = 0.0
+        if decision.mode == "go":
+            action = self._command(step.speed, step.heading)
+        else:
+            self._since_progress = 0
+            if decision.mode == "wait":
+                action = self._command(0.0, step.bearing)
+            else:
+                action, left = self._sidestep(np.asarray(decision.velocity))
+        action[0] = np.clip(action[0] + self._push_off(step.ranges), -1.0, 1.0)
+        return np.append(action, np.float32(left)) if self._sideways else action
+
+    def _sidestep(self, velocity: np.ndarray) -> tuple[np.ndarray, float]:
+        """The action (two parts) and the sideways part that fly ``velocity`` (body, m/s) with the
+        nose held (a turning body would turn the step with it): the estimate's error made up as
+        :meth:`GoalFollower._command` does."""
+        command = velocity + self._bias - self._held
+        forward = float(np.clip(command[0] / self.layout.velocity_scale, -1.0, 1.0))
+        self._commands.append(forward * self.layout.velocity_scale)
+        left = float(np.clip(command[1] / self._sideways, -1.0, 1.0)) if self._sideways else 0.0
+        return np.array([forward, 0.0], dtype=np.float32), left

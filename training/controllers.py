@@ -27,7 +27,7 @@ from training.path_expert import ExpertController, PathExpert
 from training.predictive_expert import PredictiveExpert, robust_expert, smooth_expert
 
 BASELINES = ("gap_follower", "random")
-GOAL_BASELINES = ("goal_follower", "straight_line")
+GOAL_BASELINES = ("goal_follower", "goal_follower_tracks", "straight_line")
 #: ``[env]`` keys a controller flies with, whatever the config says: the straight line gauges how
 #: hard a world is by flying at the waypoint itself, blind; with the route its goal features would
 #: point along a route planned round what the scans showed
@@ -221,8 +221,11 @@ def build_controller(
 
     :param env: the unwrapped env the controller flies, for a privileged one
         (:data:`PRIVILEGED_GOAL_CONTROLLERS`)
+    :param movers: what moves in the scan now, as the tracker gives it (the env's
+        :meth:`~flightsim.envs.nav_env.LidarNavEnv.shield_movers`): the shield's, and
+        ``goal_follower_tracks``'s
     """
-    controller = _bare_controller(spec, env_config, seed, n_stack, env)
+    controller = _bare_controller(spec, env_config, seed, n_stack, env, movers)
     if not spec.shield:
         return controller
     limits = spec.shield_config or ShieldConfig()
@@ -239,13 +242,20 @@ def _teacher_controller(kind: str, env: Any) -> Controller:
 
 
 def _bare_controller(
-    spec: ControllerSpec, env_config: Any, seed: int, n_stack: int, env: Any = None
+    spec: ControllerSpec,
+    env_config: Any,
+    seed: int,
+    n_stack: int,
+    env: Any = None,
+    movers: Callable[[], dict[str, Any]] | None = None,
 ) -> Controller:
     """The controller itself (policies are loaded once per process)."""
     if spec.kind in ATTACKERS:
         return make_attacker(spec.kind, seed, 3 if sideways_scale(env_config) else 2)
     if spec.kind == REPLAY:
         return ReplayAttacker(spec.actions, 3 if sideways_scale(env_config) else 2)
+    if spec.kind == "goal_follower_tracks":  # its sidesteps fly the sideways part itself
+        return _goal_follower_tracks(env_config, movers)
     baseline = _baseline(spec, env_config, seed)
     if baseline is not None:
         return NoSidewaysController(baseline) if sideways_scale(env_config) else baseline
@@ -286,6 +296,26 @@ def _baseline(spec: ControllerSpec, env_config: Any, seed: int) -> Controller | 
     if spec.kind == "straight_line":
         return StraightLine(env_config.layout)
     return None
+
+
+def _goal_follower_tracks(env_config: Any, movers: Callable[[], dict[str, Any]] | None) -> Controller:
+    """The goal follower giving way to the tracker's movers (the env's, as the shield gets them).
+
+    :raises UserError: the env does not track what moves
+    :raises ValueError: no ``movers`` to read them from
+    """
+    from training.baselines import GoalFollowerConfig, GoalFollowerTracks
+    from training.give_way import GiveWayConfig
+
+    if not getattr(env_config, "tracking", False):
+        raise UserError("goal_follower_tracks gives way to the tracker's movers: set env.tracking = true")
+    if movers is None:
+        raise ValueError("goal_follower_tracks reads the tracker's movers: pass movers")
+    hold = env_config.drift_hold_limits if env_config.drift_hold else None
+    config = GoalFollowerConfig(max_range=float(env_config.scan.max_range))
+    give_way = GiveWayConfig(vehicle_radius=float(env_config.vehicle_radius))
+    tracked = lambda: movers().get("movers", [])  # noqa: E731 - the tracker's, as the shield gets them
+    return GoalFollowerTracks(env_config.layout, tracked, config, hold, give_way, sideways_scale(env_config))
 
 
 def load_policy(
