@@ -27,7 +27,9 @@ from training.path_expert import ExpertController, PathExpert
 from training.predictive_expert import PredictiveExpert, robust_expert, smooth_expert
 
 BASELINES = ("gap_follower", "random")
-GOAL_BASELINES = ("goal_follower", "goal_follower_tracks", "straight_line")
+GOAL_BASELINES = ("goal_follower", "straight_line")
+#: flown only when named: baselines for worlds with movers (they need the env's tracker)
+TRACK_BASELINES = ("goal_follower_tracks",)
 #: ``[env]`` keys a controller flies with, whatever the config says: the straight line gauges how
 #: hard a world is by flying at the waypoint itself, blind; with the route its goal features would
 #: point along a route planned round what the scans showed
@@ -314,7 +316,11 @@ def _goal_follower_tracks(env_config: Any, movers: Callable[[], dict[str, Any]] 
     hold = env_config.drift_hold_limits if env_config.drift_hold else None
     config = GoalFollowerConfig(max_range=float(env_config.scan.max_range))
     give_way = GiveWayConfig(vehicle_radius=float(env_config.vehicle_radius))
-    tracked = lambda: movers().get("movers", [])  # noqa: E731 - the tracker's, as the shield gets them
+
+    def tracked() -> Any:
+        """The tracker's movers now, as the shield gets them."""
+        return movers().get("movers", [])
+
     return GoalFollowerTracks(env_config.layout, tracked, config, hold, give_way, sideways_scale(env_config))
 
 

@@ -55,6 +55,7 @@ from training.controllers import (
     BASELINES,
     GOAL_BASELINES,
     PRIVILEGED_GOAL_CONTROLLERS,
+    TRACK_BASELINES,
     ControllerSpec,
     load_policy,
 )
@@ -303,7 +304,9 @@ def parse_baselines(value: str | None, env_id: str, flag: str = "--baselines") -
     (``flag``: the option named in the error)."""
     if value is None:
         return None
-    known = (GOAL_BASELINES + PRIVILEGED_GOAL_CONTROLLERS if env_id == NAV_ENV_ID else BASELINES) + ATTACKERS
+    known = (
+        GOAL_BASELINES + TRACK_BASELINES + PRIVILEGED_GOAL_CONTROLLERS if env_id == NAV_ENV_ID else BASELINES
+    ) + ATTACKERS
     names = [name.strip() for name in value.split(",") if name.strip()]
     unknown = [name for name in names if name not in known]
     if unknown:

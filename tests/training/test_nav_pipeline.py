@@ -86,7 +86,7 @@ def test_evaluate_flies_the_exported_goal_policy(nav_run, tmp_path, capsys):
             "--workers", "1", "--json", str(out)]  # fmt: skip
     assert main(argv) == 0
     data = json.loads(out.read_text())
-    assert set(data["controllers"]) == {"policy", "goal_follower", "goal_follower_tracks", "straight_line"}
+    assert set(data["controllers"]) == {"policy", "goal_follower", "straight_line"}
     assert data["controllers"]["policy"]["per_family"]["gaps"]["episodes"] == 1
 
 
