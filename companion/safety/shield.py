@@ -442,7 +442,9 @@ class SafetyShield:
         clearance = config.body_radius + config.margin
         movers = MoverModel(config.mover_speed, config.mover_accel, config.mover_velocity_error)
         self._gate = BackupGate(self.envelope, clearance, movers=movers) if config.backup_gate else None
-        self._memory = ObstacleMemory(config.memory_time, self.envelope.estimate_error)
+        self._memory = ObstacleMemory(
+            config.memory_time, self.envelope.estimate_error, self.envelope.velocity_lag
+        )
         self._gated_yaw_rate = 0.0  # the yaw rate last sent, flown until the next scan
 
     def reset(self) -> None:

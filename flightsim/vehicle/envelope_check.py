@@ -1,5 +1,8 @@
 """Does a flown vehicle stay inside the firmware envelope? Checked on recorded flights.
 
+:func:`memory_margins` checks the shield's obstacle memory the same way: does its odometry carry a
+return to within the inflation it gives it?
+
 From each shield step of a recording (the measured velocity the shield saw, and the setpoint it
 let through), the envelope's worst case (:mod:`companion.safety.envelope`) is flown forward with
 the setpoints that really followed, and the vehicle's true displacement (the SITL's ground truth)
@@ -16,6 +19,7 @@ import numpy as np
 
 from companion.recording.reader import read_recording
 from companion.safety.envelope import STEP_S, ResponseEnvelope, window_targets, worst_closing
+from companion.safety.obstacle_memory import RANGE_ACCURACY_M, ObstacleMemory
 
 #: the directions checked: every 10 degrees
 DIRECTIONS = np.radians(np.arange(0.0, 360.0, 10.0))
@@ -99,3 +103,34 @@ def containment_margins(
         true = (xy - xy[0]) @ _UNITS.T
         margins.append(float((bound - true).min()))
     return np.array(margins)
+
+
+def memory_margins(
+    flight: RecordedFlight, envelope: ResponseEnvelope, memory_time: float = 0.5
+) -> np.ndarray:
+    """Per remembered return and step, the memory's inflation less how far its odometry carried the
+    return from where it truly lies, m; negative: the memory put it farther off than it allowed.
+
+    The shield's :class:`~companion.safety.obstacle_memory.ObstacleMemory` is fed each shield step's
+    measured velocity and the true heading, and at each step a return where the vehicle truly is;
+    at every later step each is compared with that place in the true body frame then. Spans of
+    steps apart by more than :data:`MAX_GAP_S` are checked each from a fresh memory."""
+    memory = ObstacleMemory(memory_time, envelope.estimate_error, envelope.velocity_lag)
+    yaw = np.interp(flight.step_time, flight.truth_time, flight.truth_yaw)
+    xy = np.stack(
+        [np.interp(flight.step_time, flight.truth_time, flight.truth_xy[:, k]) for k in range(2)], 1
+    )
+    margins: list[np.ndarray] = []
+    placed: list[int] = []  # the step each remembered return was placed at, oldest first
+    for k, t in enumerate(flight.step_time):
+        dt = t - flight.step_time[k - 1] if k else 0.0
+        if dt > MAX_GAP_S:
+            memory.reset()
+            placed.clear()
+        points, inflation = memory.update(np.zeros((1, 2)), dt, tuple(flight.measured[k]), float(yaw[k]), 0.0)
+        placed = [*placed, k][-len(points) :]
+        c, s = np.cos(yaw[k]), np.sin(yaw[k])
+        offset = xy[placed] - xy[k]
+        truth = np.stack([c * offset[:, 0] + s * offset[:, 1], -s * offset[:, 0] + c * offset[:, 1]], axis=1)
+        margins.append(inflation - RANGE_ACCURACY_M - np.hypot(*(points - truth).T))
+    return np.concatenate(margins)

@@ -75,6 +75,32 @@ def test_a_tighter_envelope_is_refused_by_the_recordings(firmware: str, tighter:
     assert least < -TRUTH_JITTER_M
 
 
+@pytest.mark.parametrize("firmware", ["ardupilot", "px4"])
+def test_every_real_flight_keeps_its_remembered_returns_within_their_inflation(firmware: str) -> None:
+    """The shield's obstacle memory, fed each real flight's measured velocity, carries a return no
+    farther from where it truly lies than the inflation it gives it (the memory's module doc)."""
+    _needs_flights()
+    from flightsim.vehicle.envelope_check import load_flight, memory_margins
+
+    worst = {
+        p.name: float(memory_margins(load_flight(p), ENVELOPES[firmware]).min()) for p in _flights(firmware)
+    }
+    outside = {name: round(m, 3) for name, m in worst.items() if m < -TRUTH_JITTER_M}
+    assert not outside, f"the {firmware} memory carried returns beyond their inflation by (m): {outside}"
+
+
+@pytest.mark.parametrize("firmware", ["ardupilot", "px4"])
+def test_a_memory_blind_to_the_velocity_lag_is_refused_by_the_recordings(firmware: str) -> None:
+    """Inflated by the estimate error alone, the memory's returns leave their inflation: the
+    measured velocity is late, and integrated late it is off by the lag times its change."""
+    _needs_flights()
+    from flightsim.vehicle.envelope_check import load_flight, memory_margins
+
+    blind = dataclasses.replace(ENVELOPES[firmware], velocity_lag=0.0)
+    least = min(float(memory_margins(load_flight(p), blind).min()) for p in _flights(firmware))
+    assert least < -TRUTH_JITTER_M
+
+
 def test_the_random_envelope_covers_both_firmwares() -> None:
     random = ENVELOPES["random"]
     for one in (ARDUPILOT, PX4):
@@ -82,6 +108,7 @@ def test_the_random_envelope_covers_both_firmwares() -> None:
         assert random.accel >= one.accel and random.decel <= one.decel
         assert random.overshoot >= one.overshoot and random.undershoot >= one.undershoot
         assert random.estimate_error >= one.estimate_error
+        assert random.velocity_lag >= one.velocity_lag and random.position_error >= one.position_error
 
 
 def test_an_envelope_with_a_negative_or_inverted_bound_is_refused() -> None:
@@ -143,8 +170,9 @@ def test_a_setpoint_counts_over_its_whole_delay_window() -> None:
 def test_the_worst_case_bounds_any_motion_the_envelope_allows() -> None:
     """Monte Carlo over motions inside the envelope, along one direction: a point mass whose
     velocity chases a setpoint flown after a delay in the window, with any overshoot, undershoot
-    and estimate bias the envelope allows, rising no faster than ``accel`` and falling as slowly as
-    ``decel`` lets it, never gets farther than the worst case."""
+    and estimate bias the envelope allows (carrying it at most ``position_error`` in all), rising no
+    faster than ``accel`` and falling as slowly as ``decel`` lets it, never gets farther than the
+    worst case."""
     rng = np.random.default_rng(3)
     env = ARDUPILOT
     for _ in range(300):
@@ -156,13 +184,15 @@ def test_the_worst_case_bounds_any_motion_the_envelope_allows() -> None:
         times = STEP_S * np.arange(60)
         targets = window_targets(sent, setpoints[:, None], times, env)[:, 0]
         _, bound = worst_closing(np.array(v + bias), targets, env)
-        x = 0.0
+        x = crept = 0.0  # crept: how far the bias has carried it, which the position loop caps
         for k, t in enumerate(times):
             index = np.searchsorted(sent, t - delay, side="right") - 1
             flown = setpoints[index] if index >= 0 else 0.0
+            carry = -bias if crept - bias * STEP_S <= env.position_error else 0.0
+            crept += carry * STEP_S
             goal = (
                 flown
-                - bias
+                + carry
                 + rng.uniform() * (env.overshoot * max(flown, 0.0) - env.undershoot * min(flown, 0.0))
             )
             if goal > v:

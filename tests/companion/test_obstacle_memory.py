@@ -61,3 +61,17 @@ def test_without_odometry_only_the_current_scan_counts(lost) -> None:
     points, inflation = memory.update(np.array([[5.0, 1.0]]), 0.1, lost, 0.0, 0.0)
     assert points == pytest.approx(np.array([[5.0, 1.0]]))
     assert inflation == pytest.approx([_span(math.hypot(5.0, 1.0))])
+
+
+def test_a_velocity_change_since_a_scan_inflates_its_returns_by_the_lag() -> None:
+    """A late velocity, integrated, is off by the lag times how much the velocity changed since: a
+    return seen before a brake carries that on top of the estimate error's share."""
+    memory = ObstacleMemory(0.5, E, velocity_lag=0.1)
+    memory.update(np.array([[3.0, 0.0]]), 0.1, (2.0, 0.0), 0.0, 0.0)
+    memory.update(np.array([[3.0, 0.0]]), 0.1, (1.0, 0.0), 0.0, 0.0)
+    _, inflation = memory.update(NONE, 0.1, (0.5, 0.0), 0.0, 0.0)
+    assert inflation == pytest.approx([_span(3.0) + E * 0.2 + 0.1 * 1.5, _span(3.0) + E * 0.1 + 0.1 * 0.5])
+    steady = ObstacleMemory(0.5, E, velocity_lag=0.1)
+    steady.update(np.array([[3.0, 0.0]]), 0.1, (1.0, 0.0), 0.0, 0.0)
+    _, inflation = steady.update(NONE, 0.1, (1.0, 0.0), 0.0, 0.0)
+    assert inflation == pytest.approx([_span(3.0) + E * 0.1])  # a steady velocity's lag costs nothing
