@@ -1,6 +1,7 @@
 """The training config: strict loading, overrides, the [env] table checked by the simulator's own rules."""
 
 import re
+from pathlib import Path
 
 import pytest
 
@@ -135,3 +136,16 @@ def test_the_config_offers_every_dagger_teacher_and_no_other():
     from training.controllers import TEACHERS
 
     assert set(get_args(get_type_hints(PretrainConfig)["teacher"])) == set(TEACHERS)
+
+
+def test_movers_without_the_tracker_is_one_line_naming_both_keys(tmp_path, capsys):
+    from training.__main__ import main
+
+    nav = Path(__file__).parents[2] / "training" / "configs" / "nav.toml"
+    assert load_train_config(nav, ["env.movers=true"]).env_config().layout.movers
+    argv = ["train", "--config", str(nav), "env.movers=true", "env.tracking=false", f"run_root={tmp_path}"]
+    assert main(argv) == 2
+    assert capsys.readouterr().err == (
+        "avoid-train: error: env: movers are the tracker's: movers = true needs tracking = true\n"
+    )
+    assert not list(tmp_path.iterdir())  # refused before a run directory
