@@ -123,8 +123,8 @@ class PolicyConfig:
     :param firmware: the frame also says which firmware flies the setpoints (1.0 for
         ``autopilot.type = "ardupilot"``, 0.0 for ``"px4"``): a model trained with
         ``env.firmware = true``; the metadata says which. Goal frames only
-    :param movers: the frame also carries the 3 nearest movers the tracker reports (position,
-        velocity and radius in the body axes; :mod:`companion.perception.observation`): a model
+    :param movers: the frame also carries the 3 nearest movers the tracker reports, in the body
+        axes: position / 10 m, velocity / 3 m/s, radius / 1 m, and a presence flag: a model
         trained with ``env.movers = true``; the metadata says which. Goal frames only; needs
         ``tracking.enabled`` and a goal source (the tracker places the scans at the autopilot's
         position)

@@ -80,10 +80,10 @@ class NavEnvConfig(EnvConfig):
         on the true pose, as the route is), and keep the moving returns out of the drift estimate and
         the route's map, as the companion's ``[tracking]`` does in flight: a mover's motion is not the
         vehicle's, and where it stood is not an obstacle. Changes nothing where nothing moves
-    :param movers: each frame also carries the nearest movers the tracker reports (their position,
-        velocity and radius in the body axes, scaled as
-        :mod:`companion.perception.observation` says), as the companion's ``policy.movers``
-        frames do: in the scan alone a walker looks like a wall. Needs ``tracking``
+    :param movers: each frame also carries the 3 nearest movers the tracker reports, in the body
+        axes: position / 10 m, velocity / 3 m/s, radius / 1 m, and a presence flag
+        (:func:`companion.perception.observation.mover_features`), as the companion's
+        ``policy.movers`` frames do: in the scan alone a walker looks like a wall. Needs ``tracking``
     """
 
     reward: Literal["goal"] = "goal"

@@ -149,3 +149,36 @@ def test_movers_without_the_tracker_is_one_line_naming_both_keys(tmp_path, capsy
         "avoid-train: error: env: movers are the tracker's: movers = true needs tracking = true\n"
     )
     assert not list(tmp_path.iterdir())  # refused before a run directory
+
+
+def test_nav_movers_is_the_nav_recipe_with_movers_among_every_family_and_its_env_runs():
+    """A smoke check of training/configs/nav-movers.toml (not trained here): nav.toml's recipe but for
+    the movers in the frame and the dynamic families; its env flies a dynamic world (validation
+    seed) and its frames stay in their bounds."""
+    import dataclasses
+
+    import numpy as np
+
+    from flightsim.envs.nav_env import LidarNavEnv
+    from flightsim.worlds.families import ALL_FAMILIES
+
+    configs = Path(__file__).parents[2] / "training" / "configs"
+    nav, movers = load_train_config(configs / "nav.toml"), load_train_config(configs / "nav-movers.toml")
+    env_config = movers.env_config()
+    assert env_config.movers and sorted(env_config.families) == sorted(ALL_FAMILIES)
+    assert dataclasses.replace(movers, name="nav", env=nav.env) == nav
+    static = nav.env_config()
+    assert dataclasses.replace(env_config, movers=False, families=static.families) == static
+    assert env_config.layout.name == dataclasses.replace(static.layout, movers=True).name  # scan, goal, drift
+    env = LidarNavEnv(dataclasses.replace(env_config, max_steps=20))
+    try:
+        options = {"family": "rooms-dynamic", "world_seed": 500_300, "difficulty": 0.5}
+        obs, _ = env.reset(seed=0, options=options)
+        low, high = env.observation_space.low, env.observation_space.high
+        for _ in range(20):
+            assert obs.shape == (385,) and np.all(obs >= low) and np.all(obs <= high)
+            obs, _, terminated, truncated, _ = env.step(np.array([0.5, 0.0, 0.0], np.float32))
+            if terminated or truncated:
+                break
+    finally:
+        env.close()
