@@ -181,7 +181,7 @@ class LidarNavEnv(LidarAvoidEnv):
                filtered (:class:`companion.perception.drift.DriftEstimator`, reset with the episode)
     next 2     (``command`` only) the command just flown, after the  [-1, 1]
                shield: forward / ``max_speed``, yaw rate / ``max_yaw_rate``; (0, 0) at reset
-    last 1     (``firmware`` only) 1.0 when the episode's response   {0, 1}
+    next 1     (``firmware`` only) 1.0 when the episode's response   {0, 1}
                has ArduPilot's structure (shaped input), else 0.0
     last 18    (``movers`` only) the 3 nearest movers the tracker    [-1, 1]
                reports, nearest surface first, 6 floats each: centre forward, left / 10 m,
