@@ -67,6 +67,7 @@ from companion.perception.observation import (
     drift_features,
     firmware_features,
     goal_features,
+    mover_features,
 )
 from companion.perception.scan import BIN_CONVENTION, N_BINS, scan_from_points
 from companion.perception.tracking import ScanTracker, TrackerOutput, without_movers
@@ -527,6 +528,9 @@ class Companion:
         if self.layout.firmware:  # which firmware answers (LidarNav-v0's firmware)
             ardupilot = self.config.autopilot.type == "ardupilot"
             features = np.concatenate([features, firmware_features(ardupilot, self.layout)])
+        if self.layout.movers:  # what moves in this scan (LidarNav-v0's movers); the config makes
+            assert self.tracked is not None  # sure the tracker runs, and _track ran on this scan
+            features = np.concatenate([features, mover_features(self.tracked.movers(), self.layout)])
         return build_frame(scan, features, self.layout)
 
     def _toward(self, scan: np.ndarray, forward: float, left: float) -> tuple[float, float]:

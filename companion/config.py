@@ -123,6 +123,11 @@ class PolicyConfig:
     :param firmware: the frame also says which firmware flies the setpoints (1.0 for
         ``autopilot.type = "ardupilot"``, 0.0 for ``"px4"``): a model trained with
         ``env.firmware = true``; the metadata says which. Goal frames only
+    :param movers: the frame also carries the 3 nearest movers the tracker reports, in the body
+        axes: position / 10 m, velocity / 3 m/s, radius / 1 m, and a presence flag: a model
+        trained with ``env.movers = true``; the metadata says which. Goal frames only; needs
+        ``tracking.enabled`` and a goal source (the tracker places the scans at the autopilot's
+        position)
     :param trt_cache_dir: directory for TensorRT's engine cache (empty: no cache; relative: to the
         config file); the service's StateDirectory is meant for it
     :param sha256: the model file's SHA-256 (64 hex digits, as ``avoid-train export`` prints it);
@@ -142,6 +147,7 @@ class PolicyConfig:
     drift: bool = True
     command: bool = False
     firmware: bool = False
+    movers: bool = False
 
     @property
     def layout(self) -> ObservationLayout:
@@ -151,7 +157,7 @@ class PolicyConfig:
         return ObservationLayout(n_bins=N_BINS, goal=goal, goal_range=self.goal_range,
                                  velocity_scale=self.max_speed, drift=self.drift and goal,
                                  command=self.command and goal, yaw_rate_scale=self.max_yaw_rate,
-                                 firmware=self.firmware and goal)
+                                 firmware=self.firmware and goal, movers=self.movers and goal)
 
     @property
     def sideways_speed(self) -> float:
@@ -365,11 +371,18 @@ class CompanionConfig:
                 f"goal.source = {self.goal.source!r} needs a goal policy (policy.observation = \"goal\"); "
                 "a scan-only policy cannot fly to a goal"
             )
+        if self.policy.layout.movers and not self.tracking.enabled:
+            raise ValueError("policy.movers are the tracker's: it needs tracking.enabled = true")
+        if self.policy.layout.movers and self.goal.source == "none":
+            raise ValueError(
+                'policy.movers needs a goal source (goal.source = "none"): the tracker places the scans '
+                "at the autopilot's position, which only a goal source asks for"
+            )
 
 
 def model_policy_settings(meta: Mapping[str, str]) -> dict[str, Any]:
     """The ``[policy]`` values that feed a model what its metadata says it was trained on: the
-    observation (``scan`` or ``goal``, with its drift, command and firmware features), the stack
+    observation (``scan`` or ``goal``, with its drift, command, firmware and mover features), the stack
     and the action scales. A tool that flies any exported model (``avoid-sim fly``, ``demo``)
     configures the companion with them; the companion still checks the model against them.
 
@@ -393,8 +406,9 @@ def model_policy_settings(meta: Mapping[str, str]) -> dict[str, Any]:
     goal_range = re.search(r"distance/([0-9.]+)m\b", wanted)  # the name spells the goal's scale out
     if goal_range:
         settings["goal_range"] = float(goal_range.group(1))
-    for observation, drift, command, firmware in itertools.product(("scan", "goal"), *[(False, True)] * 3):
-        choice = {"observation": observation, "drift": drift, "command": command, "firmware": firmware}
+    parts = ("drift", "command", "firmware", "movers")
+    for observation, *flags in itertools.product(("scan", "goal"), *[(False, True)] * len(parts)):
+        choice = {"observation": observation, **dict(zip(parts, flags, strict=True))}
         if PolicyConfig(**settings, **choice).layout.name == wanted:
             return {**settings, **choice}
     raise UserError(f"model observation layout {wanted} is not one the companion can feed")

@@ -11,8 +11,9 @@ rather than how to fly, and a mirrored label is a world it did not see.
 
 In a frame (:class:`companion.perception.observation.ObservationLayout`) the scan's bin ``i`` covers
 ``[i°, i+1°)`` counter-clockwise from the nose, so its mirror is bin ``n_bins - 1 - i``; what points
-left (the goal's ``sin``, the left velocity, the left drift, the yaw-rate command) changes sign;
-the rest stays. This module imports numpy only.
+left (the goal's ``sin``, the left velocity, the left drift, the yaw-rate command, each mover's left
+position and left velocity) changes sign; the rest stays. The movers stay in their slots: a
+mirror leaves each one's distance as it is. This module imports numpy only.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from companion.perception.observation import ObservationLayout
+from companion.perception.observation import MOVER_SLOT_FEATURES, MOVER_SLOTS, ObservationLayout
 
 #: a mirrored action: forward speed kept, yaw rate reversed
 ACTION_SIGNS = np.array([1.0, -1.0], dtype=np.float32)
@@ -69,6 +70,9 @@ def mirror_for(layout: ObservationLayout, n_stack: int, sideways: bool = False) 
     for part in ("goal_bearing", "velocity", "drift", "command"):
         if part in parts:  # the second of each pair points left (sin, left, left, yaw rate)
             frame_signs[parts[part].start + 1] = -1.0
+    if "movers" in parts:  # each slot's left position and left velocity
+        slots = frame_signs[parts["movers"]].reshape(MOVER_SLOTS, len(MOVER_SLOT_FEATURES))  # a view
+        slots[:, [MOVER_SLOT_FEATURES.index("left"), MOVER_SLOT_FEATURES.index("velocity_left")]] = -1.0
     offsets = size * np.arange(n_stack)[:, None]
     return Mirror(
         index=(frame_index[None, :] + offsets).ravel(),

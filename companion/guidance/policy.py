@@ -321,7 +321,7 @@ class OnnxPolicy:
             scan_only = meta[PREFIX + "obs_layout"] == ObservationLayout(n_bins=self.spec.n_bins).name
             if scan_only and self.spec.layout.goal:  # the default config is the goal layout
                 raise UserError(f'{exc} (a scan-only model: set policy.observation = "scan")') from None
-            for part in ("drift", "command", "firmware"):
+            for part in ("drift", "command", "firmware", "movers"):
                 in_model = f"+{part}(" in meta[PREFIX + "obs_layout"]
                 if self.spec.layout.goal and in_model != getattr(self.spec.layout, part):
                     hint = (

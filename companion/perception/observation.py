@@ -4,7 +4,8 @@ A frame is what the environment returns per step and what the companion pushes i
 :class:`~companion.perception.framestack.FrameStack`; the policy sees ``stack`` frames, oldest
 first, the whole
 frame stacked (SB3's ``VecFrameStack`` does the same in training). A frame's parts, in order (the
-scan alone is a layout; drift, commands and firmware each come on top of the goal part, any subset):
+scan alone is a layout; drift, commands, firmware and movers each come on top of the goal part, any
+subset):
 
 * scan only (``LidarAvoid-v0``): ``[0, n_bins)`` the scan, normalised ranges in ``[0, 1]``;
 * goal (``LidarNav-v0``): the scan, then :data:`GOAL_FEATURES` — the goal's bearing in the body
@@ -22,7 +23,16 @@ scan alone is a layout; drift, commands and firmware each come on top of the goa
 * goal with firmware: then :data:`FIRMWARE_FEATURES` — 1.0 when the autopilot is ArduPilot, 0.0
   when it is PX4 (the companion's ``autopilot.type``; in simulation, the structure of the drawn
   response). ArduPilot shapes a velocity setpoint (jerk- and acceleration-limited) before it flies
-  it, PX4's offboard mode does not, so the same command stops sooner on one than on the other.
+  it, PX4's offboard mode does not, so the same command stops sooner on one than on the other;
+* goal with movers: last, :data:`MOVER_FEATURES` — the :data:`MOVER_SLOTS` (3) nearest moving
+  objects the tracker reports (:meth:`companion.perception.tracking.TrackerOutput.movers`), nearest
+  surface first (centre distance less radius), each as :data:`MOVER_SLOT_FEATURES`: its centre
+  (forward, left) ``/`` :data:`MOVER_RANGE` (10 m, the scan's range) clipped to ``[-1, 1]``, its ground
+  velocity in the body axes (forward, left) ``/`` :data:`MOVER_SPEED` (3 m/s, the fastest drone of
+  the dynamic worlds) clipped to ``[-1, 1]``, its radius ``/`` :data:`MOVER_RADIUS` (1 m; the tracker
+  tracks nothing wider than 1.6 m) clipped to ``[0, 1]``, and 1.0 for a mover present. A slot no
+  mover fills is six zeros. In the scan a walker is a return like a wall's: only the tracks say
+  that it moves, where, and how fast.
 
 :attr:`ObservationLayout.name` spells a layout out (sizes and scales included); the training export
 writes it into the ONNX metadata and the companion refuses a model whose name differs from its own.
@@ -32,9 +42,14 @@ This module imports numpy only: the companion uses it in flight.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:  # the type only: the tracker (scipy) is not imported with the layout
+    from companion.perception.tracking import Mover
 
 #: the goal/velocity features after the scan, in order
 GOAL_FEATURES = ("goal_cos", "goal_sin", "goal_distance", "velocity_forward", "velocity_left")
@@ -44,13 +59,25 @@ DRIFT_FEATURES = ("drift_forward", "drift_left")
 COMMAND_FEATURES = ("command_forward", "command_yaw_rate")
 #: the autopilot's firmware, last in the frame (``firmware`` layouts)
 FIRMWARE_FEATURES = ("firmware_ardupilot",)
+#: movers in a frame (``movers`` layouts), nearest first
+MOVER_SLOTS = 3
+#: one mover slot's features, in order
+MOVER_SLOT_FEATURES = ("forward", "left", "velocity_forward", "velocity_left", "radius", "present")
+#: the movers' features, last in the frame (``movers`` layouts), slot by slot
+MOVER_FEATURES = tuple(f"mover{k}_{name}" for k in range(MOVER_SLOTS) for name in MOVER_SLOT_FEATURES)
+#: metres a mover's position feature of 1.0 stands for (the scan's default range)
+MOVER_RANGE = 10.0
+#: m/s a mover's velocity feature of 1.0 stands for (the dynamic worlds' fastest drone)
+MOVER_SPEED = 3.0
+#: metres a mover's radius feature of 1.0 stands for (the tracker's widest object is 1.6 m across)
+MOVER_RADIUS = 1.0
 
 
 @dataclass(frozen=True)
 class ObservationLayout:
     """One observation frame: ``n_bins`` scan values, then (``goal``) the :data:`GOAL_FEATURES`,
     then (``drift``) the :data:`DRIFT_FEATURES`, then (``command``) the :data:`COMMAND_FEATURES`,
-    then (``firmware``) the :data:`FIRMWARE_FEATURES`.
+    then (``firmware``) the :data:`FIRMWARE_FEATURES`, then (``movers``) the :data:`MOVER_FEATURES`.
 
     :param n_bins: scan bins
     :param goal: the frame carries the goal and the measured velocity
@@ -60,6 +87,7 @@ class ObservationLayout:
     :param command: the frame also carries the last command sent (a goal layout only)
     :param yaw_rate_scale: rad/s a yaw-rate command feature of 1.0 stands for (``max_yaw_rate``)
     :param firmware: the frame also says which firmware flies the setpoints (a goal layout only)
+    :param movers: the frame also carries the nearest tracked movers (a goal layout only)
     """
 
     n_bins: int = 360
@@ -70,12 +98,13 @@ class ObservationLayout:
     command: bool = False
     yaw_rate_scale: float = 1.5
     firmware: bool = False
+    movers: bool = False
 
     def __post_init__(self) -> None:
         scales = (self.goal_range, self.velocity_scale, self.yaw_rate_scale)
         if self.n_bins < 1 or not all(scale > 0.0 for scale in scales):
             raise ValueError(f"invalid observation layout {self}")
-        for part in ("drift", "command", "firmware"):
+        for part in ("drift", "command", "firmware", "movers"):
             if getattr(self, part) and not self.goal:
                 raise ValueError(f"the {part} features come after the goal features: {part} needs goal")
 
@@ -91,6 +120,7 @@ class ObservationLayout:
             ("drift", DRIFT_FEATURES),
             ("command", COMMAND_FEATURES),
             ("firmware", FIRMWARE_FEATURES),
+            ("movers", MOVER_FEATURES),
         )
         return [(part, names) for part, names in groups if getattr(self, part)]
 
@@ -98,7 +128,8 @@ class ObservationLayout:
     def name(self) -> str:
         """The layout spelled out, e.g. ``scan360`` or
         ``scan360+goal(cos,sin,distance/10m)+velocity(forward,left/2m/s)[+drift(forward,left/2m/s)]``
-        ``[+command(forward/2m/s,yaw/1.5rad/s)][+firmware(ardupilot=1,px4=0)]``."""
+        ``[+command(forward/2m/s,yaw/1.5rad/s)][+firmware(ardupilot=1,px4=0)]``
+        ``[+movers(3x(forward,left/10m,velocity/3m/s,radius/1m,present))]``."""
         scan = f"scan{self.n_bins}"
         if not self.goal:
             return scan
@@ -109,9 +140,15 @@ class ObservationLayout:
             else ""
         )
         firmware = "+firmware(ardupilot=1,px4=0)" if self.firmware else ""
+        movers = (
+            f"+movers({MOVER_SLOTS}x(forward,left/{MOVER_RANGE:g}m,velocity/{MOVER_SPEED:g}m/s,"
+            f"radius/{MOVER_RADIUS:g}m,present))"
+            if self.movers
+            else ""
+        )
         return (
             f"{scan}+goal(cos,sin,distance/{self.goal_range:g}m)"
-            f"+velocity(forward,left/{self.velocity_scale:g}m/s){drift}{command}{firmware}"
+            f"+velocity(forward,left/{self.velocity_scale:g}m/s){drift}{command}{firmware}{movers}"
         )
 
     def slices(self) -> dict[str, slice]:
@@ -136,6 +173,9 @@ class ObservationLayout:
             low[self.n_bins + 3 :] = -1.0  # velocity (and drift, command)
         if self.firmware:
             low[self.slices()["firmware"]] = 0.0
+        if self.movers:  # per slot: position and velocity in [-1, 1], radius and presence in [0, 1]
+            slot_low = np.array([-1.0, -1.0, -1.0, -1.0, 0.0, 0.0], dtype=np.float32)
+            low[self.slices()["movers"]] = np.tile(slot_low, MOVER_SLOTS)
         return low, high
 
 
@@ -219,6 +259,34 @@ def firmware_features(ardupilot: bool, layout: ObservationLayout) -> np.ndarray:
     if not layout.firmware:
         raise ValueError(f"layout {layout.name} has no firmware feature")
     return np.array([1.0 if ardupilot else 0.0], dtype=np.float32)
+
+
+def mover_features(movers: Sequence[Mover], layout: ObservationLayout) -> np.ndarray:
+    """The :data:`MOVER_FEATURES` of a frame (float32): the :data:`MOVER_SLOTS` movers whose surface
+    is nearest (centre distance less radius; of equals, the first given), nearest first, each scaled
+    and clipped as the module says; slots no mover fills are zeros, their presence 0.
+
+    :param movers: the tracker's movers in the body axes at the scan's time
+        (:meth:`companion.perception.tracking.TrackerOutput.movers`)
+    :param layout: a movers layout
+    :raises ValueError: a non-finite mover (a false picture must not reach the policy) or a layout
+        without movers
+    """
+    if not layout.movers:
+        raise ValueError(f"layout {layout.name} has no mover features")
+    rows = []
+    for mover in movers:
+        row = (*mover.position, *mover.velocity, mover.radius)
+        if len(row) != 5 or not all(math.isfinite(v) for v in row):
+            raise ValueError(f"a mover's position, velocity and radius must be finite, got {mover}")
+        rows.append(row)
+    rows.sort(key=lambda r: math.hypot(r[0], r[1]) - r[4])  # stable: equals keep their order
+    out = np.zeros((MOVER_SLOTS, len(MOVER_SLOT_FEATURES)), dtype=np.float32)
+    for slot, (forward, left, v_forward, v_left, radius) in enumerate(rows[:MOVER_SLOTS]):
+        position = np.clip(np.array([forward, left]) / MOVER_RANGE, -1.0, 1.0)
+        velocity = np.clip(np.array([v_forward, v_left]) / MOVER_SPEED, -1.0, 1.0)
+        out[slot] = (*position, *velocity, min(max(radius / MOVER_RADIUS, 0.0), 1.0), 1.0)
+    return out.reshape(-1)
 
 
 def build_frame(scan: np.ndarray, features: np.ndarray | None, layout: ObservationLayout) -> np.ndarray:

@@ -19,6 +19,7 @@ from companion.perception.observation import (
     firmware_features,
     goal_features,
     goal_in_body,
+    mover_features,
 )
 from companion.perception.tracking import ScanTracker, TrackerOutput, without_movers
 from flightsim.envs import seeds
@@ -79,6 +80,10 @@ class NavEnvConfig(EnvConfig):
         on the true pose, as the route is), and keep the moving returns out of the drift estimate and
         the route's map, as the companion's ``[tracking]`` does in flight: a mover's motion is not the
         vehicle's, and where it stood is not an obstacle. Changes nothing where nothing moves
+    :param movers: each frame also carries the 3 nearest movers the tracker reports, in the body
+        axes: position / 10 m, velocity / 3 m/s, radius / 1 m, and a presence flag
+        (:func:`companion.perception.observation.mover_features`), as the companion's
+        ``policy.movers`` frames do: in the scan alone a walker looks like a wall. Needs ``tracking``
     """
 
     reward: Literal["goal"] = "goal"
@@ -101,6 +106,7 @@ class NavEnvConfig(EnvConfig):
     sideways: bool = False
     max_sideways_speed: float = field(default=1.0, metadata={"min": 0.1, "max": 5.0})
     tracking: bool = True
+    movers: bool = False
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -109,6 +115,8 @@ class NavEnvConfig(EnvConfig):
             raise ValueError(f"families: {unknown or 'none'} not among {', '.join(ALL_FAMILIES)}")
         if self.drift_hold and not self.drift:
             raise ValueError("drift_hold needs the drift estimate: set drift = true")
+        if self.movers and not self.tracking:
+            raise ValueError("movers are the tracker's: movers = true needs tracking = true")
         low, high = self.difficulty_range
         if not 0.0 <= low <= high <= 1.0:
             raise ValueError(f"difficulty_range {self.difficulty_range} must satisfy 0 <= low <= high <= 1")
@@ -124,7 +132,7 @@ class NavEnvConfig(EnvConfig):
         return ObservationLayout(
             n_bins=360, goal=True, goal_range=self.goal_range, velocity_scale=self.max_speed,
             drift=self.drift, command=self.command, yaw_rate_scale=self.max_yaw_rate,
-            firmware=self.firmware,
+            firmware=self.firmware, movers=self.movers,
         )  # fmt: skip
 
 
@@ -157,7 +165,8 @@ class LidarNavEnv(LidarAvoidEnv):
     ``scan360+goal(cos,sin,distance/30m)+velocity(forward,left/2m/s)``; with ``drift``,
     ``Box(low, high, (367,), float32)``, ``...+drift(forward,left/2m/s)``; with ``command`` as well,
     ``Box(low, high, (369,), float32)``, ``...+command(forward/2m/s,yaw/1.5rad/s)``; with
-    ``firmware``, one float more, ``...+firmware(ardupilot=1,px4=0)``:
+    ``firmware``, one float more, ``...+firmware(ardupilot=1,px4=0)``; with ``movers``, 18 floats
+    more, ``...+movers(3x(forward,left/10m,velocity/3m/s,radius/1m,present))``:
 
     ========== ===================================================== ==========
     index      meaning                                               range
@@ -172,8 +181,12 @@ class LidarNavEnv(LidarAvoidEnv):
                filtered (:class:`companion.perception.drift.DriftEstimator`, reset with the episode)
     next 2     (``command`` only) the command just flown, after the  [-1, 1]
                shield: forward / ``max_speed``, yaw rate / ``max_yaw_rate``; (0, 0) at reset
-    last 1     (``firmware`` only) 1.0 when the episode's response   {0, 1}
+    next 1     (``firmware`` only) 1.0 when the episode's response   {0, 1}
                has ArduPilot's structure (shaped input), else 0.0
+    last 18    (``movers`` only) the 3 nearest movers the tracker    [-1, 1]
+               reports, nearest surface first, 6 floats each: centre forward, left / 10 m,
+               velocity forward, left / 3 m/s, radius / 1 m, 1.0 (present); zeros for no mover
+               (:func:`companion.perception.observation.mover_features`)
     ========== ===================================================== ==========
 
     The goal features are the current pose's; the scan follows ``latency_scans``. With ``route``
@@ -223,7 +236,8 @@ class LidarNavEnv(LidarAvoidEnv):
       by default) adds the firmware feature; ``route`` (off by default) points the goal features
       along a route on the map of the scans so far, the same layout; ``tracking`` (on by default)
       keeps the returns of what moves out of the drift estimate and the route's map (where nothing
-      is taken for moving, an episode is the same as without it).
+      is taken for moving, an episode is the same as without it); ``movers`` (off by default, needs
+      ``tracking``) adds the tracked movers' features.
     """
 
     def __init__(self, config: NavEnvConfig | None = None, render_mode: str | None = None) -> None:
@@ -439,6 +453,9 @@ class LidarNavEnv(LidarAvoidEnv):
         if self.layout.firmware:
             ardupilot = self._response is not None and self._response.params.shapes_input
             features = np.concatenate([features, firmware_features(ardupilot, self.layout)])
+        if self.layout.movers:  # the config makes sure the tracker runs
+            assert self.tracked is not None
+            features = np.concatenate([features, mover_features(self.tracked.movers(), self.layout)])
         return build_frame(scan, features, self.layout)
 
     def _nav_info(self, info: dict[str, Any]) -> dict[str, Any]:

@@ -103,6 +103,10 @@ def test_defaults_and_overrides(tmp_path):
          r"goal\.route_planner\.unseen_cost: 0\.5 is below the minimum 1"),
         ("[goal.route_planner]\nswitch_margin = -0.5\n",
          r"goal\.route_planner\.switch_margin: -0\.5 is below the minimum 0"),
+        ("movers = true\n[goal]\nsource = \"mission\"\n[tracking]\nenabled = false\n",
+         r"^CompanionConfig: policy\.movers are the tracker's: it needs tracking\.enabled = true$"),
+        ("movers = true\n",
+         r"^CompanionConfig: policy\.movers needs a goal source \(goal\.source = \"none\"\): the tracker"),
     ],
 )
 def test_mistakes_name_the_key(tmp_path, text, message):

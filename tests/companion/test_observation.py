@@ -10,6 +10,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from companion.perception.observation import (
+    MOVER_FEATURES,
     ObservationLayout,
     build_frame,
     command_features,
@@ -17,7 +18,9 @@ from companion.perception.observation import (
     firmware_features,
     goal_features,
     goal_in_body,
+    mover_features,
 )
+from companion.perception.tracking import Mover
 
 GOAL = ObservationLayout(goal=True, goal_range=10.0, velocity_scale=2.0)
 
@@ -99,6 +102,50 @@ def test_the_firmware_layout_ends_the_frame_with_one_flag_in_0_1() -> None:
         ObservationLayout(firmware=True)
     with pytest.raises(ValueError, match="no firmware"):
         firmware_features(True, GOAL)
+
+
+MOVERS = ObservationLayout(goal=True, goal_range=10.0, firmware=True, movers=True)
+
+
+def test_the_movers_layout_ends_the_frame_with_three_slots_of_six() -> None:
+    assert MOVERS.name == GOAL.name + (
+        "+firmware(ardupilot=1,px4=0)+movers(3x(forward,left/10m,velocity/3m/s,radius/1m,present))"
+    )
+    assert len(MOVER_FEATURES) == 18 and MOVERS.frame_size == 365 + 1 + 18
+    assert MOVERS.slices() == GOAL.slices() | {"firmware": slice(365, 366), "movers": slice(366, 384)}
+    low, high = MOVERS.bounds()
+    assert low[366:].tolist() == [-1, -1, -1, -1, 0, 0] * 3 and high[366:].tolist() == [1] * 18
+    assert ObservationLayout(goal=True, movers=True).slices()["movers"] == slice(365, 383)
+    with pytest.raises(ValueError, match="movers needs goal"):
+        ObservationLayout(movers=True)
+    with pytest.raises(ValueError, match="no mover"):
+        mover_features([], GOAL)
+
+
+def test_mover_features_nearest_surface_first_scaled_clipped_and_empty_slots_zero() -> None:
+    walker = Mover((4.0, -2.0), (0.0, 1.5), 0.25)  # centre 4.47 m away, surface 4.22 m
+    forklift = Mover((4.5, 1.0), (-6.0, 0.0), 1.2)  # centre 4.61 m, a wide one: surface 3.41 m
+    drone = Mover((-12.0, 30.0), (3.0, -4.5), 0.4)  # far behind, fast
+    f = mover_features([walker, drone, forklift], MOVERS).reshape(3, 6)
+    assert f.dtype == np.float32
+    np.testing.assert_allclose(f[0], [0.45, 0.1, -1.0, 0.0, 1.0, 1.0], rtol=1e-6)  # the forklift first
+    np.testing.assert_allclose(f[1], [0.4, -0.2, 0.0, 0.5, 0.25, 1.0], rtol=1e-6)
+    np.testing.assert_allclose(f[2], [-1.0, 1.0, 1.0, -1.0, 0.4, 1.0], rtol=1e-6)  # clipped
+    # one mover: the other slots are zeros, presence 0; none: all zeros
+    one = mover_features([walker], MOVERS).reshape(3, 6)
+    np.testing.assert_array_equal(one[1:], 0.0)
+    assert one[0, 5] == 1.0
+    np.testing.assert_array_equal(mover_features([], MOVERS), np.zeros(18, np.float32))
+    # more than three: the three nearest surfaces, a tie kept in the order given
+    near = [Mover((2.0, 0.0), (0.0, 0.0), 0.5), Mover((0.0, -1.5), (0.0, 0.0), 0.0)]
+    f = mover_features([drone, walker, forklift, *near], MOVERS).reshape(3, 6)
+    np.testing.assert_array_equal(f[:, :2], np.array([[0.2, 0.0], [0.0, -0.15], [0.45, 0.1]], np.float32))
+    with pytest.raises(ValueError, match="finite"):
+        mover_features([Mover((1.0, math.nan), (0.0, 0.0), 0.3)], MOVERS)
+    frame = build_frame(np.ones(360), np.concatenate([goal_features(1.0, 0.0, 0.0, 0.0, MOVERS),
+                                                      firmware_features(True, MOVERS),
+                                                      mover_features([walker], MOVERS)]), MOVERS)  # fmt: skip
+    assert frame.shape == (384,) and frame[366 + 5] == 1.0
 
 
 def test_goal_features_bearing_distance_and_velocity() -> None:

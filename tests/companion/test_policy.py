@@ -397,3 +397,18 @@ def test_a_firmware_model_under_a_config_without_the_feature_is_refused_with_the
     with pytest.raises(UserError) as err:
         OnnxPolicy(path, default)
     assert str(err.value).endswith("(firmware features: set policy.firmware = true)")
+
+
+def test_a_movers_model_and_a_movers_config_each_refuse_the_other_with_the_fix(tmp_path: Path) -> None:
+    from companion.app import policy_spec
+    from companion.config import CompanionConfig
+
+    default = policy_spec(CompanionConfig())
+    movers = PolicySpec(layout=dataclasses.replace(default.layout, movers=True))
+    with pytest.raises(UserError) as err:
+        OnnxPolicy(write_policy(tmp_path / "movers.onnx", spec=movers), default)
+    assert str(err.value).endswith("(movers features: set policy.movers = true)")
+    assert movers.layout.name in str(err.value)
+    with pytest.raises(UserError) as err:
+        OnnxPolicy(write_policy(tmp_path / "plain.onnx", spec=default), movers)
+    assert str(err.value).endswith("(movers features: the model has none: policy.movers = false)")

@@ -17,7 +17,7 @@ from companion.autopilot.mavlink_adapter import mavlink
 from companion.config import CompanionConfig
 from companion.guidance.goal import GoalTracker, NavInputs, Waypoint
 from companion.guidance.route import RoutePlanner, enu_pose
-from companion.perception.observation import goal_features
+from companion.perception.observation import goal_features, goal_in_body
 from flightsim.envs.nav_env import LidarNavEnv, NavEnvConfig
 from flightsim.worlds.world import Box, World
 
@@ -118,3 +118,49 @@ def test_the_companion_tracks_and_keeps_out_what_the_env_does() -> None:
         assert tracking_pose(nav, now=5.05)[:2] == pytest.approx((4.0, 1.1))
     finally:
         env.close()
+
+
+def test_the_companions_movers_frame_equals_the_envs_bit_for_bit(tmp_path) -> None:
+    """A movers layout (``env.movers``, ``policy.movers``): the real companion (its model loaded in
+    ONNX Runtime, its links on loopback sockets), its tracker given the env's scans at the env's pose
+    and times, and the env's goal and measured velocity, builds LidarNav-v0's frames exactly, the
+    walker crossing ahead in the first mover slot."""
+    from companion.app import Companion, policy_spec
+    from companion.autopilot.link import VehicleStatus
+    from companion.config import load_config
+    from companion.guidance.goal import GoalOutput
+    from companion.notify import SystemdNotifier
+    from tests.companion.companion_process import WEST_AND_UP, free_udp_port, write_config
+    from tests.flightsim.test_nav_tracking import CROSSING
+    from tests.onnx_models import write_policy
+
+    model = tmp_path / "movers.onnx"
+    extra = WEST_AND_UP.replace("[goal]\n", "[goal]\nroute = false\n")
+    path = write_config(tmp_path, model, free_udp_port(), free_udp_port(), extra=extra)
+    path.write_text(path.read_text().replace("[policy]\n", "[policy]\ndrift = false\nmovers = true\n"))
+    config = load_config(path)
+    write_policy(model, spec=policy_spec(config))
+    companion = Companion(config, notifier=SystemdNotifier({}))
+    env = LidarNavEnv(NavEnvConfig(autopilot_response="ideal", movers=True))
+    assert companion.layout == env.layout and env.layout.movers
+    movers = env.layout.slices()["movers"]
+    seen = 0
+    try:
+        obs, info = env.reset(seed=0, options={"world": CROSSING})
+        for _ in range(40):
+            x, y, _ = env._state.position.tolist()
+            yaw = float(env._state.yaw)
+            goal_x, goal_y, _ = CROSSING.waypoints[0]
+            goal = goal_in_body(goal_x - x, goal_y - y, yaw)
+            companion._goal_output = GoalOutput(None, goal_body=(*goal, 0.0))
+            velocity = tuple(info["measured_velocity_body"].tolist())
+            companion._status = VehicleStatus(velocity_body=velocity, velocity_time=companion._clock())
+            companion.tracked = companion.tracker.update(obs[:360], (x, y, yaw), env.sim_time)
+            frame = companion._frame(obs[:360])
+            assert isinstance(frame, np.ndarray) and frame.tobytes() == obs.tobytes()
+            seen += bool(frame[movers][5])  # the first slot's presence
+            obs, _, _, _, info = env.step(np.array([0.25, 0.0], np.float32))
+        assert seen >= 30
+    finally:
+        env.close()
+        companion.close()

@@ -22,12 +22,14 @@ SLALOM = REPO / "flightsim" / "worlds" / "slalom.json"
 
 
 @pytest.mark.parametrize(
-    ("drift", "command", "firmware"),
-    [(False, False, False), (True, False, False), (True, True, False), (False, False, True),
-     (True, True, True)],
+    ("drift", "command", "firmware", "movers"),
+    [(False, False, False, False), (True, False, False, False), (True, True, False, False),
+     (False, False, True, False), (True, True, True, False), (True, False, False, True),
+     (True, True, True, True)],
 )
-def test_the_policy_settings_rebuild_the_layout_the_metadata_names(tmp_path, drift, command, firmware):
-    layout = ObservationLayout(goal=True, drift=drift, command=command, firmware=firmware)
+def test_the_policy_settings_rebuild_the_layout_the_metadata_names(tmp_path, drift, command, firmware,
+                                                                   movers):  # fmt: skip
+    layout = ObservationLayout(goal=True, drift=drift, command=command, firmware=firmware, movers=movers)
     spec = PolicySpec(layout=layout, max_sideways_speed=1.0)
     settings = model_policy_settings(read_model_metadata(write_policy(tmp_path / "m.onnx", spec=spec)))
     assert settings["observation"] == "goal"

@@ -96,3 +96,31 @@ def test_a_static_world_flies_the_same_with_tracking_on_and_off(family: str) -> 
     config = load_train_config("training/configs/nav.toml").env_config()
     assert config.tracking and config.drift and config.route
     assert _episode_digest(config, family) == _episode_digest(replace(config, tracking=False), family)
+
+
+def test_the_movers_frame_carries_the_walker_crossing_ahead_and_needs_the_tracker() -> None:
+    """With ``movers``, the frame ends with the tracker's movers: the walker crossing 5 m ahead from
+    the right, at 1.2 m/s to the left (0.4 of 3 m/s), in the first slot, the two others empty; the
+    flight and the rest of the frame are those without it."""
+    config = NavEnvConfig(autopilot_response="ideal", movers=True)
+    env, plain = LidarNavEnv(config), LidarNavEnv(replace(config, movers=False))
+    movers = config.layout.slices()["movers"]
+    try:
+        obs, _ = env.reset(seed=0, options={"world": CROSSING})
+        plain_obs, _ = plain.reset(seed=0, options={"world": CROSSING})
+        for _ in range(40):
+            obs, *_ = env.step(np.array([0.25, 0.0], np.float32))
+            plain_obs, *_ = plain.step(np.array([0.25, 0.0], np.float32))
+            np.testing.assert_array_equal(obs[: movers.start], plain_obs)
+        slots = obs[movers].reshape(3, 6)
+        walker = WALKER.positions(env.sim_time)[0]
+        x, y, _ = env._state.position.tolist()
+        assert slots[0, 5] == 1.0 and abs(slots[0, 3] - 0.4) < 0.05  # present, moving left
+        # heading east: the walker's offset is its body position (forward, left), / 10 m
+        np.testing.assert_allclose(slots[0, :2], [(walker[0] - x) / 10.0, (walker[1] - y) / 10.0], atol=0.02)
+        np.testing.assert_array_equal(slots[1:], 0.0)
+    finally:
+        env.close()
+        plain.close()
+    with pytest.raises(ValueError, match="movers = true needs tracking = true"):
+        NavEnvConfig(movers=True, tracking=False)

@@ -1,6 +1,7 @@
 """The training config: strict loading, overrides, the [env] table checked by the simulator's own rules."""
 
 import re
+from pathlib import Path
 
 import pytest
 
@@ -135,3 +136,49 @@ def test_the_config_offers_every_dagger_teacher_and_no_other():
     from training.controllers import TEACHERS
 
     assert set(get_args(get_type_hints(PretrainConfig)["teacher"])) == set(TEACHERS)
+
+
+def test_movers_without_the_tracker_is_one_line_naming_both_keys(tmp_path, capsys):
+    from training.__main__ import main
+
+    nav = Path(__file__).parents[2] / "training" / "configs" / "nav.toml"
+    assert load_train_config(nav, ["env.movers=true"]).env_config().layout.movers
+    argv = ["train", "--config", str(nav), "env.movers=true", "env.tracking=false", f"run_root={tmp_path}"]
+    assert main(argv) == 2
+    assert capsys.readouterr().err == (
+        "avoid-train: error: env: movers are the tracker's: movers = true needs tracking = true\n"
+    )
+    assert not list(tmp_path.iterdir())  # refused before a run directory
+
+
+def test_nav_movers_is_the_nav_recipe_with_movers_among_every_family_and_its_env_runs():
+    """A smoke check of training/configs/nav-movers.toml (not trained here): nav.toml's recipe but for
+    the movers in the frame and the dynamic families; its env flies a dynamic world (validation
+    seed) and its frames stay in their bounds."""
+    import dataclasses
+
+    import numpy as np
+
+    from flightsim.envs.nav_env import LidarNavEnv
+    from flightsim.worlds.families import ALL_FAMILIES
+
+    configs = Path(__file__).parents[2] / "training" / "configs"
+    nav, movers = load_train_config(configs / "nav.toml"), load_train_config(configs / "nav-movers.toml")
+    env_config = movers.env_config()
+    assert env_config.movers and sorted(env_config.families) == sorted(ALL_FAMILIES)
+    assert dataclasses.replace(movers, name="nav", env=nav.env) == nav
+    static = nav.env_config()
+    assert dataclasses.replace(env_config, movers=False, families=static.families) == static
+    assert env_config.layout.name == dataclasses.replace(static.layout, movers=True).name  # scan, goal, drift
+    env = LidarNavEnv(dataclasses.replace(env_config, max_steps=20))
+    try:
+        options = {"family": "rooms-dynamic", "world_seed": 500_300, "difficulty": 0.5}
+        obs, _ = env.reset(seed=0, options=options)
+        low, high = env.observation_space.low, env.observation_space.high
+        for _ in range(20):
+            assert obs.shape == (385,) and np.all(obs >= low) and np.all(obs <= high)
+            obs, _, terminated, truncated, _ = env.step(np.array([0.5, 0.0, 0.0], np.float32))
+            if terminated or truncated:
+                break
+    finally:
+        env.close()

@@ -62,3 +62,14 @@ def test_every_frame_of_a_stack_is_mirrored_and_mirroring_twice_is_none() -> Non
     np.testing.assert_array_equal(mirror.actions(np.array([[0.5, 0.3]])), [[0.5, -0.3]])
     with pytest.raises(ValueError, match="n_stack"):
         mirror_for(layout, n_stack=0)
+
+
+def test_each_movers_left_position_and_left_velocity_are_mirrored() -> None:
+    layout = ObservationLayout(n_bins=4, goal=True, movers=True)
+    frame = np.arange(1, layout.frame_size + 1, dtype=np.float32)
+    flipped = mirror_for(layout, n_stack=1).observations(frame[None])[0]
+    movers = layout.slices()["movers"]
+    # per slot: forward kept, left negated, forward velocity kept, left velocity negated, radius, presence
+    slots = frame[movers].reshape(3, 6) * np.array([1, -1, 1, -1, 1, 1], np.float32)
+    np.testing.assert_array_equal(flipped[movers], slots.ravel())
+    np.testing.assert_array_equal(flipped[:4], [4, 3, 2, 1])

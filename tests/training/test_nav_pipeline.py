@@ -212,3 +212,40 @@ def test_evaluate_flies_the_exported_sideways_policy(side_run, tmp_path):
             "--seeds", "1", "--workers", "1", "--baselines", "", "--json", str(out)]  # fmt: skip
     assert main(argv) == 0
     assert json.loads(out.read_text())["controllers"]["policy"]["per_family"]["gaps"]["episodes"] == 1
+
+
+def test_a_movers_run_exports_its_layout_and_the_companion_flies_it_under_policy_movers(tmp_path):
+    """``env.movers`` in a tiny run on a dynamic family: the export names the movers part, and the
+    companion, configured as the metadata says (``policy.movers``), loads it and runs it on a frame
+    carrying a mover."""
+    from companion.app import policy_spec
+    from companion.config import CompanionConfig, GoalConfig, PolicyConfig, model_policy_settings
+    from companion.guidance.policy import read_model_metadata
+    from companion.perception.observation import build_frame, goal_features, mover_features
+    from companion.perception.tracking import Mover
+
+    config = tmp_path / "tiny-movers.toml"
+    config.write_text(TINY_NAV.replace('families = ["gaps"]', 'families = ["rooms-dynamic"]\nmovers = true'))
+    assert main(["train", "--config", str(config), f"run_root={tmp_path / 'runs'}"]) == 0
+    onnx_path = tmp_path / "movers.onnx"
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert main(["export", "--model", str(tmp_path / "runs" / "tiny-nav-s2" / "final_model.zip"),
+                     "--out", str(onnx_path), "--parity-samples", "50"]) == 0  # fmt: skip
+    layout = ObservationLayout(goal=True, goal_range=30.0, velocity_scale=2.0, movers=True)
+    meta = read_model_metadata(onnx_path)
+    assert meta["lidar_avoid.obs_layout"] == layout.name
+    assert meta["lidar_avoid.obs_layout"].endswith(
+        "+movers(3x(forward,left/10m,velocity/3m/s,radius/1m,present))"
+    )
+    assert meta["lidar_avoid.obs_size"] == str(4 * 383)
+    settings = model_policy_settings(meta)
+    assert settings["movers"] and not settings["drift"]
+    companion = CompanionConfig(policy=PolicyConfig(**settings), goal=GoalConfig(source="mission"))
+    policy = OnnxPolicy(onnx_path, policy_spec(companion))
+    features = np.concatenate([goal_features(5.0, 0.0, 0.5, 0.0, layout),
+                               mover_features([Mover((3.0, -1.0), (0.0, 1.2), 0.25)], layout)])  # fmt: skip
+    stack = FrameStack(4, layout.frame_size)
+    action = policy.act(stack.reset(build_frame(np.ones(360), features, layout)))
+    assert action.shape == (2,) and np.all(np.abs(action) <= 1.0)
+    with pytest.raises(UserError, match=r"\(movers features: set policy.movers = true\)$"):
+        OnnxPolicy(onnx_path, PolicySpec(layout=GOAL))
