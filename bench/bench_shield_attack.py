@@ -9,6 +9,13 @@ seeds in the same run. Prints per attacker and shield: episodes, collisions, the
     python bench/bench_shield_attack.py [--seeds 4] [--first-seed 599000] [--max-steps 400]
         [--workers 2] [--policy models/policy.onnx]
 
+With ``--out FILE`` (JSON lines), the seeds are flown in chunks of ``--chunk`` per family, each
+chunk appended to the file as it finishes, and a chunk the file already holds is not flown again;
+the figures are then those of every episode in the file. So a run of ``--episodes`` episodes
+behind the gate (10,000: several hours on two cores) can stop and resume, across sessions:
+
+    python bench/bench_shield_attack.py --out runs/attack.jsonl --episodes 10000 --max-steps 200
+
 With ``--search``, instead the search-based attacker (:mod:`training.attack_search`: a command
 sequence optimised by the cross-entropy method, each candidate flown) attacks one world of each
 family in ``--worlds`` (seed ``--first-seed``, difficulty ``--difficulty``) behind the rules and
@@ -24,6 +31,8 @@ The worlds are validation seeds (599,000 on by default), which no shield rule wa
 from __future__ import annotations
 
 import argparse
+import json
+import math
 import time
 from pathlib import Path
 
@@ -44,6 +53,12 @@ def main() -> None:
     parser.add_argument("--max-steps", type=int, default=400, help="steps per episode (10 a second)")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--policy", type=Path, default=None, help="also fly this policy")
+    chunked = parser.add_argument_group("chunked", "a long run in chunks that resumes (--out)")
+    chunked.add_argument("--out", type=Path, default=None, help="append each chunk here (JSON lines)")
+    chunked.add_argument("--chunk", type=int, default=2, help="seeds per family in each chunk")
+    chunked.add_argument(
+        "--episodes", type=int, default=0, help="fly chunks until the file holds this many behind the gate"
+    )
     search = parser.add_argument_group("search", "the search-based attacker (--search)")
     search.add_argument("--search", action="store_true", help="fly the search-based attacker instead")
     search.add_argument("--worlds", default="forest,gaps,warehouse", help="families, one world each")
@@ -54,25 +69,85 @@ def main() -> None:
     if args.search:
         search_bench(args)
         return
+    if args.out is not None:
+        chunked_bench(args)
+        return
     config = load_train_config(CONFIG, [f"env.max_steps={args.max_steps}"])
     env_config = config.env_config()
     worlds = goal_worlds(env_config.families, args.first_seed, args.seeds, env_config.difficulty_range)
     print(f"{'controller':22} {'shield':6} {'episodes':>8} {'collisions':>10} {'least m':>8}  worst episode")
     for gate in (False, True):
         start = time.perf_counter()
-        _, results = evaluate(
-            args.policy, worlds, 1, config.env, args.workers, baselines=list(ATTACKERS), shield=True,
-            env_id=NAV_ENV_ID, shield_config=ShieldConfig(backup_gate=gate),
-        )  # fmt: skip
-        for name in sorted({r.controller for r in results}):
-            mine = [r for r in results if r.controller == name]
-            worst = min(mine, key=lambda r: r.min_clearance)
-            print(
-                f"{name:22} {'gate' if gate else 'rules':6} {len(mine):8d} "
-                f"{sum(r.collision for r in mine):10d} {worst.min_clearance:8.3f}  {worst.world} "
-                f"({worst.response.get('name', '?') if worst.response else 'ideal'}, step {worst.steps})"
-            )
+        print_table(fly(args, config, worlds, gate), gate)
         print(f"  ({time.perf_counter() - start:.0f} s wall)")
+
+
+def fly(args: argparse.Namespace, config, worlds, gate: bool) -> list[dict]:
+    """Every attacker (and ``--policy``) over ``worlds`` behind the rules or the gate, one row per episode."""
+    _, results = evaluate(
+        args.policy, worlds, 1, config.env, args.workers, baselines=list(ATTACKERS), shield=True,
+        env_id=NAV_ENV_ID, shield_config=ShieldConfig(backup_gate=gate),
+    )  # fmt: skip
+    return [
+        {"controller": r.controller, "gate": gate, "world": r.world, "collision": bool(r.collision),
+         "min_clearance": float(r.min_clearance), "steps": r.steps,
+         "response": r.response.get("name", "?") if r.response else "ideal"}
+        for r in results
+    ]  # fmt: skip
+
+
+def print_table(rows: list[dict], gate: bool) -> None:
+    """Per controller behind one shield: episodes, collisions, the least clearance and its episode."""
+    for name in sorted({r["controller"] for r in rows if r["gate"] == gate}):
+        mine = [r for r in rows if r["controller"] == name and r["gate"] == gate]
+        worst = min(mine, key=lambda r: r["min_clearance"])
+        print(
+            f"{name:22} {'gate' if gate else 'rules':6} {len(mine):8d} "
+            f"{sum(r['collision'] for r in mine):10d} {worst['min_clearance']:8.3f}  {worst['world']} "
+            f"({worst['response']}, step {worst['steps']})"
+        )
+
+
+def chunked_bench(args: argparse.Namespace) -> None:
+    """Fly the seeds in chunks, each appended to ``--out`` once both shields have flown it; skip the
+    chunks the file holds; then print the figures of every episode in it."""
+    config = load_train_config(CONFIG, [f"env.max_steps={args.max_steps}"])
+    env_config = config.env_config()
+    done: dict[int, list[dict]] = {}
+    if args.out.is_file():
+        for number, line in enumerate(args.out.read_text().splitlines(), 1):
+            try:
+                chunk = json.loads(line)
+                done[int(chunk["first_seed"])] = chunk["episodes"]
+                steps, seeds = int(chunk["max_steps"]), int(chunk["seeds"])
+            except (ValueError, KeyError, TypeError) as error:
+                raise SystemExit(f"bench_shield_attack: {args.out}:{number}: not a chunk ({error})") from None
+            if (steps, seeds) != (args.max_steps, args.chunk):
+                raise SystemExit(
+                    f"bench_shield_attack: {args.out}:{number}: a chunk of {seeds} seeds at {steps} steps; "
+                    f"this run flies {args.chunk} at {args.max_steps} (a new file, or the same flags)"
+                )
+    per_chunk = len(env_config.families) * args.chunk * (len(ATTACKERS) + (args.policy is not None))
+    chunks = math.ceil(args.episodes / per_chunk) if args.episodes else math.ceil(args.seeds / args.chunk)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    for k in range(chunks):
+        first = args.first_seed + k * args.chunk
+        if first in done:
+            continue
+        start = time.perf_counter()
+        worlds = goal_worlds(env_config.families, first, args.chunk, env_config.difficulty_range)
+        rows = [row for gate in (False, True) for row in fly(args, config, worlds, gate)]
+        with args.out.open("a") as out:
+            out.write(json.dumps({"first_seed": first, "seeds": args.chunk, "max_steps": args.max_steps,
+                                  "episodes": rows}) + "\n")  # fmt: skip
+        done[first] = rows
+        wall = time.perf_counter() - start
+        print(f"chunk from seed {first}: {len(rows)} episodes, {wall:.0f} s wall", flush=True)
+    rows = [row for chunk in done.values() for row in chunk]
+    print(f"{args.out}: {len(done)} chunks, {sum(r['gate'] for r in rows)} episodes behind the gate")
+    print(f"{'controller':22} {'shield':6} {'episodes':>8} {'collisions':>10} {'least m':>8}  worst episode")
+    for gate in (False, True):
+        print_table(rows, gate)
 
 
 def search_bench(args: argparse.Namespace) -> None:
