@@ -24,7 +24,7 @@ from companion.safety.shield import Command, SafetyShield, ShieldConfig, command
 from training.attackers import ATTACKERS, REPLAY, ReplayAttacker, make_attacker
 from training.config import STEP_SECONDS, observation_layout, sideways_scale
 from training.path_expert import ExpertController, PathExpert
-from training.predictive_expert import PredictiveExpert, robust_expert, smooth_expert
+from training.predictive_expert import PredictiveExpert, mover_expert, robust_expert, smooth_expert
 
 BASELINES = ("gap_follower", "random")
 GOAL_BASELINES = ("goal_follower", "straight_line")
@@ -37,13 +37,20 @@ ENV_OVERRIDES: dict[str, dict[str, Any]] = {"straight_line": {"route": False}}
 #: flown only when named: not a baseline a drone could fly, it reads the simulator's truth (the
 #: DAgger teachers, :mod:`training.path_expert`, :mod:`training.predictive_expert`): what
 #: imitation can reach
-PRIVILEGED_GOAL_CONTROLLERS = ("path_expert", "predictive_expert", "robust_expert", "smooth_expert")
+PRIVILEGED_GOAL_CONTROLLERS = (
+    "path_expert",
+    "predictive_expert",
+    "robust_expert",
+    "smooth_expert",
+    "mover_expert",
+)
 #: the DAgger teachers by name, each built from the env whose truth it reads
 TEACHERS: dict[str, Callable[[Any], Any]] = {
     "path_expert": PathExpert,
     "predictive_expert": PredictiveExpert,
     "robust_expert": robust_expert,
     "smooth_expert": smooth_expert,
+    "mover_expert": mover_expert,
 }
 
 

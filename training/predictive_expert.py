@@ -43,11 +43,15 @@ import numpy as np
 
 from flightsim.envs.nav_env import LidarNavEnv
 from flightsim.vehicle.autopilot_response import ResponseParams, hardest_params
+from flightsim.worlds.moving import MovingObstacle
 from flightsim.worlds.planner import ClearanceGrid, clearance_grid, cost_to_go
 from training.path_expert import PathExpert, PathExpertConfig, _cell_costs, body_to_world
 
 #: s between commands (the env's control period)
 PERIOD_S = 0.1
+#: metres a candidate that comes inside its static margin while sent ranks below every one that
+#: does not, in the recovery among movers (more than any room a mover can take)
+STATIC_FIRST = 1e3
 
 
 @dataclass(frozen=True)
@@ -81,6 +85,10 @@ class PredictiveExpertConfig:
     :param sideways_options: with a sideways action (the env's ``sideways``), each candidate
         also with each of these sideways commands, fractions of the top sideways speed; the path
         expert's command is a candidate with and without its sideways part too
+    :param movers: every predicted point also keeps the radius, ``mover_margin`` and the growth from
+        each of the world's moving obstacles, predicted at its true velocity now (what its track
+        shows, not its scripted future: a label a student can learn from the tracks)
+    :param mover_margin: clearance beyond the vehicle's radius kept from a mover's shape, metres
     """
 
     forward_options: tuple[float, ...] = (-0.25, 0.0, 0.15, 0.3, 0.5, 0.7, 0.85, 1.0)
@@ -102,6 +110,8 @@ class PredictiveExpertConfig:
     recovery_tolerance: float = 0.05
     hardest_response: bool = False
     sideways_options: tuple[float, ...] = (-0.5, 0.0, 0.5)
+    movers: bool = False
+    mover_margin: float = 0.3
 
 
 def pick(spare: np.ndarray, near: np.ndarray, score: np.ndarray, recovery_tolerance: float) -> int:
@@ -142,6 +152,7 @@ class PredictiveExpert:
         self._to_goal = np.zeros((0, 0))
         self._goal_index = -1
         self._hardest: ResponseParams | None = None  # the episode's slowest response, when asked for
+        self._movers: tuple[MovingObstacle, ...] = ()  # the world's, when the config gives way to them
 
     def reset(self) -> np.ndarray:
         """A new episode: rasterise the world and return the first action."""
@@ -151,6 +162,7 @@ class PredictiveExpert:
         self._grid = clearance_grid(env.world, float(env.world.start_position[2]), cfg.resolution, cap)
         self._costs = _cell_costs(self._grid.clearance, radius, cfg.preferred_margin, cfg.clearance_cost)
         self._goal_index = -1
+        self._movers = env.world.moving if cfg.movers else ()
         response = env.response
         self._hardest = hardest_params(response.params) if cfg.hardest_response and response else None
         return self._choose(self._path_expert.reset())
@@ -183,7 +195,7 @@ class PredictiveExpert:
         held = body_to_world(env.drift_held(), float(state.yaw))  # what each setpoint carries on top
         commands = candidates * scale
         paths = response.predict(float(state.yaw), commands, *steps, held=held)
-        excess, cells = self._excess(paths, state.position)
+        spare, near, cells = self._room(paths, state.position, command_steps)
         end = cells[:, -1]
         flown = env.last_command.astype(np.float64)
         score = (
@@ -194,7 +206,6 @@ class PredictiveExpert:
             + cfg.follow_weight * np.abs(candidates - planned).sum(axis=1)
         )
         score[-1] -= cfg.path_expert_bonus
-        spare, near = excess.min(axis=1), excess[:, :command_steps].min(axis=1)
         if self._hardest is None:
             best = pick(spare, near, score, cfg.recovery_tolerance)
         else:
@@ -227,7 +238,7 @@ class PredictiveExpert:
         """
         response, state = self.env.response, self.env.true_state
         assert response is not None
-        command_steps, _, period = steps
+        command_steps, total_steps, period = steps
         hard_spare, hard_near = np.full(len(score), np.inf), np.full(len(score), np.inf)
         hopeful = np.flatnonzero(spare > 0.0)
         order = hopeful[np.argsort(score[hopeful], kind="stable")]
@@ -235,18 +246,72 @@ class PredictiveExpert:
         while start < len(order):
             chunk = order[start : start + size]
             slow = response.predict(float(state.yaw), commands[chunk], *steps, self._hardest, held)
-            excess = self._excess(slow, state.position)[0]
-            hard_spare[chunk], hard_near[chunk] = excess.min(axis=1), excess[:, :command_steps].min(axis=1)
+            hard_spare[chunk], hard_near[chunk], _ = self._room(slow, state.position, command_steps)
             safe = np.flatnonzero(hard_spare[chunk] > 0.0)
             if len(safe):
                 return int(chunk[safe[0]])
             start, size = start + size, 2 * size
         rest = np.flatnonzero(~(spare > 0.0))
-        slow = response.predict(float(state.yaw), commands[rest], command_steps, command_steps, period,
+        predicted = total_steps if self._movers else command_steps  # a mover's room: the whole prediction
+        slow = response.predict(float(state.yaw), commands[rest], command_steps, predicted, period,
                                 self._hardest, held)  # fmt: skip
-        hard_near[rest] = self._excess(slow, state.position)[0].min(axis=1)
+        hard_near[rest] = self._room(slow, state.position, command_steps)[1]
         spare, near = np.minimum(spare, hard_spare), np.minimum(near, hard_near)  # no candidate has any spare
         return pick(spare, near, score, self.config.recovery_tolerance)
+
+    def _room(
+        self, paths: np.ndarray, position: np.ndarray, command_steps: int
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Each candidate's least clearance to spare over its whole prediction and while its
+        command is sent (``near``, what the recovery weighs), metres, ``(K,)`` each; and the grid
+        cells of its predicted points.
+
+        With movers, ``near`` ranks first the candidates that keep clear of the static world while
+        sent, by their room from the movers over the whole prediction (a walker that reaches the
+        vehicle after the command is sent still does: with no candidate safe, the one that keeps
+        the most room steps aside or backs off), then the others by their static clearance, shifted
+        :data:`STATIC_FIRST` below: a vehicle that backs off a forklift into a wall hits the wall.
+
+        :param paths: ``(K, steps, 3)`` displacements from ``position`` (:meth:`AutopilotResponse.predict`)
+        :param position: the vehicle now, world metres
+        :param command_steps: periods each candidate's command is sent for
+        """
+        excess, cells = self._excess(paths, position)
+        spare, near = excess.min(axis=1), excess[:, :command_steps].min(axis=1)
+        if self._movers:
+            room = self._mover_excess(paths, position).min(axis=1)
+            spare, near = (
+                np.minimum(spare, room),
+                np.where(near > 0.0, np.minimum(near, room), near - STATIC_FIRST),
+            )
+        return spare, near, cells
+
+    def _mover_excess(self, paths: np.ndarray, position: np.ndarray) -> np.ndarray:
+        """Each predicted point's clearance from every mover beyond what it must keep (the radius,
+        :attr:`~PredictiveExpertConfig.mover_margin` and the growth), metres, ``(K, steps)``: each
+        mover carried on from where it is at its velocity over the last period.
+
+        :param paths: ``(K, steps, 3)`` displacements from ``position``
+        :param position: the vehicle now, world metres
+        """
+        cfg, now = self.config, self.env.sim_time
+        ahead = PERIOD_S * np.arange(1, paths.shape[1] + 1)
+        required = (
+            self.env.config.vehicle_radius
+            + cfg.mover_margin
+            + np.minimum(cfg.margin_growth * ahead, cfg.growth_cap)
+        )
+        points = np.concatenate(
+            [paths[:, :, :2] + np.asarray(position[:2]), np.full((*paths.shape[:2], 1), float(position[2]))],
+            axis=-1,
+        )
+        least = np.full(paths.shape[:2], np.inf)
+        for mover in self._movers:
+            before, here = mover.positions(np.array([now - PERIOD_S, now]))
+            centres = here + np.outer(ahead, (here - before) / PERIOD_S)
+            least = np.minimum(least, mover.clearance_from(points, centres[None]))
+            least = np.minimum(least, mover.clearance_from(points, here))  # or it stops where it is
+        return least - required
 
     def _excess(self, paths: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Each predicted point's clearance beyond what it must keep (the radius, the margin and
@@ -287,10 +352,21 @@ class PredictiveExpert:
 ROBUST = PredictiveExpertConfig(hardest_response=True)
 
 
+#: the mover-aware robust teacher's filter: :data:`ROBUST`, and every prediction also keeps clear
+#: of each moving obstacle carried on at its velocity now
+MOVERS = PredictiveExpertConfig(hardest_response=True, movers=True)
+
+
 def robust_expert(env: LidarNavEnv) -> PredictiveExpert:
     """The predictive teacher whose every command also stops clear through the hardest response
     of the drawn firmware (``[pretrain] teacher = "robust_expert"``)."""
     return PredictiveExpert(env, ROBUST)
+
+
+def mover_expert(env: LidarNavEnv) -> PredictiveExpert:
+    """The robust teacher giving way to what moves (:data:`MOVERS`, ``[pretrain] teacher =
+    "mover_expert"``): in a world without movers it is :func:`robust_expert`, command for command."""
+    return PredictiveExpert(env, MOVERS)
 
 
 #: the path expert's yaw loop for :func:`smooth_expert`: at its default gain (3/s) and lead

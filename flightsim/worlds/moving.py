@@ -142,18 +142,24 @@ class MovingObstacle:
     def clearance_over_time(self, points: np.ndarray, times: np.ndarray) -> np.ndarray:
         """Signed distance from each of ``points`` ``(N, 3)`` to the shape at each of ``times``: (T, N)."""
         p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        xy = self.positions(times)
-        dx = p[None, :, 0] - xy[:, 0:1]
-        dy = p[None, :, 1] - xy[:, 1:2]
+        return self.clearance_from(p[None], self.positions(times)[:, None])
+
+    def clearance_from(self, points: np.ndarray, centres: np.ndarray) -> np.ndarray:
+        """Signed distance from ``points`` ``(..., 3)`` to the shape with its centre at ``centres``
+        (``(..., 2)``, broadcast against the points), ``(...)``: where a planner predicts it to be,
+        not only where its track puts it."""
+        p, c = np.asarray(points, dtype=np.float64), np.asarray(centres, dtype=np.float64)
+        dx = p[..., 0] - c[..., 0]
+        dy = p[..., 1] - c[..., 1]
         dz = np.broadcast_to(
-            np.abs(p[None, :, 2] - (self.base + self.height / 2.0)) - self.height / 2.0, dx.shape
+            np.abs(p[..., 2] - (self.base + self.height / 2.0)) - self.height / 2.0, dx.shape
         )
         if self.shape == "cylinder":
             q = np.stack([np.hypot(dx, dy) - self.radius, dz], axis=-1)
         else:
-            c, s = math.cos(math.radians(self.yaw_deg)), math.sin(math.radians(self.yaw_deg))
-            qx = np.abs(c * dx + s * dy) - self.size[0] / 2.0
-            qy = np.abs(-s * dx + c * dy) - self.size[1] / 2.0
+            cos, sin = math.cos(math.radians(self.yaw_deg)), math.sin(math.radians(self.yaw_deg))
+            qx = np.abs(cos * dx + sin * dy) - self.size[0] / 2.0
+            qy = np.abs(-sin * dx + cos * dy) - self.size[1] / 2.0
             q = np.stack([qx, qy, dz], axis=-1)
         return np.linalg.norm(np.maximum(q, 0.0), axis=-1) + np.minimum(q.max(axis=-1), 0.0)
 
