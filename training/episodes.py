@@ -86,6 +86,8 @@ class EpisodeResult:
     shortest_path_m: float = 0.0
     #: the autopilot response flown (:class:`~flightsim.vehicle.autopilot_response.ResponseParams`'s fields)
     response: dict[str, Any] = field(default_factory=lambda: {"name": "ideal"})
+    #: the speed of the moving obstacle the episode collided with, m/s (None: no collision with one)
+    collision_mover_speed: float | None = None
 
 
 def is_success(collision: bool, steps: int, max_steps: int, distance: float, dt: float) -> bool:
@@ -109,7 +111,7 @@ def run_episode(
     trajectory = [_xy(info)]
     clearance = float(info["min_distance"])
     min_clearance, near_misses, inside = clearance, 0, clearance < NEAR_MISS_DISTANCE
-    steps, collision = 0, False
+    steps, collision, mover_speed = 0, False, None
     while True:
         obs, _, terminated, truncated, info = env.step(action)
         steps += 1
@@ -120,6 +122,8 @@ def run_episode(
             near_misses += 1
         inside = clearance < NEAR_MISS_DISTANCE
         collision = collision or bool(info["collision"])
+        if info.get("collision_mover_speed") is not None:
+            mover_speed = float(info["collision_mover_speed"])
         if terminated or truncated:
             break
         action = controller.act(obs)
@@ -150,6 +154,7 @@ def run_episode(
         near_misses=near_misses,
         trajectory=trajectory,
         response=asdict(params) if params is not None else {"name": "ideal"},
+        collision_mover_speed=mover_speed,
         **goal,
     )
 

@@ -12,8 +12,12 @@ from typing import Any
 
 import numpy as np
 
+from companion.safety.shield import ShieldConfig
 from training.config import NEAR_MISS_DISTANCE, SUCCESS_MIN_MEAN_SPEED
 from training.episodes import EpisodeResult, WorldSpec
+
+#: the movers' speed the shield's promise assumes, m/s: a collision with a faster one is outside it
+MOVER_SPEED_BOUND = ShieldConfig().mover_speed
 
 
 def summarise(results: Sequence[EpisodeResult]) -> dict[str, Any]:
@@ -41,6 +45,7 @@ def goal_summary(results: Sequence[EpisodeResult]) -> dict[str, Any]:
     n = len(results)
     won = [r for r in results if r.success]
     spl = [r.shortest_path_m / max(r.distance, r.shortest_path_m, 1e-9) for r in won]
+    hit = [r.collision_mover_speed for r in results if r.collision_mover_speed is not None]
     return {
         "episodes": n,
         "success_rate": len(won) / n,
@@ -52,6 +57,8 @@ def goal_summary(results: Sequence[EpisodeResult]) -> dict[str, Any]:
         "waypoints_reached": sum(r.waypoints_reached for r in results)
         / max(sum(r.waypoints for r in results), 1),
         "collisions": sum(r.collision for r in results),
+        "mover_collisions": len(hit),
+        "mover_collisions_within_bound": sum(speed <= MOVER_SPEED_BOUND for speed in hit),
         "mean_distance_m": float(np.mean([r.distance for r in results])),
         "min_clearance_m": float(min(r.min_clearance for r in results)),
         "near_misses": sum(r.near_misses for r in results),
@@ -160,6 +167,11 @@ def format_goal_table(summary: dict[str, Any], per_world: bool) -> str:
         lines += [row(name, family, s) for family, s in data["per_family"].items()]
         lines += [row(name, f"resp. {response}", s) for response, s in data.get("per_response", {}).items()]
         lines.append(row(name, "ALL", data["overall"]))
+        hit = data["overall"]
+        if hit["mover_collisions"]:
+            within = hit["mover_collisions_within_bound"]
+            where = f"{within} at most {MOVER_SPEED_BOUND:g} m/s, the shield's mover_speed"
+            lines.append(f"{name:<22} {'hit a mover':<24} {hit['mover_collisions']:>4} ({where})")
     return "\n".join(lines)
 
 

@@ -191,7 +191,8 @@ class LidarAvoidEnv(gym.Env):
     ``collision`` (bool), ``min_distance`` (current clearance, m), ``distance`` (path flown so far,
     m), ``position`` ((3,) world ENU, m), ``yaw`` (rad, CCW from +x), ``world`` (its name),
     ``steps``, ``measured_velocity_body`` ((2,) forward, left m/s: what the autopilot would report,
-    estimate error included, see :meth:`LidarAvoidEnv.measured_body_velocity`).
+    estimate error included, see :meth:`LidarAvoidEnv.measured_body_velocity`),
+    ``collision_mover_speed`` (on a collision with a moving obstacle, its speed, m/s; else None).
 
     ## Arguments
     ``LidarAvoidEnv(config: EnvConfig | None = None, render_mode: "rgb_array" | None = None)``, or
@@ -261,6 +262,7 @@ class LidarAvoidEnv(gym.Env):
         self._steps = 0
         self._distance = 0.0
         self._collided = False
+        self._mover_hit: float | None = None  # the speed of a moving obstacle collided with, m/s
         self._clearance = self.world.clearance_at(self._state.position, self.sim_time)
         self._trajectory = [self._state.position.copy()]
         self._scan = self._fresh_scan()
@@ -365,6 +367,14 @@ class LidarAvoidEnv(gym.Env):
         self._steps += 1
         self._clearance = self.world.clearance_at(position, self.sim_time)
         self._collided = self._clearance < self.config.vehicle_radius
+        if self._collided and self.world.moving:
+            p = np.asarray(position, dtype=np.float64)[:3].reshape(1, 3)
+            hit = [
+                m.speed
+                for m in self.world.moving
+                if m.clearance(p, self.sim_time)[0] < self.config.vehicle_radius
+            ]
+            self._mover_hit = max(hit) if hit else None
 
     def _conclude(self, command: StepCommand, scan: np.ndarray):
         """With the fresh scan from the new pose: reward, observation, episode end, info."""
@@ -515,4 +525,5 @@ class LidarAvoidEnv(gym.Env):
             "world": self.world.name,
             "steps": self._steps,
             "measured_velocity_body": self.measured_body_velocity(),
+            "collision_mover_speed": self._mover_hit,
         }

@@ -31,6 +31,10 @@ def _fly(kind: str):
 def test_the_plain_goal_follower_collides_with_the_mover_and_the_tracks_one_does_not() -> None:
     plain = _fly("goal_follower")
     assert plain.collision
+    # the drone it hit, and at its speed: the report counts it against the shield's 1.5 m/s bound
+    world = goal_worlds([FAMILY], SEED, 5, tuple(_config().env_config().difficulty_range))[0].world(0.25)
+    drones = {m.speed for m in world.moving if m.kind == "drone"}
+    assert plain.collision_mover_speed in drones
     tracks = _fly("goal_follower_tracks")
     assert not tracks.collision
     assert tracks.success
