@@ -3,8 +3,13 @@
 Each attacker (:mod:`training.attackers`: ram, dash, held_random) and, with ``--policy``, the
 policy itself fly LidarNav-v0 over every world family, a random firmware response per episode,
 behind the shield's rules alone and behind the rules with the backup gate, on the same worlds and
-seeds in the same run. Prints per attacker and shield: episodes, collisions, the least clearance
-(m, from the vehicle centre; a collision is below 0.25) and the worst episode.
+seeds in the same run. Prints per attacker and shield: episodes, collisions, and the collisions
+of the episodes the gate's promise covers out of those episodes (``promised``: the velocity the
+shield judged by never off the true one by more than the ``random`` envelope's
+``estimate_error``, which the simulator's unbounded random walk may exceed, and the gate never
+reduced to best effort, where its invariant was lost: a start too close, or the creep after a
+stop that an envelope without a position loop allows); then the least clearance (m, from the
+vehicle centre; a collision is below 0.25) and the worst episode.
 
     python bench/bench_shield_attack.py [--seeds 4] [--first-seed 599000] [--max-steps 400]
         [--workers 2] [--policy models/policy.onnx]
@@ -36,6 +41,7 @@ import math
 import time
 from pathlib import Path
 
+from companion.safety.envelope import ENVELOPES
 from companion.safety.shield import ShieldConfig
 from training.attack_search import SearchConfig, search_attack
 from training.attackers import ATTACKERS
@@ -44,6 +50,8 @@ from training.episodes import NAV_ENV_ID, goal_worlds
 from training.evaluate import evaluate, make_executor
 
 CONFIG = Path(__file__).resolve().parents[1] / "training" / "configs" / "nav.toml"
+#: the figures' header: per controller and shield
+HEADER = "controller             shield episodes collisions  promised  least m  worst episode"
 
 
 def main() -> None:
@@ -75,7 +83,7 @@ def main() -> None:
     config = load_train_config(CONFIG, [f"env.max_steps={args.max_steps}"])
     env_config = config.env_config()
     worlds = goal_worlds(env_config.families, args.first_seed, args.seeds, env_config.difficulty_range)
-    print(f"{'controller':22} {'shield':6} {'episodes':>8} {'collisions':>10} {'least m':>8}  worst episode")
+    print(HEADER)
     for gate in (False, True):
         start = time.perf_counter()
         print_table(fly(args, config, worlds, gate), gate)
@@ -90,21 +98,28 @@ def fly(args: argparse.Namespace, config, worlds, gate: bool) -> list[dict]:
     )  # fmt: skip
     return [
         {"controller": r.controller, "gate": gate, "world": r.world, "collision": bool(r.collision),
-         "min_clearance": float(r.min_clearance), "steps": r.steps,
+         "min_clearance": float(r.min_clearance), "steps": r.steps, "velocity_error": r.max_velocity_error,
+         "best_effort": sum(n for k, n in r.shield_counts.items() if k.endswith("best_effort")),
          "response": r.response.get("name", "?") if r.response else "ideal"}
         for r in results
     ]  # fmt: skip
 
 
 def print_table(rows: list[dict], gate: bool) -> None:
-    """Per controller behind one shield: episodes, collisions, the least clearance and its episode."""
+    """Per controller behind one shield: episodes, collisions (all, and those the gate's promise
+    covers), the least clearance and its episode."""
+    bound = ENVELOPES["random"].estimate_error
     for name in sorted({r["controller"] for r in rows if r["gate"] == gate}):
         mine = [r for r in rows if r["controller"] == name and r["gate"] == gate]
         worst = min(mine, key=lambda r: r["min_clearance"])
+        kept = [r for r in mine if r["velocity_error"] <= bound and not r["best_effort"]]
+        promised = f"{sum(r['collision'] for r in kept)}/{len(kept)}" if gate else "-"
+        collisions = sum(r["collision"] for r in mine)
         print(
-            f"{name:22} {'gate' if gate else 'rules':6} {len(mine):8d} "
-            f"{sum(r['collision'] for r in mine):10d} {worst['min_clearance']:8.3f}  {worst['world']} "
-            f"({worst['response']}, step {worst['steps']})"
+            f"{name:22} {'gate' if gate else 'rules':6} {len(mine):8d} {collisions:10d} "
+            f"{promised:>9} {worst['min_clearance']:8.3f}  {worst['world']} "
+            f"({worst['response']}, step {worst['steps']}, velocity error up to "
+            f"{worst['velocity_error']:.2f} m/s, {worst['best_effort']} best-effort steps)"
         )
 
 
@@ -145,7 +160,7 @@ def chunked_bench(args: argparse.Namespace) -> None:
         print(f"chunk from seed {first}: {len(rows)} episodes, {wall:.0f} s wall", flush=True)
     rows = [row for chunk in done.values() for row in chunk]
     print(f"{args.out}: {len(done)} chunks, {sum(r['gate'] for r in rows)} episodes behind the gate")
-    print(f"{'controller':22} {'shield':6} {'episodes':>8} {'collisions':>10} {'least m':>8}  worst episode")
+    print(HEADER)
     for gate in (False, True):
         print_table(rows, gate)
 

@@ -7,6 +7,7 @@ boundaries), flying it (:func:`run_task`, :func:`run_episode`) and its figures
 from __future__ import annotations
 
 import json
+import math
 import zlib
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass, field
@@ -88,6 +89,12 @@ class EpisodeResult:
     response: dict[str, Any] = field(default_factory=lambda: {"name": "ideal"})
     #: the speed of the moving obstacle the episode collided with, m/s (None: no collision with one)
     collision_mover_speed: float | None = None
+    #: the largest difference between the velocity a shield judges by (the env's ``shield_velocity``)
+    #: and the true one, m/s: the firmware envelope's ``estimate_error`` bounds it, the simulator's
+    #: random walk does not
+    max_velocity_error: float = 0.0
+    #: the shield's interventions by reason over the episode (empty: flown without a shield)
+    shield_counts: dict[str, int] = field(default_factory=dict)
 
 
 def is_success(collision: bool, steps: int, max_steps: int, distance: float, dt: float) -> bool:
@@ -112,9 +119,16 @@ def run_episode(
     clearance = float(info["min_distance"])
     min_clearance, near_misses, inside = clearance, 0, clearance < NEAR_MISS_DISTANCE
     steps, collision, mover_speed = 0, False, None
+    # what a shield judges the motion by, against the truth (an env without them records 0)
+    judged = getattr(env.unwrapped, "shield_velocity", None)
+    truth = getattr(env.unwrapped, "true_body_velocity", None)
+    velocity_error = 0.0
     while True:
         obs, _, terminated, truncated, info = env.step(action)
         steps += 1
+        if judged is not None and truth is not None:
+            error = judged() - truth()
+            velocity_error = max(velocity_error, math.hypot(float(error[0]), float(error[1])))
         trajectory.append(_xy(info))
         clearance = float(info["min_distance"])
         min_clearance = min(min_clearance, clearance)
@@ -155,6 +169,7 @@ def run_episode(
         trajectory=trajectory,
         response=asdict(params) if params is not None else {"name": "ideal"},
         collision_mover_speed=mover_speed,
+        max_velocity_error=velocity_error,
         **goal,
     )
 
@@ -203,6 +218,9 @@ def run_task(task: EpisodeTask, wrap: Callable[[Controller, Any], Controller] | 
         controller = wrap(controller, unwrapped)
     result = run_episode(env, controller, task.world.reset_options(), seed=task.seed)
     result.controller, result.world, result.episode = task.controller.label, task.world.name, task.episode
+    shield = getattr(controller, "shield", None)
+    if shield is not None:
+        result.shield_counts = dict(shield.interventions)
     return result
 
 

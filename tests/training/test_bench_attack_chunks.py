@@ -24,6 +24,11 @@ def test_a_chunk_is_flown_once_and_counted_from_the_file(tmp_path: Path) -> None
     assert [c["first_seed"] for c in chunks] == [599_000]
     episodes = chunks[0]["episodes"]
     assert {e["gate"] for e in episodes} == {False, True} and len(episodes) == 2 * 9 * 3
+    # what tells a collision the promise covers: the velocity error, and whether the gate lost its
+    # invariant (best effort); behind the rules alone, the gate never acts
+    assert all(e["velocity_error"] > 0.0 for e in episodes)
+    assert not any(e["best_effort"] for e in episodes if not e["gate"])
+    assert any(e["best_effort"] for e in episodes if e["gate"])
     again = _bench(out)
     assert again.returncode == 0 and "chunk from seed" not in again.stdout
     assert out.read_text().count("\n") == 1  # not flown again

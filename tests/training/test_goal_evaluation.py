@@ -209,3 +209,20 @@ def test_a_baseline_flies_an_env_with_a_sideways_action_exactly_as_the_two_part_
     spec = ControllerSpec("goal_follower", shield=shield)
     flown = [run_task(make_tasks([spec], world, 1, {"sideways": s}, NAV_ENV_ID)[0]) for s in (False, True)]
     assert flown[0].steps > 20 and flown[0] == flown[1]
+
+
+@pytest.mark.parametrize("response", ["ideal", "px4"])
+def test_an_episode_records_how_far_the_shields_velocity_was_from_the_truth(response):
+    """What the gate's envelope bounds (``estimate_error``): with the ideal autopilot the velocity a
+    shield judges by is the true one but for the drift estimate's noise; PX4's estimate wanders off
+    by tenths of a m/s, which the episode records."""
+    from training.config import load_train_config
+    from training.controllers import ControllerSpec
+    from training.episodes import NAV_ENV_ID, make_tasks, run_task
+
+    overrides = ["env.max_steps=60", f'env.autopilot_response="{response}"']
+    config = load_train_config("training/configs/nav.toml", overrides)
+    worlds = goal_worlds(["rooms"], 500_000, 1, (0.5, 0.5))
+    (task,) = make_tasks([ControllerSpec("goal_follower")], worlds, 1, config.env, NAV_ENV_ID)
+    error = run_task(task).max_velocity_error
+    assert (error < 0.1) if response == "ideal" else (error > 0.1)
