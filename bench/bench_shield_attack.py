@@ -21,6 +21,9 @@ behind the gate (10,000: several hours on two cores) can stop and resume, across
 
     python bench/bench_shield_attack.py --out runs/attack.jsonl --episodes 10000 --max-steps 200
 
+``--autopilot-response ardupilot`` flies ArduPilot's calibrated response instead of the random draw,
+and the gate its envelope (the position loop's, where the promise covers far more starts).
+
 With ``--search``, instead the search-based attacker (:mod:`training.attack_search`: a command
 sequence optimised by the cross-entropy method, each candidate flown) attacks one world of each
 family in ``--worlds`` (seed ``--first-seed``, difficulty ``--difficulty``) behind the rules and
@@ -61,6 +64,10 @@ def main() -> None:
     parser.add_argument("--max-steps", type=int, default=400, help="steps per episode (10 a second)")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--policy", type=Path, default=None, help="also fly this policy")
+    parser.add_argument(
+        "--autopilot-response", default="random", choices=("random", "ardupilot", "px4"),
+        help="the firmware response flown, and so the envelope the gate assumes",
+    )  # fmt: skip
     chunked = parser.add_argument_group("chunked", "a long run in chunks that resumes (--out)")
     chunked.add_argument("--out", type=Path, default=None, help="append each chunk here (JSON lines)")
     chunked.add_argument("--chunk", type=int, default=2, help="seeds per family in each chunk")
@@ -80,14 +87,19 @@ def main() -> None:
     if args.out is not None:
         chunked_bench(args)
         return
-    config = load_train_config(CONFIG, [f"env.max_steps={args.max_steps}"])
+    config = load_train_config(CONFIG, overrides(args))
     env_config = config.env_config()
     worlds = goal_worlds(env_config.families, args.first_seed, args.seeds, env_config.difficulty_range)
     print(HEADER)
     for gate in (False, True):
         start = time.perf_counter()
-        print_table(fly(args, config, worlds, gate), gate)
+        print_table(fly(args, config, worlds, gate), gate, args.autopilot_response)
         print(f"  ({time.perf_counter() - start:.0f} s wall)")
+
+
+def overrides(args: argparse.Namespace) -> list[str]:
+    """The ``[env]`` keys the flags set: the episode length and the firmware response."""
+    return [f"env.max_steps={args.max_steps}", f'env.autopilot_response="{args.autopilot_response}"']
 
 
 def fly(args: argparse.Namespace, config, worlds, gate: bool) -> list[dict]:
@@ -105,10 +117,10 @@ def fly(args: argparse.Namespace, config, worlds, gate: bool) -> list[dict]:
     ]  # fmt: skip
 
 
-def print_table(rows: list[dict], gate: bool) -> None:
+def print_table(rows: list[dict], gate: bool, response: str) -> None:
     """Per controller behind one shield: episodes, collisions (all, and those the gate's promise
-    covers), the least clearance and its episode."""
-    bound = ENVELOPES["random"].estimate_error
+    covers, over ``response``'s envelope), the least clearance and its episode."""
+    bound = ENVELOPES[response].estimate_error
     for name in sorted({r["controller"] for r in rows if r["gate"] == gate}):
         mine = [r for r in rows if r["controller"] == name and r["gate"] == gate]
         worst = min(mine, key=lambda r: r["min_clearance"])
@@ -126,7 +138,7 @@ def print_table(rows: list[dict], gate: bool) -> None:
 def chunked_bench(args: argparse.Namespace) -> None:
     """Fly the seeds in chunks, each appended to ``--out`` once both shields have flown it; skip the
     chunks the file holds; then print the figures of every episode in it."""
-    config = load_train_config(CONFIG, [f"env.max_steps={args.max_steps}"])
+    config = load_train_config(CONFIG, overrides(args))
     env_config = config.env_config()
     done: dict[int, list[dict]] = {}
     if args.out.is_file():
@@ -135,12 +147,14 @@ def chunked_bench(args: argparse.Namespace) -> None:
                 chunk = json.loads(line)
                 done[int(chunk["first_seed"])] = chunk["episodes"]
                 steps, seeds = int(chunk["max_steps"]), int(chunk["seeds"])
-            except (ValueError, KeyError, TypeError) as error:
+                response = str(chunk.get("response", "random"))
+            except (ValueError, KeyError, TypeError, AttributeError) as error:
                 raise SystemExit(f"bench_shield_attack: {args.out}:{number}: not a chunk ({error})") from None
-            if (steps, seeds) != (args.max_steps, args.chunk):
+            if (steps, seeds, response) != (args.max_steps, args.chunk, args.autopilot_response):
                 raise SystemExit(
-                    f"bench_shield_attack: {args.out}:{number}: a chunk of {seeds} seeds at {steps} steps; "
-                    f"this run flies {args.chunk} at {args.max_steps} (a new file, or the same flags)"
+                    f"bench_shield_attack: {args.out}:{number}: a chunk of {seeds} seeds at {steps} steps "
+                    f"({response}); this run flies {args.chunk} at {args.max_steps} "
+                    f"({args.autopilot_response}) (a new file, or the same flags)"
                 )
     per_chunk = len(env_config.families) * args.chunk * (len(ATTACKERS) + (args.policy is not None))
     chunks = math.ceil(args.episodes / per_chunk) if args.episodes else math.ceil(args.seeds / args.chunk)
@@ -154,7 +168,7 @@ def chunked_bench(args: argparse.Namespace) -> None:
         rows = [row for gate in (False, True) for row in fly(args, config, worlds, gate)]
         with args.out.open("a") as out:
             out.write(json.dumps({"first_seed": first, "seeds": args.chunk, "max_steps": args.max_steps,
-                                  "episodes": rows}) + "\n")  # fmt: skip
+                                  "response": args.autopilot_response, "episodes": rows}) + "\n")  # fmt: skip
         done[first] = rows
         wall = time.perf_counter() - start
         print(f"chunk from seed {first}: {len(rows)} episodes, {wall:.0f} s wall", flush=True)
@@ -162,7 +176,7 @@ def chunked_bench(args: argparse.Namespace) -> None:
     print(f"{args.out}: {len(done)} chunks, {sum(r['gate'] for r in rows)} episodes behind the gate")
     print(HEADER)
     for gate in (False, True):
-        print_table(rows, gate)
+        print_table(rows, gate, args.autopilot_response)
 
 
 def search_bench(args: argparse.Namespace) -> None:

@@ -48,4 +48,5 @@ def test_a_file_of_other_chunks_is_refused(tmp_path: Path) -> None:
     out = tmp_path / "attack.jsonl"
     out.write_text(json.dumps({"first_seed": 599_000, "seeds": 1, "max_steps": 400, "episodes": []}) + "\n")
     run = _bench(out)
-    assert run.returncode != 0 and "a chunk of 1 seeds at 400 steps; this run flies 1 at 10" in run.stderr
+    assert run.returncode != 0
+    assert "a chunk of 1 seeds at 400 steps (random); this run flies 1 at 10 (random)" in run.stderr
