@@ -4,12 +4,13 @@ Each attacker (:mod:`training.attackers`: ram, dash, held_random) and, with ``--
 policy itself fly LidarNav-v0 over every world family, a random firmware response per episode,
 behind the shield's rules alone and behind the rules with the backup gate, on the same worlds and
 seeds in the same run. Prints per attacker and shield: episodes, collisions, and the collisions
-of the episodes the gate's promise covers out of those episodes (``promised``: the velocity the
-shield judged by never off the true one by more than the ``random`` envelope's
-``estimate_error``, which the simulator's unbounded random walk may exceed, and the gate never
-reduced to best effort, where its invariant was lost: a start too close, or the creep after a
-stop that an envelope without a position loop allows); then the least clearance (m, from the
-vehicle centre; a collision is below 0.25) and the worst episode.
+of the episodes the gate's promise covers out of those episodes (``promised``: the gate never
+reduced to best effort, its sign that the invariant was lost: a start too close, the creep after a
+stop that an envelope without a position loop allows, or a velocity error beyond the envelope's,
+which the simulator's unbounded random walk may reach); then the least clearance (m, from the
+vehicle centre; a collision is below 0.25) and the worst episode, with the largest difference of
+the velocity the shield judged by from the true one (the measurement's lag in hard accelerations
+included, which the envelope covers by its delay window).
 
     python bench/bench_shield_attack.py [--seeds 4] [--first-seed 599000] [--max-steps 400]
         [--workers 2] [--policy models/policy.onnx]
@@ -22,7 +23,7 @@ behind the gate (10,000: several hours on two cores) can stop and resume, across
     python bench/bench_shield_attack.py --out runs/attack.jsonl --episodes 10000 --max-steps 200
 
 ``--autopilot-response ardupilot`` flies ArduPilot's calibrated response instead of the random draw,
-and the gate its envelope (the position loop's, where the promise covers far more starts).
+and the gate assumes its envelope (the position loop's, with narrower corridors).
 
 With ``--search``, instead the search-based attacker (:mod:`training.attack_search`: a command
 sequence optimised by the cross-entropy method, each candidate flown) attacks one world of each
@@ -44,7 +45,6 @@ import math
 import time
 from pathlib import Path
 
-from companion.safety.envelope import ENVELOPES
 from companion.safety.shield import ShieldConfig
 from training.attack_search import SearchConfig, search_attack
 from training.attackers import ATTACKERS
@@ -93,7 +93,7 @@ def main() -> None:
     print(HEADER)
     for gate in (False, True):
         start = time.perf_counter()
-        print_table(fly(args, config, worlds, gate), gate, args.autopilot_response)
+        print_table(fly(args, config, worlds, gate), gate)
         print(f"  ({time.perf_counter() - start:.0f} s wall)")
 
 
@@ -117,14 +117,13 @@ def fly(args: argparse.Namespace, config, worlds, gate: bool) -> list[dict]:
     ]  # fmt: skip
 
 
-def print_table(rows: list[dict], gate: bool, response: str) -> None:
+def print_table(rows: list[dict], gate: bool) -> None:
     """Per controller behind one shield: episodes, collisions (all, and those the gate's promise
-    covers, over ``response``'s envelope), the least clearance and its episode."""
-    bound = ENVELOPES[response].estimate_error
+    covers), the least clearance and its episode."""
     for name in sorted({r["controller"] for r in rows if r["gate"] == gate}):
         mine = [r for r in rows if r["controller"] == name and r["gate"] == gate]
         worst = min(mine, key=lambda r: r["min_clearance"])
-        kept = [r for r in mine if r["velocity_error"] <= bound and not r["best_effort"]]
+        kept = [r for r in mine if not r["best_effort"]]
         promised = f"{sum(r['collision'] for r in kept)}/{len(kept)}" if gate else "-"
         collisions = sum(r["collision"] for r in mine)
         print(
@@ -176,7 +175,7 @@ def chunked_bench(args: argparse.Namespace) -> None:
     print(f"{args.out}: {len(done)} chunks, {sum(r['gate'] for r in rows)} episodes behind the gate")
     print(HEADER)
     for gate in (False, True):
-        print_table(rows, gate, args.autopilot_response)
+        print_table(rows, gate)
 
 
 def search_bench(args: argparse.Namespace) -> None:
