@@ -118,10 +118,12 @@ def firmware_braking_time(speed: float, threshold: float = 0.1) -> float:
 
 
 def test_lidar_stream_stops_companion_holds_and_vehicle_stops_within_timeout_plus_braking(flight):
-    """The companion's part is to hold within ``lidar_timeout`` of the silence; the firmware's part
-    is to brake. Bound: the timeout (0.3 s), the firmware's braking from the commanded 1 m/s
-    (1.08 s), and 0.25 s for the vehicle still accelerating when the lidar stops and for the three
-    processes' scheduling (the observed stop was 1.29-1.44 s on an idle machine)."""
+    """Each part is judged from its own start, so one party's scheduling is not charged to the other.
+    The companion's part: its first zero setpoint reaches the autopilot within ``lidar_timeout``
+    (0.3 s) of the silence, plus 0.2 s for its check interval and the link. The firmware's part:
+    from that setpoint's arrival the vehicle stops within the calibrated braking from the commanded
+    1 m/s (1.08 s), plus 0.25 s for the vehicle still accelerating and the processes' scheduling
+    (the observed braking was 1.0-1.15 s on an idle machine)."""
     f = flight
     ensure_active(f)
     f.cosim.streaming.clear()
@@ -130,7 +132,9 @@ def test_lidar_stream_stops_companion_holds_and_vehicle_stops_within_timeout_plu
     supervisor = load_config(f.config_path).supervisor
     held = f.recorder.first_text("->HOLD", t_stop)
     assert held and held - t_stop < supervisor.lidar_timeout + 0.2
-    assert stopped - t_stop < supervisor.lidar_timeout + firmware_braking_time(COMMAND[0]) + 0.25
+    first_zero = next(t for t, vx, yr in recorded_setpoints(f) if t >= t_stop and vx == 0.0 and yr == 0.0)
+    assert first_zero - t_stop < supervisor.lidar_timeout + 0.2
+    assert stopped - first_zero < firmware_braking_time(COMMAND[0]) + 0.25
     # the companion keeps sending zero-velocity setpoints while it holds
     with f.recorder.lock:
         held = [s for s in f.recorder.setpoints if s[0] > t_stop + 0.5]
