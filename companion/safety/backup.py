@@ -12,25 +12,33 @@ acceleration and deceleration bounds, the overshoot, and a velocity-estimate err
 stop (a zero setpoint), after which the envelope's worst-case displacement towards every
 direction stays below the clearance of the remembered returns that way less ``body_radius +
 margin``. So the true vehicle centre stays at least ``body_radius + margin`` from every remembered
-return until the vehicle is stopped (to within the estimate error's creep, ``estimate_error`` m/s,
-which the shield's keep-out answers from the scans; the gate does not cover that creep). With a
-position loop (ArduPilot, the envelope's finite ``position_error``) there is no creep to leave out:
-the stop comes no sooner than ``period + max_delay``, and by then the estimate error's share of the
-worst case has reached its cap, which holds for as long as the position target is held.
+return until the vehicle is stopped. What comes after the stop, the creep of the estimate error
+(up to ``estimate_error`` m/s), is not covered. With a position loop (ArduPilot, the envelope's
+finite ``position_error``) the worst case up to the stop already holds the creep's capped share:
+the stop comes no sooner than ``period + max_delay``. The cap is the real flights' over a few
+seconds; held longer, the estimate's own drift carries the vehicle on (the simulated ArduPilot
+crept 0.6 m in 19 s of zero setpoints), so it is not covered with ArduPilot either.
 
-*Proof sketch.* Let S(x) say "from state x, the backup keeps the worst case clear". A command u
-passes only if, starting now, u for one period then the backup keeps the worst case clear, i.e.
-S holds at every state the envelope allows one period later. If no command passes, the backup
-itself is sent; it is the continuation that the previous step verified, so its worst case is a
-subset of the one verified then (the same setpoint sequence, started one period later from a state
-inside that worst case). By induction, from a first state where S holds (standstill, clear),
-S holds at every step and no verified worst case touches a remembered return.
+*Proof sketch.* Each remembered return with its inflation holds the true one at the step it is
+judged. Let S say "from here, the backup keeps the worst case clear of the returns". A command u
+passes only if u for one period, then the backup, keeps the worst case clear. When none passes
+but the last command sent passed, or is that command's backup sent again since, the backup is sent
+again (``gate_backup_kept``): it continues the setpoint sequence verified then, from a state inside
+that worst case, so its worst case is a part of the one verified, which was clear of the returns as
+they were known then, and so of the true ones. It is not judged again: the memory's inflation
+grows with a return's age (even while the same surface is seen again), so a stop verified may not
+pass a step later, though nothing has come closer. This holds until the verified worst case has
+stopped, which is where the promise ends. By induction, from a first state where S holds
+(standstill, clear), every command sent passes or continues a verified backup, and no true
+trajectory leaves a verified worst case before its stop.
 
 *Not covered.* Obstacles the scans never saw (below or above the beams, hidden, outside the memory
 horizon), anything that moves but is not given as a mover (below), an envelope the firmware leaves
-(a gust, a motor failure, a wrong heading), the creep once stopped, and a start where S does not
-hold (closer to a return than the creep allows): there the gate sends whichever candidate leaves
-the most room (``gate_best_effort``).
+(a gust, a motor failure, a wrong heading), the creep once stopped, and a state where S does not
+hold with no verified backup running (a start closer to a return than the creep allows, or a stop
+the creep or the memory's growing inflation has left there): there the gate sends the stop or a
+candidate as good (``gate_best_effort``), backing away from the nearest return where the envelope
+has that truly move away and it raises nothing that decides (:meth:`BackupGate.choose`).
 
 *Movers.* The tracker's moving objects (:class:`~companion.perception.tracking.Mover`: centre,
 ground velocity and radius in the body axes at the scan's time; :func:`mover_rows`) are not
@@ -106,6 +114,8 @@ _CHUNK = 64
 _HEAD = 4 * _CHUNK
 #: fractions of the asked velocity tried when it does not pass, fastest first
 _SCALES = np.linspace(1.0, 0.0, 11)
+#: fractions of ``retreat_speed`` the best effort's retreat is tried at, fastest first
+_RETREATS = np.array([1.0, 0.5, 0.2])
 
 
 def separation(points: np.ndarray, inflation: np.ndarray, displacement: np.ndarray) -> np.ndarray:
@@ -196,6 +206,7 @@ class BackupGate:
         and how old a scan may be when its command is sent, s
     :param unknown_speed: the speed assumed in every direction when the velocity is not known, m/s
     :param movers: what the gate assumes of the movers' motion
+    :param retreat_speed: the speed of the best effort's retreat from the nearest return, m/s
     """
 
     def __init__(
@@ -205,23 +216,34 @@ class BackupGate:
         period: float = 0.1,
         unknown_speed: float = 2.0,
         movers: MoverModel | None = None,
+        retreat_speed: float = 0.5,
     ) -> None:
         self.envelope = envelope
         self.clearance = float(clearance)
         self.period = float(period)
         self.unknown_speed = float(unknown_speed)
         self.movers = movers if movers is not None else MoverModel()
+        self.retreat_speed = float(retreat_speed)
+        # a retreat counts only where the envelope has it truly move away (its target below 0)
+        self._retreats = envelope.target(-self.retreat_speed * _RETREATS) < 0.0
         self._sent = _Sent([], [])
         self._time = 0.0
         self._heading = 0.0
         # whether the last command was refused: then the next likely is too, and the asked is judged
         # with its candidates in one batch rather than alone first (the same choice, sooner)
         self._intervening = False
+        # until when (gate clock, s) the worst case of the last verified command runs to its stop: up
+        # to then, sending that command's backup again keeps the promise (``gate_backup_kept``)
+        self._kept_until = -math.inf
+        # what :meth:`choose` offered last, and the ``_kept_until`` it sets when sent (None: unchanged)
+        self._offered: tuple[np.ndarray, float | None] | None = None
 
     def reset(self) -> None:
         """Forget the setpoints sent (a new engagement starts from a zero setpoint held long)."""
         self._sent = _Sent([], [])
         self._intervening = False
+        self._kept_until = -math.inf
+        self._offered = None
 
     def advance(self, dt: float, heading: float | None, yaw_rate: float) -> None:
         """Move the gate's clock by ``dt`` and its heading to ``heading`` (rad, counter-clockwise),
@@ -239,7 +261,13 @@ class BackupGate:
             del self._sent.vectors[0]
 
     def record(self, body: tuple[float, float]) -> None:
-        """The setpoint (body forward, left, m/s) that was sent now."""
+        """The setpoint (body forward, left, m/s) that was sent now: it keeps a verified backup only
+        if it is what :meth:`choose` offered as one."""
+        offered, self._offered = self._offered, None
+        if offered is None or not np.array_equal(offered[0], body):
+            self._kept_until = -math.inf
+        elif offered[1] is not None:
+            self._kept_until = offered[1]
         c, s = math.cos(self._heading), math.sin(self._heading)
         self._sent.times.append(self._time)
         self._sent.vectors.append(np.array([c * body[0] - s * body[1], s * body[0] + c * body[1]]))
@@ -261,12 +289,30 @@ class BackupGate:
         :param movers: ``(k, 5)`` the movers (:func:`mover_rows`); None: none
         :return: ``(m,)`` bools and ``(m,)`` the least room left (from the returns and the movers), m
         """
-        worst = self._worst_case(np.atleast_2d(np.asarray(candidates, dtype=np.float64)), velocity)
+        least, _ = self._judge(np.atleast_2d(np.asarray(candidates, dtype=np.float64)), velocity, points,
+                               inflation, movers)  # fmt: skip
+        return least >= 0.0, least
+
+    def _judge(
+        self,
+        candidates: np.ndarray,
+        velocity: tuple[float, float] | None,
+        points: np.ndarray,
+        inflation: np.ndarray,
+        movers: np.ndarray | None,
+    ) -> tuple[np.ndarray, _WorstCase]:
+        """:meth:`passes`' rooms, and the worst case they were found on."""
+        worst = self._worst_case(candidates, velocity)
         least = separation(points, inflation, worst.reach(worst.steps)) - self.clearance
         if movers is not None and len(movers):
             rows = np.arange(len(worst.column))
             least = np.minimum(least, self._mover_room(worst, rows, worst.steps, np.asarray(movers)))
-        return least >= 0.0, least
+        return least, worst
+
+    def _stop_time(self, worst: _WorstCase, row: int, steps: int) -> float:
+        """The gate-clock time by which candidate ``row``'s worst case (horizon cut at ``steps``) has
+        stopped in every direction, s."""
+        return self._time + STEP_S * float(np.minimum(worst.settled[worst.column[row]], steps).max())
 
     def mover_caps(self, movers: np.ndarray) -> np.ndarray:
         """``(k,)`` the speed each mover is assumed to keep within, m/s: the model's, or for a mover
@@ -459,23 +505,36 @@ class BackupGate:
         movers: np.ndarray | None = None,
     ) -> tuple[tuple[float, float], str | None]:
         """The setpoint to send: ``asked`` when it passes; else the passing candidate closest to it
-        (scaled down, or with its part towards the nearest return or mover removed, then scaled);
-        else, when none passes (the assumptions were left: a return seen late, or closer than the
-        creep allows; a mover seen late, or outside its model), of those that keep clear of the
-        returns the one that leaves a mover the most room, and when none does, whichever of them
-        leaves the most room, the stop and ``asked`` included. The reason is None,
-        ``"gate_slowed"``, ``"gate_backup"`` (the stop), ``"gate_mover_best_effort"`` or
-        ``"gate_best_effort"``.
+        (scaled down, or with its part towards the nearest return or mover removed, then scaled).
+
+        When none passes but the last setpoint sent keeps a backup an earlier step verified, that
+        backup, the stop, is sent again (``"gate_backup_kept"``): its worst case is a part of the one
+        verified then, which the returns known then kept clear (the module doc's proof sketch). This
+        is what keeps the promise while the memory's inflation grows (a return's drift bound grows
+        with its age even while the same surface is seen again).
+
+        Otherwise (the assumptions were left: a start closer than the creep allows, a return seen
+        late; a mover seen late, or outside its model): of those that keep clear of the returns, the
+        one that leaves a mover the most room (``"gate_mover_best_effort"``); and when none does,
+        the one that leaves the most room (``"gate_best_effort"``). That is the stop or one as good
+        (no command sent now lowers the worst case below the stop's); a retreat from the nearest
+        return at up to ``retreat_speed`` is as good when it raises no bound that decides, and is then
+        sent (the fastest of a few that the envelope has truly move away: none for PX4's, whose
+        estimate error outweighs the retreat), as it is what can bring the vehicle back to where a
+        stop is verified.
+
+        The reason is None, ``"gate_slowed"``, ``"gate_backup"`` (the stop, verified now),
+        ``"gate_backup_kept"``, ``"gate_mover_best_effort"`` or ``"gate_best_effort"``.
 
         :param movers: ``(k, 5)`` :func:`mover_rows`; None: none
         """
         want = np.asarray(asked, dtype=np.float64)
         moving = np.zeros((0, 5)) if movers is None else np.asarray(movers, dtype=np.float64)
         if not self._intervening or len(points) + len(moving) == 0:  # passing as the last did: alone first
-            ok, _ = self.passes(want[None], velocity, points, inflation, moving)
-            if ok[0]:
+            least, alone = self._judge(want[None], velocity, points, inflation, moving)
+            if least[0] >= 0.0:
                 self._intervening = False
-                return (float(want[0]), float(want[1])), None
+                return self._offer(want, self._stop_time(alone, 0, alone.steps), None)
         centres = np.concatenate([points, moving[:, :2]])
         gaps = np.hypot(centres[:, 0], centres[:, 1]) - np.concatenate([inflation, moving[:, 4]])
         nearest = centres[int(np.argmin(gaps))]
@@ -498,22 +557,53 @@ class BackupGate:
         clear = self._mover_room(worst, rows, horizons, moving) if len(moving) else np.full(len(rows), np.inf)
         if self._intervening and min(least[-1], clear[-1]) >= 0.0:
             self._intervening = False
-            return (float(want[0]), float(want[1])), None
+            return self._offer(want, self._stop_time(worst, 0, int(horizons[-1])), None)
         self._intervening = True
         room, mover_room = least[index], clear[index]
         ok = (room >= 0.0) & (mover_room >= 0.0)
+        stop = len(_SCALES) - 1
         if ok.any():
             distance = np.where(ok, np.hypot(*(candidates - want).T), np.inf)
             pick = int(np.argmin(distance))
             reason = "gate_slowed" if np.any(candidates[pick]) else "gate_backup"
-        elif (room >= 0.0).any():
+            until = self._stop_time(worst, int(index[pick]), worst.steps)
+            return self._offer(candidates[pick], until, reason)
+        if self._time < self._kept_until:
+            return self._offer(candidates[stop], None, "gate_backup_kept")
+        if (room >= 0.0).any():
             pick = int(np.argmax(np.where(room >= 0.0, mover_room, -np.inf)))
-            reason = "gate_mover_best_effort"
-        else:
-            pick = int(np.argmax(np.minimum(room, mover_room)))
-            reason = "gate_best_effort"
-        best = candidates[pick]
-        return (float(best[0]), float(best[1])), reason
+            return self._offer(candidates[pick], -math.inf, "gate_mover_best_effort")
+        retreat = self._retreat(towards, velocity, points, inflation, moving)
+        if retreat is not None:
+            return self._offer(retreat, -math.inf, "gate_best_effort")
+        pick = int(np.argmax(np.minimum(room, mover_room)))
+        return self._offer(candidates[pick], -math.inf, "gate_best_effort")
+
+    def _retreat(
+        self,
+        towards: np.ndarray,
+        velocity: tuple[float, float] | None,
+        points: np.ndarray,
+        inflation: np.ndarray,
+        movers: np.ndarray,
+    ) -> np.ndarray | None:
+        """The fastest retreat from ``towards`` (a unit vector, body) that the envelope has truly move
+        away and that leaves as much room as the stop, judged with it in one worst case; None: none."""
+        speeds = self.retreat_speed * _RETREATS[self._retreats]
+        if len(speeds) == 0:
+            return None
+        candidates = np.concatenate([np.zeros((1, 2)), -speeds[:, None] * towards])
+        least, _ = self._judge(candidates, velocity, points, inflation, movers)
+        backing = np.flatnonzero(least[1:] >= least[0])
+        return candidates[1 + backing[0]] if len(backing) else None
+
+    def _offer(
+        self, setpoint: np.ndarray, kept_until: float | None, reason: str | None
+    ) -> tuple[tuple[float, float], str | None]:
+        """Remember what is offered, and the ``_kept_until`` it sets when sent, for :meth:`record`."""
+        body = (float(setpoint[0]), float(setpoint[1]))
+        self._offered = (np.array(body), kept_until)
+        return body, reason
 
 
 def mover_rows(movers: Sequence[Mover]) -> np.ndarray:

@@ -441,7 +441,11 @@ class SafetyShield:
         self.envelope: ResponseEnvelope = ENVELOPES[autopilot if isinstance(autopilot, str) else "random"]
         clearance = config.body_radius + config.margin
         movers = MoverModel(config.mover_speed, config.mover_accel, config.mover_velocity_error)
-        self._gate = BackupGate(self.envelope, clearance, movers=movers) if config.backup_gate else None
+        self._gate = (
+            BackupGate(self.envelope, clearance, movers=movers, retreat_speed=config.max_reverse_speed)
+            if config.backup_gate
+            else None
+        )
         self._memory = ObstacleMemory(
             config.memory_time, self.envelope.estimate_error, self.envelope.velocity_lag
         )

@@ -78,6 +78,63 @@ def test_a_command_along_a_wall_beside_keeps_its_speed() -> None:
     assert reason is None and forward == 1.0
 
 
+def _verified_step(gate: BackupGate, wall: np.ndarray) -> tuple[float, float]:
+    """One step towards ``wall`` that the gate verifies (at rest, no inflation): the setpoint sent."""
+    gate.advance(0.1, 0.0, 0.0)
+    sent, reason = gate.choose((1.0, 0.0), (0.0, 0.0), wall, _none(wall))
+    assert reason in (None, "gate_slowed")
+    return sent
+
+
+def test_a_stop_verified_before_is_kept_while_the_inflation_grows_and_only_up_to_its_stop() -> None:
+    """The proof's continuation: a remembered return's inflation grows with its age, so the stop a
+    step verified may not pass a step later. Sending it again keeps the promise (its worst case is a
+    part of the one verified) until that worst case has stopped; after that it is best effort."""
+    gate = BackupGate(ARDUPILOT, CLEARANCE)
+    wall = _wall(2.0)
+    gate.record(_verified_step(gate, wall))
+    _, room = BackupGate(ARDUPILOT, CLEARANCE).passes(np.zeros((1, 2)), (0.0, 0.0), wall, _none(wall))
+    grown = np.full(len(wall), room[0] + 0.01)  # nothing passes with it: not even the stop from rest
+    reasons = []
+    for _ in range(int(MAX_HORIZON_S / 0.1)):
+        gate.advance(0.1, 0.0, 0.0)
+        sent, reason = gate.choose((1.0, 0.0), (0.0, 0.0), wall, grown)
+        gate.record(sent)
+        reasons.append(reason)
+        if reason == "gate_backup_kept":
+            assert sent == (0.0, 0.0)
+    kept = reasons.count("gate_backup_kept")
+    assert reasons[:kept] == ["gate_backup_kept"] * kept and kept >= 10  # the delay window and braking
+    assert reasons[kept] == "gate_best_effort"  # (then its retreat, which a later stop may verify)
+
+
+def test_a_setpoint_other_than_the_one_offered_ends_what_was_kept() -> None:
+    gate = BackupGate(ARDUPILOT, CLEARANCE)
+    wall = _wall(2.0)
+    forward, _ = _verified_step(gate, wall)
+    gate.record((forward + 0.3, 0.0))  # not what the gate offered: nothing it verified
+    gate.advance(0.1, 0.0, 0.0)
+    _, reason = gate.choose((1.0, 0.0), (0.0, 0.0), wall, np.full(len(wall), 2.0))
+    assert reason == "gate_best_effort"
+
+
+@pytest.mark.parametrize(("envelope", "expected"), [(ARDUPILOT, (-0.5, 0.0)), (PX4, (0.0, 0.0))],
+                         ids=["ardupilot", "px4"])  # fmt: skip
+def test_best_effort_retreats_where_the_envelope_has_the_vehicle_truly_move_away(
+    envelope: ResponseEnvelope, expected: tuple[float, float]
+) -> None:
+    """Stopped closer to a wall than the creep allows, nothing passes and nothing was verified. A
+    retreat raises no bound that decides (nothing behind), so it is sent where the envelope has it
+    move away (ArduPilot: 0.5 m/s less 30 % undershoot beats its 0.3 m/s estimate error); with
+    PX4's 0.65 m/s estimate error it may not, and the stop is sent."""
+    gate = BackupGate(envelope, CLEARANCE, retreat_speed=0.5)
+    wall = _wall(0.45)
+    gate.advance(0.1, 0.0, 0.0)
+    sent, reason = gate.choose((1.0, 0.0), (0.0, 0.0), wall, _none(wall))
+    assert reason == "gate_best_effort"
+    assert sent == pytest.approx(expected)
+
+
 class WorstVehicle:
     """A 1-D vehicle that flies the envelope's worst case towards +x: every setpoint flown for the
     longest delay, the most overshoot, the estimate reading ``estimate_error`` slow, rising as fast
@@ -232,7 +289,8 @@ def _reference_choose(
     points: np.ndarray,
     grown: np.ndarray,
 ) -> tuple[tuple[float, float], str | None]:
-    """:meth:`BackupGate.choose` on :func:`_reference_passes`: the asked alone, then every candidate."""
+    """:meth:`BackupGate.choose` on :func:`_reference_passes`: the asked alone, then every candidate;
+    when none passes, the stop kept while a verified one runs, else the best effort."""
     if _reference_passes(gate, asked[None], velocity, points, grown)[0] >= 0.0:
         return (float(asked[0]), float(asked[1])), None
     nearest = points[int(np.argmin(np.hypot(points[:, 0], points[:, 1]) - grown))]
@@ -244,8 +302,17 @@ def _reference_choose(
     if (room >= 0.0).any():
         pick = int(np.argmin(np.where(room >= 0.0, np.hypot(*(candidates - asked).T), np.inf)))
         reason = "gate_slowed" if np.any(candidates[pick]) else "gate_backup"
+    elif gate._time < gate._kept_until:
+        pick, reason = 10, "gate_backup_kept"
     else:
         pick, reason = int(np.argmax(room)), "gate_best_effort"
+        speeds = [v for v in gate.retreat_speed * np.array([1.0, 0.5, 0.2]) if gate.envelope.target(-v) < 0.0]
+        if speeds:  # the fastest retreat that leaves as much room as the stop, judged with it
+            backing = np.concatenate([np.zeros((1, 2)), -np.array(speeds)[:, None] * towards])
+            backed = _reference_passes(gate, backing, velocity, points, grown)
+            if (backed[1:] >= backed[0]).any():
+                chosen = backing[1 + int(np.argmax(backed[1:] >= backed[0]))]
+                return (float(chosen[0]), float(chosen[1])), reason
     return (float(candidates[pick][0]), float(candidates[pick][1])), reason
 
 

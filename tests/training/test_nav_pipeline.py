@@ -47,19 +47,30 @@ workers = 1
 GOAL = ObservationLayout(goal=True, goal_range=30.0, velocity_scale=2.0)
 
 
-@pytest.fixture(scope="module")
-def nav_run(tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("nav")
-    config = tmp / "tiny-nav.toml"
-    config.write_text(TINY_NAV)
+def _train_and_export(
+    tmp: Path, config_text: str, name: str, parity_samples: int
+) -> tuple[Path, Path, Path, str]:
+    """Train the tiny run ``config_text`` under ``tmp`` and export it to ``tmp/<name>.onnx``.
+
+    :return: the config file, the run directory, the model and what the export printed
+    """
+    config = tmp / f"tiny-{name}.toml"
+    config.write_text(config_text)
     assert main(["train", "--config", str(config), f"run_root={tmp / 'runs'}"]) == 0
     run_dir = tmp / "runs" / "tiny-nav-s2"
-    onnx_path = tmp / "nav.onnx"
+    onnx_path = tmp / f"{name}.onnx"
     printed = io.StringIO()
     with contextlib.redirect_stdout(printed):
         assert main(["export", "--model", str(run_dir / "final_model.zip"), "--out", str(onnx_path),
-                     "--parity-samples", "100"]) == 0  # fmt: skip
-    return {"config": config, "run_dir": run_dir, "onnx": onnx_path, "printed": printed.getvalue()}
+                     "--parity-samples", str(parity_samples)]) == 0  # fmt: skip
+    return config, run_dir, onnx_path, printed.getvalue()
+
+
+@pytest.fixture(scope="module")
+def nav_run(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("nav")
+    config, run_dir, onnx_path, printed = _train_and_export(tmp, TINY_NAV, "nav", 100)
+    return {"config": config, "run_dir": run_dir, "onnx": onnx_path, "printed": printed}
 
 
 def test_training_validates_on_goal_worlds(nav_run):
@@ -183,14 +194,8 @@ def test_a_missing_fine_tune_start_is_refused_in_one_line_before_the_run_directo
 @pytest.fixture(scope="module")
 def side_run(tmp_path_factory):
     """The tiny run with ``env.sideways``: a three-part action, exported."""
-    tmp = tmp_path_factory.mktemp("side")
-    config = tmp / "tiny-side.toml"
-    config.write_text(TINY_NAV.replace("[env]\n", "[env]\nsideways = true\n"))
-    assert main(["train", "--config", str(config), f"run_root={tmp / 'runs'}"]) == 0
-    onnx_path = tmp / "side.onnx"
-    with contextlib.redirect_stdout(io.StringIO()):
-        assert main(["export", "--model", str(tmp / "runs" / "tiny-nav-s2" / "final_model.zip"),
-                     "--out", str(onnx_path), "--parity-samples", "50"]) == 0  # fmt: skip
+    side = TINY_NAV.replace("[env]\n", "[env]\nsideways = true\n")
+    config, _, onnx_path, _ = _train_and_export(tmp_path_factory.mktemp("side"), side, "side", 50)
     return {"config": config, "onnx": onnx_path}
 
 
@@ -224,13 +229,8 @@ def test_a_movers_run_exports_its_layout_and_the_companion_flies_it_under_policy
     from companion.perception.observation import build_frame, goal_features, mover_features
     from companion.perception.tracking import Mover
 
-    config = tmp_path / "tiny-movers.toml"
-    config.write_text(TINY_NAV.replace('families = ["gaps"]', 'families = ["rooms-dynamic"]\nmovers = true'))
-    assert main(["train", "--config", str(config), f"run_root={tmp_path / 'runs'}"]) == 0
-    onnx_path = tmp_path / "movers.onnx"
-    with contextlib.redirect_stdout(io.StringIO()):
-        assert main(["export", "--model", str(tmp_path / "runs" / "tiny-nav-s2" / "final_model.zip"),
-                     "--out", str(onnx_path), "--parity-samples", "50"]) == 0  # fmt: skip
+    movers = TINY_NAV.replace('families = ["gaps"]', 'families = ["rooms-dynamic"]\nmovers = true')
+    _, _, onnx_path, _ = _train_and_export(tmp_path, movers, "movers", 50)
     layout = ObservationLayout(goal=True, goal_range=30.0, velocity_scale=2.0, movers=True)
     meta = read_model_metadata(onnx_path)
     assert meta["lidar_avoid.obs_layout"] == layout.name

@@ -65,11 +65,12 @@ def test_no_attacker_closes_on_a_walker_while_moving(env, attacker: str, source:
 
 def test_the_gate_that_takes_movers_for_standing_returns_meets_one_while_moving(rooms_envs) -> None:
     """The tests above can fail: as before movers were tracked (nothing tracked, the movers' returns
-    remembered as standing ones), the mover ram meets a mover while the vehicle still moves in two
-    rooms; with the tracker and the gate that sees them move, not in those same rooms. (In the
-    offices above, the memory's inflation alone keeps it off the walkers.)"""
+    remembered as standing ones), the mover ram meets a mover while the vehicle still moves in
+    rooms-dynamic-500104; with the tracker and the gate that sees them move, not in that same room.
+    (Of rooms 500,100-500,111 it is the one where it does: elsewhere, and in the offices above, the
+    memory's inflation and the stop kept while it grows keep it off the movers.)"""
     tracked, untracked = rooms_envs
-    worlds = goal_worlds(["rooms-dynamic"], 500_102, 2, (0.9, 0.9))
+    worlds = goal_worlds(["rooms-dynamic"], 500_104, 1, (0.9, 0.9))
     met = [w for w in worlds if fly(untracked, w, "mover_ram", movers="none").while_moving]
     assert met, "the gate that takes movers for standing returns met none while moving"
     assert not [w.name for w in met if fly(tracked, w, "mover_ram", movers="tracker").while_moving]
