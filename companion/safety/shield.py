@@ -118,7 +118,8 @@ class ShieldConfig:
     """Limits of the shield (the ``[shield]`` table of the companion config).
 
     :param max_speed: forward speed limit, m/s
-    :param max_reverse_speed: backward speed limit, m/s
+    :param max_reverse_speed: backward speed limit, m/s; also the fastest retreat of the backup
+        gate's best effort
     :param max_yaw_rate: rad/s, either direction
     :param max_accel: how fast the forward speed may grow, m/s². The autopilot shapes its own
         acceleration too (PX4's ``MPC_ACC_HOR``, 3 m/s² by default; ArduPilot's jerk-limited input
