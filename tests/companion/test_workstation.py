@@ -68,7 +68,7 @@ def test_the_example_config_runs_from_the_repository_root_and_says_it_waits(tmp_
     env.pop("LOGS_DIRECTORY", None)
     proc = subprocess.Popen(
         [sys.executable, "-m", "companion", "run", "--config", "config/companion.example.toml",
-         f"autopilot.connect={address}"],
+         f"autopilot.connect={address}", "params_check.timeout=2"],  # not 30 s of no heartbeat
         cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )  # fmt: skip
     lines: list[str] = []
