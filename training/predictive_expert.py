@@ -86,9 +86,17 @@ class PredictiveExpertConfig:
         also with each of these sideways commands, fractions of the top sideways speed; the path
         expert's command is a candidate with and without its sideways part too
     :param movers: every predicted point also keeps the radius, ``mover_margin`` and the growth from
-        each of the world's moving obstacles, predicted at its true velocity now (what its track
-        shows, not its scripted future: a label a student can learn from the tracks)
+        each of the world's moving obstacles, predicted from its true position and velocity now
+        (what its track shows, not its scripted future: a label a student can learn from the
+        tracks); against movers, a candidate whose command kept through the whole prediction
+        keeps clear (of the static world too) is as good as one whose stop does: a hold in a
+        mover's way is no refuge, stepping on out of it is
     :param mover_margin: clearance beyond the vehicle's radius kept from a mover's shape, metres
+    :param mover_turn_s: a mover may also turn back now, for this long (after that the teacher,
+        choosing again every period, has seen it turn): each point keeps clear of it anywhere on
+        its line from there to where it would be carried on, s. Walkers, forklifts and drones
+        turn at their tracks' ends, within 2 m of the vehicle in every collision without it; with
+        1.5 s the vehicle waited for a gap that never came
     """
 
     forward_options: tuple[float, ...] = (-0.25, 0.0, 0.15, 0.3, 0.5, 0.7, 0.85, 1.0)
@@ -112,6 +120,7 @@ class PredictiveExpertConfig:
     sideways_options: tuple[float, ...] = (-0.5, 0.0, 0.5)
     movers: bool = False
     mover_margin: float = 0.3
+    mover_turn_s: float = 1.0
 
 
 def pick(spare: np.ndarray, near: np.ndarray, score: np.ndarray, recovery_tolerance: float) -> int:
@@ -194,8 +203,7 @@ class PredictiveExpert:
         steps = (command_steps, total_steps, PERIOD_S)
         held = body_to_world(env.drift_held(), float(state.yaw))  # what each setpoint carries on top
         commands = candidates * scale
-        paths = response.predict(float(state.yaw), commands, *steps, held=held)
-        spare, near, cells = self._room(paths, state.position, command_steps)
+        spare, near, cells = self._room(commands, steps, held)
         end = cells[:, -1]
         flown = env.last_command.astype(np.float64)
         score = (
@@ -236,8 +244,6 @@ class PredictiveExpert:
         :param score: each candidate's cost
         :return: the candidate's index
         """
-        response, state = self.env.response, self.env.true_state
-        assert response is not None
         command_steps, total_steps, period = steps
         hard_spare, hard_near = np.full(len(score), np.inf), np.full(len(score), np.inf)
         hopeful = np.flatnonzero(spare > 0.0)
@@ -245,41 +251,53 @@ class PredictiveExpert:
         start, size = 0, 1
         while start < len(order):
             chunk = order[start : start + size]
-            slow = response.predict(float(state.yaw), commands[chunk], *steps, self._hardest, held)
-            hard_spare[chunk], hard_near[chunk], _ = self._room(slow, state.position, command_steps)
+            hard_spare[chunk], hard_near[chunk], _ = self._room(commands[chunk], steps, held, self._hardest)
             safe = np.flatnonzero(hard_spare[chunk] > 0.0)
             if len(safe):
                 return int(chunk[safe[0]])
             start, size = start + size, 2 * size
         rest = np.flatnonzero(~(spare > 0.0))
         predicted = total_steps if self._movers else command_steps  # a mover's room: the whole prediction
-        slow = response.predict(float(state.yaw), commands[rest], command_steps, predicted, period,
-                                self._hardest, held)  # fmt: skip
-        hard_near[rest] = self._room(slow, state.position, command_steps)[1]
+        recovery = (command_steps, predicted, period)
+        _, hard_near[rest], _ = self._room(commands[rest], recovery, held, self._hardest)
         spare, near = np.minimum(spare, hard_spare), np.minimum(near, hard_near)  # no candidate has any spare
         return pick(spare, near, score, self.config.recovery_tolerance)
 
     def _room(
-        self, paths: np.ndarray, position: np.ndarray, command_steps: int
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        self, commands: np.ndarray, steps: tuple[int, int, float], held: tuple[float, float],
+        params: ResponseParams | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
         """Each candidate's least clearance to spare over its whole prediction and while its
         command is sent (``near``, what the recovery weighs), metres, ``(K,)`` each; and the grid
         cells of its predicted points.
 
-        With movers, ``near`` ranks first the candidates that keep clear of the static world while
-        sent, by their room from the movers over the whole prediction (a walker that reaches the
-        vehicle after the command is sent still does: with no candidate safe, the one that keeps
-        the most room steps aside or backs off), then the others by their static clearance, shifted
-        :data:`STATIC_FIRST` below: a vehicle that backs off a forklift into a wall hits the wall.
+        With movers, a candidate's room from them is the more of its stop's and, where the
+        prediction goes on after the command, of its command kept to the end (with that path's
+        static clearance: a way out of a walker's path into a shelf is none). ``near`` ranks first
+        the candidates that keep clear of the static world while sent, by that room over the
+        whole prediction (a walker that reaches the vehicle after the command is sent still does:
+        with no candidate safe, the one that keeps the most room steps aside or backs off), then
+        the others by their static clearance, shifted :data:`STATIC_FIRST` below: a vehicle that
+        backs off a forklift into a wall hits the wall.
 
-        :param paths: ``(K, steps, 3)`` displacements from ``position`` (:meth:`AutopilotResponse.predict`)
-        :param position: the vehicle now, world metres
-        :param command_steps: periods each candidate's command is sent for
+        :param commands: ``(K, 3)`` or ``(K, 2)`` body commands, m/s and rad/s
+        :param steps: periods the command is sent for, periods predicted, and the period (s)
+        :param held: velocity every setpoint carries on top, world m/s (:meth:`AutopilotResponse.predict`)
+        :param params: predict through this response instead of the drawn one (the hardest)
         """
+        response, state = self.env.response, self.env.true_state
+        assert response is not None
+        command_steps, total_steps, period = steps
+        yaw, position = float(state.yaw), state.position
+        paths = response.predict(yaw, commands, *steps, params, held)
         excess, cells = self._excess(paths, position)
         spare, near = excess.min(axis=1), excess[:, :command_steps].min(axis=1)
         if self._movers:
             room = self._mover_excess(paths, position).min(axis=1)
+            if total_steps > command_steps:
+                kept = response.predict(yaw, commands, total_steps, total_steps, period, params, held)
+                way_out = np.minimum(self._mover_excess(kept, position), self._excess(kept, position)[0])
+                room = np.maximum(room, way_out.min(axis=1))
             spare, near = (
                 np.minimum(spare, room),
                 np.where(near > 0.0, np.minimum(near, room), near - STATIC_FIRST),
@@ -289,7 +307,9 @@ class PredictiveExpert:
     def _mover_excess(self, paths: np.ndarray, position: np.ndarray) -> np.ndarray:
         """Each predicted point's clearance from every mover beyond what it must keep (the radius,
         :attr:`~PredictiveExpertConfig.mover_margin` and the growth), metres, ``(K, steps)``: each
-        mover carried on from where it is at its velocity over the last period.
+        mover anywhere on its line from where its velocity over the last period carries it to
+        where it would be had it turned back now (for at most
+        :attr:`~PredictiveExpertConfig.mover_turn_s`), the nearest of those places to the point.
 
         :param paths: ``(K, steps, 3)`` displacements from ``position``
         :param position: the vehicle now, world metres
@@ -305,12 +325,16 @@ class PredictiveExpert:
             [paths[:, :, :2] + np.asarray(position[:2]), np.full((*paths.shape[:2], 1), float(position[2]))],
             axis=-1,
         )
+        back = -np.minimum(ahead, cfg.mover_turn_s) / ahead  # turned back: this much of the way carried on
         least = np.full(paths.shape[:2], np.inf)
         for mover in self._movers:
             before, here = mover.positions(np.array([now - PERIOD_S, now]))
-            centres = here + np.outer(ahead, (here - before) / PERIOD_S)
-            least = np.minimum(least, mover.clearance_from(points, centres[None]))
-            least = np.minimum(least, mover.clearance_from(points, here))  # or it stops where it is
+            carried = np.outer(ahead, (here - before) / PERIOD_S)  # (steps, 2)
+            along = np.einsum("ksj,sj->ks", points[..., :2] - here, carried) / np.maximum(
+                np.einsum("sj,sj->s", carried, carried), 1e-12
+            )
+            centres = here + np.clip(along, back, 1.0)[..., None] * carried  # stopped where it is: 0
+            least = np.minimum(least, mover.clearance_from(points, centres))
         return least - required
 
     def _excess(self, paths: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -1,6 +1,7 @@
 """The mover-aware teacher (``mover_expert``): it gives way to a walker crossing its path where the
-robust teacher flies into it, it flies a dynamic validation world the robust teacher collides in,
-and in a world without movers it is the robust teacher, command for command."""
+robust teacher flies into it, it flies a dynamic validation world the robust teacher collides in
+and one where a walker turns back at it, and in a world without movers it is the robust teacher,
+command for command."""
 
 from __future__ import annotations
 
@@ -112,6 +113,20 @@ def test_it_flies_a_dynamic_validation_world_the_robust_teacher_collides_in():
     )
     assert blind.collision
     assert aware.success and not aware.collision
+
+
+def test_it_arrives_where_a_walker_turns_back_at_it():
+    """warehouse-dynamic-500402 (validation, the third of five, the random response): a walker
+    turns back at its track's end and walks at the vehicle, 1.4 m/s; carried on at its velocity
+    before the turn, the mover-aware teacher flew into it after 11.2 s. It arrives if the walker
+    may turn back, and when it does the vehicle keeps on out of its way rather than stopping in it."""
+    family = "warehouse-dynamic"
+    config = load_train_config("training/configs/nav.toml", [f'env.families=["{family}"]'])
+    world = goal_worlds([family], 500_400, 5, tuple(config.env_config().difficulty_range))[2:3]
+    assert world[0].name == "warehouse-dynamic-500402"
+    (task,) = make_tasks([ControllerSpec("mover_expert")], world, 1, config.env, NAV_ENV_ID)
+    result = run_task(task)
+    assert result.success and not result.collision, result
 
 
 def test_it_is_a_teacher():
