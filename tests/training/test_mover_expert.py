@@ -93,13 +93,19 @@ class Recording:
         return action
 
 
+def _validation_world(family: str, index: int) -> tuple:
+    """nav.toml flying only ``family``, and its world ``index`` of the five from 500,400 that
+    ``avoid-train evaluate --first-seed 500400 --seeds 5`` flies, as a one-world list."""
+    config = load_train_config("training/configs/nav.toml", [f'env.families=["{family}"]'])
+    worlds = goal_worlds([family], 500_400, 5, tuple(config.env_config().difficulty_range))
+    return config, worlds[index : index + 1]
+
+
 def test_it_flies_a_dynamic_validation_world_the_robust_teacher_collides_in():
     """office-dynamic-500403 (validation; the fourth of five as ``avoid-train evaluate --first-seed
     500400 --seeds 5`` flies them, the random response): the robust teacher flies into a walker
     after 2.3 s, the mover-aware teacher reaches every waypoint."""
-    family = "office-dynamic"
-    config = load_train_config("training/configs/nav.toml", [f'env.families=["{family}"]'])
-    world = goal_worlds([family], 500_400, 5, tuple(config.env_config().difficulty_range))[3:4]
+    config, world = _validation_world("office-dynamic", 3)
     assert world[0].name == "office-dynamic-500403"
     blind, aware = (
         run_task(task)
@@ -120,9 +126,7 @@ def test_it_arrives_where_a_walker_turns_back_at_it():
     turns back at its track's end and walks at the vehicle, 1.4 m/s; carried on at its velocity
     before the turn, the mover-aware teacher flew into it after 11.2 s. It arrives if the walker
     may turn back, and when it does the vehicle keeps on out of its way rather than stopping in it."""
-    family = "warehouse-dynamic"
-    config = load_train_config("training/configs/nav.toml", [f'env.families=["{family}"]'])
-    world = goal_worlds([family], 500_400, 5, tuple(config.env_config().difficulty_range))[2:3]
+    config, world = _validation_world("warehouse-dynamic", 2)
     assert world[0].name == "warehouse-dynamic-500402"
     (task,) = make_tasks([ControllerSpec("mover_expert")], world, 1, config.env, NAV_ENV_ID)
     result = run_task(task)
