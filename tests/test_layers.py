@@ -38,6 +38,7 @@ TRAINING_BASE = {
     "give_way",
     "path_expert",
     "predictive_expert",
+    "space_time_expert",
     "mirror",
     "attackers",
     "scan_features",

@@ -131,9 +131,10 @@ class PretrainConfig:
     method: Literal["bc", "dagger"] = "bc"
     steps: int = field(default=0, metadata={"min": 0, "max": 10_000_000})
     demonstrator: Literal["goal_follower", "gap_follower"] = "goal_follower"
-    teacher: Literal["path_expert", "predictive_expert", "robust_expert", "smooth_expert", "mover_expert"] = (
-        "path_expert"
-    )
+    teacher: Literal[
+        "path_expert", "predictive_expert", "robust_expert", "smooth_expert", "mover_expert",
+        "space_time_expert",
+    ] = "path_expert"  # fmt: skip
     iterations: int = field(default=1, metadata={"min": 1, "max": 100})
     beta0: float = field(default=0.5, metadata={"min": 0.0, "max": 1.0})
     teacher_noise: float = field(default=0.0, metadata={"min": 0.0, "max": 1.0})

@@ -25,6 +25,7 @@ from training.attackers import ATTACKERS, REPLAY, ReplayAttacker, make_attacker
 from training.config import STEP_SECONDS, observation_layout, sideways_scale
 from training.path_expert import ExpertController, PathExpert
 from training.predictive_expert import PredictiveExpert, mover_expert, robust_expert, smooth_expert
+from training.space_time_expert import space_time_expert
 
 BASELINES = ("gap_follower", "random")
 GOAL_BASELINES = ("goal_follower", "straight_line")
@@ -43,6 +44,7 @@ PRIVILEGED_GOAL_CONTROLLERS = (
     "robust_expert",
     "smooth_expert",
     "mover_expert",
+    "space_time_expert",
 )
 #: the DAgger teachers by name, each built from the env whose truth it reads
 TEACHERS: dict[str, Callable[[Any], Any]] = {
@@ -51,6 +53,7 @@ TEACHERS: dict[str, Callable[[Any], Any]] = {
     "robust_expert": robust_expert,
     "smooth_expert": smooth_expert,
     "mover_expert": mover_expert,
+    "space_time_expert": space_time_expert,
 }
 
 

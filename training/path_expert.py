@@ -134,28 +134,7 @@ class PathExpert:
         env, cfg = self.env, self.config
         state = env.true_state
         true_velocity = np.asarray(state.velocity[:2], dtype=np.float64)
-        lag = self._lag()
-        here = np.asarray(state.position[:2], dtype=np.float64)
-        # where the lags will have carried it by the time a command acts
-        position = here + min(lag, cfg.lead_cap_s) * true_velocity
-        if self._needs_plan(here):
-            self._plan(here)
-        target, turn = self._pursuit(position, 2.0 * cfg.lookahead + lag * math.hypot(*true_velocity))
-        offset = target - position
-        distance = math.hypot(*offset)
-        clearance = env.world.clearance(state.position) - env.config.vehicle_radius
-        free = self._free_run(here, offset / max(distance, 1e-6))
-        moving = math.hypot(*true_velocity)
-        if moving > cfg.min_speed:  # where it is going anyway, until the command takes hold
-            free = min(free, self._free_run(here, true_velocity / moving))
-        speed = min(
-            env.config.max_speed,
-            cfg.min_speed + cfg.clearance_speed_gain * max(clearance - cfg.clearance_floor, 0.0),
-            _stopping_speed(free, cfg.brake_accel, lag),
-        )
-        speed *= max(0.2, 1.0 - cfg.turn_slowdown * turn)
-        direction = offset / max(distance, 1e-6)
-        desired = direction * speed
+        desired, direction = self._desired()
         # the autopilot flies its estimate (reported = true + error): asking for the error holds
         # still; the velocity gain also damps the true velocity's error
         error_xy = self._estimate_error()
@@ -184,6 +163,36 @@ class PathExpert:
         )  # fmt: skip
 
     # ------------------------------------------------------------------ internals
+    def _desired(self) -> tuple[np.ndarray, np.ndarray]:
+        """The true velocity to fly now (world m/s) and the path's direction there (a unit vector):
+        the pursuit point on the planned path, at the speed its clearance, the free run and the
+        path's turn ahead allow."""
+        env, cfg = self.env, self.config
+        state = env.true_state
+        true_velocity = np.asarray(state.velocity[:2], dtype=np.float64)
+        lag = self._lag()
+        here = np.asarray(state.position[:2], dtype=np.float64)
+        # where the lags will have carried it by the time a command acts
+        position = here + min(lag, cfg.lead_cap_s) * true_velocity
+        if self._needs_plan(here):
+            self._plan(here)
+        target, turn = self._pursuit(position, 2.0 * cfg.lookahead + lag * math.hypot(*true_velocity))
+        offset = target - position
+        distance = math.hypot(*offset)
+        clearance = env.world.clearance(state.position) - env.config.vehicle_radius
+        free = self._free_run(here, offset / max(distance, 1e-6))
+        moving = math.hypot(*true_velocity)
+        if moving > cfg.min_speed:  # where it is going anyway, until the command takes hold
+            free = min(free, self._free_run(here, true_velocity / moving))
+        speed = min(
+            env.config.max_speed,
+            cfg.min_speed + cfg.clearance_speed_gain * max(clearance - cfg.clearance_floor, 0.0),
+            _stopping_speed(free, cfg.brake_accel, lag),
+        )
+        speed *= max(0.2, 1.0 - cfg.turn_slowdown * turn)
+        direction = offset / max(distance, 1e-6)
+        return direction * speed, direction
+
     def _sideways_action(
         self, command: np.ndarray, direction: np.ndarray, nose: np.ndarray, yaw: float
     ) -> np.ndarray:

@@ -98,6 +98,11 @@ class PredictiveExpertConfig:
         turn at their tracks' ends, within 2 m of the vehicle in every collision without it; 0.6
         and 0.8 s left 3 and 4 collisions in the 20 dynamic validation worlds, the whole
         look-ahead 11 timeouts (waiting for a gap that never came)
+    :param mover_oracle_s: above 0: each mover is where its track will truly put it (privileged,
+        as the static map is), and a candidate keeps clear of it over this many seconds of its
+        prediction only, s. For a teacher whose path already keeps clear of the movers' futures
+        (:mod:`training.space_time_expert`): a stop in a mover's way is then no refuge to demand,
+        the way on is
     """
 
     forward_options: tuple[float, ...] = (-0.25, 0.0, 0.15, 0.3, 0.5, 0.7, 0.85, 1.0)
@@ -122,6 +127,7 @@ class PredictiveExpertConfig:
     movers: bool = False
     mover_margin: float = 0.3
     mover_turn_s: float = 1.0
+    mover_oracle_s: float = 0.0
 
 
 def pick(spare: np.ndarray, near: np.ndarray, score: np.ndarray, recovery_tolerance: float) -> int:
@@ -144,11 +150,13 @@ class PredictiveExpert:
     :param env: the env whose true state and response model it reads (``reset`` it before :meth:`reset`)
     :param config: tuning
     :param path_config: the tuning of the path expert whose command it filters
+    :param path: the path expert whose command it filters, if not a :class:`PathExpert` of
+        ``path_config`` (one that plans among the movers)
     """
 
     def __init__(
         self, env: LidarNavEnv, config: PredictiveExpertConfig | None = None,
-        path_config: PathExpertConfig | None = None,
+        path_config: PathExpertConfig | None = None, path: PathExpert | None = None,
     ) -> None:  # fmt: skip
         self.env = env
         self.config = config or PredictiveExpertConfig()
@@ -156,7 +164,7 @@ class PredictiveExpert:
         self._candidates = np.array([(f, r) for f in cfg.forward_options for r in cfg.yaw_options])
         if env.config.sideways:
             self._candidates = np.array([(*c, s) for c in self._candidates for s in cfg.sideways_options])
-        self._path_expert = PathExpert(env, path_config)
+        self._path_expert = path or PathExpert(env, path_config)
         self._grid: ClearanceGrid | None = None
         self._costs = np.zeros((0, 0))
         self._to_goal = np.zeros((0, 0))
@@ -295,7 +303,7 @@ class PredictiveExpert:
         spare, near = excess.min(axis=1), excess[:, :command_steps].min(axis=1)
         if self._movers:
             room = self._mover_excess(paths, position).min(axis=1)
-            if total_steps > command_steps:
+            if total_steps > command_steps and not self.config.mover_oracle_s:
                 kept = response.predict(yaw, commands, total_steps, total_steps, period, params, held)
                 way_out = np.minimum(self._mover_excess(kept, position), self._excess(kept, position)[0])
                 room = np.maximum(room, way_out.min(axis=1))
@@ -310,7 +318,9 @@ class PredictiveExpert:
         :attr:`~PredictiveExpertConfig.mover_margin` and the growth), metres, ``(K, steps)``: each
         mover anywhere on its line from where its velocity over the last period carries it to
         where it would be had it turned back now (for at most
-        :attr:`~PredictiveExpertConfig.mover_turn_s`), the nearest of those places to the point.
+        :attr:`~PredictiveExpertConfig.mover_turn_s`), the nearest of those places to the point;
+        or, with :attr:`~PredictiveExpertConfig.mover_oracle_s`, where its track puts it (and no
+        limit beyond that horizon).
 
         :param paths: ``(K, steps, 3)`` displacements from ``position``
         :param position: the vehicle now, world metres
@@ -326,8 +336,13 @@ class PredictiveExpert:
             [paths[:, :, :2] + np.asarray(position[:2]), np.full((*paths.shape[:2], 1), float(position[2]))],
             axis=-1,
         )
-        back = -np.minimum(ahead, cfg.mover_turn_s) / ahead  # turned back: this much of the way carried on
         least = np.full(paths.shape[:2], np.inf)
+        if cfg.mover_oracle_s:
+            for mover in self._movers:
+                least = np.minimum(least, mover.clearance_from(points, mover.positions(now + ahead)[None]))
+            least[:, ahead > cfg.mover_oracle_s + 1e-9] = np.inf
+            return least - required
+        back = -np.minimum(ahead, cfg.mover_turn_s) / ahead  # turned back: this much of the way carried on
         for mover in self._movers:
             before, here = mover.positions(np.array([now - PERIOD_S, now]))
             carried = np.outer(ahead, (here - before) / PERIOD_S)  # (steps, 2)

@@ -11,6 +11,9 @@ straight move between cell centres, and for the moving obstacles also what both 
 between two time samples. The waypoints are taken in order, each reached as early as possible
 (waiting there is allowed where it is safe). A schedule proves the world can be flown; none within
 the horizon rejects the layout (conservative: a faster or finer vehicle may still get through).
+
+:func:`schedule` is the same search from any cell and time, kept step by step so that the way
+itself can be read back: the space-time teacher (:mod:`training.space_time_expert`) flies it.
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ import math
 import numpy as np
 from scipy.ndimage import binary_dilation
 
-from flightsim.worlds.planner import clearance_grid
+from flightsim.worlds.planner import ClearanceGrid, clearance_grid
 from flightsim.worlds.world import World
 
 SAFETY_EXTRA = 0.05  # metres beyond the sampling margins
@@ -51,18 +54,8 @@ def wait_and_go_time(
     half_diagonal = cell * math.sqrt(2.0) / 2.0
     grid = clearance_grid(world, z, cell, cap=vehicle_radius + half_diagonal + cell)
     static_free = grid.clearance >= vehicle_radius + half_diagonal
-    nx, ny = static_free.shape
-    ii, jj = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
-    centres = np.column_stack(
-        [
-            grid.origin[0] + (ii.ravel() + 0.5) * cell,
-            grid.origin[1] + (jj.ravel() + 0.5) * cell,
-            np.full(ii.size, z),
-        ]
-    )
-    vehicle_speed = cell * math.sqrt(2.0) / dt
-    fastest = max((m.speed for m in world.moving), default=0.0)
-    needed = vehicle_radius + half_diagonal + (fastest + vehicle_speed) * dt / 2.0 + SAFETY_EXTRA
+    centres = cell_centres(grid, z)
+    needed = vehicle_radius + sampling_margin(world, cell, dt)
     times = np.arange(0.0, horizon + dt / 2.0, dt)
     free_chunk: np.ndarray | None = None
 
@@ -70,13 +63,10 @@ def wait_and_go_time(
         nonlocal free_chunk
         if k % _CHUNK == 0 or free_chunk is None:
             chunk = times[k - k % _CHUNK : k - k % _CHUNK + _CHUNK]
-            ok = np.ones((chunk.size, centres.shape[0]), dtype=bool)
-            for m in world.moving:
-                ok &= m.clearance_over_time(centres, chunk) >= needed
-            free_chunk = ok.reshape(chunk.size, nx, ny) & static_free[None]
+            free_chunk = free_cells(world, centres, chunk, needed, static_free)
         return free_chunk[k % _CHUNK]
 
-    reach = np.zeros((nx, ny), dtype=bool)
+    reach = np.zeros(static_free.shape, dtype=bool)
     reach[grid.cell(*world.start_position[:2])] = True
     reach &= free_at(0)
     targets = [grid.cell(*w[:2]) for w in world.waypoints]
@@ -91,3 +81,90 @@ def wait_and_go_time(
             reach[:] = False
             reach[target] = True
     return float(times[-1]) if not targets else None
+
+
+def cell_centres(grid: ClearanceGrid, altitude: float) -> np.ndarray:
+    """Every cell's centre at ``altitude``, ``(nx * ny, 3)`` in the grid's row-major order."""
+    nx, ny = grid.clearance.shape
+    ii, jj = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
+    return np.column_stack(
+        [
+            grid.origin[0] + (ii.ravel() + 0.5) * grid.resolution,
+            grid.origin[1] + (jj.ravel() + 0.5) * grid.resolution,
+            np.full(ii.size, altitude),
+        ]
+    )
+
+
+def sampling_margin(world: World, cell: float, dt: float) -> float:
+    """Clearance beyond the vehicle's radius a cell centre must keep from every moving obstacle at
+    every time sample, metres: half a cell diagonal (the straight move between centres) and what the
+    fastest mover and the vehicle can close between two samples."""
+    vehicle_speed = cell * math.sqrt(2.0) / dt
+    fastest = max((m.speed for m in world.moving), default=0.0)
+    return cell * math.sqrt(2.0) / 2.0 + (fastest + vehicle_speed) * dt / 2.0 + SAFETY_EXTRA
+
+
+def free_cells(
+    world: World, centres: np.ndarray, times: np.ndarray, needed: float, static_free: np.ndarray
+) -> np.ndarray:
+    """Which cells the vehicle may be in at each of ``times``: ``static_free`` and at least ``needed``
+    metres from every moving obstacle where it is then, ``(T, nx, ny)``.
+
+    :param centres: the cells' centres, :func:`cell_centres`
+    :param needed: metres from each mover's surface
+    :param static_free: ``(nx, ny)`` the cells the static world leaves free
+    """
+    ok = np.ones((times.size, centres.shape[0]), dtype=bool)
+    for m in world.moving:
+        ok &= m.clearance_over_time(centres, times) >= needed
+    return ok.reshape(times.size, *static_free.shape) & static_free[None]
+
+
+def schedule(free: np.ndarray, start: tuple[int, int], goal: tuple[int, int], cost: np.ndarray) -> np.ndarray:
+    """The earliest way from ``start`` to ``goal`` through ``free`` cells, one cell per time step
+    (staying put or moving to one of the eight around), ``(K, 2)`` cells from ``start`` on.
+
+    The vehicle's own cell counts as free at the start even when a mover's margin covers it (it is
+    there: the way leads out). When the goal cannot be reached within ``free``'s steps, the way
+    ends, at the last step, in the reachable cell of least ``cost`` (the cost to the goal), so the
+    vehicle still gets as near as the movers let it. Where no cell stays reachable it stays put.
+    Read back from the end, a step keeps to its cell whenever that cell was reachable a step
+    earlier (the vehicle gets to each place as early as it can and waits there), and otherwise
+    comes from the neighbour of most ``cost`` (the most progress per step).
+
+    :param free: ``(T, nx, ny)`` :func:`free_cells`
+    :param start: the vehicle's cell at ``free``'s first time
+    :param goal: the cell to reach
+    :param cost: ``(nx, ny)`` each cell's cost to the goal (the tie-break, and where to end short)
+    """
+    steps, nx, ny = free.shape
+    reach = np.zeros((nx, ny), dtype=bool)
+    reach[start] = True
+    reaches = [reach]
+    end: tuple[int, int] | None = None
+    for k in range(1, steps):
+        reach = binary_dilation(reach, _NEIGHBOURS) & free[k]
+        if not reach.any():
+            reach = reaches[0].copy()  # trapped: hold where it is
+        reaches.append(reach)
+        if reach[goal]:
+            end = goal
+            break
+    if end is None:
+        masked = np.where(reaches[-1], cost, np.inf)
+        end = (int(np.argmin(masked) // ny), int(np.argmin(masked) % ny))
+    way = [end]
+    for reach in reversed(reaches[:-1]):
+        i, j = way[-1]
+        if reach[i, j]:
+            way.append((i, j))
+            continue
+        around = [
+            (a, b)
+            for a in range(max(i - 1, 0), min(i + 2, nx))
+            for b in range(max(j - 1, 0), min(j + 2, ny))
+            if reach[a, b]
+        ]
+        way.append(max(around, key=lambda c: cost[c]) if around else (i, j))
+    return np.array(way[::-1], dtype=np.int64)

@@ -16,7 +16,8 @@ from companion.common.errors import UserError
 from flightsim.worlds.families import ALL_FAMILIES, DYNAMIC_FAMILIES, FAMILIES, generate_family_world
 from flightsim.worlds.families.dynamic import DYNAMIC_MIXES
 from flightsim.worlds.moving import MovingObstacle, PathMotion, RandomWalk
-from flightsim.worlds.space_time import wait_and_go_time
+from flightsim.worlds.planner import clearance_grid
+from flightsim.worlds.space_time import cell_centres, free_cells, sampling_margin, schedule, wait_and_go_time
 from flightsim.worlds.world import World, load_world, world_from_dict, world_to_dict
 
 REPO = Path(__file__).resolve().parents[2]
@@ -271,6 +272,45 @@ def test_space_time_search_rejects_a_corridor_blocked_for_good() -> None:
     pacing = MovingObstacle("box", PathMotion(((-1.5, 0.0), (2.5, 0.0)), 1.0), 2.0, size=(1.2, 1.6))
     assert wait_and_go_time(_corridor((pacing,)), 0.25, 60.0) is None
     assert wait_and_go_time(_corridor(()), 0.25, 60.0) is not None
+
+
+def _corridor_schedule(world: World, horizon: float) -> tuple[np.ndarray, np.ndarray, tuple[int, int], float]:
+    """The schedule from the corridor's start to its waypoint (0.2 m cells, 0.2 s steps), the free
+    cells it searched, the goal's cell, and the x of the grid's first column of cells (metres)."""
+    grid = clearance_grid(world, 1.5, 0.2, 1.0)
+    static_free = grid.clearance >= 0.25 + 0.2 * np.sqrt(2.0) / 2.0
+    times = np.arange(0.0, horizon, 0.2)
+    needed = 0.25 + sampling_margin(world, 0.2, 0.2)
+    free = free_cells(world, cell_centres(grid, 1.5), times, needed, static_free)
+    start, goal = grid.cell(-4.0, 0.0), grid.cell(4.0, 0.0)
+    to_goal = np.abs(np.arange(free.shape[1]) - goal[0])[:, None] + np.zeros(free.shape[2])
+    return schedule(free, start, goal, to_goal), free, goal, grid.origin[0]
+
+
+def test_schedule_waits_for_the_door_and_every_step_is_free_and_a_neighbour() -> None:
+    """The sliding door of the corridor: the schedule reaches the waypoint later than the empty
+    corridor's, every step moves at most one cell, and every cell after the start is free then."""
+    empty, _, goal, _ = _corridor_schedule(_corridor(()), 30.0)
+    assert tuple(empty[-1]) == goal and len(empty) == pytest.approx(41, abs=2)  # 8 m at 1 m/s
+    door = MovingObstacle("box", PathMotion(((0.0, -6.0), (0.0, 6.0)), 1.5), 2.0, size=(0.6, 2.0))
+    way, free, goal, _ = _corridor_schedule(_corridor((door,)), 30.0)
+    assert tuple(way[-1]) == goal and len(way) > len(empty) + 2
+    assert np.abs(np.diff(way, axis=0)).max() <= 1
+    assert all(free[k, i, j] for k, (i, j) in enumerate(way) if k > 0)
+
+
+def test_schedule_ends_where_the_movers_let_it_get_nearest() -> None:
+    """The forklift pacing the corridor for good: no way to the waypoint, so the schedule ends in
+    the reachable cell nearest it: right behind the forklift, which it follows into its beat."""
+    pacing = MovingObstacle("box", PathMotion(((-1.5, 0.0), (2.5, 0.0)), 1.0), 2.0, size=(1.2, 1.6))
+    way, free, goal, x0 = _corridor_schedule(_corridor((pacing,)), 20.0)
+    assert tuple(way[-1]) != goal
+    assert all(free[k, i, j] for k, (i, j) in enumerate(way) if k > 0)
+    end_x = x0 + (way[-1][0] + 0.5) * 0.2
+    # a cell keeps the radius and the sampling margin (0.68 m) from the forklift's back (0.6 m)
+    behind = float(pacing.positions(0.2 * (len(way) - 1))[0, 0]) - 0.6 - 0.68
+    assert behind - 0.4 < end_x <= behind
+    assert all(free[k, i, j] for k, (i, j) in enumerate(way) if k > 0)
 
 
 def test_avoid_sim_worlds_saves_dynamic_worlds_that_load_back(tmp_path, capsys) -> None:

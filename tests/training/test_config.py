@@ -153,7 +153,7 @@ def test_movers_without_the_tracker_is_one_line_naming_both_keys(tmp_path, capsy
 
 def test_nav_movers_is_the_nav_recipe_with_movers_among_every_family_and_its_env_runs():
     """A smoke check of training/configs/nav-movers.toml (not trained here): nav.toml's recipe but for
-    the movers in the frame, the dynamic families and the teacher that gives way to movers; its env
+    the movers in the frame, the dynamic families and the teacher that plans round the movers; its env
     flies a dynamic world (validation seed) and its frames stay in their bounds."""
     import dataclasses
 
@@ -167,7 +167,7 @@ def test_nav_movers_is_the_nav_recipe_with_movers_among_every_family_and_its_env
     env_config = movers.env_config()
     assert env_config.movers and sorted(env_config.families) == sorted(ALL_FAMILIES)
     assert dataclasses.replace(movers, name="nav", env=nav.env, pretrain=nav.pretrain) == nav
-    assert movers.pretrain == dataclasses.replace(nav.pretrain, teacher="mover_expert")
+    assert movers.pretrain == dataclasses.replace(nav.pretrain, teacher="space_time_expert")
     static = nav.env_config()
     assert dataclasses.replace(env_config, movers=False, families=static.families) == static
     assert env_config.layout.name == dataclasses.replace(static.layout, movers=True).name  # scan, goal, drift

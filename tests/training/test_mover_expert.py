@@ -67,15 +67,16 @@ def test_it_gives_way_to_a_crossing_walker_the_robust_teacher_flies_into(walker_
 
 def test_in_a_world_without_movers_it_is_the_robust_teacher():
     """Two static validation worlds (warehouse 500,400-1, the training env, the random response):
-    every action the same, bit for bit."""
+    every action the same, bit for bit, and the space-time teacher's too."""
     config = load_train_config("training/configs/nav.toml", ['env.families=["warehouse"]'])
     worlds = goal_worlds(["warehouse"], 500_400, 5, tuple(config.env_config().difficulty_range))[:2]
-    actions: dict[str, list[np.ndarray]] = {"robust_expert": [], "mover_expert": []}
+    actions: dict[str, list[np.ndarray]] = {"robust_expert": [], "mover_expert": [], "space_time_expert": []}
     for kind, recorded in actions.items():
         for task in make_tasks([ControllerSpec(kind)], worlds, 1, config.env, NAV_ENV_ID):
             run_task(task, lambda controller, env, out=recorded: Recording(controller, out))
     assert len(actions["mover_expert"]) > 300
     np.testing.assert_array_equal(np.array(actions["mover_expert"]), np.array(actions["robust_expert"]))
+    np.testing.assert_array_equal(np.array(actions["space_time_expert"]), np.array(actions["robust_expert"]))
 
 
 class Recording:
