@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from flightsim.envs.nav_env import LidarNavEnv
-from flightsim.worlds.planner import ClearanceGrid, astar_cells, clearance_grid
+from flightsim.worlds.planner import ClearanceGrid, astar_cells, clearance_grid, cost_to_go
 
 
 def body_to_world(body: tuple[float, float], yaw: float) -> tuple[float, float]:
@@ -338,6 +338,18 @@ def _along(path: np.ndarray, segment: int, point: np.ndarray, distance: float) -
         distance -= step
         current = path[k]
     return path[-1].copy()
+
+
+def cost_to_point(grid: ClearanceGrid, costs: np.ndarray, point: tuple[float, float]) -> np.ndarray:
+    """Each cell's clearance-weighted cost to ``point`` over ``grid``, metres (unreachable: 1e4).
+
+    :param costs: the cells' cost multipliers (:func:`_cell_costs`); the point's own cell counts as free
+    """
+    gi, gj = grid.cell(*point)
+    costs = costs.copy()
+    costs[gi, gj] = 1.0  # the point is where it is
+    to_point = cost_to_go(costs, gi, gj) * grid.resolution
+    return np.where(np.isfinite(to_point), to_point, 1e4)
 
 
 def _cell_costs(clearance: np.ndarray, radius: float, margin: float, weight: float) -> np.ndarray:

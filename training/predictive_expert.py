@@ -44,8 +44,8 @@ import numpy as np
 from flightsim.envs.nav_env import LidarNavEnv
 from flightsim.vehicle.autopilot_response import ResponseParams, hardest_params
 from flightsim.worlds.moving import MovingObstacle
-from flightsim.worlds.planner import ClearanceGrid, clearance_grid, cost_to_go
-from training.path_expert import PathExpert, PathExpertConfig, _cell_costs, body_to_world
+from flightsim.worlds.planner import ClearanceGrid, clearance_grid
+from training.path_expert import PathExpert, PathExpertConfig, _cell_costs, body_to_world, cost_to_point
 
 #: s between commands (the env's control period)
 PERIOD_S = 0.1
@@ -338,9 +338,11 @@ class PredictiveExpert:
         )
         least = np.full(paths.shape[:2], np.inf)
         if cfg.mover_oracle_s:
+            checked = ahead <= cfg.mover_oracle_s + 1e-9  # beyond it: no limit
+            seen, near, when = points[:, checked], least[:, checked], now + ahead[checked]
             for mover in self._movers:
-                least = np.minimum(least, mover.clearance_from(points, mover.positions(now + ahead)[None]))
-            least[:, ahead > cfg.mover_oracle_s + 1e-9] = np.inf
+                near = np.minimum(near, mover.clearance_from(seen, mover.positions(when)[None]))
+            least[:, checked] = near
             return least - required
         back = -np.minimum(ahead, cfg.mover_turn_s) / ahead  # turned back: this much of the way carried on
         for mover in self._movers:
@@ -370,14 +372,9 @@ class PredictiveExpert:
 
     def _cost_to_waypoint(self, index: int) -> np.ndarray:
         """Each cell's clearance-weighted cost to waypoint ``index``, metres (unreachable: 1e4)."""
-        grid = self._grid
-        assert grid is not None
+        assert self._grid is not None
         goal = self.env.world.waypoints[index]
-        gi, gj = grid.cell(float(goal[0]), float(goal[1]))
-        costs = self._costs.copy()
-        costs[gi, gj] = 1.0  # the waypoint is where it is
-        to_goal = cost_to_go(costs, gi, gj) * grid.resolution
-        return np.where(np.isfinite(to_goal), to_goal, 1e4)
+        return cost_to_point(self._grid, self._costs, (float(goal[0]), float(goal[1])))
 
     def _cells(self, points: np.ndarray) -> np.ndarray:
         """Grid cells (clamped into the grid) of ``(..., 2)`` points, ``(..., 2)`` ints."""

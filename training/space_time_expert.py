@@ -39,9 +39,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from flightsim.envs.nav_env import LidarNavEnv
-from flightsim.worlds.planner import ClearanceGrid, clearance_grid, cost_to_go
+from flightsim.worlds.planner import ClearanceGrid, clearance_grid
 from flightsim.worlds.space_time import cell_centres, free_cells, sampling_margin, schedule
-from training.path_expert import PathExpert, _cell_costs
+from training.path_expert import PathExpert, _cell_costs, cost_to_point
 from training.predictive_expert import MOVERS, PredictiveExpert
 
 
@@ -87,6 +87,7 @@ class SpaceTimePath(PathExpert):
         self.schedule_config = config or SpaceTimeConfig()
         self._cells: ClearanceGrid | None = None
         self._static_free = np.zeros((0, 0), dtype=bool)
+        self._cell_cost = np.zeros((0, 0))
         self._centres = np.zeros((0, 3))
         self._needed = 0.0
         self._to_goal = np.zeros((0, 0))
@@ -105,6 +106,8 @@ class SpaceTimePath(PathExpert):
         cap = radius + half_diagonal + sc.static_margin + self.config.preferred_margin + sc.cell
         self._cells = clearance_grid(env.world, altitude, sc.cell, cap)
         self._static_free = self._cells.clearance >= radius + half_diagonal + sc.static_margin
+        cfg = self.config
+        self._cell_cost = _cell_costs(self._cells.clearance, radius, cfg.preferred_margin, cfg.clearance_cost)
         self._centres = cell_centres(self._cells, altitude)
         self._needed = radius + sc.mover_margin + sampling_margin(env.world, sc.cell, sc.dt)
         self._goal_index, self._replan_at = -1, -np.inf
@@ -141,21 +144,16 @@ class SpaceTimePath(PathExpert):
         """Search the schedule from the vehicle's cell now to the current waypoint."""
         env, sc, grid = self.env, self.schedule_config, self._cells
         assert grid is not None
+        x, y = env.world.waypoints[env.waypoint_index][:2]
+        goal = (float(x), float(y))
         if self._goal_index != env.waypoint_index:
-            goal = env.world.waypoints[env.waypoint_index]
-            gi, gj = grid.cell(float(goal[0]), float(goal[1]))
-            costs = _cell_costs(grid.clearance, env.config.vehicle_radius, self.config.preferred_margin,
-                                self.config.clearance_cost)  # fmt: skip
-            costs[gi, gj] = 1.0  # the waypoint is where it is
-            to_goal = cost_to_go(costs, gi, gj)
-            self._to_goal = np.where(np.isfinite(to_goal), to_goal, 1e9)
+            self._to_goal = cost_to_point(grid, self._cell_cost, goal)
             self._goal_index = env.waypoint_index
         now = env.sim_time
         times = now + sc.dt * np.arange(round(sc.horizon_s / sc.dt) + 1)
         free = free_cells(env.world, self._centres, times, self._needed, self._static_free)
         here = env.true_state.position
-        goal = env.world.waypoints[env.waypoint_index]
-        cells = schedule(free, grid.cell(*here[:2]), grid.cell(float(goal[0]), float(goal[1])), self._to_goal)
+        cells = schedule(free, grid.cell(*here[:2]), grid.cell(*goal), self._to_goal)
         self._way = np.asarray(grid.origin) + (cells + 0.5) * sc.cell
         self._way[0] = here[:2]  # from where it truly is, not its cell's centre
         self._times = times[: len(cells)]

@@ -152,8 +152,8 @@ def schedule(free: np.ndarray, start: tuple[int, int], goal: tuple[int, int], co
             end = goal
             break
     if end is None:
-        masked = np.where(reaches[-1], cost, np.inf)
-        end = (int(np.argmin(masked) // ny), int(np.argmin(masked) % ny))
+        nearest = np.unravel_index(np.argmin(np.where(reaches[-1], cost, np.inf)), cost.shape)
+        end = (int(nearest[0]), int(nearest[1]))
     way = [end]
     for reach in reversed(reaches[:-1]):
         i, j = way[-1]
