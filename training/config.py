@@ -54,6 +54,10 @@ class PPOConfig:
     #: "circular_scan"'s convolutions, each (output channels, odd kernel size, stride); empty: its
     #: default (training/scan_features.py, ``DEFAULT_LAYERS``)
     scan_layers: list[tuple[int, int, int]] = field(default_factory=list, metadata={"min": 1, "max": 512})
+    #: "circular_scan" also reads the newest frame's tracked movers drawn as scans, one ring per
+    #: time here, seconds ahead (training/scan_features.py, ``MoverRing``); needs ``env.movers``.
+    #: Empty: no rings
+    mover_ring: list[float] = field(default_factory=list, metadata={"min": 0.0, "max": 10.0})
     #: stop an update's epochs once the approximate KL divergence from the policy that collected
     #: the rollout passes this (SB3's ``target_kl``; 0: never), so a fine-tune's first updates,
     #: against a critic that has not yet seen the policy fly, cannot tear up what it learnt
@@ -214,6 +218,12 @@ class TrainConfig:
             task = "goal" if self.is_goal_task else "avoid"
             raise ValueError(
                 f"pretrain.demonstrator {self.pretrain.demonstrator} does not fly the {task} task"
+            )
+        ring_unread = self.ppo.features_extractor != "circular_scan" or not self.env.get("movers")
+        if self.ppo.mover_ring and ring_unread:
+            raise ValueError(
+                "ppo.mover_ring draws the frame's movers for the \"circular_scan\" extractor: it needs "
+                "that extractor and env.movers"
             )
         if not self.name or any(c in self.name for c in "/\\ "):
             raise ValueError(f"name {self.name!r} must be non-empty without spaces or slashes")

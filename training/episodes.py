@@ -265,7 +265,10 @@ def goal_worlds(
     families: Sequence[str], first_seed: int, n: int, difficulty_range: tuple[float, float]
 ) -> list[WorldSpec]:
     """``n`` generated goal-task worlds per family, seeds ``first_seed…``, difficulties spread evenly
-    over ``difficulty_range`` (world ``k`` at the middle of the ``k``-th of ``n`` equal slices)."""
+    over ``difficulty_range`` (world ``k`` at the middle of the ``k``-th of ``n`` equal slices).
+
+    A family named twice is flown once: naming it twice weighs training's draws, not the held-out set.
+    """
     low, high = difficulty_range
     return [
         WorldSpec(
@@ -274,6 +277,6 @@ def goal_worlds(
             difficulty=round(low + (high - low) * (k + 0.5) / n, 3),
             family=f,
         )
-        for f in families
+        for f in dict.fromkeys(families)
         for k in range(n)
     ]

@@ -343,10 +343,17 @@ def policy_kwargs(config: TrainConfig) -> dict[str, Any]:
         kwargs |= {
             "features_extractor_class": CircularScanExtractor,
             "features_extractor_kwargs": {"n_stack": config.n_stack, "n_bins": N_BINS}
-            | ({"layers": tuple(p.scan_layers)} if p.scan_layers else {}),
+            | ({"layers": tuple(p.scan_layers)} if p.scan_layers else {})
+            | (_mover_ring_kwargs(config) if p.mover_ring else {}),
             "share_features_extractor": False,  # the critic's returns would swamp the actor's features
         }
     return kwargs
+
+
+def _mover_ring_kwargs(config: TrainConfig) -> dict[str, Any]:
+    """The circular extractor's ``movers_at`` (from the env's layout) and ``mover_times``."""
+    layout = observation_layout(config.env_config())
+    return {"movers_at": layout.slices()["movers"].start, "mover_times": tuple(config.ppo.mover_ring)}
 
 
 def build_model(config: TrainConfig, venv: Any, run_dir: Path, resume: Path | None):

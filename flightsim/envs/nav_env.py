@@ -40,7 +40,8 @@ class NavEnvConfig(EnvConfig):
     ``difficulty`` and ``reward`` of the base config do not apply: difficulties are drawn from
     ``difficulty_range`` and the reward is :func:`flightsim.envs.reward.goal_reward`.
 
-    :param families: world families training draws from (uniformly): by default the static
+    :param families: world families training draws from, uniformly by entry (a family named twice is
+        drawn twice as often): by default the static
         :data:`flightsim.worlds.families.FAMILIES`; any of
         :data:`~flightsim.worlds.families.ALL_FAMILIES` (the ``-dynamic`` ones have moving obstacles)
     :param difficulty_range: a generated world's difficulty is drawn uniformly in it

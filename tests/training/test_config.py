@@ -153,8 +153,9 @@ def test_movers_without_the_tracker_is_one_line_naming_both_keys(tmp_path, capsy
 
 def test_nav_movers_is_the_nav_recipe_with_movers_among_every_family_and_its_env_runs():
     """A smoke check of training/configs/nav-movers.toml (not trained here): nav.toml's recipe but for
-    the movers in the frame, the dynamic families and the teacher that plans round the movers; its env
-    flies a dynamic world (validation seed) and its frames stay in their bounds."""
+    the movers in the frame and drawn as scans, the dynamic families (drawn twice as often as a static
+    one) and the teacher that plans round the movers; its env flies a dynamic world (validation seed)
+    and its frames stay in their bounds."""
     import dataclasses
 
     import numpy as np
@@ -165,8 +166,12 @@ def test_nav_movers_is_the_nav_recipe_with_movers_among_every_family_and_its_env
     configs = Path(__file__).parents[2] / "training" / "configs"
     nav, movers = load_train_config(configs / "nav.toml"), load_train_config(configs / "nav-movers.toml")
     env_config = movers.env_config()
-    assert env_config.movers and sorted(env_config.families) == sorted(ALL_FAMILIES)
-    assert dataclasses.replace(movers, name="nav", env=nav.env, pretrain=nav.pretrain) == nav
+    assert env_config.movers and set(env_config.families) == set(ALL_FAMILIES)
+    counts = [env_config.families.count(f) for f in ALL_FAMILIES]
+    assert counts == [1 + f.endswith("-dynamic") for f in ALL_FAMILIES]
+    assert movers.ppo.mover_ring == [0.0, 0.5, 1.0, 1.5, 2.0]
+    ppo = dataclasses.replace(movers.ppo, mover_ring=[])
+    assert dataclasses.replace(movers, name="nav", env=nav.env, pretrain=nav.pretrain, ppo=ppo) == nav
     assert movers.pretrain == dataclasses.replace(nav.pretrain, teacher="space_time_expert")
     static = nav.env_config()
     assert dataclasses.replace(env_config, movers=False, families=static.families) == static

@@ -86,6 +86,8 @@ def test_goal_worlds_spread_difficulty_per_family_and_are_deterministic():
     assert [w.difficulty for w in worlds[:4]] == [0.3, 0.5, 0.7, 0.9]
     assert worlds[0].reset_options() == {"family": "forest", "world_seed": 900_000, "difficulty": 0.3}
     assert worlds == goal_worlds(("forest", "traps"), 900_000, 4, (0.2, 1.0))
+    # a family named twice weighs training's draws; the held-out set still flies it once
+    assert goal_worlds(("forest", "traps", "forest"), 900_000, 4, (0.2, 1.0)) == worlds
 
 
 def test_the_default_test_set_is_20_held_out_worlds_per_family():
