@@ -43,6 +43,7 @@ TRAINING_BASE = {
     "attackers",
     "scan_features",
     "batched_vec_env",
+    "sharded_vec_env",
     "vec_env",
     "controllers",
     "export",

@@ -177,8 +177,9 @@ class TrainConfig:
     :param vec_env: how the ``n_envs`` simulators run: ``"batched"`` all in the training process,
         their vehicles and lidars stepped together in compiled batches
         (``training/batched_vec_env.py``, several times the steps per second), or ``"subproc"``
-        one process each (SB3's ``SubprocVecEnv``, the earlier path); the same episodes
-        for the same seeds either way
+        one process each (SB3's ``SubprocVecEnv``, the earlier path), or ``"sharded"`` batched
+        shards in one process per CPU core, a DAgger teacher labelling beside each env
+        (``training/sharded_vec_env.py``); the same episodes for the same seeds each way
     :param pretrain: the behaviour cloning warm start (a fresh run only, not on ``--resume``)
     """
 
@@ -191,7 +192,7 @@ class TrainConfig:
     checkpoint_every: int = field(default=50_000, metadata={"min": 1})
     run_root: str = "runs"
     progress_bar: bool = True
-    vec_env: Literal["batched", "subproc"] = "batched"
+    vec_env: Literal["batched", "subproc", "sharded"] = "batched"
     difficulty_spread: float = field(default=0.0, metadata={"min": 0.0, "max": 1.0})
     narrow_room_prob: float = field(default=0.0, metadata={"min": 0.0, "max": 1.0})
     narrow_room_widths: tuple[float, float] = (6.0, 9.0)

@@ -28,6 +28,7 @@ from training.controllers import TEACHERS
 from training.mirror import Mirror
 from training.pretrain import Demonstrations, discounted_returns, fit
 from training.progress import Progress
+from training.sharded_vec_env import LABEL, ShardedVecEnv
 
 log = logging.getLogger(__name__)
 
@@ -61,12 +62,13 @@ class Rollouts:
 def nav_envs(venv: Any) -> list[Any]:
     """The LidarNav-v0 envs under a (wrapped) in-process vector env, for the teacher to read.
 
-    :raises UserError: the envs live in other processes (``vec_env = "subproc"``)
+    :raises UserError: the envs live in other processes without their teachers (``vec_env = "subproc"``)
     """
     inner = venv.unwrapped
     if not hasattr(inner, "envs"):
         raise UserError(
-            f'DAgger reads the simulators\' state: it needs vec_env = "batched", not {type(inner).__name__}'
+            "DAgger reads the simulators' state: it needs vec_env = \"batched\" or \"sharded\", "
+            f"not {type(inner).__name__}"
         )
     return [env.unwrapped for env in inner.envs]
 
@@ -93,11 +95,15 @@ def collect(
     :param teacher_noise: the noise's standard deviation, action units (0: none drawn)
     :param progress: counts the env steps flown
     """
-    envs = nav_envs(venv)
     n_envs = venv.num_envs
-    teachers = [TEACHERS[teacher](env) for env in envs]
+    inner = venv.unwrapped
+    sharded = isinstance(inner, ShardedVecEnv)  # the teachers label in the envs' own processes
+    teachers = [] if sharded else [TEACHERS[teacher](env) for env in nav_envs(venv)]
+    if sharded:
+        inner.teach(TEACHERS[teacher])
     obs = venv.reset()
-    labels = np.stack([t.reset() for t in teachers])
+    first = [info[LABEL] for info in inner.reset_infos] if sharded else [t.reset() for t in teachers]
+    labels = np.stack(first)
     teacher_flies = rng.uniform(size=n_envs) < beta
     rows = max(1, n_steps // n_envs)
     all_obs = np.empty((rows, *obs.shape), dtype=np.float32)
@@ -120,12 +126,17 @@ def collect(
             success = bool(infos[i].get("success", False))
             counts += (1, success, not teacher_flies[i], success and not teacher_flies[i])
             teacher_flies[i] = rng.uniform() < beta
-        labels = np.stack(
-            [
-                teacher.reset() if done else teacher.act()
-                for teacher, done in zip(teachers, dones[t], strict=True)
-            ]
-        )
+        if sharded:
+            labels = np.stack([info[LABEL] for info in infos])
+        else:
+            labels = np.stack(
+                [
+                    teacher.reset() if done else teacher.act()
+                    for teacher, done in zip(teachers, dones[t], strict=True)
+                ]
+            )
+    if sharded:
+        inner.teach(None)  # PPO after DAgger steps the envs without labels
     returns = discounted_returns(rewards, dones, gamma)
     return Rollouts(
         all_obs.reshape(-1, obs.shape[1]), all_actions.reshape(-1, width), returns.reshape(-1),

@@ -8,6 +8,7 @@ same vector env without importing the training loop.
 from __future__ import annotations
 
 import multiprocessing
+import os
 import signal
 from typing import Any
 
@@ -92,8 +93,9 @@ def make_vec_env(
     """``n_envs`` simulators → VecMonitor → VecFrameStack(``config.n_stack``), seeded with ``seed``.
 
     ``config.vec_env`` "batched": all in this process, stepped together (:class:`BatchedVecEnv`);
-    "subproc": one ``SubprocVecEnv`` worker each, or a ``DummyVecEnv`` in this process when
-    ``subprocess`` is false or there is one env.
+    "sharded": batched shards in one worker per CPU core (:class:`ShardedVecEnv`, in this process
+    as "batched" when ``subprocess`` is false); "subproc": one ``SubprocVecEnv`` worker each, or a
+    ``DummyVecEnv`` in this process when ``subprocess`` is false or there is one env.
     """
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecFrameStack, VecMonitor
 
@@ -101,7 +103,11 @@ def make_vec_env(
 
     d = config.env_config().difficulty if difficulty is None else difficulty
     thunks = [make_env(config, d) for _ in range(n_envs)]
-    if config.vec_env == "batched":
+    if config.vec_env == "sharded" and subprocess:
+        from training.sharded_vec_env import ShardedVecEnv
+
+        venv = ShardedVecEnv(thunks, os.cpu_count() or 1)
+    elif config.vec_env in ("batched", "sharded"):
         venv = BatchedVecEnv(thunks)
     elif subprocess and n_envs > 1:
         venv = SubprocVecEnv(thunks, start_method="forkserver")

@@ -171,7 +171,9 @@ def test_nav_movers_is_the_nav_recipe_with_movers_among_every_family_and_its_env
     assert counts == [1 + f.endswith("-dynamic") for f in ALL_FAMILIES]
     assert movers.ppo.mover_ring == [0.0, 0.5, 1.0, 1.5, 2.0]
     ppo = dataclasses.replace(movers.ppo, mover_ring=[])
-    assert dataclasses.replace(movers, name="nav", env=nav.env, pretrain=nav.pretrain, ppo=ppo) == nav
+    assert movers.vec_env == "sharded"
+    unlike = {"env": nav.env, "pretrain": nav.pretrain, "ppo": ppo, "vec_env": nav.vec_env}
+    assert dataclasses.replace(movers, name="nav", **unlike) == nav
     assert movers.pretrain == dataclasses.replace(nav.pretrain, teacher="space_time_expert")
     static = nav.env_config()
     assert dataclasses.replace(env_config, movers=False, families=static.families) == static

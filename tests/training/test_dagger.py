@@ -13,6 +13,7 @@ from tests.training.test_pretrain import NAV
 from training import dagger
 from training.__main__ import main
 from training.config import load_train_config
+from training.sharded_vec_env import ShardedVecEnv
 from training.train import build_model, read_eval_log
 from training.vec_env import make_vec_env
 
@@ -103,6 +104,24 @@ def test_the_student_learns_the_teachers_actions(setup, tmp_path):
         return float(np.mean((predicted - data.actions) ** 2))
 
     assert error(model) < 0.25 * error(untrained)
+
+
+def test_the_sharded_envs_collect_what_the_batched_ones_do_with_the_labels_made_in_their_workers(tmp_path):
+    # the same seeds, the same student, half the episodes flown by the teacher, several of them
+    def collect(*overrides: str) -> dagger.Rollouts:
+        with dagger_run(tmp_path, "env.max_steps=30", *overrides) as (_, venv, model):
+            rng = np.random.default_rng(3)
+            rollouts = dagger.collect(venv, model.policy, 240, 0.5, 0.9, rng, teacher="robust_expert")
+            if overrides:
+                assert isinstance(venv.unwrapped, ShardedVecEnv) and venv.unwrapped.teacher is None
+            return rollouts
+
+    batched, sharded = collect(), collect("vec_env='sharded'")
+    assert batched.episodes > 0 and batched.student_episodes > 0
+    np.testing.assert_array_equal(sharded.obs, batched.obs)
+    np.testing.assert_array_equal(sharded.actions, batched.actions)
+    np.testing.assert_array_equal(sharded.returns, batched.returns)
+    assert sharded.episodes == batched.episodes and sharded.successes == batched.successes
 
 
 def test_a_resumed_run_may_collect_a_different_number_of_steps(setup):
