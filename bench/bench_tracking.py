@@ -7,6 +7,9 @@ and the world's moving obstacles, where they were in the middle of the scan's sw
 - position and velocity error of the moving track nearest each mover (within 1 m);
 - the share of movers tracked as moving within 0.5 s of first sight (first sight: the first scan
   with a tracked-size segment within 0.5 m of the mover);
+- once a mover has been tracked as moving, the share of the scans that show it (a tracked-size
+  segment within 0.5 m) in which it still is: a track that drops out and back flickers in the
+  policy's frame and the shield's movers;
 - the share of scans with a moving track more than 1 m from every mover (a static return taken
   for moving, or a track left behind);
 - the tracker's time per scan, as a share of the scan period.
@@ -55,7 +58,7 @@ def episode(config: NavEnvConfig, family: str, seed: int, steps: int) -> dict[st
     movers = env.world.moving
     seen: dict[int, float] = {}
     tracked: dict[int, float] = {}
-    out: dict[str, list[float]] = {"position": [], "velocity": [], "false": [], "ms": []}
+    out: dict[str, list[float]] = {"position": [], "velocity": [], "false": [], "ms": [], "kept": []}
     for _ in range(steps):
         state, t = env._state, env.sim_time
         pose = (float(state.position[0]), float(state.position[1]), float(state.yaw))
@@ -67,9 +70,12 @@ def episode(config: NavEnvConfig, family: str, seed: int, steps: int) -> dict[st
         velocity = np.array([(m.positions(mid + 0.05)[0] - m.positions(mid - 0.05)[0]) / 0.1 for m in movers])
         segments = tracker.segments(obs[:360], pose)
         for k in range(len(movers)):
-            if k not in seen and any(np.hypot(*(s.centre - truth[k])) < 0.5 for s in segments):
+            shown = any(np.hypot(*(s.centre - truth[k])) < 0.5 for s in segments)
+            if k not in seen and shown:
                 seen[k] = t
             near = [tr for tr in result.moving if np.hypot(*(tr.position - truth[k])) < 1.0]
+            if shown and k in tracked:
+                out["kept"].append(float(bool(near)))
             if near:
                 best = min(near, key=lambda tr: np.hypot(*(tr.position - truth[k])))
                 out["position"].append(float(np.hypot(*(best.position - truth[k]))))
@@ -103,9 +109,11 @@ def main() -> int:
     print(f"load average {os.getloadavg()[0]:.2f} (the time figure is comparable only on an idle machine)")
     print(f"env: {'training/configs/nav.toml' if args.train_env else 'LidarNav-v0 defaults'}")
     print(f"{'family':<18} {'scans':>6} {'pos err m':>10} {'p95':>6} {'vel err m/s':>12} {'p95':>6} "
-          f"{'tracked<=0.5s':>14} {'false scans':>12} {'p99/period':>11}")  # fmt: skip
+          f"{'tracked<=0.5s':>14} {'kept':>6} {'false scans':>12} {'p99/period':>11}")  # fmt: skip
     for families, worlds, offset in ((DYNAMIC_FAMILIES, args.worlds, 200), (FAMILIES, args.static, 300)):
         total: dict[str, list[float]] = {}
+        if not worlds:
+            continue
         for i, family in enumerate(families):
             first = seeds.VALIDATION.start + offset + 10 * i
             runs = [episode(config, family, first + j, args.steps) for j in range(worlds)]
@@ -121,6 +129,7 @@ def main() -> int:
 def _row(name: str, f: dict[str, list[float]]) -> str:
     pos, vel, ms = np.array(f["position"]), np.array(f["velocity"]), np.array(f["ms"])
     quick = f"{sum(f['quick']):.0f}/{sum(f['seen']):.0f}"
+    kept = f"{np.mean(f['kept']):.1%}" if f["kept"] else "-"
     errors = (
         f"{pos.mean():>10.3f} {np.percentile(pos, 95):>6.3f} "
         f"{vel.mean():>12.3f} {np.percentile(vel, 95):>6.3f}"
@@ -128,7 +137,7 @@ def _row(name: str, f: dict[str, list[float]]) -> str:
         else f"{'-':>10} {'-':>6} {'-':>12} {'-':>6}"
     )
     return (
-        f"{name:<18} {len(ms):>6} {errors} {quick:>14} {np.mean(f['false']):>11.2%} "
+        f"{name:<18} {len(ms):>6} {errors} {quick:>14} {kept:>6} {np.mean(f['false']):>11.2%} "
         f"{np.percentile(ms, 99) / (SCAN_PERIOD_S * 1e3):>10.1%}"
     )
 
