@@ -30,12 +30,9 @@ pose (the autopilot's estimate, in any frame fixed to the ground) only.
   with the noise): a fast mover is told at once, a slow one a revolution later, and a still pillar
   not at all; a large still object whose seen centre slides as the vehicle passes may read above
   ``moving_speed`` for a revolution, not for ``moving_streak`` in a row.
-- Kept moving: a moving track stays moving while it is seen faster than ``keep_speed``, and
-  through up to ``coast`` revolutions without a hit, reported where its filter predicts it. A
-  walker at 0.5 m/s reads 0.4-0.6 m/s from revolution to revolution: without the lower bar it
-  dropped in and out of the moving tracks, and with it out of the policy's frame and the shield's
-  movers. A coasting track marks no bins: it has no returns this revolution. (A bar of 0.25 m/s
-  kept movers a little longer, and took more still returns for moving.)
+- Kept moving: a moving track stays moving while it is seen faster than ``keep_speed``. A walker
+  at 0.5 m/s reads 0.4-0.6 m/s from revolution to revolution: without the lower bar it dropped in
+  and out of the moving tracks, and with it out of the policy's frame and the shield's movers.
 - No pose (the autopilot's position not known): the tracker forgets everything and nothing moves.
 
 Pure: arrays and times in, no I/O.
@@ -74,7 +71,6 @@ class TrackerConfig:
     :param moving_streak: revolutions in a row above ``moving_speed`` before a track moves
     :param fast_speed: a confirmed track faster than this moves whatever its hits, m/s
     :param keep_speed: a moving track stays moving while it is seen faster than this, m/s
-    :param coast: a moving track stays moving through this many revolutions in a row without a hit
     :param edge_margin: a segment with an end within this of the maximum range may go on beyond
         it (a wall cut off by the range slides along with the vehicle): not tracked, metres
     :param background_gap: a segment is an object only where the returns beside it are at least
@@ -98,7 +94,6 @@ class TrackerConfig:
     moving_streak: int = 2
     fast_speed: float = 1.0
     keep_speed: float = 0.35
-    coast: int = 1
     edge_margin: float = 1.0
     background_gap: float = 1.0
     extent_jump: float = 0.2
@@ -252,16 +247,12 @@ class ScanTracker:
         self.tracks = [t for t in self.tracks if t.misses <= cfg.max_misses]
         confirmed = [t for t in self.tracks if t.hits >= cfg.confirm_hits]
         for t in confirmed:
-            if t.misses == 0:
-                starts = t.speed > cfg.fast_speed or (t.speed > cfg.moving_speed and self._settled(t))
-                t.moving = starts or (t.moving and t.speed > cfg.keep_speed)
-            elif t.misses > cfg.coast:
-                t.moving = False
+            starts = t.speed > cfg.fast_speed or (t.speed > cfg.moving_speed and self._settled(t))
+            t.moving = t.misses == 0 and (starts or (t.moving and t.speed > cfg.keep_speed))
         moving = [t for t in confirmed if t.moving]
         mask = np.zeros(N_BINS, dtype=bool)
         for track in moving:
-            if track.misses == 0:  # a coasting track has no returns this revolution
-                mask[track.bins] = True
+            mask[track.bins] = True
         return TrackerOutput(confirmed, moving, mask, tuple(pose))
 
     def _settled(self, track: Track) -> bool:

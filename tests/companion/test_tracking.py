@@ -116,21 +116,6 @@ def test_a_slow_walker_once_tracked_stays_moving_and_the_pillars_still() -> None
     assert len(flags) >= 70 and sum(flags) >= 0.95 * len(flags), flags
 
 
-def test_a_moving_track_coasts_through_one_missed_revolution_without_marking_bins() -> None:
-    walker = MovingObstacle("cylinder", PathMotion(((3.0, 3.0), (3.0, -3.0)), 1.2), 1.8, radius=0.25)
-    world = World("w", (16.0, 12.0), 3.0, (), (0.0, 0.0, 1.5), 0.0, moving=(walker,))
-    tracker = ScanTracker(max_range=SCAN.max_range)
-    for scan, pose, t in _fly(world, 10, velocity=(0.0, 0.0), start=(0.0, 0.0), yaw0=0.0):
-        out = tracker.update(scan, pose, t)
-    assert len(out.moving) == 1 and out.moving_bins.any()
-    before = out.moving[0].position.copy()
-    empty = np.ones(360, dtype=np.float32)  # a revolution that did not see it (dropout, occlusion)
-    coasting = tracker.update(empty, pose, t + 0.1)
-    assert len(coasting.moving) == 1 and not coasting.moving_bins.any()
-    np.testing.assert_allclose(coasting.moving[0].position - before, [0.0, -0.12], atol=0.05)  # predicted on
-    assert not tracker.update(empty, pose, t + 0.2).moving  # a second miss: no longer reported
-
-
 def test_the_moving_bins_are_the_walkers() -> None:
     walker = MovingObstacle("cylinder", PathMotion(((3.0, 3.0), (3.0, -3.0)), 1.0), 1.8, radius=0.25)
     world = World(
