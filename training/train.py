@@ -12,7 +12,8 @@ A run lives in ``<run_root>/<config name>-s<seed>/``::
     checkpoints/dagger_<steps>_steps.zip   the student after each DAgger iteration
     dagger/iteration_<k>.npz               that iteration's labels (``--resume`` goes on from them)
     tb/                    TensorBoard logs (``tensorboard --logdir runs``)
-    eval.csv               one row per evaluation: steps, wall-clock seconds, difficulty, success rate...
+    eval.csv               one row per evaluation: steps, wall-clock seconds, difficulty, success rate
+                           (also on the worlds with movers alone)...
     best_model.zip         best evaluation at the target difficulty
     eval_model.zip         the model the last held-out evaluation flew (overwritten at each one)
     final_model.zip
@@ -30,6 +31,7 @@ import csv
 import functools
 import json
 import logging
+import math
 import multiprocessing
 import os
 import shutil
@@ -47,6 +49,7 @@ import numpy as np
 
 from companion.common.errors import UserError
 from companion.perception.scan import N_BINS
+from flightsim.worlds.families import DYNAMIC_FAMILIES
 from training.config import TrainConfig, config_to_toml, load_train_config, observation_layout
 from training.controllers import ControllerSpec
 from training.episodes import WorldSpec, goal_worlds, make_tasks
@@ -66,6 +69,7 @@ EVAL_FIELDS = (
     "mean_distance_m",
     "collisions",
     "episodes",
+    "moving_success_rate",
 )
 
 
@@ -74,7 +78,8 @@ def read_eval_log(path: Path) -> list[dict[str, float]]:
     if not path.is_file():
         return []
     with path.open() as f:
-        return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(f)]
+        # a field left empty (moving_success_rate without movers) or absent (an older run's) is nan
+        return [{k: float(v or "nan") for k, v in row.items()} for row in csv.DictReader(f)]
 
 
 def write_eval_log(path: Path, rows: list[dict[str, float]]) -> None:
@@ -84,7 +89,10 @@ def write_eval_log(path: Path, rows: list[dict[str, float]]) -> None:
         writer.writeheader()
         for row in rows:
             writer.writerow(
-                {k: int(v) if k in ("timesteps", "collisions", "episodes") else v for k, v in row.items()}
+                {
+                    k: int(v) if k in ("timesteps", "collisions", "episodes") else "" if math.isnan(v) else v
+                    for k, v in row.items()
+                }
             )
 
 
@@ -256,13 +264,17 @@ def make_callbacks(config: TrainConfig, run_dir: Path, n_envs: int, executor: An
                     env_config.difficulty_range,
                 )
             policy = [ControllerSpec("policy", str(model_path))]
-            modes = {}
+            modes, moving = {}, {}
             # logged, not a bar: PPO's own bar may be on the terminal
             what = f"eval at {self.num_timesteps} steps: episodes"
             with Progress(len(worlds) * len(eval_envs), what, "episode", bar=False) as progress:
                 for name, env in eval_envs:
                     tasks = make_tasks(policy, worlds, 1, env, config.env_id)
-                    modes[name] = summarise(run_tasks(tasks, executor, progress))
+                    results = run_tasks(tasks, executor, progress)
+                    modes[name] = summarise(results)
+                    with_movers = [r for r in results if r.family in DYNAMIC_FAMILIES]
+                    if with_movers:
+                        moving[name] = summarise(with_movers)
             row = {
                 "timesteps": self.num_timesteps,
                 "wall_s": round(self.wall_offset + time.monotonic() - self.started, 1),
@@ -272,15 +284,12 @@ def make_callbacks(config: TrainConfig, run_dir: Path, n_envs: int, executor: An
                 "mean_distance_m": float(np.mean([m["mean_distance_m"] for m in modes.values()])),
                 "collisions": sum(m["collisions"] for m in modes.values()),
                 "episodes": sum(m["episodes"] for m in modes.values()),
+                # the same on the worlds with movers alone, which the figure over all families hides
+                "moving_success_rate": min((m["success_rate"] for m in moving.values()), default=math.nan),
             }
-            for key in ("success_rate", "mean_distance_m", "collisions", "difficulty"):
+            for key in ("success_rate", "mean_distance_m", "collisions", "difficulty", "moving_success_rate"):
                 self.logger.record(f"eval/{key}", row[key])
-            new_file = not self.log_path.is_file()
-            with self.log_path.open("a", newline="") as f:
-                writer = csv.DictWriter(f, fieldnames=EVAL_FIELDS)
-                if new_file:
-                    writer.writeheader()
-                writer.writerow(row)
+            write_eval_log(self.log_path, [*read_eval_log(self.log_path), row])
             for name, m in modes.items():
                 log.info(
                     "eval at %d steps (%.0f s)%s: difficulty %.2f success %.0f%% distance %.1f m "
@@ -294,6 +303,13 @@ def make_callbacks(config: TrainConfig, run_dir: Path, n_envs: int, executor: An
                     m["collisions"],
                     m["episodes"],
                 )
+                if name in moving:
+                    log.info(
+                        "eval%s, the worlds with movers: success %.0f%% of %d",
+                        name,
+                        100 * moving[name]["success_rate"],
+                        moving[name]["episodes"],
+                    )
             if self._at_target(difficulty) and row["success_rate"] >= self.best:
                 self.best = row["success_rate"]
                 save_atomically(self.model, run_dir / "best_model.zip")

@@ -4,6 +4,7 @@ the companion's OnnxPolicy accepts it only under the goal layout, evaluate the .
 from __future__ import annotations
 
 import contextlib
+import csv
 import io
 import json
 from pathlib import Path
@@ -74,8 +75,32 @@ def nav_run(tmp_path_factory):
 
 
 def test_training_validates_on_goal_worlds(nav_run):
-    rows = (nav_run["run_dir"] / "eval.csv").read_text().splitlines()
-    assert len(rows) == 2 and rows[-1].split(",")[-1] == "2"  # one gaps world, with and without the shield
+    with (nav_run["run_dir"] / "eval.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 1 and rows[0]["episodes"] == "2"  # one gaps world, with and without the shield
+    assert rows[0]["moving_success_rate"] == ""  # no world with movers
+
+
+def test_training_reports_the_worlds_with_movers_apart(tmp_path):
+    """eval.csv's moving_success_rate is the worse of alone and behind the shield on the dynamic
+    worlds only: here the one rooms-dynamic world, flown again by ``evaluate`` both ways."""
+    config_text = TINY_NAV.replace('families = ["gaps"]', 'families = ["gaps", "rooms-dynamic"]')
+    config_text = config_text.replace("max_steps = 60", "max_steps = 150")
+    config, run_dir, _, _ = _train_and_export(tmp_path, config_text, "movers", 10)
+    with (run_dir / "eval.csv").open() as f:
+        (row,) = csv.DictReader(f)
+    assert row["episodes"] == "4"
+    again = []
+    for shield in ([], ["--shield"]):
+        out = tmp_path / f"again{len(shield)}.json"
+        model = str(run_dir / "eval_model.zip")
+        argv = ["evaluate", "--config", str(config), "--policy", model, "--seeds", "1", "--baselines", "",
+                "--set", 'env.families=["rooms-dynamic"]', "--workers", "1", "--json", str(out),
+                *shield]  # fmt: skip
+        assert main(argv) == 0
+        (flown,) = json.loads(out.read_text())["controllers"].values()  # policy, or policy+shield
+        again.append(flown["overall"]["success_rate"])
+    assert float(row["moving_success_rate"]) == min(again)
 
 
 def test_export_writes_the_goal_layout_and_the_companion_checks_it(nav_run):

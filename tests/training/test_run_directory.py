@@ -6,7 +6,7 @@ workers, an evaluation pool) sent SIGINT to its whole process group, as a termin
 
 from __future__ import annotations
 
-import csv
+import math
 import os
 import signal
 import subprocess
@@ -20,7 +20,7 @@ import pytest
 from companion.common.errors import UserError
 from tests.foreground import start_foreground
 from training.__main__ import main
-from training.train import EVAL_FIELDS, checkpoint_steps, truncate_eval_log, write_eval_log
+from training.train import EVAL_FIELDS, checkpoint_steps, read_eval_log, truncate_eval_log, write_eval_log
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -49,12 +49,11 @@ workers = 2
 
 
 def _rows(path: Path) -> list[dict[str, float]]:
-    with path.open() as f:
-        return [{k: float(v) for k, v in r.items()} for r in csv.DictReader(f)]
+    return read_eval_log(path)
 
 
 def _row(steps: int, success: float, difficulty: float = 0.5) -> dict[str, float]:
-    return dict(zip(EVAL_FIELDS, (steps, steps / 10, difficulty, success, 1.0, 0, 4), strict=True))
+    return dict(zip(EVAL_FIELDS, (steps, steps / 10, difficulty, success, 1.0, 0, 4, math.nan), strict=True))
 
 
 def _start_training(config: Path, runs: Path, *extra: str) -> subprocess.Popen:
