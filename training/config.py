@@ -24,6 +24,8 @@ STEP_SECONDS = 0.1
 NEAR_MISS_DISTANCE = 0.5
 #: the environments a config can train on: avoidance (no goal) and the goal task
 ENV_IDS = ("flightsim/LidarAvoid-v0", "flightsim/LidarNav-v0")
+#: the DAgger teachers that pass movers on one side (not left-right symmetric)
+HANDED_TEACHERS = ("keep_right_expert",)
 
 
 @dataclass(frozen=True)
@@ -137,7 +139,7 @@ class PretrainConfig:
     demonstrator: Literal["goal_follower", "gap_follower"] = "goal_follower"
     teacher: Literal[
         "path_expert", "predictive_expert", "robust_expert", "smooth_expert", "mover_expert",
-        "space_time_expert",
+        "space_time_expert", "keep_right_expert",
     ] = "path_expert"  # fmt: skip
     iterations: int = field(default=1, metadata={"min": 1, "max": 100})
     beta0: float = field(default=0.5, metadata={"min": 0.0, "max": 1.0})
@@ -219,6 +221,11 @@ class TrainConfig:
             task = "goal" if self.is_goal_task else "avoid"
             raise ValueError(
                 f"pretrain.demonstrator {self.pretrain.demonstrator} does not fly the {task} task"
+            )
+        if self.pretrain.mirror and self.pretrain.teacher in HANDED_TEACHERS:
+            raise ValueError(
+                f"pretrain.teacher {self.pretrain.teacher} passes movers on one side, which a mirrored "
+                "label would turn to the other: set pretrain.mirror = false"
             )
         ring_unread = self.ppo.features_extractor != "circular_scan" or not self.env.get("movers")
         if self.ppo.mover_ring and ring_unread:

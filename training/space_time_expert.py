@@ -40,7 +40,7 @@ import numpy as np
 
 from flightsim.envs.nav_env import LidarNavEnv
 from flightsim.worlds.planner import ClearanceGrid, clearance_grid
-from flightsim.worlds.space_time import cell_centres, free_cells, sampling_margin, schedule
+from flightsim.worlds.space_time import cell_centres, free_cells, right_of_movers, sampling_margin, schedule
 from training.path_expert import PathExpert, _cell_costs, cost_to_point
 from training.predictive_expert import MOVERS, PredictiveExpert
 
@@ -62,6 +62,11 @@ class SpaceTimeConfig:
         response's lag) ahead, s
     :param heading_s: the nose points to where the schedule will be this far ahead, s
     :param speed_fraction: the velocity asked is at most this fraction of the top speed
+    :param keep_right: the schedule keeps out of each moving mover's right within this distance of
+        its centre (:func:`~flightsim.worlds.space_time.right_of_movers`), so it passes an oncoming
+        mover with it on the vehicle's left, unless that arrives more than ``keep_right_slack_s``
+        later than a way that does not, metres (0: the search's tie-break picks the side)
+    :param keep_right_slack_s: how much later keeping right may arrive, s
     """
 
     cell: float = 0.2
@@ -73,6 +78,8 @@ class SpaceTimeConfig:
     lead_s: float = 0.8
     heading_s: float = 2.0
     speed_fraction: float = 0.9
+    keep_right: float = 0.0
+    keep_right_slack_s: float = 1.0
 
 
 class SpaceTimePath(PathExpert):
@@ -153,7 +160,13 @@ class SpaceTimePath(PathExpert):
         times = now + sc.dt * np.arange(round(sc.horizon_s / sc.dt) + 1)
         free = free_cells(env.world, self._centres, times, self._needed, self._static_free)
         here = env.true_state.position
-        cells = schedule(free, grid.cell(*here[:2]), grid.cell(*goal), self._to_goal)
+        start, end = grid.cell(*here[:2]), grid.cell(*goal)
+        cells = schedule(free, start, end, self._to_goal)
+        if sc.keep_right > 0.0:
+            right = right_of_movers(env.world, self._centres, times, sc.keep_right).reshape(free.shape)
+            kept = schedule(free & ~right, start, end, self._to_goal)
+            if tuple(kept[-1]) == end and len(kept) <= len(cells) + round(sc.keep_right_slack_s / sc.dt):
+                cells = kept
         self._way = np.asarray(grid.origin) + (cells + 0.5) * sc.cell
         self._way[0] = here[:2]  # from where it truly is, not its cell's centre
         self._times = times[: len(cells)]
@@ -170,3 +183,21 @@ def space_time_expert(env: LidarNavEnv) -> PredictiveExpert:
     "space_time_expert"``): in a world without movers it is :func:`robust_expert`, command for
     command."""
     return PredictiveExpert(env, SPACE_TIME, path=SpaceTimePath(env))
+
+
+#: how far from each mover's centre the keep-right teacher's schedule keeps off its right, metres
+KEEP_RIGHT = 3.0
+
+
+def keep_right_expert(env: LidarNavEnv) -> PredictiveExpert:
+    """:func:`space_time_expert` passing each mover on its left or behind it (``[pretrain] teacher =
+    "keep_right_expert"``): the vehicle keeps right of one coming at it, as ships and most roads do.
+
+    The space-time teacher passed a walker coming head-on on either side, about as often, whatever
+    side of the vehicle's nose it was on: the future decided, which the student cannot see. A
+    regression of those labels averaged them into flying straight at it. With the side fixed by the
+    mover's heading, which the student's frame holds, the label is one the student can learn. It is
+    not left-right symmetric, so DAgger's fit must not mirror its labels.
+    """
+    schedule_config = SpaceTimeConfig(keep_right=KEEP_RIGHT)
+    return PredictiveExpert(env, SPACE_TIME, path=SpaceTimePath(env, schedule_config))

@@ -27,6 +27,8 @@ from flightsim.worlds.planner import ClearanceGrid, clearance_grid
 from flightsim.worlds.world import World
 
 SAFETY_EXTRA = 0.05  # metres beyond the sampling margins
+HEADING_DT = 0.1  # s over which right_of_movers reads a mover's heading
+PASSING_SPEED = 0.3  # m/s: a mover slower than this has no side to pass on
 _NEIGHBOURS = np.ones((3, 3), dtype=bool)
 _CHUNK = 32  # time steps whose clearances are computed at once
 
@@ -119,6 +121,23 @@ def free_cells(
     for m in world.moving:
         ok &= m.clearance_over_time(centres, times) >= needed
     return ok.reshape(times.size, *static_free.shape) & static_free[None]
+
+
+def right_of_movers(world: World, centres: np.ndarray, times: np.ndarray, within: float) -> np.ndarray:
+    """The cells within ``within`` metres of a moving mover's centre and on its right (from its
+    heading) at each of ``times``, ``(T, N)`` for ``centres`` ``(N, 3)``: where a vehicle that
+    keeps right of an oncoming mover, as ships and most roads do, does not pass it."""
+    points = np.asarray(centres, dtype=np.float64).reshape(-1, 3)[None, :, :2]
+    right = np.zeros((times.size, points.shape[1]), dtype=bool)
+    for m in world.moving:
+        at = m.positions(times)
+        step = m.positions(times + HEADING_DT) - at
+        moving = np.hypot(step[:, 0], step[:, 1]) > PASSING_SPEED * HEADING_DT
+        offset = points - at[:, None]
+        near = np.hypot(offset[..., 0], offset[..., 1]) <= within
+        on_right = offset[..., 0] * step[:, None, 1] - offset[..., 1] * step[:, None, 0] > 0.0
+        right |= near & on_right & moving[:, None]
+    return right
 
 
 def schedule(free: np.ndarray, start: tuple[int, int], goal: tuple[int, int], cost: np.ndarray) -> np.ndarray:

@@ -17,7 +17,14 @@ from flightsim.worlds.families import ALL_FAMILIES, DYNAMIC_FAMILIES, FAMILIES, 
 from flightsim.worlds.families.dynamic import DYNAMIC_MIXES
 from flightsim.worlds.moving import MovingObstacle, PathMotion, RandomWalk
 from flightsim.worlds.planner import clearance_grid
-from flightsim.worlds.space_time import cell_centres, free_cells, sampling_margin, schedule, wait_and_go_time
+from flightsim.worlds.space_time import (
+    cell_centres,
+    free_cells,
+    right_of_movers,
+    sampling_margin,
+    schedule,
+    wait_and_go_time,
+)
 from flightsim.worlds.world import World, load_world, world_from_dict, world_to_dict
 
 REPO = Path(__file__).resolve().parents[2]
@@ -320,3 +327,21 @@ def test_avoid_sim_worlds_saves_dynamic_worlds_that_load_back(tmp_path, capsys) 
     assert "moving" in capsys.readouterr().out
     saved = load_world(tmp_path / "rooms-dynamic-500020-d0.50.json")
     assert saved == generate_family_world("rooms-dynamic", 500020, 0.5) and saved.moving
+
+
+def test_right_of_movers_marks_the_near_cells_on_a_moving_movers_right_only() -> None:
+    """A walker heading east from the room's middle at 1 m/s: 1 m south of it (its right) is
+    marked, 1 m north and 4 m south are not; a second later the marks have moved east with it. A
+    walker standing still has no side."""
+    walking = MovingObstacle("cylinder", PathMotion(((0.0, 0.0), (8.0, 0.0)), 1.0), 1.8, radius=0.25)
+    standing = MovingObstacle("cylinder", PathMotion(((0.0, 0.0), (0.0, 0.0)), 1.0), 1.8, radius=0.25)
+
+    def room(walker: MovingObstacle) -> World:
+        start, waypoint = (-4.0, 0.0, 1.5), (4.0, 0.0, 1.5)
+        return World("open", (20.0, 12.0), 3.0, (), start, 0.0, (waypoint,), moving=(walker,))
+
+    cells = np.array([[0.0, -1.0], [0.0, 1.0], [0.0, -4.0], [-2.5, -1.0], [3.0, -1.0]])
+    cells = np.column_stack([cells, np.full(len(cells), 1.5)])
+    right = right_of_movers(room(walking), cells, np.array([0.0, 1.0]), within=3.0)
+    assert right.tolist() == [[True, False, False, True, False], [True, False, False, False, True]]
+    assert not right_of_movers(room(standing), cells, np.array([0.0, 1.0]), within=3.0).any()

@@ -6,13 +6,16 @@ the episode ends. (In a world without movers it is the robust teacher, command f
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
+from companion.common.errors import UserError
 from flightsim.envs.nav_env import LidarNavEnv, NavEnvConfig
 from flightsim.worlds.moving import MovingObstacle, PathMotion
 from flightsim.worlds.world import World
 from tests.training.test_path_expert import RADIUS
+from training.config import config_from_dict
 from training.controllers import TEACHERS
-from training.space_time_expert import space_time_expert
+from training.space_time_expert import keep_right_expert, space_time_expert
 
 WALKER_RADIUS = 0.25
 
@@ -49,3 +52,58 @@ def test_it_times_its_way_past_a_walker_pacing_across_a_corridor():
 
 def test_it_is_a_teacher():
     assert TEACHERS["space_time_expert"] is space_time_expert
+
+
+def head_on_room(lateral: float, east: bool) -> World:
+    """A room 20 m by 6 m, the waypoint 12 m ahead of the start (to the east or to the west), and a
+    walker coming straight at the vehicle, 1 m/s, along a line ``lateral`` metres to the left of the
+    vehicle's nose's."""
+    ahead = 1.0 if east else -1.0
+    line = PathMotion(((7.0 * ahead, lateral * ahead), (-9.0 * ahead, lateral * ahead)), 1.0)
+    walker = MovingObstacle("cylinder", line, height=1.8, radius=WALKER_RADIUS, kind="pedestrian")
+    return World(
+        name="head-on", room_size=(20.0, 6.0), room_height=3.0, obstacles=(),
+        start_position=(-6.0 * ahead, 0.0, 1.5), start_yaw_deg=0.0 if east else 180.0,
+        waypoints=((6.0 * ahead, 0.0, 1.5),), moving=(walker,),
+    )  # fmt: skip
+
+
+def passing_side(teacher, world: World) -> tuple[float, dict]:
+    """How far to the left of the walker the vehicle is as they pass abreast (negative: to its
+    right), and the episode's last info."""
+    env = LidarNavEnv(NavEnvConfig(autopilot_response="px4", vehicle_radius=RADIUS, sideways=True))
+    env.reset(seed=0, options={"world": world})
+    ahead = 1.0 if world.start_yaw_deg == 0.0 else -1.0
+    expert = teacher(env)
+    action, side = expert.reset(), None
+    while True:
+        _, _, terminated, truncated, info = env.step(action)
+        walker = env.world.moving[0].positions(env.sim_time)[0]
+        here = env.true_state.position[:2]
+        if side is None and ahead * (here[0] - walker[0]) >= 0.0:
+            side = ahead * float(here[1] - walker[1])
+        if terminated or truncated:
+            return side, info
+        action = expert.act()
+
+
+def test_keep_right_passes_a_walker_coming_head_on_on_its_left_whichever_side_of_the_nose():
+    """The walker's line a little left of the nose, then a little right, flying east and west: the
+    keep-right teacher passes with the walker on its left every time and reaches the waypoint. The
+    space-time teacher's side is its search's tie-break: here it passes with the walker on its
+    right when flying west."""
+    for east in (True, False):
+        for lateral in (0.3, -0.3):
+            side, info = passing_side(keep_right_expert, head_on_room(lateral, east))
+            assert info["success"] and not info["collision"], (east, lateral, info)
+            assert side < -(RADIUS + WALKER_RADIUS), (east, lateral, side)
+    side, _ = passing_side(space_time_expert, head_on_room(-0.3, east=False))
+    assert side > RADIUS + WALKER_RADIUS, side
+
+
+def test_keep_right_is_a_teacher_and_its_labels_are_not_mirrored():
+    assert TEACHERS["keep_right_expert"] is keep_right_expert
+    refused = r"teacher keep_right_expert passes movers on one side.*set pretrain.mirror = false"
+    with pytest.raises(UserError, match=refused):
+        config_from_dict({"env_id": "flightsim/LidarNav-v0", "pretrain": {
+            "method": "dagger", "steps": 100, "teacher": "keep_right_expert", "mirror": True}})  # fmt: skip
