@@ -190,14 +190,15 @@ KEEP_RIGHT = 3.0
 
 
 def keep_right_expert(env: LidarNavEnv) -> PredictiveExpert:
-    """:func:`space_time_expert` passing each mover on its left or behind it (``[pretrain] teacher =
-    "keep_right_expert"``): the vehicle keeps right of one coming at it, as ships and most roads do.
+    """:func:`space_time_expert` passing each mover on its left or behind it where that costs at
+    most ``keep_right_slack_s`` (``[pretrain] teacher = "keep_right_expert"``): the vehicle keeps
+    right of one coming at it, as ships and most roads do.
 
-    The space-time teacher passed a walker coming head-on on either side, about as often, whatever
-    side of the vehicle's nose it was on: the future decided, which the student cannot see. A
-    regression of those labels averaged them into flying straight at it. With the side fixed by the
-    mover's heading, which the student's frame holds, the label is one the student can learn. It is
-    not left-right symmetric, so DAgger's fit must not mirror its labels.
+    The space-time teacher passed a mover coming head-on on either side, whatever side of the
+    vehicle's nose it was on: the search's tie-break decided, which the student cannot see, and a
+    regression of those labels averaged them into flying straight at it. Here the side follows
+    what the student's frame holds: the mover's heading where keeping right is cheap, its offset
+    where it is not. It is not left-right symmetric, so DAgger's fit must not mirror its labels.
     """
     schedule_config = SpaceTimeConfig(keep_right=KEEP_RIGHT)
     return PredictiveExpert(env, SPACE_TIME, path=SpaceTimePath(env, schedule_config))
