@@ -48,10 +48,6 @@ workers = 2
 """
 
 
-def _rows(path: Path) -> list[dict[str, float]]:
-    return read_eval_log(path)
-
-
 def _row(steps: int, success: float, difficulty: float = 0.5) -> dict[str, float]:
     return dict(zip(EVAL_FIELDS, (steps, steps / 10, difficulty, success, 1.0, 0, 4, math.nan), strict=True))
 
@@ -92,7 +88,7 @@ def test_ctrl_c_saves_interrupted_zip_exits_130_in_one_line_and_resume_continues
     from stable_baselines3 import PPO
 
     assert PPO.load(run_dir / "final_model.zip", device="cpu").num_timesteps >= target
-    rows = _rows(run_dir / "eval.csv")
+    rows = read_eval_log(run_dir / "eval.csv")
     timesteps = [r["timesteps"] for r in rows]
     assert timesteps == sorted(set(timesteps)), "timesteps never restart"
     assert timesteps[-1] >= target and any(t > steps for t in timesteps)
@@ -118,7 +114,7 @@ def test_overwrite_starts_afresh_and_the_two_options_exclude_each_other(tmp_path
 
     assert main([*argv, "--overwrite", f"run_root={runs}", "progress_bar=false", "total_timesteps=256"]) == 0
     assert not (run_dir / "checkpoints" / "ppo_2048_steps.zip").exists()
-    assert [r["timesteps"] for r in _rows(run_dir / "eval.csv")] == [256]
+    assert [r["timesteps"] for r in read_eval_log(run_dir / "eval.csv")] == [256]
 
 
 def test_a_used_run_directory_is_refused_in_one_line(tmp_path, capsys):
@@ -139,7 +135,7 @@ def test_resume_drops_the_evaluations_of_the_abandoned_continuation(tmp_path):
     (tmp_path / "best_model.zip").write_bytes(b"from the 3072-step evaluation")
     write_eval_log(tmp_path / "eval.csv", [_row(1024, 0.5), _row(2048, 0.6), _row(3072, 0.9)])
     truncate_eval_log(tmp_path, 2048, target_difficulty=0.5)
-    assert [r["timesteps"] for r in _rows(tmp_path / "eval.csv")] == [1024, 2048]
+    assert [r["timesteps"] for r in read_eval_log(tmp_path / "eval.csv")] == [1024, 2048]
     # the best model came from the dropped row: it is gone, so the resumed run judges anew
     assert not (tmp_path / "best_model.zip").exists()
 
@@ -148,7 +144,7 @@ def test_resume_keeps_a_best_model_from_before_the_checkpoint(tmp_path):
     (tmp_path / "best_model.zip").write_bytes(b"from the 1024-step evaluation")
     write_eval_log(tmp_path / "eval.csv", [_row(1024, 0.9), _row(2048, 0.6), _row(3072, 0.7)])
     truncate_eval_log(tmp_path, 2048, target_difficulty=0.5)
-    assert [r["timesteps"] for r in _rows(tmp_path / "eval.csv")] == [1024, 2048]
+    assert [r["timesteps"] for r in read_eval_log(tmp_path / "eval.csv")] == [1024, 2048]
     assert (tmp_path / "best_model.zip").is_file()
 
 
