@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import csv
+import fcntl
 import functools
 import json
 import logging
@@ -172,6 +173,32 @@ def prepare_run_dir(config: TrainConfig, resume: bool, overwrite: bool) -> None:
             f"{run_dir} already holds a run: --resume to continue it, --overwrite to replace it, "
             "or choose another name, seed or run_root"
         )
+
+
+@contextlib.contextmanager
+def run_lock(run_dir: Path) -> Iterator[None]:
+    """Hold ``.<run name>.lock`` beside the run directory while a run writes in it, and refuse a
+    second run of the same directory while the first is alive.
+
+    The lock file sits in the run root, not in the run directory, so it still stands when the
+    directory is deleted under a live run; the kernel releases it when the process ends, however it
+    ends, so a killed run leaves nothing to clean up.
+    """
+    run_dir.parent.mkdir(parents=True, exist_ok=True)
+    path = run_dir.parent / f".{run_dir.name}.lock"
+    with path.open("a+") as held:
+        try:
+            fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            held.seek(0)
+            owner = held.read().strip() or "unknown"
+            raise UserError(
+                f"{run_dir} is in use by another training run (pid {owner}): wait for it to end or stop it"
+            ) from None
+        held.truncate(0)
+        held.write(str(os.getpid()))
+        held.flush()
+        yield
 
 
 def truncate_eval_log(run_dir: Path, steps: int, target_difficulty: float) -> None:
@@ -665,11 +692,12 @@ def command(args: argparse.Namespace) -> int:
     resume = resume_checkpoint(args.resume, config.run_dir)
     if config.ppo.init_from and resume is None:
         initial_model(Path(config.ppo.init_from))  # before the run directory: a typo leaves none
-    prepare_run_dir(config, resume is not None, args.overwrite)
-    try:
-        final = train(config, resume)
-    except TrainingInterrupted as exc:
-        print(f"avoid-train: {exc}", file=sys.stderr)
-        return 130
+    with run_lock(config.run_dir):
+        prepare_run_dir(config, resume is not None, args.overwrite)
+        try:
+            final = train(config, resume)
+        except TrainingInterrupted as exc:
+            print(f"avoid-train: {exc}", file=sys.stderr)
+            return 130
     print(f"final model: {final}")
     return 0

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -20,7 +21,14 @@ import pytest
 from companion.common.errors import UserError
 from tests.foreground import start_foreground
 from training.__main__ import main
-from training.train import EVAL_FIELDS, checkpoint_steps, read_eval_log, truncate_eval_log, write_eval_log
+from training.train import (
+    EVAL_FIELDS,
+    checkpoint_steps,
+    read_eval_log,
+    run_lock,
+    truncate_eval_log,
+    write_eval_log,
+)
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -129,6 +137,43 @@ def test_a_used_run_directory_is_refused_in_one_line(tmp_path, capsys):
     # --resume with nothing to resume from says so
     assert main(["train", "--config", str(config), f"run_root={tmp_path / 'runs'}", "--resume"]) == 2
     assert "no checkpoint" in capsys.readouterr().err
+
+
+def test_a_run_directory_in_use_by_a_live_run_is_refused_even_after_it_was_deleted(tmp_path, capsys):
+    """A second ``avoid-train train`` of the same run, even with ``--overwrite`` and even once the
+    directory was deleted under the first, is refused in one line naming the first run's pid; the
+    lock dies with the process that held it."""
+    config = tmp_path / "tiny.toml"
+    config.write_text(TINY)
+    runs = tmp_path / "runs"
+    run_dir = runs / "tiny-s1"
+    (run_dir / "checkpoints").mkdir(parents=True)
+    (run_dir / "checkpoints" / "ppo_128_steps.zip").write_bytes(b"the live run's")
+    hold = textwrap.dedent(f"""
+        import time
+        from pathlib import Path
+        from training.train import run_lock
+        with run_lock(Path({str(run_dir)!r})):
+            print("held", flush=True)
+            time.sleep(120)
+    """)
+    holder = subprocess.Popen([sys.executable, "-c", hold], cwd=REPO, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        argv = ["train", "--config", str(config), f"run_root={runs}", "total_timesteps=256"]
+        assert main([*argv, "--overwrite"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and f"in use by another training run (pid {holder.pid})" in err
+        assert (run_dir / "checkpoints" / "ppo_128_steps.zip").read_bytes() == b"the live run's"
+        shutil.rmtree(run_dir)
+        assert main(argv) == 2
+        assert f"pid {holder.pid}" in capsys.readouterr().err
+        assert not run_dir.exists()
+    finally:
+        holder.kill()
+        holder.wait()
+    with run_lock(run_dir):  # killed: its lock went with it
+        pass
 
 
 def test_resume_drops_the_evaluations_of_the_abandoned_continuation(tmp_path):
