@@ -67,6 +67,11 @@ class SpaceTimeConfig:
         mover with it on the vehicle's left, unless that arrives more than ``keep_right_slack_s``
         later than a way that does not, metres (0: the search's tie-break picks the side)
     :param keep_right_slack_s: how much later keeping right may arrive, s
+    :param commit_slack_s: at a replan the vehicle keeps the schedule it is flying while it is still
+        on it (within ``commit_off`` of where it puts the vehicle now), every cell it passes is
+        still free, and it arrives at most this much later than the new search's, so a near tie
+        between two ways does not swap sides every replan, s (0: each replan starts afresh)
+    :param commit_off: how far from where its schedule puts it the vehicle may be and keep it, metres
     """
 
     cell: float = 0.2
@@ -80,6 +85,8 @@ class SpaceTimeConfig:
     speed_fraction: float = 0.9
     keep_right: float = 0.0
     keep_right_slack_s: float = 1.0
+    commit_slack_s: float = 0.0
+    commit_off: float = 1.0
 
 
 class SpaceTimePath(PathExpert):
@@ -102,6 +109,7 @@ class SpaceTimePath(PathExpert):
         self._times = np.zeros(0)
         self._way = np.zeros((0, 2))
         self._replan_at = -np.inf
+        self._arrives = False
 
     def reset(self) -> np.ndarray:
         """A new episode: rasterise the world for the schedule, then as :meth:`PathExpert.reset`."""
@@ -148,12 +156,14 @@ class SpaceTimePath(PathExpert):
         return np.array([np.interp(time, self._times, self._way[:, k]) for k in (0, 1)])
 
     def _replan(self) -> None:
-        """Search the schedule from the vehicle's cell now to the current waypoint."""
+        """Search the schedule from the vehicle's cell now to the current waypoint, and fly it
+        unless the one being flown is still good (``commit_slack_s``)."""
         env, sc, grid = self.env, self.schedule_config, self._cells
         assert grid is not None
         x, y = env.world.waypoints[env.waypoint_index][:2]
         goal = (float(x), float(y))
-        if self._goal_index != env.waypoint_index:
+        same_goal = self._goal_index == env.waypoint_index
+        if not same_goal:
             self._to_goal = cost_to_point(grid, self._cell_cost, goal)
             self._goal_index = env.waypoint_index
         now = env.sim_time
@@ -167,10 +177,38 @@ class SpaceTimePath(PathExpert):
             kept = schedule(free & ~right, start, end, self._to_goal)
             if tuple(kept[-1]) == end and len(kept) <= len(cells) + round(sc.keep_right_slack_s / sc.dt):
                 cells = kept
+        self._replan_at = now + sc.replan_s
+        arrives = tuple(cells[-1]) == end
+        by = float(times[len(cells) - 1]) + sc.commit_slack_s if arrives else math.inf
+        if same_goal and sc.commit_slack_s > 0.0 and self._still_good(free, times, by):
+            return
         self._way = np.asarray(grid.origin) + (cells + 0.5) * sc.cell
         self._way[0] = here[:2]  # from where it truly is, not its cell's centre
         self._times = times[: len(cells)]
-        self._replan_at = now + sc.replan_s
+        self._arrives = arrives
+
+    def _still_good(self, free: np.ndarray, times: np.ndarray, by: float) -> bool:
+        """Whether the schedule being flown reaches the waypoint by ``by`` (s), the vehicle is
+        still on it, and at each of ``times`` until then both cells it is between are ``free``."""
+        sc, grid = self.schedule_config, self._cells
+        assert grid is not None
+        if not self._arrives or self._times[-1] > by + 1e-9 or times[0] >= self._times[-1]:
+            return False
+        here = np.asarray(self.env.true_state.position[:2], dtype=np.float64)
+        if math.dist(self._along(float(times[0])), here) > sc.commit_off:
+            return False
+        nx, ny = free.shape[1:]
+        cells = np.floor((self._way - np.asarray(grid.origin)) / sc.cell).astype(int)
+        cells = np.clip(cells, 0, [nx - 1, ny - 1])
+        count = min(math.ceil((self._times[-1] - times[0]) / sc.dt - 1e-9) + 1, times.size)
+        steps = np.arange(1, count)
+        index = (times[steps] - self._times[0]) / sc.dt
+        before = np.minimum(np.floor(index + 1e-9).astype(int), len(cells) - 1)
+        after = np.minimum(before + 1, len(cells) - 1)
+        return bool(
+            free[steps, cells[before, 0], cells[before, 1]].all()
+            and free[steps, cells[after, 0], cells[after, 1]].all()
+        )
 
 
 #: the space-time teacher's filter: :data:`~training.predictive_expert.MOVERS` with each mover's
@@ -187,6 +225,8 @@ def space_time_expert(env: LidarNavEnv) -> PredictiveExpert:
 
 #: how far from each mover's centre the keep-right teacher's schedule keeps off its right, metres
 KEEP_RIGHT = 3.0
+#: how much later than a new search the keep-right teacher's kept schedule may arrive, s
+COMMIT_SLACK_S = 1.0
 
 
 def keep_right_expert(env: LidarNavEnv) -> PredictiveExpert:
@@ -199,6 +239,10 @@ def keep_right_expert(env: LidarNavEnv) -> PredictiveExpert:
     regression of those labels averaged them into flying straight at it. Here the side follows
     what the student's frame holds: the mover's heading where keeping right is cheap, its offset
     where it is not. It is not left-right symmetric, so DAgger's fit must not mirror its labels.
+
+    It keeps the schedule it flies while that stays good (``commit_slack_s``): replanning afresh
+    every 0.5 s, it took either of two ways that arrive about as early, and its sideways label
+    swung from side to side.
     """
-    schedule_config = SpaceTimeConfig(keep_right=KEEP_RIGHT)
+    schedule_config = SpaceTimeConfig(keep_right=KEEP_RIGHT, commit_slack_s=COMMIT_SLACK_S)
     return PredictiveExpert(env, SPACE_TIME, path=SpaceTimePath(env, schedule_config))

@@ -5,6 +5,8 @@ the episode ends. (In a world without movers it is the robust teacher, command f
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import pytest
 
@@ -15,7 +17,15 @@ from flightsim.worlds.world import World
 from tests.training.test_path_expert import RADIUS
 from training.config import config_from_dict
 from training.controllers import TEACHERS
-from training.space_time_expert import keep_right_expert, space_time_expert
+from training.predictive_expert import PredictiveExpert
+from training.space_time_expert import (
+    KEEP_RIGHT,
+    SPACE_TIME,
+    SpaceTimeConfig,
+    SpaceTimePath,
+    keep_right_expert,
+    space_time_expert,
+)
 
 WALKER_RADIUS = 0.25
 
@@ -99,6 +109,46 @@ def test_keep_right_passes_a_walker_coming_head_on_on_its_left_whichever_side_of
             assert side < -(RADIUS + WALKER_RADIUS), (east, lateral, side)
     side, _ = passing_side(space_time_expert, head_on_room(-0.3, east=False))
     assert side > RADIUS + WALKER_RADIUS, side
+
+
+def replans_kept(teacher: Callable[[LidarNavEnv], PredictiveExpert], world: World) -> tuple[int, int, dict]:
+    """How many of an episode's replans kept the schedule being flown, of how many, and the
+    episode's last info."""
+    env = LidarNavEnv(NavEnvConfig(autopilot_response="px4", vehicle_radius=RADIUS, sideways=True))
+    env.reset(seed=0, options={"world": world})
+    expert = teacher(env)
+    path = expert._path_expert
+    replan, starts = path._replan, []
+
+    def recorded() -> None:
+        replan()
+        starts.append(path._times[0] < env.sim_time - 1e-9)  # a new schedule starts now
+
+    path._replan = recorded
+    action = expert.reset()
+    while True:
+        _, _, terminated, truncated, info = env.step(action)
+        if terminated or truncated:
+            return sum(starts), len(starts), info
+        action = expert.act()
+
+
+def test_the_keep_right_teacher_keeps_the_schedule_it_flies_while_that_stays_good():
+    """Head-on with a walker: the space-time teacher starts a new schedule at every replan; the
+    keep-right teacher keeps the one it flies at most replans and still reaches the waypoint clear,
+    and keeps none once the vehicle must be within a centimetre of where that puts it."""
+    world = head_on_room(0.3, east=False)
+    kept, replans, info = replans_kept(space_time_expert, world)
+    assert kept == 0 and replans > 20 and info["success"]
+    kept, replans, info = replans_kept(keep_right_expert, world)
+    assert kept > replans / 2, (kept, replans)
+    assert info["success"] and not info["collision"], info
+    tight = SpaceTimeConfig(keep_right=KEEP_RIGHT, commit_slack_s=1.0, commit_off=0.01)
+
+    def close_follower(env: LidarNavEnv) -> PredictiveExpert:
+        return PredictiveExpert(env, SPACE_TIME, path=SpaceTimePath(env, tight))
+
+    assert replans_kept(close_follower, world)[0] == 0
 
 
 def test_keep_right_is_a_teacher_and_its_labels_are_not_mirrored():
