@@ -109,7 +109,6 @@ class SpaceTimePath(PathExpert):
         self._times = np.zeros(0)
         self._way = np.zeros((0, 2))
         self._replan_at = -np.inf
-        self._arrives = False
 
     def reset(self) -> np.ndarray:
         """A new episode: rasterise the world for the schedule, then as :meth:`PathExpert.reset`."""
@@ -178,21 +177,20 @@ class SpaceTimePath(PathExpert):
             if tuple(kept[-1]) == end and len(kept) <= len(cells) + round(sc.keep_right_slack_s / sc.dt):
                 cells = kept
         self._replan_at = now + sc.replan_s
-        arrives = tuple(cells[-1]) == end
-        by = float(times[len(cells) - 1]) + sc.commit_slack_s if arrives else math.inf
-        if same_goal and sc.commit_slack_s > 0.0 and self._still_good(free, times, by):
+        by = float(times[len(cells) - 1]) + sc.commit_slack_s if tuple(cells[-1]) == end else math.inf
+        if same_goal and sc.commit_slack_s > 0.0 and self._still_good(free, times, end, by):
             return
         self._way = np.asarray(grid.origin) + (cells + 0.5) * sc.cell
         self._way[0] = here[:2]  # from where it truly is, not its cell's centre
         self._times = times[: len(cells)]
-        self._arrives = arrives
 
-    def _still_good(self, free: np.ndarray, times: np.ndarray, by: float) -> bool:
-        """Whether the schedule being flown reaches the waypoint by ``by`` (s), the vehicle is
-        still on it, and at each of ``times`` until then both cells it is between are ``free``."""
+    def _still_good(self, free: np.ndarray, times: np.ndarray, end: tuple[int, int], by: float) -> bool:
+        """Whether the schedule being flown reaches the waypoint's cell ``end`` by ``by`` (s), the
+        vehicle is still on it, and at each of ``times`` until then both cells it is between are
+        ``free``."""
         sc, grid = self.schedule_config, self._cells
         assert grid is not None
-        if not self._arrives or self._times[-1] > by + 1e-9 or times[0] >= self._times[-1]:
+        if grid.cell(*self._way[-1]) != end or self._times[-1] > by + 1e-9 or times[0] >= self._times[-1]:
             return False
         here = np.asarray(self.env.true_state.position[:2], dtype=np.float64)
         if math.dist(self._along(float(times[0])), here) > sc.commit_off:
