@@ -25,7 +25,7 @@ NEAR_MISS_DISTANCE = 0.5
 #: the environments a config can train on: avoidance (no goal) and the goal task
 ENV_IDS = ("flightsim/LidarAvoid-v0", "flightsim/LidarNav-v0")
 #: the DAgger teachers that pass movers on one side (not left-right symmetric)
-HANDED_TEACHERS = ("keep_right_expert",)
+HANDED_TEACHERS = ("keep_right_expert", "present_expert")
 
 
 @dataclass(frozen=True)
@@ -139,7 +139,7 @@ class PretrainConfig:
     demonstrator: Literal["goal_follower", "gap_follower"] = "goal_follower"
     teacher: Literal[
         "path_expert", "predictive_expert", "robust_expert", "smooth_expert", "mover_expert",
-        "space_time_expert", "keep_right_expert",
+        "space_time_expert", "keep_right_expert", "present_expert",
     ] = "path_expert"  # fmt: skip
     iterations: int = field(default=1, metadata={"min": 1, "max": 100})
     beta0: float = field(default=0.5, metadata={"min": 0.0, "max": 1.0})

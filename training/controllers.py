@@ -25,7 +25,7 @@ from training.attackers import ATTACKERS, REPLAY, ReplayAttacker, make_attacker
 from training.config import STEP_SECONDS, observation_layout, sideways_scale
 from training.path_expert import ExpertController, PathExpert
 from training.predictive_expert import PredictiveExpert, mover_expert, robust_expert, smooth_expert
-from training.space_time_expert import keep_right_expert, space_time_expert
+from training.space_time_expert import keep_right_expert, present_expert, space_time_expert
 
 BASELINES = ("gap_follower", "random")
 GOAL_BASELINES = ("goal_follower", "straight_line")
@@ -46,6 +46,7 @@ PRIVILEGED_GOAL_CONTROLLERS = (
     "mover_expert",
     "space_time_expert",
     "keep_right_expert",
+    "present_expert",
 )
 #: the DAgger teachers by name, each built from the env whose truth it reads
 TEACHERS: dict[str, Callable[[Any], Any]] = {
@@ -56,6 +57,7 @@ TEACHERS: dict[str, Callable[[Any], Any]] = {
     "mover_expert": mover_expert,
     "space_time_expert": space_time_expert,
     "keep_right_expert": keep_right_expert,
+    "present_expert": present_expert,
 }
 
 

@@ -72,6 +72,10 @@ class SpaceTimeConfig:
         still free, and it arrives at most this much later than the new search's, so a near tie
         between two ways does not swap sides every replan, s (0: each replan starts afresh)
     :param commit_off: how far from where its schedule puts it the vehicle may be and keep it, metres
+    :param constant_velocity: the schedule carries each mover on at its velocity now instead of
+        reading its true track (:func:`~flightsim.worlds.space_time.mover_track`)
+    :param mover_growth: each mover's clearance grows this much per second of look-ahead, m/s
+    :param mover_growth_cap: and at most this much, metres
     """
 
     cell: float = 0.2
@@ -87,6 +91,9 @@ class SpaceTimeConfig:
     keep_right_slack_s: float = 1.0
     commit_slack_s: float = 0.0
     commit_off: float = 1.0
+    constant_velocity: bool = False
+    mover_growth: float = 0.0
+    mover_growth_cap: float = 0.0
 
 
 class SpaceTimePath(PathExpert):
@@ -167,12 +174,17 @@ class SpaceTimePath(PathExpert):
             self._goal_index = env.waypoint_index
         now = env.sim_time
         times = now + sc.dt * np.arange(round(sc.horizon_s / sc.dt) + 1)
-        free = free_cells(env.world, self._centres, times, self._needed, self._static_free)
+        free = free_cells(
+            env.world, self._centres, times, self._needed, self._static_free,
+            constant_velocity=sc.constant_velocity, growth=sc.mover_growth, growth_cap=sc.mover_growth_cap,
+        )  # fmt: skip
         here = env.true_state.position
         start, end = grid.cell(*here[:2]), grid.cell(*goal)
         cells = schedule(free, start, end, self._to_goal)
         if sc.keep_right > 0.0:
-            right = right_of_movers(env.world, self._centres, times, sc.keep_right).reshape(free.shape)
+            right = right_of_movers(
+                env.world, self._centres, times, sc.keep_right, constant_velocity=sc.constant_velocity
+            ).reshape(free.shape)
             kept = schedule(free & ~right, start, end, self._to_goal)
             if tuple(kept[-1]) == end and len(kept) <= len(cells) + round(sc.keep_right_slack_s / sc.dt):
                 cells = kept
@@ -244,3 +256,20 @@ def keep_right_expert(env: LidarNavEnv) -> PredictiveExpert:
     """
     schedule_config = SpaceTimeConfig(keep_right=KEEP_RIGHT, commit_slack_s=COMMIT_SLACK_S)
     return PredictiveExpert(env, SPACE_TIME, path=SpaceTimePath(env, schedule_config))
+
+
+def present_expert(env: LidarNavEnv) -> PredictiveExpert:
+    """:func:`keep_right_expert` knowing of the movers only what the student's frame holds
+    (``[pretrain] teacher = "present_expert"``): where each mover is now and its velocity now.
+
+    Its schedule carries each mover on in a straight line, keeping 0.1 m more clearance per second
+    of look-ahead up to 0.5 m, and its filter reads no mover's future
+    (:data:`~training.predictive_expert.MOVERS`). The privileged teachers' labels depend on where a
+    walker will turn, which the student cannot tell from its frame, so it learns their average over
+    what it cannot see; this teacher's labels are a function of what it can.
+    """
+    schedule_config = SpaceTimeConfig(
+        keep_right=KEEP_RIGHT, commit_slack_s=COMMIT_SLACK_S,
+        constant_velocity=True, mover_growth=0.1, mover_growth_cap=0.5,
+    )  # fmt: skip
+    return PredictiveExpert(env, MOVERS, path=SpaceTimePath(env, schedule_config))

@@ -23,12 +23,14 @@ import math
 import numpy as np
 from scipy.ndimage import binary_dilation
 
+from flightsim.worlds.moving import MovingObstacle
 from flightsim.worlds.planner import ClearanceGrid, clearance_grid
 from flightsim.worlds.world import World
 
 SAFETY_EXTRA = 0.05  # metres beyond the sampling margins
 HEADING_DT = 0.1  # s over which right_of_movers reads a mover's heading
 PASSING_SPEED = 0.3  # m/s: a mover slower than this has no side to pass on
+VELOCITY_DT = 0.1  # s over which mover_velocity reads a mover's velocity
 _NEIGHBOURS = np.ones((3, 3), dtype=bool)
 _CHUNK = 32  # time steps whose clearances are computed at once
 
@@ -107,8 +109,33 @@ def sampling_margin(world: World, cell: float, dt: float) -> float:
     return cell * math.sqrt(2.0) / 2.0 + (fastest + vehicle_speed) * dt / 2.0 + SAFETY_EXTRA
 
 
+def mover_velocity(mover: MovingObstacle, time: float) -> np.ndarray:
+    """``mover``'s velocity (vx, vy) over the ``VELOCITY_DT`` before ``time``, m/s: as a tracker
+    reads it, from where it was, not where it will be."""
+    before, now = mover.positions(np.array([time - VELOCITY_DT, time]))
+    return (now - before) / VELOCITY_DT
+
+
+def mover_track(mover: MovingObstacle, times: np.ndarray, *, constant_velocity: bool = False) -> np.ndarray:
+    """Where ``mover``'s centre is at each of ``times``, ``(T, 2)``: on its true track, or carried on
+    in a straight line at its velocity at ``times[0]`` (all that a frame of the tracker's knows: where
+    each mover is now and how fast it goes, not where it will turn)."""
+    if not constant_velocity:
+        return mover.positions(times)
+    now = float(times[0])
+    return mover.positions(now)[0] + (np.asarray(times) - now)[:, None] * mover_velocity(mover, now)
+
+
 def free_cells(
-    world: World, centres: np.ndarray, times: np.ndarray, needed: float, static_free: np.ndarray
+    world: World,
+    centres: np.ndarray,
+    times: np.ndarray,
+    needed: float,
+    static_free: np.ndarray,
+    *,
+    constant_velocity: bool = False,
+    growth: float = 0.0,
+    growth_cap: float = 0.0,
 ) -> np.ndarray:
     """Which cells the vehicle may be in at each of ``times``: ``static_free`` and at least ``needed``
     metres from every moving obstacle where it is then, ``(T, nx, ny)``.
@@ -116,22 +143,39 @@ def free_cells(
     :param centres: the cells' centres, :func:`cell_centres`
     :param needed: metres from each mover's surface
     :param static_free: ``(nx, ny)`` the cells the static world leaves free
+    :param constant_velocity: each mover where :func:`mover_track` carries it on from ``times[0]``
+        at its velocity then, instead of its true track
+    :param growth: ``needed`` grows this much per second after ``times[0]`` (a prediction's error
+        grows with how far ahead it reaches), m/s
+    :param growth_cap: ``needed`` grows at most this much, metres
     """
-    ok = np.ones((times.size, centres.shape[0]), dtype=bool)
+    points = np.asarray(centres, dtype=np.float64).reshape(-1, 3)[None]
+    needed_then = needed + np.minimum(growth * (np.asarray(times) - times[0]), growth_cap)[:, None]
+    ok = np.ones((times.size, points.shape[1]), dtype=bool)
     for m in world.moving:
-        ok &= m.clearance_over_time(centres, times) >= needed
+        track = mover_track(m, times, constant_velocity=constant_velocity)
+        ok &= m.clearance_from(points, track[:, None]) >= needed_then
     return ok.reshape(times.size, *static_free.shape) & static_free[None]
 
 
-def right_of_movers(world: World, centres: np.ndarray, times: np.ndarray, within: float) -> np.ndarray:
+def right_of_movers(
+    world: World, centres: np.ndarray, times: np.ndarray, within: float, *, constant_velocity: bool = False
+) -> np.ndarray:
     """The cells within ``within`` metres of a moving mover's centre and on its right (from its
     heading) at each of ``times``, ``(T, N)`` for ``centres`` ``(N, 3)``: where a vehicle that
-    keeps right of an oncoming mover, as ships and most roads do, does not pass it."""
+    keeps right of an oncoming mover, as ships and most roads do, does not pass it.
+
+    :param constant_velocity: each mover carried on from ``times[0]`` (:func:`mover_track`), heading
+        where it heads then
+    """
     points = np.asarray(centres, dtype=np.float64).reshape(-1, 3)[None, :, :2]
     right = np.zeros((times.size, points.shape[1]), dtype=bool)
     for m in world.moving:
-        at = m.positions(times)
-        step = m.positions(times + HEADING_DT) - at
+        at = mover_track(m, times, constant_velocity=constant_velocity)
+        if constant_velocity:
+            step = np.broadcast_to(mover_velocity(m, float(times[0])) * HEADING_DT, at.shape)
+        else:
+            step = m.positions(times + HEADING_DT) - at
         moving = np.hypot(step[:, 0], step[:, 1]) > PASSING_SPEED * HEADING_DT
         offset = points - at[:, None]
         near = np.hypot(offset[..., 0], offset[..., 1]) <= within

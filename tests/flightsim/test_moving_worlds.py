@@ -20,6 +20,7 @@ from flightsim.worlds.planner import clearance_grid
 from flightsim.worlds.space_time import (
     cell_centres,
     free_cells,
+    mover_track,
     right_of_movers,
     sampling_margin,
     schedule,
@@ -345,3 +346,28 @@ def test_right_of_movers_marks_the_near_cells_on_a_moving_movers_right_only() ->
     right = right_of_movers(room(walking), cells, np.array([0.0, 1.0]), within=3.0)
     assert right.tolist() == [[True, False, False, True, False], [True, False, False, False, True]]
     assert not right_of_movers(room(standing), cells, np.array([0.0, 1.0]), within=3.0).any()
+
+
+def test_constant_velocity_carries_a_mover_on_past_where_it_turns_back() -> None:
+    """A walker pacing from x = 0 to 2 m at 1 m/s, read at 1 s: its track turns back at 2 s; carried
+    on at its velocity then, it is at x = 3 m at 3 s. The free cells and its right side follow that
+    straight line; a clearance growing 0.1 m/s from now, up to its cap, frees fewer cells later."""
+    walker = MovingObstacle("cylinder", PathMotion(((0.0, 0.0), (2.0, 0.0)), 1.0), 1.8, radius=0.25)
+    world = World("open", (20.0, 12.0), 3.0, (), (-4.0, 0.0, 1.5), 0.0, ((4.0, 0.0, 1.5),), moving=(walker,))
+    times = np.array([1.0, 2.0, 3.0])
+    np.testing.assert_allclose(mover_track(walker, times), [[1.0, 0.0], [2.0, 0.0], [1.0, 0.0]])
+    np.testing.assert_allclose(
+        mover_track(walker, times, constant_velocity=True), [[1, 0], [2, 0], [3, 0]], atol=1e-9
+    )
+    cells = np.array([[3.0, 0.0, 1.5], [3.0, -1.0, 1.5], [1.0, 0.6, 1.5]])
+    static_free = np.ones((3, 1), dtype=bool)
+    true_free = free_cells(world, cells, times, 0.3, static_free)[:, :, 0]
+    carried_free = free_cells(world, cells, times, 0.3, static_free, constant_velocity=True)[:, :, 0]
+    assert true_free[2, 0] and not carried_free[2, 0]  # at 3 s: the walker is back at 1 m, or at 3 m
+    # (1, 0.6) at 3 s, the walker back at (1, 0): 0.35 m from it, free; with 0.2 m of growth, not
+    assert true_free[2, 2]
+    assert not free_cells(world, cells, times, 0.3, static_free, growth=0.1, growth_cap=1.0)[2, 2, 0]
+    assert free_cells(world, cells, times, 0.3, static_free, growth=0.1, growth_cap=0.04)[2, 2, 0]
+    right_true = right_of_movers(world, cells, times, within=3.0)
+    right_carried = right_of_movers(world, cells, times, within=3.0, constant_velocity=True)
+    assert not right_true[2, 1] and right_carried[2, 1]  # (3, -1) at 3 s: its right only heading east

@@ -24,6 +24,7 @@ from training.space_time_expert import (
     SpaceTimeConfig,
     SpaceTimePath,
     keep_right_expert,
+    present_expert,
     space_time_expert,
 )
 
@@ -157,3 +158,58 @@ def test_keep_right_is_a_teacher_and_its_labels_are_not_mirrored():
     with pytest.raises(UserError, match=refused):
         config_from_dict({"env_id": "flightsim/LidarNav-v0", "pretrain": {
             "method": "dagger", "steps": 100, "teacher": "keep_right_expert", "mirror": True}})  # fmt: skip
+
+
+def crossing_room(turn_at: float) -> World:
+    """A room 16 m by 8 m, the waypoint 10 m ahead, and a walker crossing the way 4 m ahead from the
+    right at 1 m/s, from 2.5 m off the line; it turns back ``turn_at`` seconds after the start."""
+    line = PathMotion(((0.0, -2.5), (0.0, -2.5 + turn_at)), 1.0)
+    walker = MovingObstacle("cylinder", line, height=1.8, radius=WALKER_RADIUS, kind="pedestrian")
+    return World(
+        name="crossing", room_size=(16.0, 8.0), room_height=3.0, obstacles=(),
+        start_position=(-4.0, 0.0, 1.5), start_yaw_deg=0.0, waypoints=((6.0, 0.0, 1.5),), moving=(walker,),
+    )  # fmt: skip
+
+
+def labels_until(
+    teacher: Callable[[LidarNavEnv], PredictiveExpert], world: World, until: float
+) -> np.ndarray:
+    """The teacher's labels, flying them, at every step until ``until`` seconds, ``(steps, 3)``."""
+    env = LidarNavEnv(NavEnvConfig(autopilot_response="px4", vehicle_radius=RADIUS, sideways=True))
+    env.reset(seed=0, options={"world": world})
+    expert = teacher(env)
+    labels = [expert.reset()]
+    while env.sim_time < until - 1e-9:
+        env.step(labels[-1])
+        labels.append(expert.act())
+    return np.array(labels)
+
+
+def test_the_present_teachers_labels_are_the_same_while_what_the_student_sees_is():
+    """The same walker crossing, turning back after 2 s in one world and after 6 s in the other:
+    until it turns, every frame of the two is the same, and so are the present teacher's labels.
+    The keep-right teacher, reading the walker's track, labels the two differently from the start."""
+    soon, late = crossing_room(2.0), crossing_room(6.0)
+    np.testing.assert_array_equal(
+        labels_until(present_expert, soon, 2.0), labels_until(present_expert, late, 2.0)
+    )
+    privileged = np.abs(
+        labels_until(keep_right_expert, soon, 2.0) - labels_until(keep_right_expert, late, 2.0)
+    )
+    assert privileged[0].max() > 0.5, privileged
+
+
+def test_the_present_teacher_passes_a_walker_coming_head_on_on_its_left():
+    """A walker on a straight line is where a constant velocity carries it: the present teacher keeps
+    right of it as the keep-right teacher does, and reaches the waypoint."""
+    for lateral in (0.3, -0.3):
+        side, info = passing_side(present_expert, head_on_room(lateral, east=True))
+        assert info["success"] and not info["collision"], (lateral, info)
+        assert side < -(RADIUS + WALKER_RADIUS), (lateral, side)
+
+
+def test_the_present_teacher_is_a_teacher_and_its_labels_are_not_mirrored():
+    assert TEACHERS["present_expert"] is present_expert
+    with pytest.raises(UserError, match=r"teacher present_expert passes movers on one side"):
+        config_from_dict({"env_id": "flightsim/LidarNav-v0", "pretrain": {
+            "method": "dagger", "steps": 100, "teacher": "present_expert", "mirror": True}})  # fmt: skip
