@@ -45,7 +45,7 @@ from flightsim.envs.nav_env import LidarNavEnv
 from flightsim.vehicle.autopilot_response import ResponseParams, hardest_params
 from flightsim.worlds.moving import MovingObstacle
 from flightsim.worlds.planner import ClearanceGrid, clearance_grid
-from flightsim.worlds.space_time import mover_velocity
+from flightsim.worlds.space_time import mover_state
 from training.path_expert import PathExpert, PathExpertConfig, _cell_costs, body_to_world, cost_to_point
 
 #: s between commands (the env's control period)
@@ -318,7 +318,7 @@ class PredictiveExpert:
         """Each predicted point's clearance from every mover beyond what it must keep (the radius,
         :attr:`~PredictiveExpertConfig.mover_margin` and the growth), metres, ``(K, steps)``: each
         mover anywhere on its line from where its velocity now
-        (:func:`~flightsim.worlds.space_time.mover_velocity`) carries it to where it would be had
+        (:func:`~flightsim.worlds.space_time.mover_state`) carries it to where it would be had
         it turned back now (for at most :attr:`~PredictiveExpertConfig.mover_turn_s`), the nearest
         of those places to the point;
         or, with :attr:`~PredictiveExpertConfig.mover_oracle_s`, where its track puts it (and no
@@ -348,8 +348,8 @@ class PredictiveExpert:
             return least - required
         back = -np.minimum(ahead, cfg.mover_turn_s) / ahead  # turned back: this much of the way carried on
         for mover in self._movers:
-            here = mover.positions(now)[0]
-            carried = np.outer(ahead, mover_velocity(mover, now))  # (steps, 2)
+            here, velocity = mover_state(mover, now)
+            carried = np.outer(ahead, velocity)  # (steps, 2)
             along = np.einsum("ksj,sj->ks", points[..., :2] - here, carried) / np.maximum(
                 np.einsum("sj,sj->s", carried, carried), 1e-12
             )

@@ -30,7 +30,7 @@ from flightsim.worlds.world import World
 SAFETY_EXTRA = 0.05  # metres beyond the sampling margins
 HEADING_DT = 0.1  # s over which right_of_movers reads a mover's heading
 PASSING_SPEED = 0.3  # m/s: a mover slower than this has no side to pass on
-VELOCITY_DT = 0.1  # s over which mover_velocity reads a mover's velocity
+VELOCITY_DT = 0.1  # s over which mover_state reads a mover's velocity
 _NEIGHBOURS = np.ones((3, 3), dtype=bool)
 _CHUNK = 32  # time steps whose clearances are computed at once
 
@@ -109,11 +109,11 @@ def sampling_margin(world: World, cell: float, dt: float) -> float:
     return cell * math.sqrt(2.0) / 2.0 + (fastest + vehicle_speed) * dt / 2.0 + SAFETY_EXTRA
 
 
-def mover_velocity(mover: MovingObstacle, time: float) -> np.ndarray:
-    """``mover``'s velocity (vx, vy) over the ``VELOCITY_DT`` before ``time``, m/s: as a tracker
-    reads it, from where it was, not where it will be."""
+def mover_state(mover: MovingObstacle, time: float) -> tuple[np.ndarray, np.ndarray]:
+    """``mover``'s centre (x, y) at ``time``, metres, and its velocity (vx, vy) over the
+    ``VELOCITY_DT`` before, m/s: as a tracker reads it, from where it was, not where it will be."""
     before, now = mover.positions(np.array([time - VELOCITY_DT, time]))
-    return (now - before) / VELOCITY_DT
+    return now, (now - before) / VELOCITY_DT
 
 
 def mover_track(mover: MovingObstacle, times: np.ndarray, *, constant_velocity: bool = False) -> np.ndarray:
@@ -123,7 +123,8 @@ def mover_track(mover: MovingObstacle, times: np.ndarray, *, constant_velocity: 
     if not constant_velocity:
         return mover.positions(times)
     now = float(times[0])
-    return mover.positions(now)[0] + (np.asarray(times) - now)[:, None] * mover_velocity(mover, now)
+    here, velocity = mover_state(mover, now)
+    return here + (np.asarray(times) - now)[:, None] * velocity
 
 
 def free_cells(
@@ -173,7 +174,7 @@ def right_of_movers(
     for m in world.moving:
         at = mover_track(m, times, constant_velocity=constant_velocity)
         if constant_velocity:
-            step = np.broadcast_to(mover_velocity(m, float(times[0])) * HEADING_DT, at.shape)
+            step = np.broadcast_to(mover_state(m, float(times[0]))[1] * HEADING_DT, at.shape)
         else:
             step = m.positions(times + HEADING_DT) - at
         moving = np.hypot(step[:, 0], step[:, 1]) > PASSING_SPEED * HEADING_DT
