@@ -8,11 +8,12 @@ one firmware response for all
 (``--autopilot``), so the gate's envelope is the one flown. Prints per attacker and gate: episodes,
 contacts with a mover while the vehicle moved faster than the creep and at rest, the least gap to a
 mover while moving and to the static world (m, from the vehicle's surface), and the counts of
-``mover_too_fast`` and ``gate_mover_best_effort``. The dynamic families' walkers keep within the
+``mover_too_fast``, ``gate_mover_best_effort`` and ``gate_give_way`` (``--no-give-way``: the gate
+without ``[shield] give_way``). The dynamic families' walkers keep within the
 default 1.5 m/s; forklifts (up to 2 m/s) and drones (up to 3 m/s) may not, and are counted.
 
     python bench/bench_shield_movers.py [--families office-dynamic,rooms-dynamic] [--seeds 8]
-        [--first-seed 500100] [--max-steps 200] [--autopilot ardupilot] [--mover-accel 3.0]
+        [--first-seed 500100] [--max-steps 200] [--autopilot ardupilot] [--mover-accel 3.0] [--no-give-way]
 
 The worlds are validation seeds (500,100 on by default).
 """
@@ -40,6 +41,7 @@ def main() -> None:
     parser.add_argument("--max-steps", type=int, default=200, help="steps per episode (10 a second)")
     parser.add_argument("--autopilot", default="ardupilot", choices=("ardupilot", "px4", "random", "ideal"))
     parser.add_argument("--mover-accel", type=float, default=ShieldConfig.mover_accel, help="m/s²")
+    parser.add_argument("--no-give-way", action="store_true", help="the gate without [shield] give_way")
     args = parser.parse_args()
     families = [f.strip() for f in args.families.split(",") if f.strip()]
     overrides = [
@@ -49,7 +51,7 @@ def main() -> None:
     ]
     env = make_eval_env(load_train_config(CONFIG, overrides).env, NAV_ENV_ID)
     worlds = goal_worlds(families, args.first_seed, args.seeds, (0.9, 0.9))
-    config = ShieldConfig(backup_gate=True, mover_accel=args.mover_accel)
+    config = ShieldConfig(backup_gate=True, mover_accel=args.mover_accel, give_way=not args.no_give_way)
     header = (
         "attacker",
         "gate",
@@ -60,6 +62,7 @@ def main() -> None:
         "least static",
         "too fast",
         "best effort",
+        "gave way",
     )
     print(f"{header[0]:10} {header[1]:7} " + " ".join(f"{h:>12}" for h in header[2:]))
     for attacker in MOVER_ATTACKERS:
@@ -69,13 +72,14 @@ def main() -> None:
             moving = sum(len(f.while_moving) for f in flights)
             at_rest = sum(len(f.contacts) for f in flights) - moving
             counts = [
-                sum(f.interventions[k] for f in flights) for k in ("mover_too_fast", "gate_mover_best_effort")
+                sum(f.interventions[k] for f in flights)
+                for k in ("mover_too_fast", "gate_mover_best_effort", "gate_give_way")
             ]
             print(
                 f"{attacker:10} {movers:7} "
                 f"{len(flights):12d} {moving:12d} {at_rest:12d} "
                 f"{min(f.moving_gap for f in flights):12.2f} {min(f.static_gap for f in flights):12.2f} "
-                f"{counts[0]:12d} {counts[1]:12d}  ({time.perf_counter() - start:.0f} s)",
+                f"{counts[0]:12d} {counts[1]:12d} {counts[2]:12d}  ({time.perf_counter() - start:.0f} s)",
                 flush=True,
             )
     env.close()

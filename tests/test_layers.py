@@ -35,7 +35,6 @@ LAYERS: dict[str, dict[str, int]] = {
 TRAINING_BASE = {
     "config",
     "baselines",
-    "give_way",
     "path_expert",
     "predictive_expert",
     "space_time_expert",

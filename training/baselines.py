@@ -14,7 +14,7 @@ Goal task (LidarNav-v0, the scan + goal bearing/distance + measured velocity fra
 * :class:`StraightLine` — turn to the goal and fly at it, no avoidance: how hard a world is.
 * :class:`GoalFollower` — the classical goal-directed controller (see its docstring).
 * :class:`GoalFollowerTracks` — the goal follower giving way to the tracker's movers
-  (:mod:`training.give_way`).
+  (:mod:`companion.safety.give_way`).
 
 All implement the controller interface the evaluator uses: ``reset(obs)`` at an episode start,
 then ``act(obs) -> (2,)`` per step, actions in ``[-1, 1]`` (a0 forward speed, a1 yaw rate,
@@ -35,7 +35,7 @@ from companion.perception.drift import DriftConfig, DriftEstimator, DriftHoldCon
 from companion.perception.observation import ObservationLayout
 from companion.perception.scan import N_BINS
 from companion.perception.tracking import Mover
-from training.give_way import GiveWay, GiveWayConfig
+from companion.safety.give_way import GiveWay, GiveWayConfig
 
 _ANGLES = np.deg2rad(np.arange(N_BINS) + 0.5)  # bin centres, counter-clockwise from straight ahead
 _SIGNED = np.where(np.pi < _ANGLES, _ANGLES - 2 * np.pi, _ANGLES)  # in (-pi, pi]
@@ -597,7 +597,7 @@ class GoalFollower:
 
 
 class GoalFollowerTracks(GoalFollower):
-    """The goal follower giving way to what moves (:mod:`training.give_way`): it waits for a mover
+    """The goal follower giving way to what moves (:mod:`companion.safety.give_way`): it waits for a mover
     whose predicted path crosses its intended course, and steps aside from one that would meet it
     where it waits. The movers are the tracker's (as the shield gets them), never the simulator's.
 

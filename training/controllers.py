@@ -20,6 +20,7 @@ import numpy as np
 from companion.common.errors import UserError
 from companion.perception.framestack import FrameStack
 from companion.perception.scan import N_BINS
+from companion.safety.give_way import GiveWayConfig
 from companion.safety.shield import Command, SafetyShield, ShieldConfig, command_from_action
 from training.attackers import ATTACKERS, REPLAY, ReplayAttacker, make_attacker
 from training.config import STEP_SECONDS, observation_layout, sideways_scale
@@ -321,7 +322,6 @@ def _goal_follower_tracks(env_config: Any, movers: Callable[[], dict[str, Any]] 
     :raises ValueError: no ``movers`` to read them from
     """
     from training.baselines import GoalFollowerConfig, GoalFollowerTracks
-    from training.give_way import GiveWayConfig
 
     if not getattr(env_config, "tracking", False):
         raise UserError("goal_follower_tracks gives way to the tracker's movers: set env.tracking = true")

@@ -32,17 +32,15 @@ import collections
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from companion.perception.scan import N_BINS
+from companion.perception.tracking import Mover
 from companion.safety.backup import BackupGate, MoverModel, mover_rows
 from companion.safety.envelope import ENVELOPES, ResponseEnvelope
+from companion.safety.give_way import GiveWay, GiveWayConfig
 from companion.safety.obstacle_memory import ObstacleMemory, return_spans, scan_points
-
-if TYPE_CHECKING:
-    from companion.perception.tracking import Mover
 
 
 @dataclass(frozen=True)
@@ -187,6 +185,11 @@ class ShieldConfig:
     :param mover_accel: how fast a mover's velocity may change from the tracked one, m/s² (3: a
         walker stopping or starting hard): what lets a mover's own course narrow where it may be
     :param mover_velocity_error: how far a mover's true velocity may be from the tracked one, m/s
+    :param give_way: with the gate, where a mover at its tracked velocity would run into the vehicle
+        as it stops, and into what the gate sends, step aside instead
+        (:mod:`companion.safety.give_way`): of the sidesteps whose stop keeps clear of the returns,
+        the one clear of the movers, or meeting them latest. The stop does not protect a vehicle in
+        a walker's path; this is best effort, outside the mover promise (``gate_give_way``)
     """
 
     max_speed: float = field(default=2.0, metadata={"min": 0.0, "max": 20.0})
@@ -214,6 +217,7 @@ class ShieldConfig:
     mover_speed: float = field(default=1.5, metadata={"min": 0.0, "max": 20.0})
     mover_accel: float = field(default=3.0, metadata={"min": 0.0, "max": 1000.0})
     mover_velocity_error: float = field(default=0.3, metadata={"min": 0.0, "max": 5.0})
+    give_way: bool = True
 
 
 def sector_bins(centre_deg: float, half_width_deg: float) -> np.ndarray:
@@ -451,6 +455,12 @@ class SafetyShield:
             config.memory_time, self.envelope.estimate_error, self.envelope.velocity_lag
         )
         self._gated_yaw_rate = 0.0  # the yaw rate last sent, flown until the next scan
+        self._give_way = (
+            GiveWay(GiveWayConfig(vehicle_radius=config.body_radius))
+            if config.backup_gate and config.give_way
+            else None
+        )
+        self._stepping: tuple[float, float] | None = None  # the sidestep being flown
 
     def reset(self) -> None:
         """Forget the previous command, so the next one ramps up from standstill (e.g. after HOLD),
@@ -460,6 +470,7 @@ class SafetyShield:
         self._memory.reset()
         if self._gate is not None:
             self._gate.reset()
+        self._stepping = None
 
     def forward_cap(
         self,
@@ -580,13 +591,52 @@ class SafetyShield:
         (forward, lateral), reason = self._gate.choose(
             (out.forward, out.lateral), known, points, inflation, rows if len(rows) else None
         )
+        turn = out.yaw_rate
+        step = self._step_aside((forward, lateral), known, rows, points, inflation)
+        if step is not None:  # judged as flown in the body axes of now: the heading is held
+            (forward, lateral), turn, reason = step, 0.0, "gate_give_way"
         if reason is not None:
             self.interventions[reason] += 1
-            out = Command(forward, out.yaw_rate, lateral)
+            out = Command(forward, turn, lateral)
         self._gate.record((out.forward, out.lateral))
         self._gated_yaw_rate = out.yaw_rate
         self._previous = out
         return out
+
+    def _step_aside(
+        self,
+        sent: tuple[float, float],
+        velocity: tuple[float, float] | None,
+        movers: np.ndarray,
+        points: np.ndarray,
+        inflation: np.ndarray,
+    ) -> tuple[float, float] | None:
+        """The sidestep to send instead of ``sent`` (``give_way``), or None: where the stop, and
+        ``sent`` held, both meet a mover at its tracked velocity within the rule's ``wait_time``.
+        A sidestep is sent only if its own stop keeps clear of the returns (the gate's static
+        promise holds), or, where the stop itself does not (the gate's best effort), leaves them as
+        much room as the stop; with none such, ``sent`` stands. Of those, the ones the gate passes
+        with the movers too (the whole promise) go first."""
+        rule = self._give_way
+        if rule is None or velocity is None or len(movers) == 0:
+            self._stepping = None
+            return None
+        tracked = [Mover((m[0], m[1]), (m[2], m[3]), m[4]) for m in movers]
+        horizon = rule.config.wait_time
+        if rule.closest((0.0, 0.0), velocity, tracked, horizon) >= 0.0 or (
+            rule.closest(sent, velocity, tracked, horizon) >= 0.0
+        ):
+            self._stepping = None
+            return None
+        candidates = np.vstack([np.zeros(2), rule.sidesteps(self.config.max_reverse_speed)])
+        _, room = self._gate.passes(candidates, velocity, points, inflation)
+        usable = room[1:] >= min(room[0], 0.0)  # clear, or no closer than the stop where it is not
+        if usable.any():  # those the gate passes with the movers too keep the whole promise
+            _, whole = self._gate.passes(candidates[1:], velocity, points, inflation, movers)
+            if (usable & (whole >= 0.0)).any():
+                usable &= whole >= 0.0
+        self._stepping = rule.escape(velocity, tracked, candidates[1:], usable, self._stepping)
+        return self._stepping
 
     def _rules(
         self,

@@ -1,6 +1,10 @@
-"""Giving way to what moves: the rule the goal baseline ``goal_follower_tracks``
-(:class:`training.baselines.GoalFollowerTracks`) adds to the goal follower, on the tracker's movers
-as the shield gets them (:class:`companion.perception.tracking.Mover`, body axes at the scan's time).
+"""Giving way to what moves, on the tracker's movers as the shield gets them
+(:class:`companion.perception.tracking.Mover`, body axes at the scan's time). Two users:
+
+- the goal baseline ``goal_follower_tracks`` (:class:`training.baselines.GoalFollowerTracks`)
+  flies the whole rule below (:meth:`GiveWay.decide`);
+- the shield, behind its backup gate (``[shield] give_way``), steps aside where a mover would run
+  into the stop the gate falls back to (:meth:`GiveWay.closest`, :meth:`GiveWay.step_aside`).
 
 Each mover is predicted at constant velocity. A velocity the vehicle might fly is predicted as the
 autopilot flies it: from the true velocity now towards that velocity with a first-order lag of
@@ -8,7 +12,7 @@ autopilot flies it: from the true velocity now towards that velocity with a firs
 radius + the mover's radius + ``margin`` while closing: a mover that close but drawing apart has
 passed.
 
-Every frame, the first of these that holds:
+The whole rule, every frame, the first of these that holds:
 
 1. go: the goal follower's intended velocity is clear for ``course_time`` (after a wait or a
    sidestep, clear ``resume_steps`` frames in a row, so that a wait does not flicker into a go,
@@ -87,6 +91,8 @@ class GiveWay:
         self.config = config or GiveWayConfig()
         c = self.config
         self._times = np.arange(0.0, max(c.course_time, c.wait_time) + 1e-9, c.step_s)
+        #: the sidesteps' directions, rad counter-clockwise from the nose
+        self._angles = [2.0 * math.pi * k / c.directions for k in range(c.directions)]
         self.reset()
 
     def reset(self) -> None:
@@ -159,6 +165,50 @@ class GiveWay:
                     first = min(first, float(t[int(np.argmax(gap < 0.0))]))
         return nearest, first
 
+    def sidesteps(self, max_back: float = math.inf) -> np.ndarray:
+        """``(directions, 2)`` the sidestep velocities (body forward, left), m/s: ``sidestep_speed``
+        towards each direction, slowed where its backward part would exceed ``max_back``."""
+        speed = self.config.sidestep_speed
+        rows = []
+        for angle in self._angles:
+            c, s = math.cos(angle), math.sin(angle)
+            v = min(speed, max_back / -c) if c < 0.0 else speed
+            rows.append((v * c, v * s))
+        return np.array(rows)
+
+    def escape(
+        self,
+        velocity: Sequence[float],
+        movers: Sequence[Mover],
+        candidates: np.ndarray,
+        usable: np.ndarray,
+        current: tuple[float, float] | None,
+        hold: float = 0.2,
+    ) -> tuple[float, float] | None:
+        """The shield's sidestep: of the ``usable`` ``candidates``, one that no mover meets within
+        ``wait_time`` (the one nearest ``current``'s direction, the nose's without one); with none
+        such, the one whose nearest mover passes widest, ``current`` kept while within ``hold`` m of
+        that (two steps about as good would otherwise take turns). None: none usable.
+
+        :param velocity: the vehicle's body velocity now, m/s
+        :param candidates: ``(n, 2)`` body velocities, m/s (:meth:`sidesteps`)
+        :param usable: ``(n,)`` bool, where the static world leaves room
+        :param current: the sidestep sent last, if the vehicle is stepping aside
+        """
+        index = np.flatnonzero(usable)
+        if len(index) == 0:
+            return None
+        gaps = np.array([self.closest(candidates[i], velocity, movers, self.config.wait_time) for i in index])
+        steps = [(float(candidates[i, 0]), float(candidates[i, 1])) for i in index]
+        ahead = math.atan2(current[1], current[0]) if current is not None else 0.0
+        if (gaps >= 0.0).any():
+            turns = np.abs(_wrap(np.arctan2(candidates[index, 1], candidates[index, 0]) - ahead))
+            return steps[int(np.argmin(np.where(gaps >= 0.0, turns, math.inf)))]
+        best = int(np.argmax(gaps))
+        if current in steps and gaps[steps.index(current)] >= gaps[best] - hold:
+            return current
+        return steps[best]
+
     def _sidestep(
         self,
         go: tuple[float, float],
@@ -169,23 +219,27 @@ class GiveWay:
     ) -> Decision:
         """The sidestep of the module docstring's third rule."""
         c = self.config
+        candidates = self.sidesteps()
+        bins = [int(math.degrees(angle)) % N_BINS for angle in self._angles]
+        usable = (np.abs(candidates[:, 1]) <= max_left + 1e-9) & (
+            clear[bins] >= c.sidestep_speed * c.course_time + c.room
+        )
         toward = self._stepping or go  # a sidestep keeps its direction while it stays clear
         want = math.atan2(toward[1], toward[0]) if toward != (0.0, 0.0) else 0.0
         best: tuple[float, float, float, tuple[float, float]] | None = None
-        for k in range(c.directions):
-            angle = 2.0 * math.pi * k / c.directions
-            v = (c.sidestep_speed * math.cos(angle), c.sidestep_speed * math.sin(angle))
-            if abs(v[1]) > max_left + 1e-9:
+        for angle, v, ok in zip(self._angles, candidates, usable, strict=True):
+            if not ok:
                 continue
-            room = float(clear[int(math.degrees(angle)) % N_BINS])
-            if room < c.sidestep_speed * c.course_time + c.room:
-                continue
-            gap, first = self._encounter(v, velocity, movers, c.wait_time)
+            step = (float(v[0]), float(v[1]))
+            gap, first = self._encounter(step, velocity, movers, c.wait_time)
             turn = abs((angle - want + math.pi) % (2.0 * math.pi) - math.pi)
             # any clear one is as good; of the others, the latest to conflict, then the shallowest
-            key = (first, min(gap, 0.0), -turn, v)
+            key = (first, min(gap, 0.0), -turn, step)
             if best is None or key[:3] > best[:3]:
                 best = key
-        if best is None:
-            return Decision("wait", (0.0, 0.0))
-        return Decision("step", best[3])
+        return Decision("wait", (0.0, 0.0)) if best is None else Decision("step", best[3])
+
+
+def _wrap(angle: np.ndarray) -> np.ndarray:
+    """``angle`` wrapped into [-pi, pi), rad."""
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi

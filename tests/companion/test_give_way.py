@@ -1,9 +1,9 @@
-"""The give-way rule of ``goal_follower_tracks`` on hand-made movers (training/give_way.py)."""
+"""The give-way rule of ``goal_follower_tracks`` on hand-made movers (companion/safety/give_way.py)."""
 
 import numpy as np
 
 from companion.perception.tracking import Mover
-from training.give_way import GiveWay, GiveWayConfig
+from companion.safety.give_way import GiveWay, GiveWayConfig
 
 OPEN = np.full(360, np.inf)  # nothing static anywhere
 CRUISE = (1.4, 0.0)  # the goal follower's intended velocity: straight ahead, m/s
