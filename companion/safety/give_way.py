@@ -183,22 +183,26 @@ class GiveWay:
         candidates: np.ndarray,
         usable: np.ndarray,
         current: tuple[float, float] | None,
+        worse: float,
         hold: float = 0.2,
     ) -> tuple[float, float] | None:
-        """The shield's sidestep: of the ``usable`` ``candidates``, one that no mover meets within
-        ``wait_time`` (the one nearest ``current``'s direction, the nose's without one); with none
-        such, the one whose nearest mover passes widest, ``current`` kept while within ``hold`` m of
-        that (two steps about as good would otherwise take turns). None: none usable.
+        """The shield's sidestep: of the ``usable`` ``candidates`` whose nearest mover passes wider
+        than ``worse``, one that no mover meets within ``wait_time`` (the one nearest ``current``'s
+        direction, the nose's without one); with none such, the one whose nearest mover passes
+        widest, ``current`` kept while within ``hold`` m of that (two steps about as good would
+        otherwise take turns). None: none.
 
         :param velocity: the vehicle's body velocity now, m/s
         :param candidates: ``(n, 2)`` body velocities, m/s (:meth:`sidesteps`)
         :param usable: ``(n,)`` bool, where the static world leaves room
         :param current: the sidestep sent last, if the vehicle is stepping aside
+        :param worse: :meth:`closest` of what is sent without a sidestep, m: a sidestep must beat it
         """
         index = np.flatnonzero(usable)
+        gaps = np.array([self.closest(candidates[i], velocity, movers, self.config.wait_time) for i in index])
+        index, gaps = index[gaps > worse], gaps[gaps > worse]
         if len(index) == 0:
             return None
-        gaps = np.array([self.closest(candidates[i], velocity, movers, self.config.wait_time) for i in index])
         steps = [(float(candidates[i, 0]), float(candidates[i, 1])) for i in index]
         ahead = math.atan2(current[1], current[0]) if current is not None else 0.0
         if (gaps >= 0.0).any():

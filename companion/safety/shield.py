@@ -612,20 +612,22 @@ class SafetyShield:
         inflation: np.ndarray,
     ) -> tuple[float, float] | None:
         """The sidestep to send instead of ``sent`` (``give_way``), or None: where the stop, and
-        ``sent`` held, both meet a mover at its tracked velocity within the rule's ``wait_time``.
-        A sidestep is sent only if its own stop keeps clear of the returns (the gate's static
-        promise holds), or, where the stop itself does not (the gate's best effort), leaves them as
-        much room as the stop; with none such, ``sent`` stands. Of those, the ones the gate passes
-        with the movers too (the whole promise) go first."""
+        ``sent`` held, both meet a mover at its tracked velocity within the rule's ``wait_time``; a
+        sidestep must keep it farther off than both. A sidestep is sent only if its own stop keeps
+        clear of the returns (the gate's static promise holds), or, where the stop itself does not
+        (the gate's best effort), leaves them as much room as the stop; with none such, ``sent``
+        stands. Of those, the ones the gate passes with the movers too (the whole promise) go first."""
         rule = self._give_way
         if rule is None or velocity is None or len(movers) == 0:
             self._stepping = None
             return None
         tracked = [Mover((m[0], m[1]), (m[2], m[3]), m[4]) for m in movers]
         horizon = rule.config.wait_time
-        if rule.closest((0.0, 0.0), velocity, tracked, horizon) >= 0.0 or (
-            rule.closest(sent, velocity, tracked, horizon) >= 0.0
-        ):
+        worse = max(
+            rule.closest((0.0, 0.0), velocity, tracked, horizon),
+            rule.closest(sent, velocity, tracked, horizon),
+        )
+        if worse >= 0.0:
             self._stepping = None
             return None
         candidates = np.vstack([np.zeros(2), rule.sidesteps(self.config.max_reverse_speed)])
@@ -635,7 +637,7 @@ class SafetyShield:
             _, whole = self._gate.passes(candidates[1:], velocity, points, inflation, movers)
             if (usable & (whole >= 0.0)).any():
                 usable &= whole >= 0.0
-        self._stepping = rule.escape(velocity, tracked, candidates[1:], usable, self._stepping)
+        self._stepping = rule.escape(velocity, tracked, candidates[1:], usable, self._stepping, worse)
         return self._stepping
 
     def _rules(
