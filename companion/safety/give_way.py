@@ -143,9 +143,9 @@ class GiveWay:
         :param command: body velocity commanded from now on, m/s
         :param velocity: the true body velocity now, m/s
         """
-        return self._encounter(command, velocity, movers, horizon)[0]
+        return self.encounter(command, velocity, movers, horizon)[0]
 
-    def _encounter(
+    def encounter(
         self, command: Sequence[float], velocity: Sequence[float], movers: Sequence[Mover], horizon: float
     ) -> tuple[float, float]:
         """(:meth:`closest`'s distance, seconds until the first conflict: ``inf`` with none)."""
@@ -183,35 +183,33 @@ class GiveWay:
         candidates: np.ndarray,
         usable: np.ndarray,
         current: tuple[float, float] | None,
-        worse: float,
-        hold: float = 0.2,
+        worse: tuple[float, float],
     ) -> tuple[float, float] | None:
-        """The shield's sidestep: of the ``usable`` ``candidates`` whose nearest mover passes wider
-        than ``worse``, one that no mover meets within ``wait_time`` (the one nearest ``current``'s
-        direction, the nose's without one); with none such, the one whose nearest mover passes
-        widest, ``current`` kept while within ``hold`` m of that (two steps about as good would
-        otherwise take turns). None: none.
+        """The shield's sidestep: of the ``usable`` ``candidates`` that a mover meets later than
+        ``worse`` or, as late, less deep, one that no mover meets within ``wait_time`` (the one
+        nearest ``current``'s direction, the nose's without one); with none such, the one met
+        latest, then least deep, ``current`` kept while as good. None: none.
 
         :param velocity: the vehicle's body velocity now, m/s
         :param candidates: ``(n, 2)`` body velocities, m/s (:meth:`sidesteps`)
         :param usable: ``(n,)`` bool, where the static world leaves room
         :param current: the sidestep sent last, if the vehicle is stepping aside
-        :param worse: :meth:`closest` of what is sent without a sidestep, m: a sidestep must beat it
+        :param worse: (seconds to the first conflict, :meth:`closest`) of what is sent without a
+            sidestep, as :meth:`encounter` gives them: a sidestep must beat it
         """
-        index = np.flatnonzero(usable)
-        gaps = np.array([self.closest(candidates[i], velocity, movers, self.config.wait_time) for i in index])
-        index, gaps = index[gaps > worse], gaps[gaps > worse]
-        if len(index) == 0:
+        keys = {}
+        for i in np.flatnonzero(usable):
+            gap, first = self.encounter(candidates[i], velocity, movers, self.config.wait_time)
+            if (first, gap) > worse:
+                keys[(float(candidates[i, 0]), float(candidates[i, 1]))] = (first, gap)
+        if not keys:
             return None
-        steps = [(float(candidates[i, 0]), float(candidates[i, 1])) for i in index]
-        ahead = math.atan2(current[1], current[0]) if current is not None else 0.0
-        if (gaps >= 0.0).any():
-            turns = np.abs(_wrap(np.arctan2(candidates[index, 1], candidates[index, 0]) - ahead))
-            return steps[int(np.argmin(np.where(gaps >= 0.0, turns, math.inf)))]
-        best = int(np.argmax(gaps))
-        if current in steps and gaps[steps.index(current)] >= gaps[best] - hold:
-            return current
-        return steps[best]
+        clear = [step for step, (first, _) in keys.items() if math.isinf(first)]
+        if clear:
+            ahead = math.atan2(current[1], current[0]) if current is not None else 0.0
+            return min(clear, key=lambda v: abs(_wrap(math.atan2(v[1], v[0]) - ahead)))
+        best = max(keys, key=keys.__getitem__)
+        return current if current in keys and keys[current] >= keys[best] else best
 
     def _sidestep(
         self,
@@ -235,7 +233,7 @@ class GiveWay:
             if not ok:
                 continue
             step = (float(v[0]), float(v[1]))
-            gap, first = self._encounter(step, velocity, movers, c.wait_time)
+            gap, first = self.encounter(step, velocity, movers, c.wait_time)
             turn = abs((angle - want + math.pi) % (2.0 * math.pi) - math.pi)
             # any clear one is as good; of the others, the latest to conflict, then the shallowest
             key = (first, min(gap, 0.0), -turn, step)
@@ -244,6 +242,6 @@ class GiveWay:
         return Decision("wait", (0.0, 0.0)) if best is None else Decision("step", best[3])
 
 
-def _wrap(angle: np.ndarray) -> np.ndarray:
+def _wrap(angle: float) -> float:
     """``angle`` wrapped into [-pi, pi), rad."""
     return (angle + math.pi) % (2.0 * math.pi) - math.pi

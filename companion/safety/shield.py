@@ -613,23 +613,22 @@ class SafetyShield:
     ) -> tuple[float, float] | None:
         """The sidestep to send instead of ``sent`` (``give_way``), or None: where the stop, and
         ``sent`` held, both meet a mover at its tracked velocity within the rule's ``wait_time``; a
-        sidestep must keep it farther off than both. A sidestep is sent only if its own stop keeps
-        clear of the returns (the gate's static promise holds), or, where the stop itself does not
-        (the gate's best effort), leaves them as much room as the stop; with none such, ``sent``
-        stands. Of those, the ones the gate passes with the movers too (the whole promise) go first."""
+        sidestep must meet it later than both, or as late and less deep. A sidestep is sent only if
+        its own stop keeps clear of the returns (the gate's static promise holds), or, where the
+        stop itself does not (the gate's best effort), leaves them as much room as the stop; with
+        none such, ``sent`` stands. Of those, the ones the gate passes with the movers too (the
+        whole promise) go first."""
         rule = self._give_way
         if rule is None or velocity is None or len(movers) == 0:
             self._stepping = None
             return None
         tracked = [Mover((m[0], m[1]), (m[2], m[3]), m[4]) for m in movers]
         horizon = rule.config.wait_time
-        worse = max(
-            rule.closest((0.0, 0.0), velocity, tracked, horizon),
-            rule.closest(sent, velocity, tracked, horizon),
-        )
-        if worse >= 0.0:
+        stop, kept = (rule.encounter(v, velocity, tracked, horizon) for v in ((0.0, 0.0), sent))
+        if stop[0] >= 0.0 or kept[0] >= 0.0:
             self._stepping = None
             return None
+        worse = max((stop[1], stop[0]), (kept[1], kept[0]))  # met the latest, then the least deep
         candidates = np.vstack([np.zeros(2), rule.sidesteps(self.config.max_reverse_speed)])
         _, room = self._gate.passes(candidates, velocity, points, inflation)
         usable = room[1:] >= min(room[0], 0.0)  # clear, or no closer than the stop where it is not

@@ -87,3 +87,14 @@ def test_in_closed_loop_the_walker_misses_a_vehicle_that_gives_way() -> None:
     """Without ``give_way`` the walker runs into the hovering vehicle; with it, it passes clear."""
     assert _hover_in_a_walkers_way(give_way=False) < 0.0
     assert _hover_in_a_walkers_way(give_way=True) > 0.2
+
+
+def test_a_sidestep_towards_the_walker_is_not_taken() -> None:
+    """Walls 1 m off all round but to the right, where the walker comes from: the one sidestep
+    with room runs into the walker sooner than the stop would be met, so the stop stands."""
+    right = np.full(N_BINS, 1.0 / MAX_RANGE)
+    right[225:315] = 1.0
+    shield = _shield()
+    out = _send(shield, right, [CROSSING])
+    assert (out.forward, out.lateral) == (0.0, 0.0)
+    assert shield.interventions["gate_give_way"] == 0
