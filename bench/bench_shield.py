@@ -6,11 +6,12 @@ The lane (``[shield] lane_half_width`` > 0, the default) sweeps a lane along eve
 The backup gate (``[shield] backup_gate``) adds the firmware envelope's worst case and the
 obstacle memory on top of the lane; with movers (``gate+0 movers``: the tracker's arguments given,
 nothing moving; ``gate+N movers``: ``--movers`` walkers within 1-8 m, their returns in the scan and
-marked moving) it also keeps clear of each along its motion. This times :meth:`SafetyShield.filter`
+marked moving) it also keeps clear of each along its motion, and gives way where one's course meets
+the stop (``[shield] give_way``; ``no give-way``: the same without). This times :meth:`SafetyShield.filter`
 on the same scans, velocities and commands under each, in alternating blocks (so a machine's drift
 hits all alike), and prints per call the median and 99th percentile in microseconds, the median as
 a ratio to the sectors', the p99 as a ratio to today's lane and to the gate without movers, and the
-p99 as a share of the 100 ms scan period.
+p99 as a share of the 100 ms scan period; then the share of the calls with movers that gave way.
 
     python bench/bench_shield.py [--calls 4000] [--blocks 4] [--seed 0] [--movers 5]
 """
@@ -19,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -100,10 +102,13 @@ def main() -> None:
         "gate": (SafetyShield(gate, MAX_RANGE, "random"), still, False),
         "gate+0 movers": (SafetyShield(gate, MAX_RANGE, "random"), still, True),
         f"gate+{args.movers} movers": (SafetyShield(gate, MAX_RANGE, "random"), walked, True),
+        "  no give-way": (SafetyShield(replace(gate, give_way=False), MAX_RANGE, "random"), walked, True),
     }
     times: dict[str, list[float]] = {name: [] for name in runs}
     for shield, cases, tracked in runs.values():  # warm up
         time_calls(shield, cases[:50], tracked)
+    walking = runs[f"gate+{args.movers} movers"][0]
+    warm = walking.interventions["gate_give_way"]
     for _ in range(args.blocks):
         for name, (shield, cases, tracked) in runs.items():
             times[name] += time_calls(shield, cases, tracked)
@@ -120,6 +125,8 @@ def main() -> None:
             f"{median[name] / median['sectors']:14.2f} {p99[name] / p99['lane']:8.2f} "
             f"{p99[name] / p99['gate']:8.2f} {p99[name] / SCAN_PERIOD_S:13.2%}"
         )
+    gave = walking.interventions["gate_give_way"] - warm
+    print(f"gave way in {gave / len(times[f'gate+{args.movers} movers']):.1%} of the calls with movers")
 
 
 if __name__ == "__main__":

@@ -293,6 +293,24 @@ class BackupGate:
                                inflation, movers)  # fmt: skip
         return least >= 0.0, least
 
+    def rooms(
+        self,
+        candidates: np.ndarray,
+        velocity: tuple[float, float] | None,
+        points: np.ndarray,
+        inflation: np.ndarray,
+        movers: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`passes`' rooms apart, on one worst case: ``(m,)`` from the returns and ``(m,)`` from
+        the movers, m (``inf`` with no mover)."""
+        cand = np.atleast_2d(np.asarray(candidates, dtype=np.float64))
+        worst = self._worst_case(cand, velocity)
+        static = separation(points, inflation, worst.reach(worst.steps)) - self.clearance
+        if len(movers) == 0:
+            return static, np.full(len(cand), math.inf)
+        rows = np.arange(len(worst.column))
+        return static, self._mover_room(worst, rows, worst.steps, np.asarray(movers))
+
     def _judge(
         self,
         candidates: np.ndarray,

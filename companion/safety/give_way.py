@@ -149,21 +149,35 @@ class GiveWay:
         self, command: Sequence[float], velocity: Sequence[float], movers: Sequence[Mover], horizon: float
     ) -> tuple[float, float]:
         """(:meth:`closest`'s distance, seconds until the first conflict: ``inf`` with none)."""
+        nearest, first = self.encounters(
+            np.asarray(command, dtype=np.float64)[None], velocity, movers, horizon
+        )
+        return float(nearest[0]), float(first[0])
+
+    def encounters(
+        self, commands: np.ndarray, velocity: Sequence[float], movers: Sequence[Mover], horizon: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`encounter` of each of ``commands`` (``(n, 2)`` body velocities, m/s) at once:
+        ``(n,)`` distances and ``(n,)`` seconds."""
         c = self.config
         t = self._times[self._times <= horizon + 1e-9]
-        cmd, now = np.asarray(command, dtype=np.float64), np.asarray(velocity, dtype=np.float64)
+        if not movers:
+            return np.full(len(commands), math.inf), np.full(len(commands), math.inf)
+        cmd, now = np.asarray(commands, dtype=np.float64), np.asarray(velocity, dtype=np.float64)
         lag = c.response_time * (1.0 - np.exp(-t / c.response_time))
-        path = t[:, None] * cmd[None, :] + lag[:, None] * (now - cmd)[None, :]  # (T, 2)
-        nearest, first = math.inf, math.inf
-        for m in movers:
-            rel = np.asarray(m.position) + t[:, None] * np.asarray(m.velocity) - path
-            gap = np.hypot(rel[:, 0], rel[:, 1]) - (c.vehicle_radius + m.radius + c.margin)
-            k = int(np.argmin(gap))
-            if k > 0:  # closing at some time ahead; drawing apart from now on is no conflict
-                nearest = min(nearest, float(gap[k]))
-                if gap[k] < 0.0:
-                    first = min(first, float(t[int(np.argmax(gap < 0.0))]))
-        return nearest, first
+        path = t[None, :, None] * cmd[:, None, :] + lag[None, :, None] * (now - cmd)[:, None, :]  # (n, T, 2)
+        position = np.array([m.position for m in movers], dtype=np.float64)
+        motion = np.array([m.velocity for m in movers], dtype=np.float64)
+        keep = c.vehicle_radius + np.array([m.radius for m in movers], dtype=np.float64) + c.margin
+        ahead = position[:, None, :] + t[None, :, None] * motion[:, None, :]  # (k, T, 2)
+        rel = ahead[None] - path[:, None]  # (n, k, T, 2)
+        gap = np.hypot(rel[..., 0], rel[..., 1]) - keep[None, :, None]  # (n, k, T)
+        k = np.argmin(gap, axis=2)
+        least = np.take_along_axis(gap, k[..., None], axis=2)[..., 0]  # (n, k)
+        closing = k > 0  # closing at some time ahead; drawing apart from now on is no conflict
+        met = closing & (least < 0.0)
+        first = np.where(met, t[np.argmax(gap < 0.0, axis=2)], math.inf).min(axis=1)
+        return np.where(closing, least, math.inf).min(axis=1), first
 
     def sidesteps(self, max_back: float = math.inf) -> np.ndarray:
         """``(directions, 2)`` the sidestep velocities (body forward, left), m/s: ``sidestep_speed``
@@ -176,40 +190,28 @@ class GiveWay:
             rows.append((v * c, v * s))
         return np.array(rows)
 
-    def escape(
+    def preference(
         self,
-        velocity: Sequence[float],
-        movers: Sequence[Mover],
         candidates: np.ndarray,
-        usable: np.ndarray,
+        nearest: np.ndarray,
+        first: np.ndarray,
         current: tuple[float, float] | None,
-        worse: tuple[float, float],
-    ) -> tuple[float, float] | None:
-        """The shield's sidestep: of the ``usable`` ``candidates`` that a mover meets later than
-        ``worse`` or, as late, less deep, one that no mover meets within ``wait_time`` (the one
-        nearest ``current``'s direction, the nose's without one); with none such, the one met
-        latest, then least deep, ``current`` kept while as good. None: none.
+    ) -> np.ndarray:
+        """The shield's order of sidesteps, best first: those no mover meets within ``wait_time``,
+        nearest ``current``'s direction first (the nose's without one); then the others, met latest,
+        then least deep, ``current`` first among equals.
 
-        :param velocity: the vehicle's body velocity now, m/s
         :param candidates: ``(n, 2)`` body velocities, m/s (:meth:`sidesteps`)
-        :param usable: ``(n,)`` bool, where the static world leaves room
+        :param nearest: ``(n,)`` and ``first``, ``(n,)``: their :meth:`encounters`
         :param current: the sidestep sent last, if the vehicle is stepping aside
-        :param worse: (seconds to the first conflict, :meth:`closest`) of what is sent without a
-            sidestep, as :meth:`encounter` gives them: a sidestep must beat it
+        :return: ``(n,)`` indices into ``candidates``
         """
-        keys = {}
-        for i in np.flatnonzero(usable):
-            gap, first = self.encounter(candidates[i], velocity, movers, self.config.wait_time)
-            if (first, gap) > worse:
-                keys[(float(candidates[i, 0]), float(candidates[i, 1]))] = (first, gap)
-        if not keys:
-            return None
-        clear = [step for step, (first, _) in keys.items() if math.isinf(first)]
-        if clear:
-            ahead = math.atan2(current[1], current[0]) if current is not None else 0.0
-            return min(clear, key=lambda v: abs(_wrap(math.atan2(v[1], v[0]) - ahead)))
-        best = max(keys, key=keys.__getitem__)
-        return current if current in keys and keys[current] >= keys[best] else best
+        ahead = math.atan2(current[1], current[0]) if current is not None else 0.0
+        turn = np.abs(_wrap(np.arctan2(candidates[:, 1], candidates[:, 0]) - ahead))
+        other = np.array([tuple(v) != current for v in candidates.tolist()])
+        clear = np.isinf(first)
+        # np.lexsort sorts by its last key first
+        return np.lexsort((other, np.where(clear, turn, -nearest), np.where(clear, 0.0, -first), ~clear))
 
     def _sidestep(
         self,
@@ -242,6 +244,6 @@ class GiveWay:
         return Decision("wait", (0.0, 0.0)) if best is None else Decision("step", best[3])
 
 
-def _wrap(angle: float) -> float:
+def _wrap(angle: np.ndarray) -> np.ndarray:
     """``angle`` wrapped into [-pi, pi), rad."""
     return (angle + math.pi) % (2.0 * math.pi) - math.pi

@@ -624,19 +624,30 @@ class SafetyShield:
             return None
         tracked = [Mover((m[0], m[1]), (m[2], m[3]), m[4]) for m in movers]
         horizon = rule.config.wait_time
-        stop, kept = (rule.encounter(v, velocity, tracked, horizon) for v in ((0.0, 0.0), sent))
-        if stop[0] >= 0.0 or kept[0] >= 0.0:
+        held, met = rule.encounters(np.array([(0.0, 0.0), sent]), velocity, tracked, horizon)
+        if (held >= 0.0).any():  # the stop or the command is clear
             self._stepping = None
             return None
-        worse = max((stop[1], stop[0]), (kept[1], kept[0]))  # met the latest, then the least deep
-        candidates = np.vstack([np.zeros(2), rule.sidesteps(self.config.max_reverse_speed)])
-        _, room = self._gate.passes(candidates, velocity, points, inflation)
-        usable = room[1:] >= min(room[0], 0.0)  # clear, or no closer than the stop where it is not
-        if usable.any():  # those the gate passes with the movers too keep the whole promise
-            _, whole = self._gate.passes(candidates[1:], velocity, points, inflation, movers)
-            if (usable & (whole >= 0.0)).any():
-                usable &= whole >= 0.0
-        self._stepping = rule.escape(velocity, tracked, candidates[1:], usable, self._stepping, worse)
+        worse = max(zip(met, held, strict=True))  # met the latest, then the least deep
+        candidates = rule.sidesteps(self.config.max_reverse_speed)
+        nearest, first = rule.encounters(candidates, velocity, tracked, horizon)
+        later = np.flatnonzero((first > worse[0]) | ((first == worse[0]) & (nearest > worse[1])))
+        current, self._stepping = self._stepping, None
+        if len(later) == 0:
+            return None
+        # their stops judged on one worst case, with the stop itself: clear of the returns, or no
+        # closer to them than the stop; those the gate passes with the movers too keep the whole promise
+        static, whole = self._gate.rooms(np.vstack([np.zeros(2), candidates[later]]), velocity, points,
+                                         inflation, movers)  # fmt: skip
+        ok = static[1:] >= min(static[0], 0.0)
+        verified = ok & (whole[1:] >= 0.0)
+        usable = verified if verified.any() else ok
+        best = [
+            i for i in rule.preference(candidates[later], nearest[later], first[later], current) if usable[i]
+        ]
+        if best:
+            step = candidates[later[best[0]]]
+            self._stepping = (float(step[0]), float(step[1]))
         return self._stepping
 
     def _rules(
