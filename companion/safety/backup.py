@@ -304,12 +304,8 @@ class BackupGate:
         """:meth:`passes`' rooms apart, on one worst case: ``(m,)`` from the returns and ``(m,)`` from
         the movers, m (``inf`` with no mover)."""
         cand = np.atleast_2d(np.asarray(candidates, dtype=np.float64))
-        worst = self._worst_case(cand, velocity)
-        static = separation(points, inflation, worst.reach(worst.steps)) - self.clearance
-        if len(movers) == 0:
-            return static, np.full(len(cand), math.inf)
-        rows = np.arange(len(worst.column))
-        return static, self._mover_room(worst, rows, worst.steps, np.asarray(movers))
+        static, moving, _ = self._rooms(cand, velocity, points, inflation, movers)
+        return static, moving
 
     def _judge(
         self,
@@ -320,12 +316,24 @@ class BackupGate:
         movers: np.ndarray | None,
     ) -> tuple[np.ndarray, _WorstCase]:
         """:meth:`passes`' rooms, and the worst case they were found on."""
+        static, moving, worst = self._rooms(candidates, velocity, points, inflation, movers)
+        return np.minimum(static, moving), worst
+
+    def _rooms(
+        self,
+        candidates: np.ndarray,
+        velocity: tuple[float, float] | None,
+        points: np.ndarray,
+        inflation: np.ndarray,
+        movers: np.ndarray | None,
+    ) -> tuple[np.ndarray, np.ndarray, _WorstCase]:
+        """The rooms from the returns and from the movers (``inf`` with none), and the worst case."""
         worst = self._worst_case(candidates, velocity)
-        least = separation(points, inflation, worst.reach(worst.steps)) - self.clearance
-        if movers is not None and len(movers):
-            rows = np.arange(len(worst.column))
-            least = np.minimum(least, self._mover_room(worst, rows, worst.steps, np.asarray(movers)))
-        return least, worst
+        static = separation(points, inflation, worst.reach(worst.steps)) - self.clearance
+        if movers is None or len(movers) == 0:
+            return static, np.full(len(static), math.inf), worst
+        rows = np.arange(len(worst.column))
+        return static, self._mover_room(worst, rows, worst.steps, np.asarray(movers)), worst
 
     def _stop_time(self, worst: _WorstCase, row: int, steps: int) -> float:
         """The gate-clock time by which candidate ``row``'s worst case (horizon cut at ``steps``) has
