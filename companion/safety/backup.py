@@ -79,13 +79,17 @@ holds it to them). While the gate passes, :meth:`BackupGate.choose` judges the a
 first; once it refuses, the asked and its candidates share one worst case (the asked still judged
 on its own horizon). A (candidate, direction) pair whose targets the candidate never raises above
 the history's and the backup's shares their worst case. The integration stops where every
-direction has stopped (a guess, checked, else the whole horizon). :func:`separation` takes the
-returns by a lower bound of their room and leaves a candidate once no further return can go below
-it. Slower is not always safer (of a command away from a return, the slower one raises the worst
-case towards it more), so every candidate is judged, none found by bisection. A mover is first
-bounded by distances alone (the vehicle within its farthest reach, the mover within its speed of
-where it was seen); only a (mover, candidate) pair that bound leaves short is searched step by
-step, so its room is exact where it decides (below the clearance) and a lower bound above.
+direction has stopped (a guess, checked, else the whole horizon); without a jerk limit, the bound
+is integrated alone and the displacement summed after it (``envelope.worst_closing``). The
+shield's sidesteps (``give_way``) are judged beside the candidates, on the same worst case
+(:meth:`BackupGate.choose_beside`), and their movers' room only where the returns leave them room.
+:func:`separation` takes the returns by a lower bound of their room and leaves a candidate once no
+further return can go below it. Slower is not always safer (of a command away from a return, the
+slower one raises the worst case towards it more), so every candidate is judged, none found by
+bisection. A mover is first bounded by distances alone (the vehicle within its farthest reach,
+the mover within its speed of where it was seen); only a (mover, candidate) pair that bound leaves
+short is searched step by step, so its room is exact where it decides (below the clearance) and a
+lower bound above.
 """
 
 from __future__ import annotations
@@ -175,9 +179,10 @@ class _WorstCase:
     cand_peak: np.ndarray  # (m,) each candidate's highest target
     fast: np.ndarray  # (n + 1, c) where the closing speed may exceed the creep, per column
 
-    def reach(self, steps: int, rows: np.ndarray | slice = slice(None)) -> np.ndarray:
+    def reach(self, steps: int | np.ndarray, rows: np.ndarray | slice = slice(None)) -> np.ndarray:
         """``(m, 72)`` the worst displacement towards each direction up to the stop, with the horizon cut
-        at ``steps`` (the stop a shorter horizon never reaches is its end), for the candidates ``rows``."""
+        at ``steps`` (the stop a shorter horizon never reaches is its end; ``(m, 1)``: one per row), for
+        the candidates ``rows``."""
         column = self.column[rows]
         return self.reached[np.minimum(self.settled[column], steps), column]
 
@@ -293,20 +298,6 @@ class BackupGate:
                                inflation, movers)  # fmt: skip
         return least >= 0.0, least
 
-    def rooms(
-        self,
-        candidates: np.ndarray,
-        velocity: tuple[float, float] | None,
-        points: np.ndarray,
-        inflation: np.ndarray,
-        movers: np.ndarray,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`passes`' rooms apart, on one worst case: ``(m,)`` from the returns and ``(m,)`` from
-        the movers, m (``inf`` with no mover)."""
-        cand = np.atleast_2d(np.asarray(candidates, dtype=np.float64))
-        static, moving, _ = self._rooms(cand, velocity, points, inflation, movers)
-        return static, moving
-
     def _judge(
         self,
         candidates: np.ndarray,
@@ -315,25 +306,14 @@ class BackupGate:
         inflation: np.ndarray,
         movers: np.ndarray | None,
     ) -> tuple[np.ndarray, _WorstCase]:
-        """:meth:`passes`' rooms, and the worst case they were found on."""
-        static, moving, worst = self._rooms(candidates, velocity, points, inflation, movers)
-        return np.minimum(static, moving), worst
-
-    def _rooms(
-        self,
-        candidates: np.ndarray,
-        velocity: tuple[float, float] | None,
-        points: np.ndarray,
-        inflation: np.ndarray,
-        movers: np.ndarray | None,
-    ) -> tuple[np.ndarray, np.ndarray, _WorstCase]:
-        """The rooms from the returns and from the movers (``inf`` with none), and the worst case."""
+        """:meth:`passes`' rooms (the least from the returns and the movers), and the worst case they
+        were found on."""
         worst = self._worst_case(candidates, velocity)
-        static = separation(points, inflation, worst.reach(worst.steps)) - self.clearance
-        if movers is None or len(movers) == 0:
-            return static, np.full(len(static), math.inf), worst
-        rows = np.arange(len(worst.column))
-        return static, self._mover_room(worst, rows, worst.steps, np.asarray(movers)), worst
+        least = separation(points, inflation, worst.reach(worst.steps)) - self.clearance
+        if movers is not None and len(movers):
+            rows = np.arange(len(worst.column))
+            least = np.minimum(least, self._mover_room(worst, rows, worst.steps, np.asarray(movers)))
+        return least, worst
 
     def _stop_time(self, worst: _WorstCase, row: int, steps: int) -> float:
         """The gate-clock time by which candidate ``row``'s worst case (horizon cut at ``steps``) has
@@ -554,13 +534,50 @@ class BackupGate:
 
         :param movers: ``(k, 5)`` :func:`mover_rows`; None: none
         """
+        setpoint, reason, _ = self._choose(asked, velocity, points, inflation, movers, None)
+        return setpoint, reason
+
+    def choose_beside(
+        self,
+        asked: tuple[float, float],
+        velocity: tuple[float, float] | None,
+        points: np.ndarray,
+        inflation: np.ndarray,
+        movers: np.ndarray,
+        alternatives: np.ndarray,
+    ) -> tuple[tuple[float, float], str | None, np.ndarray, np.ndarray]:
+        """:meth:`choose`, and which of ``alternatives`` may stand in for the stop, judged with it on
+        the same worst case (one integration for both: the shield's sidesteps, ``give_way``).
+
+        :param alternatives: ``(a, 2)`` body setpoints (forward, left), m/s
+        :return: :meth:`choose`'s setpoint and reason; then ``(a,)`` ``ok``: its backup keeps clear
+            of the returns, or where the stop's does not (the best effort), leaves them as much
+            room; and ``(a,)`` ``verified``: ok and clear of the movers too (the whole promise).
+            The movers' room is searched for the ok ones only
+        """
+        beside = np.asarray(alternatives, dtype=np.float64).reshape(-1, 2)
+        setpoint, reason, judged = self._choose(asked, velocity, points, inflation, movers, beside)
+        assert judged is not None
+        return setpoint, reason, *judged
+
+    def _choose(
+        self,
+        asked: tuple[float, float],
+        velocity: tuple[float, float] | None,
+        points: np.ndarray,
+        inflation: np.ndarray,
+        movers: np.ndarray | None,
+        beside: np.ndarray | None,
+    ) -> tuple[tuple[float, float], str | None, tuple[np.ndarray, np.ndarray] | None]:
+        """:meth:`choose`; with ``beside``, :meth:`choose_beside`'s judgement of them as well."""
         want = np.asarray(asked, dtype=np.float64)
         moving = np.zeros((0, 5)) if movers is None else np.asarray(movers, dtype=np.float64)
-        if not self._intervening or len(points) + len(moving) == 0:  # passing as the last did: alone first
+        pending = self._intervening or beside is not None  # the asked judged in the batch, not alone first
+        if beside is None and (not self._intervening or len(points) + len(moving) == 0):  # as the last did
             least, alone = self._judge(want[None], velocity, points, inflation, moving)
             if least[0] >= 0.0:
                 self._intervening = False
-                return self._offer(want, self._stop_time(alone, 0, alone.steps), None)
+                return (*self._offer(want, self._stop_time(alone, 0, alone.steps), None), None)
         centres = np.concatenate([points, moving[:, :2]])
         gaps = np.hypot(centres[:, 0], centres[:, 1]) - np.concatenate([inflation, moving[:, 4]])
         nearest = centres[int(np.argmin(gaps))]
@@ -568,42 +585,57 @@ class BackupGate:
         slide = want - max(float(want @ towards), 0.0) * towards
         candidates = np.concatenate([want[None], _SCALES[1:, None] * want, _SCALES[:-1, None] * slide])
         # one worst case for every candidate (the slide is the asked itself when it does not close
-        # on the nearest return: then the scaled ones only)
+        # on the nearest return: then the scaled ones only), and for the stop and ``beside`` after them
         index = np.arange(len(candidates))
         if np.array_equal(slide, want):
             index[len(_SCALES) :] = np.arange(len(_SCALES) - 1)
-        worst = self._worst_case(candidates[: index.max() + 1], velocity)
-        reach = worst.reach(worst.steps)
-        rows, horizons = np.arange(len(reach)), np.full(len(reach), worst.steps)
-        if self._intervening:  # the asked not judged yet: on its own horizon, as if alone
+        n = int(index.max()) + 1
+        others = np.zeros((0, 2)) if beside is None else np.vstack([np.zeros((1, 2)), beside])
+        worst = self._worst_case(np.concatenate([candidates[:n], others]), velocity)
+        steps = self._steps(max(worst.base_peak, float(worst.cand_peak[:n].max())))  # the candidates' own
+        rows, horizons = np.arange(n), np.full(n, steps)
+        if pending:  # the asked not judged yet: on its own horizon, as if alone
             own = self._steps(max(worst.base_peak, float(worst.cand_peak[0])))
-            reach = np.concatenate([reach, worst.reach(own, slice(0, 1))])
             rows, horizons = np.append(rows, 0), np.append(horizons, own)
-        least = separation(points, inflation, reach) - self.clearance
+        judged = np.concatenate([rows, n + np.arange(len(others))])
+        cut = np.concatenate([horizons, np.full(len(others), worst.steps)])
+        rooms = separation(points, inflation, worst.reach(cut[:, None], judged)) - self.clearance
+        least = rooms[: len(rows)]
         clear = self._mover_room(worst, rows, horizons, moving) if len(moving) else np.full(len(rows), np.inf)
-        if self._intervening and min(least[-1], clear[-1]) >= 0.0:
+        beside_judged = None if beside is None else self._beside(worst, n, rooms[len(rows) :], moving)
+        if pending and min(least[-1], clear[-1]) >= 0.0:
             self._intervening = False
-            return self._offer(want, self._stop_time(worst, 0, int(horizons[-1])), None)
+            return (*self._offer(want, self._stop_time(worst, 0, int(horizons[-1])), None), beside_judged)
         self._intervening = True
         room, mover_room = least[index], clear[index]
         ok = (room >= 0.0) & (mover_room >= 0.0)
-        stop = len(_SCALES) - 1
+        until: float | None = -math.inf  # a best effort ends what was kept
         if ok.any():
-            distance = np.where(ok, np.hypot(*(candidates - want).T), np.inf)
-            pick = int(np.argmin(distance))
-            reason = "gate_slowed" if np.any(candidates[pick]) else "gate_backup"
-            until = self._stop_time(worst, int(index[pick]), worst.steps)
-            return self._offer(candidates[pick], until, reason)
-        if self._time < self._kept_until:
-            return self._offer(candidates[stop], None, "gate_backup_kept")
-        if (room >= 0.0).any():
-            pick = int(np.argmax(np.where(room >= 0.0, mover_room, -np.inf)))
-            return self._offer(candidates[pick], -math.inf, "gate_mover_best_effort")
-        retreat = self._retreat(towards, velocity, points, inflation, moving)
-        if retreat is not None:
-            return self._offer(retreat, -math.inf, "gate_best_effort")
-        pick = int(np.argmax(np.minimum(room, mover_room)))
-        return self._offer(candidates[pick], -math.inf, "gate_best_effort")
+            pick = int(np.argmin(np.where(ok, np.hypot(*(candidates - want).T), np.inf)))
+            setpoint, until = candidates[pick], self._stop_time(worst, int(index[pick]), steps)
+            reason = "gate_slowed" if np.any(setpoint) else "gate_backup"
+        elif self._time < self._kept_until:
+            setpoint, until, reason = candidates[len(_SCALES) - 1], None, "gate_backup_kept"  # the stop
+        elif (room >= 0.0).any():
+            setpoint = candidates[int(np.argmax(np.where(room >= 0.0, mover_room, -np.inf)))]
+            reason = "gate_mover_best_effort"
+        else:
+            retreat = self._retreat(towards, velocity, points, inflation, moving)
+            most = candidates[int(np.argmax(np.minimum(room, mover_room)))]
+            setpoint = retreat if retreat is not None else most
+            reason = "gate_best_effort"
+        return (*self._offer(setpoint, until, reason), beside_judged)
+
+    def _beside(
+        self, worst: _WorstCase, n: int, rooms: np.ndarray, movers: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`choose_beside`'s ``ok`` and ``verified``, from the rooms from the returns of the stop
+        and the alternatives after it (rows ``n``, ``n + 1``, ... of ``worst``)."""
+        ok = rooms[1:] >= min(rooms[0], 0.0)
+        verified = ok.copy()
+        if ok.any() and len(movers):
+            verified[ok] = self._mover_room(worst, n + 1 + np.flatnonzero(ok), worst.steps, movers) >= 0.0
+        return ok, verified
 
     def _retreat(
         self,

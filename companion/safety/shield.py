@@ -408,6 +408,26 @@ def _slew(target: float, previous: float, step: float) -> float:
     return min(max(target, lo), hi)
 
 
+@dataclass(frozen=True)
+class _Aside:
+    """The sidesteps ``give_way`` may send this scan (:meth:`SafetyShield._sidesteps`).
+
+    :param candidates: ``(a, 2)`` those a mover meets later than the stop (body forward, left), m/s
+    :param nearest: ``(a,)`` their :meth:`GiveWay.encounters`: the distance, m
+    :param first: ``(a,)`` and the seconds to the first conflict
+    :param stop: the stop's (seconds to the first conflict, distance)
+    :param velocity: the body velocity they were predicted from, m/s
+    :param movers: the movers they were predicted against
+    """
+
+    candidates: np.ndarray
+    nearest: np.ndarray
+    first: np.ndarray
+    stop: tuple[float, float]
+    velocity: tuple[float, float]
+    movers: list[Mover]
+
+
 class SafetyShield:
     """Filters every policy command against the latest scan and the measured motion.
 
@@ -588,13 +608,18 @@ class SafetyShield:
         if too_fast:
             self.interventions["mover_too_fast"] += too_fast
         self._gate.advance(dt, heading, yaw_rate)
-        (forward, lateral), reason = self._gate.choose(
-            (out.forward, out.lateral), known, points, inflation, rows if len(rows) else None
-        )
-        turn = out.yaw_rate
-        step = self._step_aside((forward, lateral), known, rows, points, inflation)
-        if step is not None:  # judged as flown in the body axes of now: the heading is held
-            (forward, lateral), turn, reason = step, 0.0, "gate_give_way"
+        asked, turn = (out.forward, out.lateral), out.yaw_rate
+        aside = self._sidesteps(known, rows)
+        if aside is None:
+            moving = rows if len(rows) else None
+            (forward, lateral), reason = self._gate.choose(asked, known, points, inflation, moving)
+        else:
+            (forward, lateral), reason, ok, verified = self._gate.choose_beside(
+                asked, known, points, inflation, rows, aside.candidates
+            )
+            step = self._step_aside(aside, (forward, lateral), ok, verified)
+            if step is not None:  # judged as flown in the body axes of now: the heading is held
+                (forward, lateral), turn, reason = step, 0.0, "gate_give_way"
         if reason is not None:
             self.interventions[reason] += 1
             out = Command(forward, turn, lateral)
@@ -603,50 +628,48 @@ class SafetyShield:
         self._previous = out
         return out
 
-    def _step_aside(
-        self,
-        sent: tuple[float, float],
-        velocity: tuple[float, float] | None,
-        movers: np.ndarray,
-        points: np.ndarray,
-        inflation: np.ndarray,
-    ) -> tuple[float, float] | None:
-        """The sidestep to send instead of ``sent`` (``give_way``), or None: where the stop, and
-        ``sent`` held, both meet a mover at its tracked velocity within the rule's ``wait_time``; a
-        sidestep must meet it later than both, or as late and less deep. A sidestep is sent only if
-        its own stop keeps clear of the returns (the gate's static promise holds), or, where the
-        stop itself does not (the gate's best effort), leaves them as much room as the stop; with
-        none such, ``sent`` stands. Of those, the ones the gate passes with the movers too (the
-        whole promise) go first."""
+    def _sidesteps(self, velocity: tuple[float, float] | None, movers: np.ndarray) -> _Aside | None:
+        """The sidesteps ``give_way`` may send this scan: where the stop meets a mover at its tracked
+        velocity within the rule's ``wait_time``, those that meet it later, or as late and less deep
+        (judged by the gate beside its own candidates, :meth:`BackupGate.choose_beside`); None where
+        the stop is clear (nothing steps aside, and what was being stepped is over)."""
         rule = self._give_way
         if rule is None or velocity is None or len(movers) == 0:
             self._stepping = None
             return None
         tracked = [Mover((m[0], m[1]), (m[2], m[3]), m[4]) for m in movers]
         horizon = rule.config.wait_time
-        held, met = rule.encounters(np.array([(0.0, 0.0), sent]), velocity, tracked, horizon)
-        if (held >= 0.0).any():  # the stop or the command is clear
-            self._stepping = None
-            return None
-        worse = max(zip(met, held, strict=True))  # met the latest, then the least deep
+        held, met = rule.encounter((0.0, 0.0), velocity, tracked, horizon)
         candidates = rule.sidesteps(self.config.max_reverse_speed)
         nearest, first = rule.encounters(candidates, velocity, tracked, horizon)
-        later = np.flatnonzero((first > worse[0]) | ((first == worse[0]) & (nearest > worse[1])))
-        current, self._stepping = self._stepping, None
-        if len(later) == 0:
+        later = np.flatnonzero((first > met) | ((first == met) & (nearest > held)))
+        if held >= 0.0 or len(later) == 0:
+            self._stepping = None
             return None
-        # their stops judged on one worst case, with the stop itself: clear of the returns, or no
-        # closer to them than the stop; those the gate passes with the movers too keep the whole promise
-        static, whole = self._gate.rooms(np.vstack([np.zeros(2), candidates[later]]), velocity, points,
-                                         inflation, movers)  # fmt: skip
-        ok = static[1:] >= min(static[0], 0.0)
-        verified = ok & (whole[1:] >= 0.0)
-        usable = verified if verified.any() else ok
-        best = [
-            i for i in rule.preference(candidates[later], nearest[later], first[later], current) if usable[i]
-        ]
+        return _Aside(candidates[later], nearest[later], first[later], (met, held), velocity, tracked)
+
+    def _step_aside(
+        self, aside: _Aside, sent: tuple[float, float], ok: np.ndarray, verified: np.ndarray
+    ) -> tuple[float, float] | None:
+        """The sidestep to send instead of ``sent`` (``give_way``), or None: where ``sent`` held also
+        meets a mover within ``wait_time``, of the sidesteps met later than the stop and ``sent`` both,
+        the first by :meth:`GiveWay.preference` whose own stop keeps clear of the returns (the gate's
+        static promise holds), or, where the stop itself does not (the gate's best effort), leaves
+        them as much room as the stop (``ok``); of those, the ones the gate passes with the movers too
+        (``verified``, the whole promise) go first. With none such, ``sent`` stands."""
+        rule = self._give_way
+        assert rule is not None
+        held, met = rule.encounter(sent, aside.velocity, aside.movers, rule.config.wait_time)
+        current, self._stepping = self._stepping, None
+        if held >= 0.0:  # the command is clear
+            return None
+        worse = max(aside.stop, (met, held))  # met the latest, then the least deep
+        later = (aside.first > worse[0]) | ((aside.first == worse[0]) & (aside.nearest > worse[1]))
+        usable = verified & later if (verified & later).any() else ok & later
+        order = rule.preference(aside.candidates, aside.nearest, aside.first, current)
+        best = [i for i in order if usable[i]]
         if best:
-            step = candidates[later[best[0]]]
+            step = aside.candidates[best[0]]
             self._stepping = (float(step[0]), float(step[1]))
         return self._stepping
 

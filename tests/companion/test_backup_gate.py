@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 
@@ -360,6 +361,51 @@ def test_the_gate_agrees_with_a_plain_reference(seed: int) -> None:
             assert gate.choose(tuple(asked), velocity, points, grown) == _reference_choose(
                 gate, asked, velocity, points, grown
             )
+
+
+def _batch(asked: np.ndarray, points: np.ndarray, grown: np.ndarray, movers: np.ndarray) -> np.ndarray:
+    """The candidates :meth:`BackupGate.choose` judges once it refuses the asked, as
+    :func:`_reference_choose` makes them (the slides only where they differ from the scaled asked)."""
+    centres = np.concatenate([points, movers[:, :2]])
+    gaps = np.hypot(centres[:, 0], centres[:, 1]) - np.concatenate([grown, movers[:, 4]])
+    nearest = centres[int(np.argmin(gaps))]
+    towards = nearest / max(float(np.hypot(*nearest)), 1e-9)
+    slide = asked - max(float(asked @ towards), 0.0) * towards
+    scales = np.linspace(1.0, 0.0, 11)
+    scaled = scales[:, None] * asked
+    return scaled if np.array_equal(slide, asked) else np.concatenate([scaled, scales[:-1, None] * slide])
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_choose_beside_chooses_as_choose_and_judges_the_alternatives_with_the_stop(seed: int) -> None:
+    """On twin gates, :meth:`BackupGate.choose_beside` sends what :meth:`BackupGate.choose` sends; an
+    alternative is ``ok`` where its stop leaves the returns as much room as the plain reference's,
+    judged on one horizon with the stop and the gate's own candidates, or clear where the stop is,
+    and ``verified`` where it is ok and its worst case keeps clear of the movers too."""
+    rng = np.random.default_rng(100 + seed)
+    sidesteps = np.array([(math.cos(a), math.sin(a)) for a in np.radians(np.arange(0, 360, 22.5))])
+    verified_seen = unverified_seen = 0
+    for _ in range(40):
+        gate, points, velocity, grown = _random_case(rng)
+        twin = copy.deepcopy(gate)
+        movers = np.array([(*rng.uniform(-6.0, 6.0, 2), *rng.uniform(-1.5, 1.5, 2), 0.25) for _ in range(3)])
+        alternatives = sidesteps[rng.random(len(sidesteps)) < 0.6]
+        for asked in rng.uniform(-2.0, 2.0, 2), rng.uniform(-0.5, 0.5, 2):
+            sent, reason = twin.choose(tuple(asked), velocity, points, grown, movers)
+            batch = np.concatenate([_batch(asked, points, grown, movers), np.zeros((1, 2)), alternatives])
+            room = _reference_passes(gate, batch, velocity, points, grown)[-len(alternatives) - 1 :]
+            _, mover_room = gate.passes(batch, velocity, np.zeros((0, 2)), np.zeros(0), movers)
+            got = gate.choose_beside(tuple(asked), velocity, points, grown, movers, alternatives)
+            assert got[:2] == (sent, reason)
+            ok, verified = got[2:]
+            np.testing.assert_array_equal(ok, room[1:] >= min(room[0], 0.0))
+            np.testing.assert_array_equal(verified, ok & (mover_room[-len(alternatives) :] >= 0.0))
+            verified_seen += int(verified.sum())
+            unverified_seen += int((ok & ~verified).sum())
+            for one in gate, twin:
+                one.record(sent)
+                one.advance(0.1, one._heading, 0.0)
+    assert verified_seen and unverified_seen  # both outcomes met
 
 
 def test_the_horizon_covers_braking_from_the_setpoints_still_in_force() -> None:

@@ -135,6 +135,56 @@ def test_the_worst_case_rises_at_accel_and_falls_at_decel() -> None:
     assert w[at(1.0)] == pytest.approx(0.0) and x[-1] == pytest.approx(0.5 + 0.5 * STEP_S, abs=1e-9)
 
 
+def _stepwise(now: np.ndarray, targets: np.ndarray, env: ResponseEnvelope) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`worst_closing` one step at a time as the module doc states it: braking builds up at
+    ``jerk`` while above the target, the bound falls at it (not below the target) or rises at
+    ``accel`` (not above), and the displacement adds the larger end of each step."""
+    w, braking, x = np.asarray(now, dtype=np.float64) + env.estimate_error, 0.0, 0.0
+    ws, xs = [w], [np.zeros_like(w)]
+    for target in targets:
+        above = w > target
+        braking = np.where(above, np.minimum(braking + env.jerk * STEP_S, env.decel), 0.0)
+        nxt = np.where(
+            above, np.maximum(w - braking * STEP_S, target), np.minimum(w + env.accel * STEP_S, target)
+        )
+        x = x + np.maximum(w, nxt) * STEP_S
+        w = nxt
+        ws.append(w)
+        xs.append(np.broadcast_to(x, w.shape))
+    xs_ = np.array(xs)
+    if math.isfinite(env.position_error):
+        held = env.estimate_error * STEP_S * np.arange(len(xs_)) - env.position_error
+        xs_ = xs_ - np.maximum(held, 0.0).reshape(-1, *([1] * (xs_.ndim - 1)))
+    return np.array(ws), xs_
+
+
+@pytest.mark.parametrize("name", [*ENVELOPES, "jerk"])
+def test_the_worst_case_is_the_step_by_step_one_bit_for_bit(name: str) -> None:
+    """Without a jerk limit the bound is integrated first and the displacement summed after it; it
+    is the step-by-step computation exactly, steady targets, unknown (-inf) ones and NaN included."""
+    env = dataclasses.replace(PX4, jerk=20.0) if name == "jerk" else ENVELOPES[name]
+    rng = np.random.default_rng(7)
+    for _ in range(60):
+        steps, columns = int(rng.integers(0, 50)), int(rng.integers(1, 200))
+        targets = rng.uniform(-1.0, 3.0, (steps, columns))
+        steady = int(rng.integers(0, steps + 1))
+        targets[steady:] = targets[-1] if steps else 0.0
+        targets[:, : columns // 4] = np.where(
+            rng.random((steps, 1)) < 0.2, -np.inf, targets[:, : columns // 4]
+        )
+        now = rng.uniform(-3.0, 3.0, columns)
+        now[0] = np.nan
+        expected, got = _stepwise(now, targets, env), worst_closing(now, targets, env)
+        for a, b in zip(expected, got, strict=True):
+            np.testing.assert_array_equal(a, b)
+    for now, targets in (
+        (np.ones(()), np.zeros(12)),
+        (rng.uniform(0, 2, (3, 4)), rng.uniform(0, 2, (9, 3, 4))),
+    ):
+        for a, b in zip(_stepwise(now, targets, env), worst_closing(now, targets, env), strict=True):
+            np.testing.assert_array_equal(a, b)
+
+
 def test_a_position_loop_caps_what_the_estimate_error_adds() -> None:
     """With ``position_error`` the estimate error's share of the displacement stops growing at it
     (ArduPilot holds the integrated position): a steady hold creeps ``estimate_error·t`` without
