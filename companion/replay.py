@@ -466,8 +466,10 @@ def _extra_kwargs(extra: dict[str, Any] | None) -> dict[str, Any]:
 
 
 def _mover(plain: dict[str, Any]) -> Mover:
-    """A recorded :class:`Mover` (its null numbers not finite)."""
-    return Mover(_pair(plain["position"]), _pair(plain["velocity"]), _number(plain["radius"]))
+    """A recorded :class:`Mover` (its null numbers not finite; age 0 in recordings made before movers
+    lost from sight were given to the shield)."""
+    age = _number(plain.get("age", 0.0))
+    return Mover(_pair(plain["position"]), _pair(plain["velocity"]), _number(plain["radius"]), age)
 
 
 def _pair(values: list[float | None]) -> tuple[float, float]:

@@ -33,6 +33,12 @@ pose (the autopilot's estimate, in any frame fixed to the ground) only.
 - Kept moving: a moving track stays moving while it is seen faster than ``keep_speed``. A walker
   at 0.5 m/s reads 0.4-0.6 m/s from revolution to revolution: without the lower bar it dropped in
   and out of the moving tracks, and with it out of the policy's frame and the shield's movers.
+- Lost from sight: a track that moved within the last ``coast_s`` and is not moving now, unseen
+  since (a miss, or ended by ``max_misses``) or seen again faster than ``keep_speed`` but not yet
+  moving again by the rules above, is still given to the shield (:meth:`TrackerOutput.shield_inputs`,
+  not to the policy), carried on at its velocity and with its age, up to ``coast_s`` after it was
+  last seen. A walker's track drops out of the moving ones for a revolution or two when a scan
+  misses it (beside a wall, behind a pillar); the shield then judged its returns as standing ones.
 - No pose (the autopilot's position not known): the tracker forgets everything and nothing moves.
 
 Pure: arrays and times in, no I/O.
@@ -75,6 +81,8 @@ class TrackerConfig:
         it (a wall cut off by the range slides along with the vehicle): not tracked, metres
     :param background_gap: a segment is an object only where the returns beside it are at least
         this much farther (or none): else its end may be the sampling's, not the object's, metres
+    :param coast_s: how long after it was last seen a track that moved is still given to the
+        shield once lost from sight, s
     :param extent_jump: a segment this much wider or narrower than the track's last one shows
         another part of the object (a box's second face comes into view, a part goes behind
         something): its centre moved with what is seen, not with the object, so it places the track
@@ -97,6 +105,7 @@ class TrackerConfig:
     edge_margin: float = 1.0
     background_gap: float = 1.0
     extent_jump: float = 0.2
+    coast_s: float = 1.0
 
 
 @dataclass
@@ -128,6 +137,8 @@ class Track:
     :param widest: the widest it was seen, metres: a round object shows up to its diameter
     :param streak: revolutions in a row it was seen faster than ``moving_speed``
     :param moving: whether it moves (:class:`ScanTracker`'s rules)
+    :param seen_at: time of its last segment, seconds
+    :param moved_at: the last time it moved, seconds (-inf: never)
     """
 
     track_id: int
@@ -141,6 +152,8 @@ class Track:
     widest: float = 0.0
     streak: int = 0
     moving: bool = False
+    seen_at: float = 0.0
+    moved_at: float = -math.inf
 
     @property
     def position(self) -> np.ndarray:
@@ -162,11 +175,14 @@ class Mover:
     :param position: its centre from the vehicle (forward, left), m
     :param velocity: its ground velocity along the body axes (forward, left), m/s
     :param radius: how far its surface may lie from ``position``, m
+    :param age: seconds since it was last seen (a mover lost from sight): ``position`` is carried on
+        at ``velocity`` from where it was then
     """
 
     position: tuple[float, float]
     velocity: tuple[float, float]
     radius: float
+    age: float = 0.0
 
 
 @dataclass
@@ -177,21 +193,29 @@ class TrackerOutput:
     :param moving: the confirmed tracks that move
     :param moving_bins: ``(360,)`` bool: bins whose return this scan belongs to a moving track
     :param pose: the vehicle's (x, y, yaw) the scan was tracked at (None: not known, nothing tracked)
+    :param lost: the tracks lost from sight that the shield still judges (:class:`ScanTracker`)
+    :param time: the scan's time, seconds
     """
 
     tracks: list[Track]
     moving: list[Track]
     moving_bins: np.ndarray
     pose: tuple[float, float, float] | None = None
+    lost: list[Track] = field(default_factory=list)
+    time: float = 0.0
 
     def movers(self) -> list[Mover]:
-        """The moving tracks as the shield takes them (:func:`movers_in_body`); none without a pose."""
+        """The moving tracks in the body axes (:func:`movers_in_body`), as the policy takes them;
+        none without a pose."""
         return [] if self.pose is None else movers_in_body(self.moving, self.pose)
 
     def shield_inputs(self) -> dict[str, Any]:
         """What :meth:`companion.safety.shield.SafetyShield.filter` takes of this update: its
-        ``moving_bins`` and ``movers`` keywords."""
-        return {"moving_bins": self.moving_bins, "movers": self.movers()}
+        ``moving_bins`` and ``movers`` keywords, the movers with those lost from sight and their ages."""
+        if self.pose is None:
+            return {"moving_bins": self.moving_bins, "movers": []}
+        movers = movers_in_body(self.moving + self.lost, self.pose, self.time)
+        return {"moving_bins": self.moving_bins, "movers": movers}
 
 
 class ScanTracker:
@@ -212,6 +236,7 @@ class ScanTracker:
         """Forget every track (a new flight, or a scan without a pose: the next cannot be placed
         against the last)."""
         self.tracks: list[Track] = []
+        self._ended: list[Track] = []  # tracks ended while lost from sight, carried on for the shield
         self._next_id = 0
         self._time: float | None = None
 
@@ -235,25 +260,54 @@ class ScanTracker:
         cfg = self.config
         dt = 0.0 if self._time is None else max(float(time) - self._time, 0.0)
         self._time = float(time)
-        for track in self.tracks:
+        now = self._time
+        for track in self.tracks + self._ended:
             _predict(track, dt, cfg.accel_std)
         segments = self.segments(scan, pose)
         taken = self._associate(segments)
         for track in self.tracks:
             if track.track_id not in taken:
                 track.misses += 1
+            else:
+                track.seen_at = now
             fast = track.track_id in taken and track.speed > cfg.moving_speed
             track.streak = track.streak + 1 if fast else 0
+        gone = [t for t in self.tracks if t.misses > cfg.max_misses]
+        self._ended += [t for t in gone if now - t.moved_at <= cfg.coast_s]
         self.tracks = [t for t in self.tracks if t.misses <= cfg.max_misses]
         confirmed = [t for t in self.tracks if t.hits >= cfg.confirm_hits]
         for t in confirmed:
             starts = t.speed > cfg.fast_speed or (t.speed > cfg.moving_speed and self._settled(t))
             t.moving = t.misses == 0 and (starts or (t.moving and t.speed > cfg.keep_speed))
+            if t.moving:
+                t.moved_at = now
         moving = [t for t in confirmed if t.moving]
         mask = np.zeros(N_BINS, dtype=bool)
         for track in moving:
             mask[track.bins] = True
-        return TrackerOutput(confirmed, moving, mask, tuple(pose))
+        return TrackerOutput(confirmed, moving, mask, tuple(pose), self._lost(now), now)
+
+    def _lost(self, now: float) -> list[Track]:
+        """The tracks lost from sight that the shield still judges (the module doc); an ended one is
+        forgotten once ``coast_s`` has passed since it was seen, or a track the shield judges lies
+        within ``gate`` of it (the same object, found again)."""
+        cfg = self.config
+        alive = [
+            t
+            for t in self.tracks
+            if not t.moving
+            and now - t.moved_at <= cfg.coast_s
+            and (t.misses > 0 or t.speed > cfg.keep_speed)
+            and now - t.seen_at <= cfg.coast_s
+        ]
+        judged = [t.position for t in self.tracks if t.moving] + [t.position for t in alive]
+        self._ended = [
+            t
+            for t in self._ended
+            if now - t.seen_at <= cfg.coast_s
+            and all(float(np.hypot(*(t.position - p))) > cfg.gate for p in judged)
+        ]
+        return alive + self._ended
 
     def _settled(self, track: Track) -> bool:
         """Whether a slow track's speed says it moves: enough hits, and fast for long enough in a row."""
@@ -372,6 +426,7 @@ class ScanTracker:
             bins=seg.bins,
             extent=seg.extent,
             widest=seg.extent,
+            seen_at=self._time or 0.0,
         )
 
 
@@ -421,13 +476,16 @@ def without_movers(scan: np.ndarray, moving_bins: np.ndarray) -> np.ndarray:
     return np.where(moving_bins, np.asarray(1.0, dtype=scan.dtype), scan)
 
 
-def movers_in_body(tracks: list[Track], pose: tuple[float, float, float]) -> list[Mover]:
-    """The moving tracks as the shield takes them: in the body axes of the vehicle at ``pose``
-    (the pose the scan was tracked at), the velocity turned into those axes, the radius half the
-    widest the track was seen.
+def movers_in_body(
+    tracks: list[Track], pose: tuple[float, float, float], now: float | None = None
+) -> list[Mover]:
+    """Tracks as the shield takes them: in the body axes of the vehicle at ``pose`` (the pose the
+    scan was tracked at), the velocity turned into those axes, the radius half the widest the track
+    was seen, and the age since it was last seen.
 
-    :param tracks: :attr:`TrackerOutput.moving`
+    :param tracks: :attr:`TrackerOutput.moving` (and :attr:`TrackerOutput.lost`)
     :param pose: the vehicle's (x, y, yaw) in the tracker's ground frame, metres and radians CCW
+    :param now: the scan's time, seconds (None: every track seen in it, age 0)
     """
     x, y, yaw = pose
     c, s = math.cos(yaw), math.sin(yaw)
@@ -435,9 +493,7 @@ def movers_in_body(tracks: list[Track], pose: tuple[float, float, float]) -> lis
     for track in tracks:
         dx, dy = float(track.state[0]) - x, float(track.state[1]) - y
         vx, vy = float(track.state[2]), float(track.state[3])
-        out.append(
-            Mover(
-                (c * dx + s * dy, -s * dx + c * dy), (c * vx + s * vy, -s * vx + c * vy), track.widest / 2.0
-            )
-        )
+        age = 0.0 if now is None else max(now - track.seen_at, 0.0)
+        position, velocity = (c * dx + s * dy, -s * dx + c * dy), (c * vx + s * vy, -s * vx + c * vy)
+        out.append(Mover(position, velocity, track.widest / 2.0, age))
     return out

@@ -41,29 +41,31 @@ candidate as good (``gate_best_effort``), backing away from the nearest return w
 has that truly move away and it raises nothing that decides (:meth:`BackupGate.choose`).
 
 *Movers.* The tracker's moving objects (:class:`~companion.perception.tracking.Mover`: centre,
-ground velocity and radius in the body axes at the scan's time; :func:`mover_rows`) are not
-returns: their returns stay out of the memory (the shield's doing), and each is judged along its
-motion. The model (:class:`MoverModel`, ``[shield] mover_*``): a mover moves at up to ``speed``
-(``mover_speed``, 1.5 m/s, a walker); when seen, its true velocity is within ``velocity_error`` of
-the tracked one, and it changes at up to ``accel`` from then on. So ``τ`` after it was seen (a
-scan is at most a period old when its command is sent), its speed towards any direction ``-n`` is
-at most ``min(c_n + velocity_error + accel·τ, speed)``, ``c_n`` the tracked one's, and every point
-``o`` of its body has ``o·n >= p·n - radius - H_n(τ)``, ``H_n`` the integral of that speed: within
-``radius + speed·τ`` of where it was seen in any case, less towards the vehicle when it walks away.
-A candidate passes only if, in addition, at every step of its worst case up to its stop where the
-vehicle may move faster than the creep (standing still, it closes on nothing), some direction
-separates the farthest displacement so far from that bound over the step, by ``body_radius +
-margin``, as for a return. The promise then reads: with movers that keep within the model and are
-seen, every command sent keeps a backup whose worst case stays clear of them until the vehicle is
-stopped (to within the creep). The vehicle never closes on a mover while it moves; a contact can
-only come once it is stopped, by the mover's own motion (passive safety). The induction needs each
-scan's mover set to lie within the one judged a period before: true of the speed bound alone (a
-mover that moved at up to ``speed`` stays in the disc grown from where it was seen), and of the
-tracked velocity's narrowing while successive tracked velocities differ by at most ``accel`` times
-the period. Not covered: a mover faster than ``speed`` (counted, ``mover_too_fast``, and judged at
-its tracked speed plus the velocity error), one that keeps coming after the stop (pursuit), one
-never seen or never tracked, and one first seen inside the reach; where no command keeps clear of
-a mover, the gate sends, of those clear of the returns, the one that leaves the movers the most
+ground velocity and radius in the body axes at the scan's time, and the age of a mover lost from
+sight; :func:`mover_rows`) are not returns: their returns stay out of the memory (the shield's
+doing), and each is judged along its motion. The model (:class:`MoverModel`, ``[shield] mover_*``):
+a mover moves at up to ``speed`` (``mover_speed``, 1.5 m/s, a walker); when seen, its true velocity
+is within ``velocity_error`` of the tracked one, and it changes at up to ``accel`` from then on. So
+``τ`` after it was seen (a scan is at most a period old when its command is sent; a mover the
+tracker has lost from sight was seen its ``age`` before that scan, and is judged from where it was
+then), its speed towards any direction ``-n`` is at most ``min(c_n + velocity_error + accel·τ,
+speed)``, ``c_n`` the tracked one's, and every point ``o`` of its body has ``o·n >= p·n - radius -
+H_n(τ)``, ``H_n`` the integral of that speed: within ``radius + speed·τ`` of where it was seen in
+any case, less towards the vehicle when it walks away. A candidate passes only if, in addition, at
+every step of its worst case up to its stop where the vehicle may move faster than the creep
+(standing still, it closes on nothing), some direction separates the farthest displacement so far
+from that bound over the step, by ``body_radius + margin``, as for a return. The promise then reads:
+with movers that keep within the model and are seen, every command sent keeps a backup whose worst
+case stays clear of them until the vehicle is stopped (to within the creep). The vehicle never
+closes on a mover while it moves; a contact can only come once it is stopped, by the mover's own
+motion (passive safety). The induction needs each scan's mover set to lie within the one judged a
+period before: true of the speed bound alone (a mover that moved at up to ``speed`` stays in the
+disc grown from where it was seen), and of the tracked velocity's narrowing while successive tracked
+velocities differ by at most ``accel`` times the period. Not covered: a mover faster than ``speed``
+(counted, ``mover_too_fast``, and judged at its tracked speed plus the velocity error), one that
+keeps coming after the stop (pursuit), one never seen or never tracked (or lost from sight longer
+than the tracker's ``coast_s``), and one first seen inside the reach; where no command keeps clear
+of a mover, the gate sends, of those clear of the returns, the one that leaves the movers the most
 room (``gate_mover_best_effort``).
 
 Separation makes it cheap: with ``X_m`` the worst displacement towards direction ``m`` over the
@@ -291,7 +293,7 @@ class BackupGate:
         :param velocity: the measured body velocity less the drift estimate, m/s (None: not known)
         :param points: ``(p, 2)`` the remembered returns, body frame, m
         :param inflation: ``(p,)`` their inflation, m
-        :param movers: ``(k, 5)`` the movers (:func:`mover_rows`); None: none
+        :param movers: ``(k, 6)`` the movers (:func:`mover_rows`); None: none
         :return: ``(m,)`` bools and ``(m,)`` the least room left (from the returns and the movers), m
         """
         least, _ = self._judge(np.atleast_2d(np.asarray(candidates, dtype=np.float64)), velocity, points,
@@ -331,7 +333,8 @@ class BackupGate:
         """``(k, steps, 72)``: for each mover and each step ``[t_j, t_j+1]`` of the worst case, a lower
         bound of ``o·n`` over every point ``o`` of the mover's body then, towards each direction ``n``, m.
 
-        The mover was seen up to a period before now, so at ``t`` it has moved for ``τ = period + t``.
+        The mover was seen up to a period and its age before now (where it was then: its centre less
+        its velocity times its age), so at ``t`` it has moved for ``τ = age + period + t``.
         Its velocity towards ``-n`` (towards the vehicle, for the returns beyond it along ``n``) is at
         most its speed cap and at most the tracked one's plus ``e + a·τ`` (the velocity error when
         seen, then the acceleration): its body lies at least ``o·n >= p·n - radius - H(τ)`` with ``H``
@@ -339,7 +342,7 @@ class BackupGate:
         a step's two ends bounds the step.
         """
         model = self.movers
-        tau = self.period + STEP_S * np.arange(steps + 1)  # (steps + 1,)
+        tau = movers[:, 5:6] + self.period + STEP_S * np.arange(steps + 1)  # (k, steps + 1)
         closing = -(movers[:, 2:4] @ _DIR_UNIT.T) + model.velocity_error  # (k, 72): the rate at τ = 0
         cap = self.mover_caps(movers)[:, None]
         # the rate meets the cap at τ = (cap - closing) / a: H is closing·τ + a·τ²/2 before, cap·τ after
@@ -347,11 +350,11 @@ class BackupGate:
             meet = np.maximum(cap - closing, 0.0) / model.accel
         else:
             meet = np.where(closing < cap, math.inf, 0.0)
-        ramp = np.minimum(meet[:, None, :], tau[None, :, None])  # (k, steps + 1, 72)
+        ramp = np.minimum(meet[:, None, :], tau[:, :, None])  # (k, steps + 1, 72)
         extent = closing[:, None, :] * ramp + 0.5 * model.accel * ramp * ramp
-        extent += cap[:, :, None] * (tau[None, :, None] - ramp)
+        extent += cap[:, :, None] * (tau[:, :, None] - ramp)
         reach = np.maximum(extent[:, :-1], extent[:, 1:])
-        return (movers[:, :2] @ _DIR_UNIT.T - movers[:, 4:5])[:, None, :] - reach
+        return (_where_seen(movers) @ _DIR_UNIT.T - movers[:, 4:5])[:, None, :] - reach
 
     def _mover_room(
         self, worst: _WorstCase, rows: np.ndarray, steps: np.ndarray | int, movers: np.ndarray
@@ -368,15 +371,15 @@ class BackupGate:
 
         :param rows: the candidates (rows of ``worst.column``)
         :param steps: the horizon cut per candidate (or one for all), as :meth:`_WorstCase.reach` takes it
-        :param movers: ``(k, 5)`` :func:`mover_rows`
+        :param movers: ``(k, 6)`` :func:`mover_rows`
         """
         column = worst.column[rows]  # (m, 72)
         stop = np.minimum(worst.settled[column], np.reshape(steps, (-1, 1)))  # (m, 72)
         last = stop.max(axis=1)  # the step by which every direction has stopped
         farthest = worst.reached[stop, column].max(axis=1) / math.cos(math.pi / N_DIRECTIONS)  # (m,)
-        seen = np.hypot(movers[:, 0], movers[:, 1]) - movers[:, 4]  # (k,)
-        tau = self.period + STEP_S * last  # (m,)
-        room = seen[:, None] - self.mover_caps(movers)[:, None] * tau[None] - farthest[None] - self.clearance
+        seen = np.hypot(*_where_seen(movers).T) - movers[:, 4]  # (k,)
+        tau = movers[:, 5:6] + self.period + STEP_S * last  # (k, m)
+        room = seen[:, None] - self.mover_caps(movers)[:, None] * tau - farthest[None] - self.clearance
         near = np.flatnonzero((room < 0.0).any(axis=1))  # movers some candidate must be searched for
         open_ = np.flatnonzero((room[near] < 0.0).any(axis=0))  # and those candidates
         if len(open_) == 0:
@@ -532,7 +535,7 @@ class BackupGate:
         The reason is None, ``"gate_slowed"``, ``"gate_backup"`` (the stop, verified now),
         ``"gate_backup_kept"``, ``"gate_mover_best_effort"`` or ``"gate_best_effort"``.
 
-        :param movers: ``(k, 5)`` :func:`mover_rows`; None: none
+        :param movers: ``(k, 6)`` :func:`mover_rows`; None: none
         """
         setpoint, reason, _ = self._choose(asked, velocity, points, inflation, movers, None)
         return setpoint, reason
@@ -571,7 +574,7 @@ class BackupGate:
     ) -> tuple[tuple[float, float], str | None, tuple[np.ndarray, np.ndarray] | None]:
         """:meth:`choose`; with ``beside``, :meth:`choose_beside`'s judgement of them as well."""
         want = np.asarray(asked, dtype=np.float64)
-        moving = np.zeros((0, 5)) if movers is None else np.asarray(movers, dtype=np.float64)
+        moving = np.zeros((0, 6)) if movers is None else np.asarray(movers, dtype=np.float64)
         pending = self._intervening or beside is not None  # the asked judged in the batch, not alone first
         if beside is None and (not self._intervening or len(points) + len(moving) == 0):  # as the last did
             least, alone = self._judge(want[None], velocity, points, inflation, moving)
@@ -665,6 +668,12 @@ class BackupGate:
 
 
 def mover_rows(movers: Sequence[Mover]) -> np.ndarray:
-    """``(k, 5)`` the movers as the gate takes them: position (forward, left), velocity (forward,
-    left) and radius, body axes at the scan's time, m and m/s."""
-    return np.array([(*m.position, *m.velocity, m.radius) for m in movers], dtype=np.float64).reshape(-1, 5)
+    """``(k, 6)`` the movers as the gate takes them: position (forward, left), velocity (forward,
+    left), radius and age, body axes at the scan's time, m, m/s and s."""
+    rows = [(*m.position, *m.velocity, m.radius, m.age) for m in movers]
+    return np.array(rows, dtype=np.float64).reshape(-1, 6)
+
+
+def _where_seen(movers: np.ndarray) -> np.ndarray:
+    """``(k, 2)`` where each mover was last seen: its centre carried back along its velocity by its age, m."""
+    return movers[:, :2] - movers[:, 5:6] * movers[:, 2:4]

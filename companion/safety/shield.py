@@ -582,7 +582,7 @@ class SafetyShield:
         A moving return is never remembered. In the scan it came in, it is replaced by the mover
         that covers it (within the mover's radius and the return's own span); one that no mover
         covers still counts there, as a return standing where it is seen, for that scan alone.
-        A mover that is not finite is dropped and counted (``mover_nan``)."""
+        A mover that is not finite (or whose age is negative) is dropped and counted (``mover_nan``)."""
         values, _ = _finite_scan(scan)
         ranges = values * self.max_range
         known = velocity if _finite_pair(velocity) else None
@@ -593,7 +593,7 @@ class SafetyShield:
             scan_points(still, self.max_range), dt, known, heading, yaw_rate
         )
         rows = mover_rows(movers)
-        broken = ~np.isfinite(rows).all(axis=1)
+        broken = ~np.isfinite(rows).all(axis=1) | (rows[:, 5] < 0.0)  # not finite, or seen in the future
         if broken.any():  # dropped: its returns count as standing ones below, as no mover covers them
             self.interventions["mover_nan"] += int(np.count_nonzero(broken))
             rows = rows[~broken]

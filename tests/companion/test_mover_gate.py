@@ -84,6 +84,16 @@ def test_no_command_keeps_clear_of_a_walker_inside_the_reach_and_the_most_room_i
     assert rooms.max() < 0.0 and sent[0] >= rooms.max() - 1e-9
 
 
+def test_a_walker_lost_from_sight_is_judged_from_where_it_was_last_seen() -> None:
+    """A walker standing 8.5 m ahead of a vehicle flying at 2 m/s: seen now, full speed passes; lost
+    from sight 1 s ago, it may have walked at the vehicle since, and full speed is refused."""
+    fresh = mover_rows([Mover((8.5, 0.0), (0.0, 0.0), RADIUS)])
+    lost = mover_rows([Mover((8.5, 0.0), (0.0, 0.0), RADIUS, 1.0)])
+    full = np.array([[2.0, 0.0]])
+    assert _gate().passes(full, (2.0, 0.0), NONE, NO_INFLATION, fresh)[0][0]
+    assert not _gate().passes(full, (2.0, 0.0), NONE, NO_INFLATION, lost)[0][0]
+
+
 def test_a_vehicle_at_rest_may_stay_at_rest_whatever_walks_at_it() -> None:
     """Standing still (to within the creep), the vehicle closes on nothing: the stop passes with a
     walker 1 m ahead coming at it (the contact, if it comes, is the walker's), and going at it does not."""
@@ -149,9 +159,14 @@ def test_a_moving_return_no_mover_covers_still_counts_in_its_own_scan() -> None:
     assert sent[True] == sent[False] and sent[True].forward < 0.5
 
 
-def test_a_mover_that_is_not_finite_is_counted_and_its_returns_stand() -> None:
-    """A broken track (NaN velocity) is dropped and counted; its returns, marked moving, are then
-    covered by no mover and judged as standing ones, as if not marked."""
+@pytest.mark.parametrize(
+    "broken_mover",
+    [Mover((1.25, 0.0), (math.nan, 0.0), RADIUS), Mover((1.25, 0.0), (0.0, 0.0), RADIUS, -0.5)],
+    ids=["nan", "negative-age"],
+)
+def test_a_mover_that_is_not_finite_is_counted_and_its_returns_stand(broken_mover: Mover) -> None:
+    """A broken track (NaN velocity, or seen after the scan) is dropped and counted; its returns,
+    marked moving, are then covered by no mover and judged as standing ones, as if not marked."""
     ahead = np.arange(-5, 6) % N_BINS
     moving = np.zeros(N_BINS, dtype=bool)
     moving[ahead] = True
@@ -160,7 +175,7 @@ def test_a_mover_that_is_not_finite_is_counted_and_its_returns_stand() -> None:
     broken = SafetyShield(config, MAX_RANGE, "ardupilot")
     sent = broken.filter(
         Command(1.0, 0.0), scan, 0.1, (0.0, 0.0), heading=0.0, moving_bins=moving,
-        movers=[Mover((1.25, 0.0), (math.nan, 0.0), RADIUS)],
+        movers=[broken_mover],
     )  # fmt: skip
     unmarked = SafetyShield(config, MAX_RANGE, "ardupilot").filter(
         Command(1.0, 0.0), scan, 0.1, (0.0, 0.0), heading=0.0
@@ -263,7 +278,8 @@ def _true_mover(
 def test_every_command_sent_keeps_its_worst_case_clear_of_movers_within_the_model(seed: int) -> None:
     """The promise, one decision at a time: a random envelope, setpoint history and asked command,
     a mover of a random model tracked somewhere within 2-10 m, its true motion simulated inside the
-    model (up to a period old when seen; half of them pursuing the vehicle). Whatever the gate sends
+    model (up to a period old when seen, and half of them lost from sight up to 1 s before that,
+    carried on at their tracked velocity; half of them pursuing the vehicle). Whatever the gate sends
     but its best effort, its worst case (integrated plainly, up to each direction's stop) stays
     clear of the true mover over every step where the vehicle may move faster than the creep, by
     the separating bound. 3 x 80 decisions."""
@@ -288,9 +304,11 @@ def test_every_command_sent_keeps_its_worst_case_clear_of_movers_within_the_mode
         walk = rng.uniform(0.0, model.speed) * np.array(
             [math.cos(a := rng.uniform(-math.pi, math.pi)), math.sin(a)]
         )
+        lost = rng.uniform(0.0, 1.0) if rng.random() < 0.5 else 0.0  # seen this long before the scan
         tracked = np.array(
-            [distance * math.cos(bearing), distance * math.sin(bearing), *walk, rng.uniform(0.2, 0.6)]
+            [distance * math.cos(bearing), distance * math.sin(bearing), *walk, rng.uniform(0.2, 0.6), lost]
         )
+        seen = np.concatenate([tracked[:2] - lost * walk, tracked[2:]])  # where it was when last seen
         velocity = tuple(rng.uniform(-1.5, 1.5, 2))
         sent, reason = gate.choose(
             tuple(rng.uniform(-2.0, 2.0, 2)), velocity, NONE, NO_INFLATION, tracked[None]
@@ -299,8 +317,8 @@ def test_every_command_sent_keeps_its_worst_case_clear_of_movers_within_the_mode
             continue
         judged += 1
         reach, stop, fast = _plain_worst_case(gate, np.asarray(sent), velocity)
-        age = rng.uniform(0.0, gate.period)  # seen this long before now
-        path = _true_mover(rng, tracked, model, age + STEP_S * int(stop.max()) + 0.02)
+        age = lost + rng.uniform(0.0, gate.period)  # seen this long before now
+        path = _true_mover(rng, seen, model, age + STEP_S * int(stop.max()) + 0.02)
         for j in range(1, int(stop.max()) + 1):
             if not (fast[j - 1] or fast[j]):  # at rest (to within the creep): a contact is the mover's
                 continue

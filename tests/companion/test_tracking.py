@@ -274,3 +274,31 @@ def test_a_scan_without_a_pose_resets_the_tracker_and_nothing_moves() -> None:
     out = tracker.update(scan, None, t + 0.1)
     assert not out.moving and not out.moving_bins.any() and not out.tracks
     assert tracker.fresh and tracker.tracks == []
+
+
+def test_a_walker_lost_behind_a_pillar_is_carried_on_for_the_shield_up_to_coast_s() -> None:
+    """A walker crossing 4 m ahead of a vehicle at rest passes behind a box for about 2 s. Lost from
+    sight, it leaves the policy's movers at once, but the shield's keep it, carried on at its
+    velocity with its age, for ``coast_s`` after it was last seen; then they drop it."""
+    walker = MovingObstacle("cylinder", PathMotion(((4.0, 3.0), (4.0, -3.0)), 1.0), 1.8, radius=0.25)
+    box = Box((2.5, 0.0, 1.5), (0.4, 0.8, 3.0))
+    world = World("w", (16.0, 12.0), 3.0, (box,), (0.0, 0.0, 1.5), 0.0, moving=(walker,))
+    config = TrackerConfig()
+    tracker = ScanTracker(config, max_range=SCAN.max_range)
+    carried, dropped, seen = [], 0, False
+    for scan, pose, t in _fly(world, 60, velocity=(0.0, 0.0), start=(0.0, 0.0), yaw0=0.0):
+        out = tracker.update(scan, pose, t)
+        movers = out.shield_inputs()["movers"]
+        assert all(0.0 <= m.age <= config.coast_s + 1e-9 for m in movers)
+        seen = seen or bool(out.moving)
+        if seen and not out.moving:  # lost from sight: not the policy's
+            assert out.movers() == []
+            if movers:
+                (mover,) = movers
+                truth = walker.positions(t - REVOLUTION_S / 2.0)[0]
+                carried.append((mover.age, float(np.hypot(*(np.array(mover.position) - truth)))))
+            else:
+                dropped += 1
+    ages, errors = np.array(carried).T
+    assert ages.max() > 0.8 and errors.max() < 0.6, carried  # carried on close to where it walks
+    assert dropped >= 3  # hidden longer than coast_s: then it is dropped
