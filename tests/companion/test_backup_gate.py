@@ -9,7 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from companion.safety.backup import MAX_HORIZON_S, N_DIRECTIONS, BackupGate, separation
+from companion.perception.tracking import Mover
+from companion.safety.backup import MAX_HORIZON_S, N_DIRECTIONS, BackupGate, mover_rows, separation
 from companion.safety.envelope import ARDUPILOT, ENVELOPES, PX4, STEP_S, ResponseEnvelope, worst_closing
 
 CLEARANCE = 0.3
@@ -388,7 +389,8 @@ def test_choose_beside_chooses_as_choose_and_judges_the_alternatives_with_the_st
     for _ in range(40):
         gate, points, velocity, grown = _random_case(rng)
         twin = copy.deepcopy(gate)
-        movers = np.array([(*rng.uniform(-6.0, 6.0, 2), *rng.uniform(-1.5, 1.5, 2), 0.25) for _ in range(3)])
+        at, walk = rng.uniform(-6.0, 6.0, (3, 2)), rng.uniform(-1.5, 1.5, (3, 2))
+        movers = mover_rows([Mover(tuple(p), tuple(v), 0.25) for p, v in zip(at, walk, strict=True)])
         alternatives = sidesteps[rng.random(len(sidesteps)) < 0.6]
         for asked in rng.uniform(-2.0, 2.0, 2), rng.uniform(-0.5, 0.5, 2):
             sent, reason = twin.choose(tuple(asked), velocity, points, grown, movers)
