@@ -640,10 +640,13 @@ class SafetyShield:
         tracked = [Mover((m[0], m[1]), (m[2], m[3]), m[4]) for m in movers]
         horizon = rule.config.wait_time
         held, met = rule.encounter((0.0, 0.0), velocity, tracked, horizon)
+        if held >= 0.0:  # the stop is clear: no sidestep is predicted
+            self._stepping = None
+            return None
         candidates = rule.sidesteps(self.config.max_reverse_speed)
         nearest, first = rule.encounters(candidates, velocity, tracked, horizon)
         later = np.flatnonzero((first > met) | ((first == met) & (nearest > held)))
-        if held >= 0.0 or len(later) == 0:
+        if len(later) == 0:
             self._stepping = None
             return None
         return _Aside(candidates[later], nearest[later], first[later], (met, held), velocity, tracked)
@@ -665,7 +668,8 @@ class SafetyShield:
             return None
         worse = max(aside.stop, (met, held))  # met the latest, then the least deep
         later = (aside.first > worse[0]) | ((aside.first == worse[0]) & (aside.nearest > worse[1]))
-        usable = verified & later if (verified & later).any() else ok & later
+        whole = verified & later
+        usable = whole if whole.any() else ok & later
         order = rule.preference(aside.candidates, aside.nearest, aside.first, current)
         best = [i for i in order if usable[i]]
         if best:
