@@ -144,17 +144,21 @@ class GroundStation:
         return self.autopilot == mavutil.mavlink.MAV_AUTOPILOT_PX4
 
     def command(self, command: int, *params: float, timeout: float = 3.0) -> int:
-        """COMMAND_LONG, retried until its COMMAND_ACK; returns MAV_RESULT."""
+        """COMMAND_LONG, sent up to three times (confirmation counting up) until a COMMAND_ACK answers
+        it; returns MAV_RESULT.
+
+        The first answer is the one that counts. Under load the ACK to one attempt can arrive with
+        the ACK to the next, and a command that is already running (NAV_TAKEOFF climbing) refuses the
+        repeat, so the latest ACK would turn an accepted command into a refused one.
+        """
         p = [*params, *([0.0] * (7 - len(params)))]
-        for _attempt in range(3):
-            self.last.pop("COMMAND_ACK", None)
-            self.mav.mav.command_long_send(self.target_system, 1, command, 0, *p)
+        for attempt in range(3):
+            self.mav.mav.command_long_send(self.target_system, 1, command, attempt, *p)
             end = time.monotonic() + timeout / 3
             while time.monotonic() < end:
-                self.pump(0.02)
-                ack = self.last.get("COMMAND_ACK")
-                if ack is not None and ack.command == command:
-                    return int(ack.result)
+                for msg in self._drain(0.02):
+                    if msg.get_type() == "COMMAND_ACK" and msg.command == command:
+                        return int(msg.result)
         raise RuntimeError(f"ground station: no COMMAND_ACK for command {command}")
 
     # ----------------------------------------------------------------- state

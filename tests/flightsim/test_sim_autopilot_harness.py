@@ -294,6 +294,43 @@ def test_ground_station_takes_either_spelling_of_a_connection_and_names_a_bad_on
             GroundStation(bad)
 
 
+def test_ground_station_takes_the_first_answer_to_a_command_it_sent_again():
+    """Under load the ACK to NAV_TAKEOFF comes after the ground station has sent it again, together
+    with the refusal of the repeat (the vehicle is already climbing): the command was accepted."""
+    import threading
+
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+    from flightsim.sitl.ground_station import GroundStation
+    from tests.companion.mavlink_peer import AutopilotPeer
+
+    port = free_udp_port()
+    gcs = GroundStation(f"udpin:127.0.0.1:{port}")
+    peer = AutopilotPeer(f"udpout:127.0.0.1:{port}")
+    takeoff = mavlink.MAV_CMD_NAV_TAKEOFF
+    seen: list[int] = []
+
+    def late_autopilot() -> None:
+        for _ in range(2):
+            msg = peer.wait_for("COMMAND_LONG", timeout=5.0, condition=lambda m: m.command == takeoff)
+            seen.append(msg.confirmation)
+        peer.mav.command_ack_send(takeoff, mavlink.MAV_RESULT_ACCEPTED)  # the first, late
+        peer.mav.command_ack_send(takeoff, mavlink.MAV_RESULT_TEMPORARILY_REJECTED)  # the repeat
+
+    try:
+        peer.heartbeat(armed=True)
+        gcs.wait_heartbeat(timeout=5.0)
+        answering = threading.Thread(target=late_autopilot)
+        answering.start()
+        result = gcs.command(takeoff, 0, 0, 0, 0, 0, 0, 1.5, timeout=3.0)
+        answering.join(timeout=5.0)
+    finally:
+        peer.close()
+        gcs.close()
+    assert result == mavlink.MAV_RESULT_ACCEPTED
+    assert seen == [0, 1]  # sent again, its confirmation counted up as the protocol asks
+
+
 def wire(msg):
     from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
