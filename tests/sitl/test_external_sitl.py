@@ -100,23 +100,6 @@ def mission_file(tmp_path: Path) -> Path:
     return path
 
 
-def test_fly_external_ardupilot_twice_on_one_sitl(tmp_path, world_file):
-    """Two flights on one running SITL: the second finds the vehicle still flying from the first,
-    lands and disarms it, then flies again; both are judged on SIMSTATE ground truth."""
-    port = free_tcp_port()
-    policy = write_constant_policy(tmp_path / "circle.onnx", 0.5, 0.4)
-    sitl = start_autopilot(tmp_path, "ardupilot", f"tcpin:127.0.0.1:{port}")
-    try:
-        for name in ("first", "second"):
-            report = fly_cli(tmp_path, name, f"tcp:127.0.0.1:{port}", policy, world_file)
-            assert report["error"] == "", report
-            assert report["engaged"] and not report["collision"], report
-            assert report["ground_truth"] == "SIMSTATE" and report["warnings"] == []
-            assert report["distance_m"] > 1.5 and report["setpoint_rate_hz"] > 5.0, report  # (loaded CI)
-    finally:
-        stop_autopilot(sitl)
-
-
 def test_fly_external_px4_switches_to_hold_and_judges_on_hil_state_quaternion(tmp_path, world_file):
     port = free_udp_port()
     policy = write_constant_policy(tmp_path / "circle.onnx", 0.5, 0.4)
@@ -136,17 +119,26 @@ def test_fly_external_mission_through_the_turned_sitl(tmp_path, mission_file, pe
     """``fly --autopilot external --mission``: the world's waypoints go up as a mission through the
     ground-station link, turned into the SITL's frame (it boots facing North, the world starts at
     −30°), and the companion flies them in GUIDED / OFFBOARD: the report (judged on the SITL's
-    truth, in the world) has each waypoint reached, in order. On ArduPilot a second mission flight
-    starts where the first ended, away from the SITL's home: its waypoints are placed from there."""
+    truth, in the world) has each waypoint reached, in order. On ArduPilot a second flight on the same
+    running SITL finds the vehicle still flying from the first, lands and disarms it, and flies the
+    mission again from where the first ended, away from the SITL's home: its waypoints are placed
+    from there; both are judged on SIMSTATE ground truth."""
     policy = write_policy(tmp_path / "goal.onnx", kind="echo_goal")
     udp = personality == "px4"
     port = free_udp_port() if udp else free_tcp_port()
     sitl = start_autopilot(tmp_path, personality, f"{'udpin' if udp else 'tcpin'}:127.0.0.1:{port}")
     try:
         for flight in range(flights):
-            report = fly_cli(tmp_path, f"mission-{flight}", f"{'udpout' if udp else 'tcp'}:127.0.0.1:{port}",
-                             policy, mission_file, "--mission", "--duration", "60")
+            connect = f"{'udpout' if udp else 'tcp'}:127.0.0.1:{port}"
+            result = fly_process(tmp_path, f"mission-{flight}", connect, policy, mission_file, "--mission",
+                                 "--duration", "60")  # fmt: skip
+            assert result.returncode == 0, result.stdout + result.stderr
+            report = json.loads((tmp_path / f"mission-{flight}.json").read_text())
             assert report["error"] == "" and not report["collision"], report
+            assert report["setpoint_rate_hz"] > 5.0, report  # (loaded CI)
+            assert ("the external SITL is armed" in result.stderr) == (flight > 0), result.stderr
+            if personality == "ardupilot":
+                assert report["ground_truth"] == "SIMSTATE" and report["warnings"] == [], report
             assert [i for i, _t in report["waypoints_reached"]] == [0, 1], report
             assert report["mission_complete"] and 0 < report["mission_time_s"] < 60, report
             first = 1 if personality == "ardupilot" else 0  # ArduPilot's item 0 is home
