@@ -89,6 +89,9 @@ class EpisodeResult:
     response: dict[str, Any] = field(default_factory=lambda: {"name": "ideal"})
     #: the speed of the moving obstacle the episode collided with, m/s (None: no collision with one)
     collision_mover_speed: float | None = None
+    #: how long that obstacle had kept its velocity before the contact, up to
+    #: :data:`~flightsim.envs.env.MOVER_STEADY_WINDOW_S`, s (None: no collision with one)
+    collision_mover_steady_s: float | None = None
     #: the largest difference between the velocity a shield judges by (the env's ``shield_velocity``)
     #: and the true one, m/s: the firmware envelope's ``estimate_error`` bounds it, the simulator's
     #: random walk does not
@@ -118,7 +121,7 @@ def run_episode(
     trajectory = [_xy(info)]
     clearance = float(info["min_distance"])
     min_clearance, near_misses, inside = clearance, 0, clearance < NEAR_MISS_DISTANCE
-    steps, collision, mover_speed = 0, False, None
+    steps, collision, mover_speed, mover_steady = 0, False, None, None
     # what a shield judges the motion by, against the truth (an env without them records 0)
     judged = getattr(env.unwrapped, "shield_velocity", None)
     truth = getattr(env.unwrapped, "true_body_velocity", None)
@@ -138,6 +141,7 @@ def run_episode(
         collision = collision or bool(info["collision"])
         if info.get("collision_mover_speed") is not None:
             mover_speed = float(info["collision_mover_speed"])
+            mover_steady = float(info["collision_mover_steady_s"])
         if terminated or truncated:
             break
         action = controller.act(obs)
@@ -169,6 +173,7 @@ def run_episode(
         trajectory=trajectory,
         response=asdict(params) if params is not None else {"name": "ideal"},
         collision_mover_speed=mover_speed,
+        collision_mover_steady_s=mover_steady,
         max_velocity_error=velocity_error,
         **goal,
     )

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from companion.safety.shield import ShieldConfig
+from flightsim.envs.env import MOVER_STEADY_WINDOW_S
 from training.config import NEAR_MISS_DISTANCE, SUCCESS_MIN_MEAN_SPEED
 from training.episodes import EpisodeResult, WorldSpec
 
@@ -45,7 +46,8 @@ def goal_summary(results: Sequence[EpisodeResult]) -> dict[str, Any]:
     n = len(results)
     won = [r for r in results if r.success]
     spl = [r.shortest_path_m / max(r.distance, r.shortest_path_m, 1e-9) for r in won]
-    hit = [r.collision_mover_speed for r in results if r.collision_mover_speed is not None]
+    hit = [r for r in results if r.collision_mover_speed is not None]
+    within = [r for r in hit if r.collision_mover_speed <= MOVER_SPEED_BOUND]
     return {
         "episodes": n,
         "success_rate": len(won) / n,
@@ -58,7 +60,10 @@ def goal_summary(results: Sequence[EpisodeResult]) -> dict[str, Any]:
         / max(sum(r.waypoints for r in results), 1),
         "collisions": sum(r.collision for r in results),
         "mover_collisions": len(hit),
-        "mover_collisions_within_bound": sum(speed <= MOVER_SPEED_BOUND for speed in hit),
+        "mover_collisions_within_bound": len(within),
+        "mover_collisions_within_model": sum(
+            r.collision_mover_steady_s >= MOVER_STEADY_WINDOW_S for r in within
+        ),
         "mean_distance_m": float(np.mean([r.distance for r in results])),
         "min_clearance_m": float(min(r.min_clearance for r in results)),
         "near_misses": sum(r.near_misses for r in results),
@@ -169,8 +174,11 @@ def format_goal_table(summary: dict[str, Any], per_world: bool) -> str:
         lines.append(row(name, "ALL", data["overall"]))
         hit = data["overall"]
         if hit["mover_collisions"]:
-            within = hit["mover_collisions_within_bound"]
-            where = f"{within} at most {MOVER_SPEED_BOUND:g} m/s, the shield's mover_speed"
+            within, steady = hit["mover_collisions_within_bound"], hit["mover_collisions_within_model"]
+            where = (
+                f"{within} at most {MOVER_SPEED_BOUND:g} m/s, the shield's mover_speed; {steady} of them "
+                f"also kept their velocity for the {MOVER_STEADY_WINDOW_S:g} s before"
+            )
             lines.append(f"{name:<22} {'hit a mover':<24} {hit['mover_collisions']:>4} ({where})")
     return "\n".join(lines)
 

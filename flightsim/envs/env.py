@@ -27,6 +27,10 @@ SEED_LIMIT = 2**31
 VEHICLE_MASS_KG = 1.5
 #: control steps per second: one env step is one scan and one setpoint
 CONTROL_HZ = 10
+#: the seconds before a collision over which the moving obstacle hit is asked whether it kept its
+#: velocity: a path's corner turns it at once, beyond the shield's ``mover_accel`` (3 m/s², a turn
+#: back at 1.5 m/s takes a second), and the gate's worst case looks about this far ahead
+MOVER_STEADY_WINDOW_S = 2.0
 _OPTION_KEYS = {"world", "world_seed", "difficulty", "room_width"}
 
 
@@ -192,7 +196,9 @@ class LidarAvoidEnv(gym.Env):
     m), ``position`` ((3,) world ENU, m), ``yaw`` (rad, CCW from +x), ``world`` (its name),
     ``steps``, ``measured_velocity_body`` ((2,) forward, left m/s: what the autopilot would report,
     estimate error included, see :meth:`LidarAvoidEnv.measured_body_velocity`),
-    ``collision_mover_speed`` (on a collision with a moving obstacle, its speed, m/s; else None).
+    ``collision_mover_speed`` (on a collision with a moving obstacle, its speed, m/s; else None),
+    ``collision_mover_steady_s`` (then, how long it had kept its velocity before the contact, up to
+    :data:`MOVER_STEADY_WINDOW_S`, s; else None).
 
     ## Arguments
     ``LidarAvoidEnv(config: EnvConfig | None = None, render_mode: "rgb_array" | None = None)``, or
@@ -262,7 +268,8 @@ class LidarAvoidEnv(gym.Env):
         self._steps = 0
         self._distance = 0.0
         self._collided = False
-        self._mover_hit: float | None = None  # the speed of a moving obstacle collided with, m/s
+        # a moving obstacle collided with: its speed, m/s, and how long it had kept its velocity, s
+        self._mover_hit: tuple[float, float] | None = None
         self._clearance = self.world.clearance_at(self._state.position, self.sim_time)
         self._trajectory = [self._state.position.copy()]
         self._scan = self._fresh_scan()
@@ -370,11 +377,11 @@ class LidarAvoidEnv(gym.Env):
         if self._collided and self.world.moving:
             p = np.asarray(position, dtype=np.float64)[:3].reshape(1, 3)
             hit = [
-                m.speed
-                for m in self.world.moving
-                if m.clearance(p, self.sim_time)[0] < self.config.vehicle_radius
+                m for m in self.world.moving if m.clearance(p, self.sim_time)[0] < self.config.vehicle_radius
             ]
-            self._mover_hit = max(hit) if hit else None
+            if hit:
+                mover = max(hit, key=lambda m: m.speed)
+                self._mover_hit = (mover.speed, mover.steady_for(self.sim_time, MOVER_STEADY_WINDOW_S))
 
     def _conclude(self, command: StepCommand, scan: np.ndarray):
         """With the fresh scan from the new pose: reward, observation, episode end, info."""
@@ -525,5 +532,6 @@ class LidarAvoidEnv(gym.Env):
             "world": self.world.name,
             "steps": self._steps,
             "measured_velocity_body": self.measured_body_velocity(),
-            "collision_mover_speed": self._mover_hit,
+            "collision_mover_speed": None if self._mover_hit is None else self._mover_hit[0],
+            "collision_mover_steady_s": None if self._mover_hit is None else self._mover_hit[1],
         }

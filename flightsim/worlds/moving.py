@@ -18,6 +18,9 @@ import numpy as np
 
 # a random walk draws this many legs, then repeats them (a loop far longer than any episode)
 WALK_LEGS = 256
+# steady_for: a velocity is read over this, s, and counts as changed beyond this, m/s
+_VELOCITY_DT = 1e-3
+_STEADY_TOLERANCE = 1e-6
 
 
 @dataclass(frozen=True)
@@ -112,6 +115,21 @@ class MovingObstacle:
         if not loop:
             s = np.where(s > total, 2.0 * total - s, s)  # on the way back
         return np.column_stack([np.interp(s, cumulative, pts[:, 0]), np.interp(s, cumulative, pts[:, 1])])
+
+    def steady_for(self, time: float, window: float, step: float = 0.01) -> float:
+        """Seconds, up to ``window``, over which its velocity has not changed before ``time``: less
+        than ``window`` where it turned within it (at a corner or an end of its path, at once, which
+        no acceleration bound allows). Before the episode began it moved as it did at the start.
+
+        :param step: the velocity is compared every ``step`` s back (each over the millisecond before)
+        """
+        back = np.arange(0.0, window + step / 2.0, step)
+        times = time - back[back <= time - _VELOCITY_DT]
+        if len(times) == 0:
+            return float(window)
+        velocity = (self.positions(times) - self.positions(times - _VELOCITY_DT)) / _VELOCITY_DT
+        changed = np.hypot(*(velocity - velocity[0]).T) > _STEADY_TOLERANCE
+        return float(back[np.argmax(changed)]) if changed.any() else float(window)
 
     def packed(self, times: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """Its pose at each of ``times`` as the ray caster's rows, ``(T, 8)`` for a box (centre xyz,

@@ -110,6 +110,42 @@ def test_a_walker_that_walks_into_the_vehicle_is_a_collision() -> None:
     assert collided and 40 <= steps <= 50 and nearest < 0.25, results
 
 
+def test_a_collision_says_whether_the_walker_kept_its_velocity_before_it() -> None:
+    """The info names the walker's speed and how long it had kept its velocity: a walker coming
+    straight on, all the 2 s before; one that walked past 1 m away and turned at a corner of its path
+    into the vehicle, at once (no acceleration bound allows it), about 0.5 s before (the 0.5 m from
+    the corner to a touch)."""
+    straight = _mover("cylinder", [(-1.0, 5.0), (-1.0, -5.0)], 1.0, radius=0.25, height=1.8)
+    turning = _mover("cylinder", [(-4.0, 1.0), (-1.0, 1.0), (-1.0, -3.0)], 1.0, radius=0.25, height=1.8)
+    env = LidarAvoidEnv()
+    hits = {}
+    for name, walker in (("straight", straight), ("turning", turning)):
+        world = replace(_room((walker,)), start_position=(-1.0, 0.0, 1.5))
+        env.reset(seed=0, options={"world": world})
+        for _ in range(80):
+            _, _, terminated, _, info = env.step(np.zeros(2, dtype=np.float32))
+            if terminated:
+                break
+        assert info["collision"], name
+        hits[name] = (info["collision_mover_speed"], info["collision_mover_steady_s"])
+    assert hits["straight"] == (1.0, 2.0)
+    assert hits["turning"][0] == 1.0 and 0.45 <= hits["turning"][1] <= 0.65, hits
+
+
+def test_steady_for_finds_the_last_turn_of_a_path_and_ignores_a_straight_corner() -> None:
+    """Out and back along a line with a collinear corner at 1 m (no turn), at 1 m/s: it turns back at
+    the end, 3 s in; a loop turns at each corner."""
+    line = _mover("cylinder", [(0.0, 0.0), (1.0, 0.0), (3.0, 0.0)], 1.0, radius=0.25)
+    assert line.steady_for(2.5, 2.0) == 2.0  # through the collinear corner at 1 s
+    assert line.steady_for(0.5, 2.0) == 2.0  # as at the start before it
+    assert line.steady_for(4.0, 2.0) == pytest.approx(1.0, abs=0.011)
+    assert line.steady_for(3.3, 0.2) == 0.2 and line.steady_for(3.3, 2.0) == pytest.approx(0.3, abs=0.011)
+    square = MovingObstacle("cylinder", PathMotion(((0, 0), (2, 0), (2, 2), (0, 2)), 2.0, loop=True), 2.0,
+                            radius=0.25)  # fmt: skip
+    for t in (1.4, 2.25, 3.9):
+        assert square.steady_for(t, 2.0) == pytest.approx(t % 1.0, abs=0.011), t
+
+
 def test_the_scan_sees_the_walker_coming() -> None:
     walker = _mover("cylinder", [(4.0, 0.0), (-4.0, 0.0)], 1.0, radius=0.25, height=1.8)
     env = LidarAvoidEnv()

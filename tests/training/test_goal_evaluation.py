@@ -48,14 +48,21 @@ def test_goal_summary_rates_time_and_spl_over_successes_only():
 
 def test_collisions_with_movers_are_counted_against_the_shields_speed_bound():
     """A collision with a walker (1.2 m/s) counts within the 1.5 m/s the shield's promise assumes, one
-    with a drone (2.5 m/s) outside it, one with a wall not at all; the table says so."""
-    results = [_episode("a", f"w{k}", "rooms-dynamic", collision=True) for k in range(3)]
-    results[0].collision_mover_speed, results[1].collision_mover_speed = 1.2, 2.5
+    with a drone (2.5 m/s) outside it, one with a wall not at all; of the walkers within it, the one
+    that kept its velocity for the 2 s before counts within the model too, not the one that turned
+    at a corner of its path 0.5 s before; the table says so."""
+    results = [_episode("a", f"w{k}", "rooms-dynamic", collision=True) for k in range(4)]
+    for r, speed, steady in zip(results, (1.2, 2.5, 1.4), (2.0, 2.0, 0.5), strict=False):
+        r.collision_mover_speed, r.collision_mover_steady_s = speed, steady
     s = goal_summary(results)
-    assert (s["collisions"], s["mover_collisions"], s["mover_collisions_within_bound"]) == (3, 2, 1)
+    assert (s["collisions"], s["mover_collisions"]) == (4, 3)
+    assert (s["mover_collisions_within_bound"], s["mover_collisions_within_model"]) == (2, 1)
     table = format_table(report(results, []), per_world=False)
-    assert "hit a mover                 2 (1 at most 1.5 m/s, the shield's mover_speed)" in table
-    assert "hit a mover" not in format_table(report(results[2:], []), per_world=False)
+    assert (
+        "hit a mover                 3 (2 at most 1.5 m/s, the shield's mover_speed; 1 of them also kept "
+        "their velocity for the 2 s before)"
+    ) in table
+    assert "hit a mover" not in format_table(report(results[3:], []), per_world=False)
 
 
 def test_the_report_breaks_the_figures_down_by_the_response_structure_drawn():
